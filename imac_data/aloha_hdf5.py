@@ -1,0 +1,304 @@
+"""ALOHA / AgileX Cobot Magic HDF5 episodes: the raw format we read (and our simulator writes).
+
+One file per episode (``episode_0.hdf5``, ``episode_1.hdf5``, ...)::
+
+    /observations/qpos                 (T, D) float   measured joint state
+    /observations/qvel                 (T, D) float   optional
+    /observations/images/<cam>         (T, H, W, 3) uint8 RGB
+                                       or (T, L) uint8 padded JPEG bytes when compressed
+    /observations/images_depth/<cam>   (T, H, W) uint16 millimetres (AgileX), optional
+    /observations/segmentation/<cam>   (T, H, W) int16 MuJoCo geom id, -1 = none (simulator only)
+    /action                            (T, D) float   commanded joint targets
+    /compress_len                      (n_cams, T)    JPEG byte counts, rows in sorted camera order
+    attrs: sim, compress, and optionally fps, task, source, policy_name, checkpoint, success,
+           segmentation_labels (JSON {geom id: [geom name, body name]})
+
+The compressed variant stores what ``cv2.imencode('.jpg', rgb)`` returns for the RGB
+array (the ALOHA/ACT recorders pass RGB straight to OpenCV), so decoding returns RGB
+without a channel swap.
+
+Reading validates everything a build relies on and raises :class:`InputError`
+naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+
+from imac_data.errors import InputError
+
+SOURCES = ("teleop", "policy")
+
+
+@dataclass
+class EpisodeInfo:
+    """Episode-level metadata (what produced the episode, and how it ended)."""
+
+    task: str | None = None
+    source: str | None = None  # "teleop" | "policy"
+    policy_name: str | None = None
+    checkpoint: str | None = None
+    success: bool | None = None
+
+    def __post_init__(self) -> None:
+        if self.source is not None and self.source not in SOURCES:
+            raise InputError(f"episode source must be one of {SOURCES}, got {self.source!r}")
+
+
+@dataclass
+class RawEpisode:
+    qpos: np.ndarray  # (T, D)
+    action: np.ndarray  # (T, D)
+    images: dict[str, np.ndarray]  # cam -> (T, H, W, 3) uint8
+    qvel: np.ndarray | None = None
+    depth_mm: dict[str, np.ndarray] = field(default_factory=dict)  # cam -> (T, H, W) uint16
+    segmentation: dict[str, np.ndarray] = field(default_factory=dict)  # cam -> (T, H, W) int16
+    segmentation_labels: dict[int, tuple[str, str]] = field(default_factory=dict)
+    info: EpisodeInfo = field(default_factory=EpisodeInfo)
+    fps: float | None = None
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.qpos.shape[0])
+
+    @property
+    def cameras(self) -> list[str]:
+        return sorted(self.images)
+
+
+def episode_paths(source_dir: str | Path) -> list[Path]:
+    """The ``*.hdf5`` episode files of a directory in natural order (episode_2 before episode_10)."""
+    source_dir = Path(source_dir)
+    if not source_dir.is_dir():
+        raise InputError(f"source directory does not exist: {source_dir}")
+    paths = [p for p in source_dir.iterdir() if p.suffix in (".hdf5", ".h5") and p.is_file()]
+    if not paths:
+        raise InputError(f"no .hdf5 episodes in {source_dir}")
+
+    def natural(p: Path):
+        return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
+
+    return sorted(paths, key=natural)
+
+
+# --------------------------------------------------------------------------- write
+
+
+def write_episode(path: str | Path, episode: RawEpisode, *, compress: bool = False,
+                  jpeg_quality: int = 95, sim: bool = True) -> None:
+    """Write an episode in the ALOHA layout; atomic (temp file renamed into place)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    cams = sorted(episode.images)
+    T = episode.num_frames
+    with h5py.File(tmp, "w") as f:
+        f.attrs["sim"] = sim
+        f.attrs["compress"] = compress
+        if episode.fps is not None:
+            f.attrs["fps"] = float(episode.fps)
+        for key in ("task", "source", "policy_name", "checkpoint"):
+            value = getattr(episode.info, key)
+            if value is not None:
+                f.attrs[key] = value
+        if episode.info.success is not None:
+            f.attrs["success"] = bool(episode.info.success)
+        obs = f.create_group("observations")
+        obs.create_dataset("qpos", data=episode.qpos)
+        if episode.qvel is not None:
+            obs.create_dataset("qvel", data=episode.qvel)
+        f.create_dataset("action", data=episode.action)
+        images = obs.create_group("images")
+        if compress:
+            encoded = {
+                cam: [cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])[1].ravel()
+                      for frame in episode.images[cam]]
+                for cam in cams
+            }
+            lengths = np.array([[len(b) for b in encoded[cam]] for cam in cams], dtype=np.int64)
+            width = int(lengths.max())
+            for cam in cams:
+                padded = np.zeros((T, width), dtype=np.uint8)
+                for t, b in enumerate(encoded[cam]):
+                    padded[t, : len(b)] = b
+                images.create_dataset(cam, data=padded)
+            f.create_dataset("compress_len", data=lengths)
+        else:
+            for cam in cams:
+                images.create_dataset(cam, data=episode.images[cam], chunks=(1, *episode.images[cam].shape[1:]))
+        if episode.depth_mm:
+            depth = obs.create_group("images_depth")
+            for cam, d in episode.depth_mm.items():
+                depth.create_dataset(cam, data=d, chunks=(1, *d.shape[1:]), compression="gzip", compression_opts=1)
+        if episode.segmentation:
+            seg = obs.create_group("segmentation")
+            for cam, s in episode.segmentation.items():
+                seg.create_dataset(cam, data=s, chunks=(1, *s.shape[1:]), compression="gzip", compression_opts=1)
+            f.attrs["segmentation_labels"] = json.dumps(
+                {str(k): list(v) for k, v in episode.segmentation_labels.items()}
+            )
+    tmp.replace(path)
+
+
+# --------------------------------------------------------------------------- read
+
+
+def _dataset(f: h5py.File, path: Path, key: str) -> h5py.Dataset:
+    if key not in f:
+        parent = key.rsplit("/", 1)[0] or "/"
+        have = sorted(f[parent].keys()) if parent in f and isinstance(f[parent], h5py.Group) else []
+        hint = f" (the file has {parent}: {have})" if have else ""
+        raise InputError(f"{path}: missing HDF5 dataset '{key}'{hint}")
+    obj = f[key]
+    if not isinstance(obj, h5py.Dataset):
+        raise InputError(f"{path}: '{key}' is a group, expected a dataset")
+    return obj
+
+
+def _joint_array(f: h5py.File, path: Path, key: str) -> np.ndarray:
+    arr = _dataset(f, path, key)[()]
+    if arr.ndim != 2 or not np.issubdtype(arr.dtype, np.number):
+        raise InputError(f"{path}: '{key}' must be a (T, D) numeric array, got shape {arr.shape} {arr.dtype}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        t, j = np.argwhere(bad)[0]
+        raise InputError(f"{path}: '{key}' has NaN/inf values (first at frame {t}, joint index {j})")
+    return arr.astype(np.float64)
+
+
+def _camera_names(f: h5py.File, path: Path) -> list[str]:
+    if "observations/images" not in f or not isinstance(f["observations/images"], h5py.Group):
+        raise InputError(f"{path}: missing HDF5 group '/observations/images'")
+    cams = sorted(f["observations/images"].keys())
+    if not cams:
+        raise InputError(f"{path}: '/observations/images' holds no cameras")
+    return cams
+
+
+def _decode_jpeg_stack(data: np.ndarray, lengths: np.ndarray, path: Path, key: str) -> np.ndarray:
+    frames = []
+    for t, n in enumerate(lengths):
+        img = cv2.imdecode(data[t, : int(n)], cv2.IMREAD_COLOR)
+        if img is None:
+            raise InputError(f"{path}: '{key}' frame {t} is not a decodable JPEG")
+        frames.append(img)
+    return np.stack(frames)
+
+
+def probe_episode(path: str | Path) -> dict:
+    """Cheap structural check of an episode without loading images: returns
+    ``{"num_frames", "dof", "cameras", "image_hw", "has_depth"}`` or raises InputError."""
+    path = Path(path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise InputError(f"{path}: not a readable HDF5 file ({e})") from None
+    with f:
+        qpos = _joint_array(f, path, "observations/qpos")
+        action = _joint_array(f, path, "action")
+        T, D = qpos.shape
+        if action.shape != (T, D):
+            raise InputError(
+                f"{path}: length/width mismatch: 'observations/qpos' is {qpos.shape}, 'action' is {action.shape}"
+            )
+        if "observations/qvel" in f and f["observations/qvel"].shape[0] != T:
+            raise InputError(f"{path}: 'observations/qvel' has {f['observations/qvel'].shape[0]} frames, qpos has {T}")
+        cams = _camera_names(f, path)
+        compressed = bool(f.attrs.get("compress", False))
+        if compressed:
+            lengths = _dataset(f, path, "compress_len")
+            if lengths.shape != (len(cams), T):
+                raise InputError(
+                    f"{path}: 'compress_len' has shape {lengths.shape}, expected ({len(cams)}, {T}) for cameras {cams}"
+                )
+        hw = None
+        for cam in cams:
+            key = f"observations/images/{cam}"
+            ds = f[key]
+            if ds.shape[0] != T:
+                raise InputError(f"{path}: '{key}' has {ds.shape[0]} frames, 'observations/qpos' has {T}")
+            if not compressed:
+                if ds.ndim != 4 or ds.shape[-1] != 3 or ds.dtype != np.uint8:
+                    raise InputError(f"{path}: '{key}' must be (T, H, W, 3) uint8, got {ds.shape} {ds.dtype}")
+                hw = hw or tuple(ds.shape[1:3])
+        has_depth = "observations/images_depth" in f
+        if has_depth:
+            for cam in f["observations/images_depth"].keys():
+                key = f"observations/images_depth/{cam}"
+                if cam not in cams:
+                    raise InputError(f"{path}: '{key}' has no matching RGB camera in {cams}")
+                if f[key].shape[0] != T:
+                    raise InputError(f"{path}: '{key}' has {f[key].shape[0]} frames, 'observations/qpos' has {T}")
+        return {"num_frames": T, "dof": D, "cameras": cams, "compressed": compressed, "has_depth": has_depth}
+
+
+def read_episode(path: str | Path, *, cameras: list[str] | None = None, load_depth: bool = True,
+                 load_segmentation: bool = False) -> RawEpisode:
+    """Load and validate one episode (all frames in memory)."""
+    path = Path(path)
+    probe_episode(path)
+    with h5py.File(path, "r") as f:
+        all_cams = _camera_names(f, path)
+        if cameras is None:
+            cameras = all_cams
+        missing = [c for c in cameras if c not in all_cams]
+        if missing:
+            raise InputError(f"{path}: camera(s) {missing} not in '/observations/images' (has {all_cams})")
+        compressed = bool(f.attrs.get("compress", False))
+        images = {}
+        for cam in cameras:
+            key = f"observations/images/{cam}"
+            if compressed:
+                lengths = f["compress_len"][all_cams.index(cam)]
+                images[cam] = _decode_jpeg_stack(f[key][()], lengths, path, key)
+            else:
+                images[cam] = f[key][()]
+        depth = {}
+        if load_depth and "observations/images_depth" in f:
+            for cam in cameras:
+                key = f"observations/images_depth/{cam}"
+                if key in f:
+                    d = f[key][()]
+                    if d.ndim != 3 or d.dtype != np.uint16:
+                        raise InputError(f"{path}: '{key}' must be (T, H, W) uint16 millimetres, got {d.shape} {d.dtype}")
+                    depth[cam] = d
+        seg, labels = {}, {}
+        if load_segmentation and "observations/segmentation" in f:
+            for cam in cameras:
+                key = f"observations/segmentation/{cam}"
+                if key in f:
+                    seg[cam] = f[key][()]
+            raw = json.loads(f.attrs.get("segmentation_labels", "{}"))
+            labels = {int(k): tuple(v) for k, v in raw.items()}
+        attrs = f.attrs
+        success = attrs.get("success")
+        info = EpisodeInfo(
+            task=_str_attr(attrs.get("task")),
+            source=_str_attr(attrs.get("source")),
+            policy_name=_str_attr(attrs.get("policy_name")),
+            checkpoint=_str_attr(attrs.get("checkpoint")),
+            success=None if success is None else bool(success),
+        )
+        return RawEpisode(
+            qpos=_joint_array(f, path, "observations/qpos"),
+            action=_joint_array(f, path, "action"),
+            qvel=_joint_array(f, path, "observations/qvel") if "observations/qvel" in f else None,
+            images=images,
+            depth_mm=depth,
+            segmentation=seg,
+            segmentation_labels=labels,
+            info=info,
+            fps=float(attrs["fps"]) if "fps" in attrs else None,
+        )
+
+
+def _str_attr(value) -> str | None:
+    if value is None:
+        return None
+    return value.decode() if isinstance(value, bytes) else str(value)

@@ -1,0 +1,375 @@
+"""Robot description: dataset joint vector -> URDF joints -> link poses and visual meshes.
+
+A :class:`RobotConfig` says which URDF to use and how each index of the
+dataset's ``observation.state`` / ``action`` vector maps to a URDF joint
+(DESIGN.md section 2): arm indices name a joint directly, gripper indices go
+through an explicit affine :class:`GripperMap` to a finger joint, and URDF
+``<mimic>`` joints (the second finger) follow their leader.
+
+:class:`RobotModel` loads the URDF once (yourdfpy for the visual geometry,
+pytorch-kinematics for FK) and then works on torch tensors of any batch shape
+``(*B, D)``, on CPU or CUDA, in float32 or float64. World = the URDF root frame.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytorch_kinematics as pk
+import torch
+import trimesh
+import yourdfpy
+
+from imac_data.errors import InputError
+
+_DEFAULT_RGBA = (0.5, 0.5, 0.5, 1.0)  # MuJoCo's default geom colour, for visuals without a material
+
+
+# ----------------------------------------------------------------------------- config
+
+
+@dataclass(frozen=True)
+class GripperMap:
+    """Dataset gripper value -> finger joint position: ``offset + scale * value``."""
+
+    index: int  # index in the dataset joint vector
+    joint: str  # URDF finger joint it drives
+    scale: float
+    offset: float = 0.0
+
+    def __post_init__(self):
+        if not (math.isfinite(self.scale) and math.isfinite(self.offset)) or self.scale == 0:
+            raise InputError(f"gripper map of index {self.index} ({self.joint!r}): scale must be finite and "
+                             f"non-zero and offset finite, got scale={self.scale}, offset={self.offset}")
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """Which URDF, and how the dataset's joint vector drives it.
+
+    ``joint_map[i]`` is the URDF joint name of dataset index ``i``, or a
+    :class:`GripperMap` (whose ``index`` must be ``i``). URDF joints that are
+    neither mapped nor mimic followers stay at 0. ``package_dirs`` maps a
+    package name to the directory that ``package://<name>/`` stands for.
+    """
+
+    name: str
+    urdf_path: Path
+    joint_map: tuple[str | GripperMap, ...]
+    gripper_links: tuple[str, ...] = ()
+    package_dirs: tuple[tuple[str, Path], ...] = ()
+
+    def __post_init__(self):
+        # Normalise containers so configs are hashable and comparable (frozen dataclass).
+        pkg = self.package_dirs.items() if isinstance(self.package_dirs, Mapping) else self.package_dirs
+        object.__setattr__(self, "urdf_path", Path(self.urdf_path))
+        object.__setattr__(self, "joint_map", tuple(self.joint_map))
+        object.__setattr__(self, "gripper_links", tuple(self.gripper_links))
+        object.__setattr__(self, "package_dirs", tuple((str(k), Path(v)) for k, v in pkg))
+        if not self.name:
+            raise InputError("robot config needs a name")
+        if not self.joint_map:
+            raise InputError(f"robot {self.name!r}: joint_map is empty")
+        seen = set()
+        for i, entry in enumerate(self.joint_map):
+            if isinstance(entry, GripperMap):
+                if entry.index != i:
+                    raise InputError(f"robot {self.name!r}: joint_map[{i}] is a GripperMap with index {entry.index}")
+                joint = entry.joint
+            elif isinstance(entry, str) and entry:
+                joint = entry
+            else:
+                raise InputError(f"robot {self.name!r}: joint_map[{i}] must be a joint name or a GripperMap, "
+                                 f"got {entry!r}")
+            if joint in seen:
+                raise InputError(f"robot {self.name!r}: joint {joint!r} is mapped twice in joint_map")
+            seen.add(joint)
+
+    @property
+    def dof(self) -> int:
+        return len(self.joint_map)
+
+    def joint_name(self, i: int) -> str:
+        entry = self.joint_map[i]
+        return entry.joint if isinstance(entry, GripperMap) else entry
+
+    def validate(self, urdf: yourdfpy.URDF) -> None:
+        """Check the config against a parsed URDF; InputError names what is missing."""
+        movable = {j.name: j for j in urdf.robot.joints if j.type != "fixed"}
+        for i in range(self.dof):
+            joint = self.joint_name(i)
+            if joint not in movable:
+                what = "is fixed in" if joint in urdf.joint_map else "does not exist in"
+                raise InputError(f"robot {self.name!r}: joint {joint!r} (dataset index {i}) {what} the URDF "
+                                 f"{self.urdf_path}")
+            if movable[joint].mimic is not None:
+                raise InputError(f"robot {self.name!r}: joint {joint!r} (dataset index {i}) is a mimic joint in "
+                                 f"{self.urdf_path}; map its leader {movable[joint].mimic.joint!r} instead")
+        for link in self.gripper_links:
+            if link not in urdf.link_map:
+                raise InputError(f"robot {self.name!r}: gripper link {link!r} does not exist in the URDF "
+                                 f"{self.urdf_path}")
+
+
+# ----------------------------------------------------------------------------- meshes
+
+
+@dataclass(frozen=True, eq=False)
+class VisualMesh:
+    """One URDF visual, in its link's frame (visual origin and scale applied)."""
+
+    link: str
+    vertices: np.ndarray  # (V, 3) float32, link frame
+    faces: np.ndarray  # (F, 3) int32
+    rgba: np.ndarray  # (4,) float32 in [0, 1]
+    name: str = ""  # the URDF visual name (our MJCF export: the MuJoCo geom name)
+
+
+def resolve_filename(fname: str, urdf_path: Path, package_dirs: Mapping[str, Path]) -> Path:
+    """A URDF mesh ``filename`` -> local path (``package://``, ``file://``, absolute, or URDF-relative)."""
+    if fname.startswith("package://"):
+        pkg, _, rel = fname[len("package://"):].partition("/")
+        if pkg not in package_dirs:
+            raise InputError(f"mesh {fname!r} in {urdf_path} uses package {pkg!r}, which is not in the robot "
+                             f"config's package_dirs ({sorted(package_dirs)})")
+        return Path(package_dirs[pkg]) / rel
+    if fname.startswith("file://"):
+        fname = fname[len("file://"):]
+    path = Path(fname)
+    return path if path.is_absolute() else urdf_path.parent / path
+
+
+def _material_rgba(visual: yourdfpy.Visual, materials: Mapping[str, yourdfpy.Material]) -> np.ndarray:
+    mat = visual.material
+    if mat is not None and mat.color is None and mat.name in materials:
+        mat = materials[mat.name]  # a reference to a robot-level named material
+    rgba = mat.color.rgba if (mat is not None and mat.color is not None) else _DEFAULT_RGBA
+    return np.asarray(rgba, dtype=np.float32)
+
+
+def _geometry_mesh(geom: yourdfpy.Geometry, visual_name: str, urdf_path: Path,
+                   package_dirs: Mapping[str, Path]) -> trimesh.Trimesh:
+    if geom.mesh is not None:
+        path = resolve_filename(geom.mesh.filename, urdf_path, package_dirs)
+        if not path.is_file():
+            raise InputError(f"mesh file {path} (filename {geom.mesh.filename!r} of visual {visual_name!r}) "
+                             f"referenced by the URDF {urdf_path} does not exist")
+        # process=True merges duplicate STL vertices (as MuJoCo does); force="mesh" flattens scenes.
+        mesh = trimesh.load(str(path), force="mesh")
+        scale = 1.0 if geom.mesh.scale is None else np.broadcast_to(np.asarray(geom.mesh.scale, float), 3)
+        return trimesh.Trimesh(mesh.vertices * scale, mesh.faces, process=False)
+    if geom.box is not None:
+        return trimesh.creation.box(extents=geom.box.size)
+    if geom.sphere is not None:
+        return trimesh.creation.icosphere(subdivisions=3, radius=geom.sphere.radius)
+    if geom.cylinder is not None:
+        return trimesh.creation.cylinder(radius=geom.cylinder.radius, height=geom.cylinder.length, sections=32)
+    raise InputError(f"visual {visual_name!r} in {urdf_path} has no geometry")
+
+
+def load_visual_meshes(urdf: yourdfpy.URDF, urdf_path: Path,
+                       package_dirs: Mapping[str, Path]) -> list[VisualMesh]:
+    materials = {m.name: m for m in urdf.robot.materials if m.name}
+    out = []
+    for link in urdf.robot.links:
+        for k, visual in enumerate(link.visuals):
+            name = visual.name or f"{link.name}/visual{k}"
+            mesh = _geometry_mesh(visual.geometry, name, urdf_path, package_dirs)
+            origin = np.eye(4) if visual.origin is None else np.asarray(visual.origin, dtype=np.float64)
+            vertices = mesh.vertices @ origin[:3, :3].T + origin[:3, 3]
+            out.append(VisualMesh(link=link.name, vertices=np.array(vertices, dtype=np.float32),
+                                  faces=np.asarray(mesh.faces, dtype=np.int32),
+                                  rgba=_material_rgba(visual, materials), name=name))
+    return out
+
+
+# ----------------------------------------------------------------------------- model
+
+
+class RobotModel:
+    """FK and visual geometry of a robot, driven by the dataset joint vector."""
+
+    def __init__(self, config: RobotConfig):
+        self.config = config
+        path = config.urdf_path
+        if not path.is_file():
+            raise InputError(f"robot {config.name!r}: URDF file {path} does not exist")
+        self.urdf_text = path.read_text()
+        self.urdf_hash = hashlib.sha256(self.urdf_text.encode()).hexdigest()
+        try:
+            urdf = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False)
+        except Exception as e:  # yourdfpy raises assorted errors on malformed XML
+            raise InputError(f"robot {config.name!r}: cannot parse URDF {path}: {e}") from e
+        config.validate(urdf)
+        self.visual_meshes = load_visual_meshes(urdf, path, dict(config.package_dirs))
+
+        # pytorch-kinematics ignores <mimic>: the chain treats followers as free
+        # joints, so we compute every chain joint ourselves. Each chain joint is
+        # an affine function of one dataset entry: q_chain[j] = a[j] * q[src[j]] + b[j]
+        # (elementwise, not a matmul, so TF32 on GPUs cannot round it).
+        self._kinematic_urdf = _strip_geometry(self.urdf_text)
+        chain = pk.build_chain_from_urdf(self._kinematic_urdf)
+        self.joint_names: list[str] = chain.get_joint_parameter_names()
+        self.link_names: list[str] = [chain.idx_to_frame[i] for i in range(len(chain.idx_to_frame))]
+        self._chains = {(torch.float32, "cpu"): chain}
+        self.mimic = _mimic_spec(urdf)  # follower -> (leader, multiplier, offset)
+        src, a, b = _chain_joint_affine(self.joint_names, config, self.mimic)
+        self._src = torch.tensor(src, dtype=torch.long)
+        self._a = torch.tensor(a, dtype=torch.float64)
+        self._b = torch.tensor(b, dtype=torch.float64)
+        self._vertex_cache: dict = {}
+
+    # ------------------------------------------------------------------ properties
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    @property
+    def dof(self) -> int:
+        """D, the length of the dataset joint vector."""
+        return self.config.dof
+
+    @property
+    def gripper_links(self) -> tuple[str, ...]:
+        return self.config.gripper_links
+
+    def _chain(self, dtype: torch.dtype, device: torch.device) -> pk.Chain:
+        key = (dtype, str(device))
+        if key not in self._chains:
+            self._chains[key] = pk.build_chain_from_urdf(self._kinematic_urdf).to(dtype=dtype, device=device)
+        return self._chains[key]
+
+    # ------------------------------------------------------------------ joints
+
+    def joint_positions(self, q) -> torch.Tensor:
+        """Dataset joint vector ``(*B, D)`` -> chain joint values ``(*B, J)`` (order: ``joint_names``)."""
+        q = _as_float_tensor(q)
+        if q.ndim == 0 or q.shape[-1] != self.dof:
+            raise InputError(f"robot {self.name!r}: joint vector must have {self.dof} entries in its last "
+                             f"dimension, got shape {tuple(q.shape)}")
+        bad = ~torch.isfinite(q)
+        if bad.any():
+            where = tuple(int(i) for i in torch.nonzero(bad)[0].tolist())
+            i = where[-1]
+            raise InputError(f"robot {self.name!r}: non-finite value {q[where].item()} at joint index {i} "
+                             f"({self.config.joint_name(i)!r}), batch position {where[:-1]}")
+        src = self._src.to(q.device)
+        return q[..., src] * self._a.to(q) + self._b.to(q)
+
+    # ------------------------------------------------------------------ kinematics
+
+    def _fk(self, th: torch.Tensor) -> dict[str, torch.Tensor]:
+        batch = th.shape[:-1]
+        chain = self._chain(th.dtype, th.device)
+        T = chain.forward_kinematics_tensor(th.reshape(-1, th.shape[-1]))  # (L, N, 4, 4)
+        return {name: T[i].reshape(*batch, 4, 4) for i, name in chain.idx_to_frame.items()}
+
+    def link_poses(self, q) -> dict[str, torch.Tensor]:
+        """World pose ``(*B, 4, 4)`` of every link for dataset joint vectors ``q`` ``(*B, D)``."""
+        return self._fk(self.joint_positions(q))
+
+    def forward_kinematics_joints(self, joint_values: Mapping[str, torch.Tensor | float]) -> dict[str, torch.Tensor]:
+        """Link poses from raw URDF joint values by name (each ``(*B,)``, broadcast together).
+
+        Every non-mimic chain joint must be given; a mimic follower that is not
+        given follows its leader, one that is given is used as is.
+        """
+        unknown = set(joint_values) - set(self.joint_names)
+        if unknown:
+            raise InputError(f"robot {self.name!r}: no movable joint(s) {sorted(unknown)} in {self.config.urdf_path}")
+        missing = [n for n in self.joint_names if n not in joint_values and n not in self.mimic]
+        if missing:
+            raise InputError(f"robot {self.name!r}: missing values for joint(s) {missing}")
+        tensors = {n: _as_float_tensor(v) for n, v in joint_values.items()}
+        ref = next(iter(tensors.values()))
+        dtype = ref.dtype
+        for t in tensors.values():
+            dtype = torch.promote_types(dtype, t.dtype)
+        tensors = {n: t.to(device=ref.device, dtype=dtype) for n, t in tensors.items()}
+        values: dict[str, torch.Tensor] = dict(tensors)
+
+        def value(name: str) -> torch.Tensor:
+            if name not in values:
+                lead, mult, off = self.mimic[name]
+                values[name] = off + mult * value(lead)
+            return values[name]
+
+        cols = torch.broadcast_tensors(*[value(n) for n in self.joint_names])
+        th = torch.stack(cols, dim=-1)
+        if not torch.isfinite(th).all():
+            raise InputError(f"robot {self.name!r}: non-finite joint value(s) given")
+        return self._fk(th)
+
+    # ------------------------------------------------------------------ geometry
+
+    def posed_vertices(self, q=None, *, link_poses: Mapping[str, torch.Tensor] | None = None) -> list[torch.Tensor]:
+        """World vertices ``(*B, V, 3)`` of every visual mesh (same order as ``visual_meshes``)."""
+        poses = self.link_poses(q) if link_poses is None else link_poses
+        ref = next(iter(poses.values()))
+        key = (ref.dtype, str(ref.device))
+        if key not in self._vertex_cache:
+            self._vertex_cache[key] = [torch.as_tensor(m.vertices).to(ref) for m in self.visual_meshes]
+        out = []
+        for mesh, v in zip(self.visual_meshes, self._vertex_cache[key]):
+            T = poses[mesh.link]
+            out.append(v @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3])
+        return out
+
+
+def _mimic_spec(urdf: yourdfpy.URDF) -> dict[str, tuple[str, float, float]]:
+    """URDF ``<mimic>`` tags as follower -> (leader, multiplier, offset), URDF defaults filled in."""
+    return {j.name: (j.mimic.joint,
+                     1.0 if j.mimic.multiplier is None else j.mimic.multiplier,
+                     0.0 if j.mimic.offset is None else j.mimic.offset)
+            for j in urdf.robot.joints if j.mimic is not None}
+
+
+def _chain_joint_affine(joint_names: list[str], config: RobotConfig,
+                        mimic: Mapping[str, tuple[str, float, float]]) -> tuple[list[int], list[float], list[float]]:
+    """For each chain joint j: (src[j], a[j], b[j]) with q_chain[j] = a[j] * q[src[j]] + b[j].
+
+    Arm joints copy their dataset entry, gripper joints apply their GripperMap,
+    mimic followers compose their leader's map with the mimic's; joints that
+    nothing drives get a = b = 0 (held at 0).
+    """
+    direct = {}
+    for i, entry in enumerate(config.joint_map):
+        direct[config.joint_name(i)] = (i, entry.scale, entry.offset) if isinstance(entry, GripperMap) else (i, 1.0, 0.0)
+
+    def resolve(name: str, seen: tuple[str, ...] = ()) -> tuple[int, float, float]:
+        if name in direct:
+            return direct[name]
+        if name not in mimic:
+            return (0, 0.0, 0.0)
+        if name in seen:
+            raise InputError(f"robot {config.name!r}: mimic joints form a cycle {seen + (name,)} in "
+                             f"{config.urdf_path}")
+        leader, mult, off = mimic[name]
+        i, a, b = resolve(leader, seen + (name,))
+        return i, mult * a, mult * b + off
+
+    src, a, b = zip(*(resolve(n) for n in joint_names)) if joint_names else ((), (), ())
+    return list(src), list(a), list(b)
+
+
+def _strip_geometry(urdf_text: str) -> str:
+    """The URDF without visual/collision/inertial elements: pytorch-kinematics only needs
+    the tree, and its bundled parser warns on valid attributes such as ``<visual name=...>``."""
+    root = ET.fromstring(urdf_text.encode())
+    for link in root.iter("link"):
+        for child in list(link):
+            if child.tag in ("visual", "collision", "inertial"):
+                link.remove(child)
+    return ET.tostring(root, encoding="unicode")
+
+
+def _as_float_tensor(x) -> torch.Tensor:
+    t = torch.as_tensor(x)
+    return t if t.is_floating_point() else t.to(torch.get_default_dtype())
