@@ -26,7 +26,7 @@ black. In 8-bit codes the walk has ``7 * 255 = 1785`` steps (:data:`N_CODES`);
 code 0 is black (invalid) and code 1785 is white (never written). Valid depth is
 clamped to ``[min_depth, max_depth]``, the depths of codes 1 and 1784, in the
 float codec as well as the 8-bit one, so both behave the same. ``min_depth`` is
-0.28 mm (``manipulation``) or 2.8 mm (``general``), far below any sensor's range;
+0.30 mm (``manipulation``) or 2.8 mm (``general``), far below any sensor's range;
 ``max_depth`` is 4.0 m (``manipulation``) or 412 m (``general``). Depth beyond
 ``max_depth`` *saturates* (decodes to ``max_depth``, and the 8-bit step there is
 already about 0.5 m for ``manipulation``); filter ``depth >= codec.max_depth``
@@ -370,7 +370,8 @@ class DepthCodec:
         """Metres per 8-bit code step at ``depth`` (float64): ``1 / (1785 f'(d))``.
 
         One code step changes one channel of the colour by one LSB. Rounding to the
-        nearest code errs by at most half of this.
+        nearest code errs by at most half the step at the larger of the true and the
+        decoded depth (the step grows with depth).
         """
         d = np.asarray(depth, dtype=np.float64)
         lam, c = self.lam, self.c

@@ -17,7 +17,7 @@ import hashlib
 import math
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -80,7 +80,8 @@ class RobotConfig:
         for i, entry in enumerate(self.joint_map):
             if isinstance(entry, GripperMap):
                 if entry.index != i:
-                    raise InputError(f"robot {self.name!r}: joint_map[{i}] is a GripperMap with index {entry.index}")
+                    raise InputError(f"robot {self.name!r}: joint_map[{i}] is a GripperMap with index "
+                                     f"{entry.index}")
                 joint = entry.joint
             elif isinstance(entry, str) and entry:
                 joint = entry
@@ -275,7 +276,8 @@ class RobotModel:
         """World pose ``(*B, 4, 4)`` of every link for dataset joint vectors ``q`` ``(*B, D)``."""
         return self._fk(self.joint_positions(q))
 
-    def forward_kinematics_joints(self, joint_values: Mapping[str, torch.Tensor | float]) -> dict[str, torch.Tensor]:
+    def forward_kinematics_joints(self, joint_values: Mapping[str, torch.Tensor | float]
+                                  ) -> dict[str, torch.Tensor]:
         """Link poses from raw URDF joint values by name (each ``(*B,)``, broadcast together).
 
         Every non-mimic chain joint must be given; a mimic follower that is not
@@ -283,7 +285,8 @@ class RobotModel:
         """
         unknown = set(joint_values) - set(self.joint_names)
         if unknown:
-            raise InputError(f"robot {self.name!r}: no movable joint(s) {sorted(unknown)} in {self.config.urdf_path}")
+            raise InputError(f"robot {self.name!r}: no movable joint(s) {sorted(unknown)} in "
+                             f"{self.config.urdf_path}")
         missing = [n for n in self.joint_names if n not in joint_values and n not in self.mimic]
         if missing:
             raise InputError(f"robot {self.name!r}: missing values for joint(s) {missing}")
@@ -309,7 +312,8 @@ class RobotModel:
 
     # ------------------------------------------------------------------ geometry
 
-    def posed_vertices(self, q=None, *, link_poses: Mapping[str, torch.Tensor] | None = None) -> list[torch.Tensor]:
+    def posed_vertices(self, q=None, *, link_poses: Mapping[str, torch.Tensor] | None = None
+                       ) -> list[torch.Tensor]:
         """World vertices ``(*B, V, 3)`` of every visual mesh (same order as ``visual_meshes``)."""
         poses = self.link_poses(q) if link_poses is None else link_poses
         ref = next(iter(poses.values()))
@@ -331,8 +335,8 @@ def _mimic_spec(urdf: yourdfpy.URDF) -> dict[str, tuple[str, float, float]]:
             for j in urdf.robot.joints if j.mimic is not None}
 
 
-def _chain_joint_affine(joint_names: list[str], config: RobotConfig,
-                        mimic: Mapping[str, tuple[str, float, float]]) -> tuple[list[int], list[float], list[float]]:
+def _chain_joint_affine(joint_names: list[str], config: RobotConfig, mimic: Mapping[str, tuple[str, float, float]]
+                        ) -> tuple[list[int], list[float], list[float]]:
     """For each chain joint j: (src[j], a[j], b[j]) with q_chain[j] = a[j] * q[src[j]] + b[j].
 
     Arm joints copy their dataset entry, gripper joints apply their GripperMap,
@@ -341,7 +345,8 @@ def _chain_joint_affine(joint_names: list[str], config: RobotConfig,
     """
     direct = {}
     for i, entry in enumerate(config.joint_map):
-        direct[config.joint_name(i)] = (i, entry.scale, entry.offset) if isinstance(entry, GripperMap) else (i, 1.0, 0.0)
+        gripper = isinstance(entry, GripperMap)
+        direct[config.joint_name(i)] = (i, entry.scale, entry.offset) if gripper else (i, 1.0, 0.0)
 
     def resolve(name: str, seen: tuple[str, ...] = ()) -> tuple[int, float, float]:
         if name in direct:

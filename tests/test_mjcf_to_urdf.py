@@ -41,7 +41,8 @@ SYNTH_XML = """
         <geom name="bot/invisible" type="sphere" size="0.02" rgba="1 0 0 0"/>
         <body name="bot/link1" pos="0 0 0.1" euler="0.2 -0.1 0.3">
           <joint name="bot/j1" type="hinge" axis="0 0.6 0.8" pos="0.02 0.01 -0.03" ref="0.3" range="-2 2"/>
-          <geom name="bot/blob" type="mesh" mesh="blob" pos="0.03 0 0.05" euler="0.5 1.5707963267948966 0" rgba="0.2 0.3 0.4 1"/>
+          <geom name="bot/blob" type="mesh" mesh="blob" pos="0.03 0 0.05" euler="0.5 1.5707963267948966 0"
+                rgba="0.2 0.3 0.4 1"/>
           <body name="bot/link2" pos="0.2 0 0">
             <joint name="bot/j2a" type="hinge" axis="1 0 0" pos="0 0.02 0"/>
             <joint name="bot/j2b" type="slide" axis="0 0 1" range="-0.1 0.1" ref="0.01"/>
@@ -49,7 +50,7 @@ SYNTH_XML = """
             <geom name="bot/ball" type="sphere" size="0.03" pos="0.05 0 0" rgba="1 1 0 1"/>
             <body name="bot/finger" pos="0.1 0 0">
               <joint name="bot/slide" type="slide" axis="0 1 0" range="0 0.05"/>
-              <geom name="bot/cyl" type="cylinder" size="0.01 0.04" quat="0.7071067811865476 0.7071067811865476 0 0"/>
+              <geom name="bot/cyl" type="cylinder" size="0.01 0.04" quat="0.70710678 0.70710678 0 0"/>
             </body>
           </body>
         </body>
