@@ -159,6 +159,7 @@ def ingest_episodes(paths: Sequence[str | Path], *, calibration: dict[str, Camer
     if staging.exists():
         shutil.rmtree(staging)
     staging.parent.mkdir(parents=True, exist_ok=True)
+    dataset = None
     try:
         dataset = LeRobotDataset.create(
             repo_id=repo_id, fps=int(round(options.fps)), features=features, root=staging,
@@ -206,9 +207,24 @@ def ingest_episodes(paths: Sequence[str | Path], *, calibration: dict[str, Camer
             shutil.rmtree(root)
         staging.rename(root)
     except BaseException:
+        if dataset is not None:
+            _abandon(dataset)
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return LeRobotDataset(repo_id, root=root)
+
+
+def _abandon(dataset) -> None:
+    """Stop LeRobot's background writers (video encoder threads, parquet writers) so
+    nothing writes into the staging directory after we delete it."""
+    encoder = getattr(dataset, "_streaming_encoder", None)
+    if encoder is not None:
+        try:
+            encoder.cancel_episode()
+        finally:
+            encoder.close()
+    dataset._close_writer()
+    dataset.meta._close_writer()
 
 
 def add_episode_columns(root: Path, rows: list[dict]) -> None:

@@ -101,7 +101,8 @@ __all__ = [
     "simulate_episode",
     "record_dataset",
     "robot_mask",
-    "task_reward",
+    "segmentation_labels",
+    "depth_to_mm",
     "main",
 ]
 
@@ -345,9 +346,11 @@ class ScriptedPolicy:
     """Open-loop waypoint policy for one episode; ``policy(t)`` returns the 14-D action
     (joint-position targets + normalised gripper commands) at time ``t`` seconds."""
 
-    def __init__(self, task: str, model: mujoco.MjModel, data: mujoco.MjData, layout: _Layout,
+    def __init__(self, task: str, model: mujoco.MjModel, data: mujoco.MjData,
                  rng: np.random.Generator, noise: float = 0.0):
-        self.layout = layout
+        if task not in TASKS:
+            raise InputError(f"unknown task {task!r}; expected one of {TASKS}")
+        self.layout = layout = _Layout(model, task)
         self.noise = float(noise)
         self.rng = rng
         self.ik = {arm: _ArmIK(model, arm) for arm in ARMS}
@@ -441,6 +444,8 @@ class _Layout:
         self.gripper_cols = np.array([6, 13])
         names = {"transfer_cube": ("box",), "insertion": ("peg", "socket")}[task]
         self.object_bodies = {n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in names}
+        if min(self.object_bodies.values()) < 0:
+            raise InputError(f"the MuJoCo model is not gym-aloha's {task!r} model (no body {names})")
         self.object_qadr = {
             n: model.jnt_qposadr[model.body_jntadr[b]] for n, b in self.object_bodies.items()
         }
@@ -489,7 +494,7 @@ def _touch(pairs, a: set[int], b: set[int]) -> bool:
     return any((x, y) in pairs for x in a for y in b)
 
 
-def task_reward(layout: _Layout, data: mujoco.MjData, task: str) -> int:
+def _task_reward(layout: _Layout, data: mujoco.MjData, task: str) -> int:
     """gym-aloha's staged reward (0..4) from the current contacts, with either finger of
     a gripper counting as that gripper."""
     pairs = _contact_pairs(data)
@@ -600,6 +605,12 @@ class FrameRenderer:
     def close(self) -> None:
         self.renderer.close()
 
+    def __enter__(self) -> FrameRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
 
 def depth_to_mm(depth_m: np.ndarray, far: float) -> np.ndarray:
     """Planar z-depth in metres -> uint16 millimetres; far-plane (no hit), non-finite and
@@ -681,13 +692,22 @@ def simulate_episode(task: str, seed: int, *, noise: float = 0.0, frame_stride: 
                      model: mujoco.MjModel | None = None) -> EpisodeResult:
     """Roll out the scripted policy once. Without ``renderer`` nothing is rendered (fast:
     physics + IK only); with one, every recorded frame gets RGB (+ depth, segmentation)."""
-    if model is None:
-        model = renderer.model if renderer is not None else load_mujoco_model(task)
+    if task not in TASKS:
+        raise InputError(f"unknown task {task!r}; expected one of {TASKS}")
+    if renderer is not None:
+        if model is not None and model is not renderer.model:
+            raise InputError("simulate_episode: pass either model or renderer (which has its own model), not both")
+        model = renderer.model
+    elif model is None:
+        model = load_mujoco_model(task)
+    if frame_stride < 1:
+        raise InputError(f"frame_stride must be >= 1, got {frame_stride}")
     data = mujoco.MjData(model)
     layout = _Layout(model, task)
     _reset(model, data, layout, task, seed)
+    # The policy's noise stream is separate from the object-pose sampler (seeded with seed).
     rng = np.random.default_rng([int(seed), 0x51D])
-    policy = ScriptedPolicy(task, model, data, layout, rng, noise)
+    policy = ScriptedPolicy(task, model, data, rng, noise)
     n_steps = int(round(policy.duration / CONTROL_DT))
     if max_steps is not None:
         n_steps = min(n_steps, int(max_steps))
@@ -707,7 +727,7 @@ def simulate_episode(task: str, seed: int, *, noise: float = 0.0, frame_stride: 
         layout.apply(data, a)
         for _ in range(frame_stride):
             mujoco.mj_step(model, data, nstep=PHYSICS_SUBSTEPS)
-            max_reward = max(max_reward, task_reward(layout, data, task))
+            max_reward = max(max_reward, _task_reward(layout, data, task))
     success = _success(layout, data, task, max_reward)
 
     def stack(kind):
@@ -721,3 +741,193 @@ def simulate_episode(task: str, seed: int, *, noise: float = 0.0, frame_stride: 
         images=stack("rgb"), depth_mm=stack("depth_mm"), segmentation=stack("segmentation"),
         final_object_pos={n: data.xpos[b].copy() for n, b in layout.object_bodies.items()},
     )
+
+
+# --------------------------------------------------------------------------- datasets
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """What :func:`record_dataset` records. Validated on construction (:class:`InputError`
+    naming the field)."""
+
+    task: str = "transfer_cube"
+    num_episodes: int = 2
+    width: int = 320
+    height: int = 240
+    seed: int = 0  # episode i uses seed + i (object poses as gym-aloha's reset(seed=seed + i))
+    noise: float = 0.0  # policy quality knob in [0, 1]; 0 = exact
+    frame_stride: int = 2  # record every n-th 50 Hz control step (2 -> 25 fps)
+    max_steps: int | None = None  # cap on 50 Hz control steps per episode (None: the whole script)
+    with_depth: bool = True
+    with_segmentation: bool = False
+    compress: bool = False  # JPEG-compressed RGB (ALOHA's compressed variant)
+    jpeg_quality: int = 95
+    shadows: bool = False  # gym-aloha's shadow map (about 10x slower RGB on the CPU)
+    antialias: bool = False  # 4x multisampling (about 2x slower RGB on the CPU)
+
+    def __post_init__(self) -> None:
+        def bad(name, why):
+            raise InputError(f"SimConfig.{name}: {why} (got {getattr(self, name)!r})")
+
+        def is_int(v):
+            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+        if self.task not in TASKS:
+            bad("task", f"must be one of {TASKS}")
+        for name, lo, hi in (("num_episodes", 1, None), ("width", 16, 4096), ("height", 16, 4096),
+                             ("frame_stride", 1, 50), ("jpeg_quality", 1, 100), ("seed", 0, 2**32 - 1)):
+            v = getattr(self, name)
+            if not is_int(v):
+                bad(name, "must be an integer")
+            if v < lo or (hi is not None and v > hi):
+                bad(name, f"must be in [{lo}, {hi if hi is not None else 'inf'}]")
+        if self.seed + self.num_episodes - 1 > 2**32 - 1:
+            bad("seed", "seed + num_episodes - 1 must fit in 32 bits (gym-aloha's samplers)")
+        if self.max_steps is not None:
+            if not is_int(self.max_steps):
+                bad("max_steps", "must be an integer or None")
+            if self.max_steps < self.frame_stride:
+                bad("max_steps", f"must be at least frame_stride ({self.frame_stride}) to record a frame")
+        if isinstance(self.noise, bool) or not isinstance(self.noise, (int, float, np.floating)):
+            bad("noise", "must be a number in [0, 1]")
+        if not (math.isfinite(self.noise) and 0.0 <= self.noise <= 1.0):
+            bad("noise", "must be in [0, 1]")
+        for f in fields(self):
+            if f.type in ("bool",) and not isinstance(getattr(self, f.name), (bool, np.bool_)):
+                bad(f.name, "must be a bool")
+
+    @property
+    def fps(self) -> float:
+        return 1.0 / (self.frame_stride * CONTROL_DT)
+
+
+def _episode_path(out_dir: Path, index: int) -> Path:
+    return out_dir / f"episode_{index}.hdf5"
+
+
+def record_dataset(config: SimConfig, out_dir: str | Path, progress: bool = True, *,
+                   overwrite: bool = False) -> list[Path]:
+    """Record ``config.num_episodes`` scripted episodes into ``out_dir`` as
+    ``episode_{i}.hdf5`` plus ``calibration.json`` (the rig at the recorded resolution).
+
+    Every file is written atomically (temporary name, then renamed), so an interrupted
+    run leaves only complete episodes. A directory that already holds episodes is
+    refused unless ``overwrite`` (which first deletes its ``episode_*.hdf5``).
+    """
+    from tqdm.auto import tqdm
+
+    if not isinstance(config, SimConfig):
+        raise InputError(f"config must be a SimConfig, got {type(config).__name__}")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"output path exists and is not a directory: {out_dir}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    existing = sorted(out_dir.glob("episode_*.hdf5"))
+    if existing:
+        if not overwrite:
+            raise InputError(
+                f"{out_dir} already holds {len(existing)} episode file(s); choose an empty directory "
+                "or pass overwrite=True (--overwrite)"
+            )
+        for p in existing:
+            p.unlink()
+
+    model = load_mujoco_model(config.task)
+    calib_tmp = out_dir / ".calibration.json.tmp"
+    save_calibration(calib_tmp, camera_calibration(model, config.width, config.height))
+    calib_tmp.replace(out_dir / "calibration.json")
+
+    renderer = FrameRenderer(model, config.width, config.height, depth=config.with_depth,
+                             segmentation=config.with_segmentation, shadows=config.shadows,
+                             antialias=config.antialias)
+    labels = segmentation_labels(model) if config.with_segmentation else {}
+    paths = []
+    bar = tqdm(range(config.num_episodes), desc=f"simulating {config.task}", unit="episode",
+               disable=not progress)
+    successes = 0
+    try:
+        for i in bar:
+            result = simulate_episode(config.task, config.seed + i, noise=config.noise,
+                                      frame_stride=config.frame_stride, max_steps=config.max_steps,
+                                      renderer=renderer)
+            successes += result.success
+            episode = RawEpisode(
+                qpos=result.qpos, qvel=result.qvel, action=result.action, images=result.images,
+                depth_mm=result.depth_mm, segmentation=result.segmentation,
+                segmentation_labels=labels,
+                info=EpisodeInfo(task=TASK_INSTRUCTIONS[config.task], source="policy",
+                                 policy_name=f"scripted_{config.task}", success=result.success),
+                fps=result.fps,
+            )
+            path = _episode_path(out_dir, i)
+            write_episode(path, episode, compress=config.compress, jpeg_quality=config.jpeg_quality)
+            paths.append(path)
+            bar.set_postfix(success=f"{successes}/{i + 1}")
+    finally:
+        renderer.close()
+        bar.close()
+    return paths
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
+    d = SimConfig()
+    p = argparse.ArgumentParser(
+        prog="python -m imac_data.simulate",
+        description="Record scripted gym-aloha episodes (RGB, depth, optional segmentation) as ALOHA HDF5.",
+    )
+    p.add_argument("--task", default=d.task, help=f"one of {TASKS} (default {d.task})")
+    p.add_argument("--episodes", type=int, default=d.num_episodes, help="number of episodes")
+    p.add_argument("--out", required=True, type=Path, help="output directory")
+    p.add_argument("--width", type=int, default=d.width)
+    p.add_argument("--height", type=int, default=d.height)
+    p.add_argument("--seed", type=int, default=d.seed, help="episode i uses seed + i")
+    p.add_argument("--noise", type=float, default=d.noise, help="policy noise in [0, 1] (0 = exact)")
+    p.add_argument("--frame-stride", type=int, default=d.frame_stride,
+                   help="record every n-th 50 Hz control step (default 2 = 25 fps)")
+    p.add_argument("--max-steps", type=int, default=None, help="cap on 50 Hz control steps per episode")
+    p.add_argument("--segmentation", action="store_true", help="also store geom-id segmentation")
+    p.add_argument("--no-depth", action="store_true", help="do not render depth")
+    p.add_argument("--compress", action="store_true", help="store RGB as JPEG (ALOHA compressed variant)")
+    p.add_argument("--shadows", action="store_true", help="render gym-aloha's shadows (slow on the CPU)")
+    p.add_argument("--antialias", action="store_true", help="4x multisampled RGB")
+    p.add_argument("--overwrite", action="store_true", help="replace episodes already in --out")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    try:
+        config = SimConfig(
+            task=args.task, num_episodes=args.episodes, width=args.width, height=args.height,
+            seed=args.seed, noise=args.noise, frame_stride=args.frame_stride, max_steps=args.max_steps,
+            with_depth=not args.no_depth, with_segmentation=args.segmentation, compress=args.compress,
+            shadows=args.shadows, antialias=args.antialias,
+        )
+        t0 = time.perf_counter()
+        paths = record_dataset(config, args.out, progress=not args.quiet, overwrite=args.overwrite)
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    seconds = time.perf_counter() - t0
+    from imac_data.aloha_hdf5 import probe_episode
+    import h5py
+
+    frames = sum(probe_episode(p)["num_frames"] for p in paths)
+    successes = 0
+    for p in paths:
+        with h5py.File(p, "r") as f:
+            successes += bool(f.attrs.get("success", False))
+    print(
+        f"{config.task}: {len(paths)} episodes, {successes} successes, {frames} frames "
+        f"({config.height}x{config.width}, {config.fps:g} fps) in {seconds:.1f} s -> {args.out}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,240 @@
+"""Recipes: YAML files that say where raw data is, which robot and cameras, and how to build.
+
+A recipe is parsed into typed, frozen dataclasses and validated here, at the
+boundary: an unknown key, a wrong type or a bad value raises :class:`InputError`
+naming the file and the dotted field (``recipes/x.yaml: source.episodes: ...``).
+Paths in a recipe are relative to the recipe file unless absolute; ``~`` and
+environment variables are expanded.
+
+Schema (every section optional except ``name``, ``task``, ``robot`` and ``source``)::
+
+    name: aloha_sim_transfer_cube
+    task: "transfer the red cube to the other arm"   # language instruction
+    fps: 25                                          # dataset fps (sim: from the frame stride)
+    robot:
+      platform: aloha_sim            # built-in rig (URDF derived at run time), or:
+      urdf: path/to/robot.urdf       #   your own URDF with
+      joint_map: [joint_a, ..., {gripper: finger_joint, scale: 0.04, offset: 0.0}, ...]
+      gripper_links: [left_finger_link, ...]
+      package_dirs: {my_robot_description: path/to/pkg}
+    cameras:
+      calibration: path/to/calibration.json   # not needed for aloha_sim
+    source:
+      type: aloha_sim | aloha_hdf5
+      path: path/to/episodes                  # aloha_sim: where to record (default: a cache dir)
+      episodes: 2                             # how many (first N), null = all
+      sim: {task: transfer_cube, noise: 0.3, seed: 0, height: 240, width: 320, frame_stride: 2,
+           segmentation: true}
+      episode_defaults: {source: teleop, policy_name: null, checkpoint: null}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from imac_data.errors import InputError
+
+RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
+PLATFORMS = ("aloha_sim",)
+SOURCE_TYPES = ("aloha_sim", "aloha_hdf5")
+
+
+@dataclass(frozen=True)
+class GripperEntry:
+    gripper: str  # finger joint driven by this entry
+    scale: float
+    offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class RobotSection:
+    platform: str | None = None
+    urdf: str | None = None
+    joint_map: tuple[str | GripperEntry, ...] | None = None
+    gripper_links: tuple[str, ...] = ()
+    package_dirs: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class CamerasSection:
+    calibration: str | None = None
+
+
+@dataclass(frozen=True)
+class SimSection:
+    task: str = "transfer_cube"
+    noise: float = 0.3
+    seed: int = 0
+    height: int = 240
+    width: int = 320
+    frame_stride: int = 2
+    segmentation: bool = True  # ground-truth robot masks, for the calibration overlay's IoU
+
+
+@dataclass(frozen=True)
+class EpisodeDefaults:
+    source: str = "teleop"
+    policy_name: str | None = None
+    checkpoint: str | None = None
+
+
+@dataclass(frozen=True)
+class SourceSection:
+    type: str
+    path: str | None = None
+    episodes: int | None = None
+    sim: SimSection = field(default_factory=SimSection)
+    episode_defaults: EpisodeDefaults = field(default_factory=EpisodeDefaults)
+
+
+@dataclass(frozen=True)
+class Recipe:
+    name: str
+    task: str
+    robot: RobotSection
+    source: SourceSection
+    fps: float | None = None
+    cameras: CamerasSection = field(default_factory=CamerasSection)
+    file: str = ""  # where the recipe was read from (for messages and relative paths)
+
+    def resolve_path(self, value: str | None) -> Path | None:
+        """A recipe path, relative to the recipe file."""
+        if value is None:
+            return None
+        p = Path(os.path.expandvars(os.path.expanduser(value)))
+        return p if p.is_absolute() or not self.file else Path(self.file).parent / p
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def _parse(cls, value, where: str):
+    """Build dataclass ``cls`` from a YAML mapping, strictly (unknown keys are errors)."""
+    if not isinstance(value, dict):
+        raise InputError(f"{where}: expected a mapping, got {type(value).__name__}")
+    hints = typing.get_type_hints(cls)
+    known = {f.name for f in dataclasses.fields(cls) if f.name != "file"}
+    unknown = sorted(set(value) - known)
+    if unknown:
+        raise InputError(f"{where}: unknown field(s) {unknown}; allowed: {sorted(known)}")
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in value:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise InputError(f"{where}: missing required field '{f.name}'")
+            continue
+        kwargs[f.name] = _coerce(hints[f.name], value[f.name], f"{where}.{f.name}" if where else f.name)
+    return cls(**kwargs)
+
+
+def _coerce(hint, value, where: str):
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in (a for a in args if a is not type(None)):
+            try:
+                return _coerce(arg, value, where)
+            except InputError as e:
+                errors.append(str(e))
+        raise InputError(errors[-1] if len(errors) == 1 else f"{where}: invalid value {value!r}")
+    if dataclasses.is_dataclass(hint):
+        return _parse(hint, value, where)
+    if origin is tuple:
+        if not isinstance(value, list):
+            raise InputError(f"{where}: expected a list, got {type(value).__name__}")
+        return tuple(_coerce(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise InputError(f"{where}: expected a mapping, got {type(value).__name__}")
+        return {str(k): _coerce(args[1], v, f"{where}.{k}") for k, v in value.items()}
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise InputError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if hint is str:
+        if not isinstance(value, str):
+            raise InputError(f"{where}: expected a string, got {value!r}")
+        return value
+    raise InputError(f"{where}: unsupported value {value!r}")  # pragma: no cover
+
+
+def _validate(recipe: Recipe) -> None:
+    f = recipe.file or "<recipe>"
+    r, s = recipe.robot, recipe.source
+    if r.platform is None and r.urdf is None:
+        raise InputError(f"{f}: robot: give either 'platform' ({PLATFORMS}) or 'urdf' + 'joint_map'")
+    if r.platform is not None and r.platform not in PLATFORMS:
+        raise InputError(f"{f}: robot.platform: unknown platform {r.platform!r}; known: {PLATFORMS}")
+    if r.urdf is not None and not r.joint_map:
+        raise InputError(f"{f}: robot.joint_map: required with robot.urdf (one entry per joint-vector index)")
+    if s.type not in SOURCE_TYPES:
+        raise InputError(f"{f}: source.type: unknown source type {s.type!r}; known: {SOURCE_TYPES}")
+    if s.type == "aloha_hdf5" and s.path is None:
+        raise InputError(f"{f}: source.path: required for source.type aloha_hdf5 (the directory of .hdf5 episodes)")
+    if s.type == "aloha_sim" and r.platform != "aloha_sim":
+        raise InputError(f"{f}: source.type aloha_sim records the simulated rig: set robot.platform: aloha_sim")
+    if s.type != "aloha_sim" and recipe.cameras.calibration is None:
+        raise InputError(f"{f}: cameras.calibration: required for real data (a calibration JSON, see README)")
+    if s.episodes is not None and s.episodes <= 0:
+        raise InputError(f"{f}: source.episodes: must be positive, got {s.episodes}")
+    if recipe.fps is not None and recipe.fps <= 0:
+        raise InputError(f"{f}: fps: must be positive, got {recipe.fps}")
+    if s.episode_defaults.source not in ("teleop", "policy"):
+        raise InputError(f"{f}: source.episode_defaults.source: must be 'teleop' or 'policy'")
+    sim = s.sim
+    if sim.task not in ("transfer_cube", "insertion"):
+        raise InputError(f"{f}: source.sim.task: must be 'transfer_cube' or 'insertion', got {sim.task!r}")
+    if not 0.0 <= sim.noise <= 1.0:
+        raise InputError(f"{f}: source.sim.noise: must be in [0, 1], got {sim.noise}")
+    if sim.height <= 0 or sim.width <= 0 or sim.frame_stride <= 0:
+        raise InputError(f"{f}: source.sim: height, width and frame_stride must be positive")
+
+
+def parse_recipe(data: dict, file: str = "") -> Recipe:
+    where = file or "<recipe>"
+    if not isinstance(data, dict):
+        raise InputError(f"{where}: a recipe must be a YAML mapping")
+    try:
+        recipe = _parse(Recipe, data, "")
+    except InputError as e:
+        raise InputError(f"{where}: {e}") from None
+    recipe = dataclasses.replace(recipe, file=file)
+    _validate(recipe)
+    return recipe
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"recipe file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise InputError(f"{path}: invalid YAML ({e})") from None
+    return parse_recipe(data, str(path))
+
+
+def find_recipe(name: str) -> Path:
+    """``recipes/<name>.yaml`` of this repository."""
+    path = RECIPES_DIR / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in RECIPES_DIR.glob("*.yaml"))
+        raise InputError(f"unknown recipe {name!r}: no {path}; known recipes: {known} (or pass --recipe PATH)")
+    return path
