@@ -166,6 +166,17 @@ def validate(dataset, sample: int = 4) -> None:
 # --------------------------------------------------------------------------- CLI
 
 
+def quiet_libraries() -> None:
+    """Keep the console to our progress bars: SVT-AV1 banners, libav muxer notes and
+    the datasets library's per-file bars say nothing a user acts on."""
+    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1: errors only
+    import av
+    import datasets
+
+    av.logging.set_level(av.logging.ERROR)
+    datasets.disable_progress_bars()
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m imac_data.build",
@@ -180,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
 
+    quiet_libraries()
     t0 = time.perf_counter()
     try:
         if "/" not in args.repo:
