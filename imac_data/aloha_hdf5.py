@@ -96,6 +96,14 @@ def write_episode(path: str | Path, episode: RawEpisode, *, compress: bool = Fal
     """Write an episode in the ALOHA layout; atomic (temp file renamed into place)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        _write_hdf5(tmp, episode, compress=compress, jpeg_quality=jpeg_quality, sim=sim)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _write_hdf5(tmp: Path, episode: RawEpisode, *, compress: bool, jpeg_quality: int, sim: bool) -> None:
     cams = sorted(episode.images)
     T = episode.num_frames
     with h5py.File(tmp, "w") as f:
@@ -143,7 +151,6 @@ def write_episode(path: str | Path, episode: RawEpisode, *, compress: bool = Fal
             f.attrs["segmentation_labels"] = json.dumps(
                 {str(k): list(v) for k, v in episode.segmentation_labels.items()}
             )
-    tmp.replace(path)
 
 
 # --------------------------------------------------------------------------- read

@@ -1,0 +1,141 @@
+"""The build CLI and recipes: a real build from recorded episodes, and bad input."""
+
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from imac_data import aloha
+from imac_data.build import main
+from imac_data.errors import InputError
+from imac_data.ingest import staging_dir
+from imac_data.recipes import RECIPES_DIR, load_recipe, parse_recipe
+from imac_data.simulate import SimConfig, record_dataset
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    record_dataset(SimConfig(num_episodes=2, width=80, height=64, max_steps=20), out, progress=False)
+    return out
+
+
+def write_recipe(tmp_path, **changes) -> Path:
+    data = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
+    for dotted, value in changes.items():
+        node = data
+        *parents, leaf = dotted.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_shipped_recipes_parse():
+    for path in RECIPES_DIR.glob("*.yaml"):
+        load_recipe(path)
+
+
+def test_cli_builds_a_loadable_dataset(sim_dir, tmp_path, capsys):
+    root = tmp_path / "out"
+    rc = main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
+               "--root", str(root), "--no-progress"])
+    assert rc == 0
+    assert "built local/tiny: 2 episodes" in capsys.readouterr().out
+    ds = LeRobotDataset("local/tiny", root=root, delta_timestamps={"action": [0.0, 0.04]})
+    assert ds.meta.total_episodes == 2
+    assert ds[0]["action"].shape == (2, 14)
+    # the output is complete: rebuilding without --overwrite is refused, with it succeeds
+    assert main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
+                 "--root", str(root), "--no-progress"]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
+                 "--root", str(root), "--no-progress", "--overwrite", "--episodes", "1"]) == 0
+    assert LeRobotDataset("local/tiny", root=root).meta.total_episodes == 1
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"source.episodes": "two"}, r"recipe.yaml: source\.episodes: expected an integer"),
+    ({"source.sim.noise": 2.0}, r"recipe.yaml: source\.sim\.noise: must be in \[0, 1\]"),
+    ({"robot.platform": "ur5"}, r"robot\.platform: unknown platform 'ur5'"),
+    ({"source.colour": "red"}, r"source: unknown field\(s\) \['colour'\]"),
+    ({"source.type": "aloha_hdf5"}, r"source\.path: required"),
+])
+def test_invalid_recipe_fields(tmp_path, changes, message, capsys):
+    recipe = write_recipe(tmp_path, **changes)
+    with pytest.raises(InputError, match=message):
+        load_recipe(recipe)
+    root = tmp_path / "out"
+    assert main(["--repo", "local/x", "--recipe", str(recipe), "--root", str(root)]) == 2
+    assert "error:" in capsys.readouterr().err
+    assert not root.exists() and not staging_dir(root).exists()
+
+
+def test_cli_bad_input_exits_nonzero_and_writes_nothing(sim_dir, tmp_path, capsys):
+    root = tmp_path / "out"
+    assert main(["--repo", "local/definitely_not_a_recipe", "--root", str(root)]) == 2
+    assert "unknown recipe" in capsys.readouterr().err
+    assert main(["--repo", "local/x", "--recipe", str(write_recipe(tmp_path)), "--root", str(root),
+                 "--source", str(tmp_path / "missing")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert not root.exists() and not staging_dir(root).exists()
+
+
+def custom_robot_recipe(tmp_path, sim_dir, urdf_text: str) -> Path:
+    """A recipe for the ALOHA episodes that brings its own URDF (as a real user's would)."""
+    config = aloha.robot_config()
+    urdf = tmp_path / "robot.urdf"
+    urdf.write_text(urdf_text)
+    joint_map = []
+    for entry in config.joint_map:
+        if isinstance(entry, str):
+            joint_map.append(entry)
+        else:
+            joint_map.append({"gripper": entry.joint, "scale": entry.scale, "offset": entry.offset})
+    data = {
+        "name": "custom", "task": "t", "fps": 25,
+        "robot": {"urdf": str(urdf), "joint_map": joint_map, "gripper_links": list(config.gripper_links),
+                  "package_dirs": {k: str(v) for k, v in dict(config.package_dirs).items()}},
+        "cameras": {"calibration": str(sim_dir / "calibration.json")},
+        "source": {"type": "aloha_hdf5", "path": str(sim_dir)},
+    }
+    path = tmp_path / "custom.yaml"
+    path.write_text(yaml.safe_dump(data))
+    parse_recipe(data, str(path))
+    return path
+
+
+def test_custom_urdf_recipe_builds(sim_dir, tmp_path):
+    text = aloha.robot_config().urdf_path.read_text()
+    recipe = custom_robot_recipe(tmp_path, sim_dir, text)
+    root = tmp_path / "out"
+    assert main(["--repo", "local/custom", "--recipe", str(recipe), "--root", str(root), "--no-progress"]) == 0
+    assert LeRobotDataset("local/custom", root=root).meta.total_frames > 0
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda t: t.replace('name="vx300s_left/elbow"', 'name="vx300s_left/elbow_joint"'), "vx300s_left/elbow"),
+    (lambda t: t.replace("vx300s_6_wrist.stl", "vx300s_6_wrist_MISSING.stl"), "vx300s_6_wrist_MISSING.stl"),
+])
+def test_robot_errors_name_the_joint_or_mesh_and_write_nothing(sim_dir, tmp_path, capsys, edit, message):
+    text = edit(aloha.robot_config().urdf_path.read_text())
+    recipe = custom_robot_recipe(tmp_path, sim_dir, text)
+    root = tmp_path / "out"
+    assert main(["--repo", "local/custom", "--recipe", str(recipe), "--root", str(root)]) == 2
+    assert message in capsys.readouterr().err
+    assert not root.exists() and not staging_dir(root).exists()
+    assert sorted(p.name for p in sim_dir.iterdir()) == sorted(
+        ["calibration.json", "episode_0.hdf5", "episode_1.hdf5"])
+
+
+def test_source_is_never_modified(sim_dir, tmp_path):
+    src = tmp_path / "src"
+    shutil.copytree(sim_dir, src)
+    before = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in src.iterdir()}
+    assert main(["--repo", "local/x", "--recipe", str(write_recipe(tmp_path)), "--source", str(src),
+                 "--root", str(tmp_path / "out"), "--no-progress"]) == 0
+    assert {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in src.iterdir()} == before
