@@ -32,7 +32,12 @@ stamp=.venv/.imac-install-stamp
 want=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "[setup] installing the project and its dependencies into .venv (first time: several minutes)"
-  .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[dev,ray]"
+  log=.venv/pip-install.log
+  if ! { .venv/bin/python -m pip install --upgrade pip && .venv/bin/python -m pip install -e ".[dev,ray]"; } > "$log" 2>&1; then
+    tail -n 40 "$log"
+    echo "[setup] pip install failed; full log in $log" >&2
+    exit 1
+  fi
   echo "$want" > "$stamp"
+  echo "[setup] done (log: $log)"
 fi
