@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from imac_data.errors import InputError
-from imac_data.recipes import Recipe, find_recipe, load_recipe
+from imac_data.recipes import Recipe, find_recipe, load_recipe, missing_inputs
 
 
 @dataclass(frozen=True)
@@ -119,6 +119,9 @@ def build(req: BuildRequest):
     recipe = req.recipe
     if req.root.exists() and not req.overwrite:
         raise InputError(f"output {req.root} already exists; pass --overwrite to replace it")
+    problems = missing_inputs(recipe, req.source_path)
+    if problems:
+        raise InputError(f"recipe {recipe.file} needs inputs that are not there:\n  - " + "\n  - ".join(problems))
     robot = robot_of(recipe)
     paths, calibration_path = source_episodes(req)
     calibration = load_calibration(calibration_path)

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -220,15 +221,72 @@ def parse_recipe(data: dict, file: str = "") -> Recipe:
     return recipe
 
 
-def load_recipe(path: str | Path) -> Recipe:
-    path = Path(path)
+def _read_yaml(path: Path) -> dict:
     if not path.is_file():
         raise InputError(f"recipe file not found: {path}")
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
         raise InputError(f"{path}: invalid YAML ({e})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: a recipe must be a YAML mapping")
+    return data
+
+
+def _merge(base: dict, override: dict) -> dict:
+    out = dict(base)
+    for key, value in override.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Read and validate a recipe. ``base: <file>`` (relative to the recipe) names a
+    platform file whose fields the recipe extends or overrides."""
+    path = Path(path)
+    data = _read_yaml(path)
+    if "base" in data:
+        base_file = data.pop("base")
+        if not isinstance(base_file, str):
+            raise InputError(f"{path}: base: expected a file name, got {base_file!r}")
+        base = _read_yaml(path.parent / base_file)
+        if "base" in base:
+            raise InputError(f"{path.parent / base_file}: a base file cannot have a base itself")
+        data = _merge(base, data)
     return parse_recipe(data, str(path))
+
+
+_ENV = re.compile(r"\$\{?([A-Za-z_][A-Za-z0-9_]*)\}?")
+
+
+def missing_inputs(recipe: Recipe, source_path: Path | None = None) -> list[str]:
+    """Every user-supplied file the recipe needs that is not there, each with how to supply it."""
+    problems = []
+
+    def check(field: str, value: str | None, what: str, how: str, is_dir: bool = False) -> None:
+        if value is None:
+            return
+        unset = [v for v in _ENV.findall(value) if v not in os.environ]
+        if unset:
+            problems.append(f"{field}: {what} -- set the environment variable {unset[0]} ({how}), "
+                            f"or write the path into {recipe.file or 'the recipe'}")
+            return
+        path = recipe.resolve_path(value)
+        if not (path.is_dir() if is_dir else path.is_file()):
+            problems.append(f"{field}: {what} not found at {path} ({how})")
+
+    r = recipe.robot
+    if r.platform is None:
+        check("robot.urdf", r.urdf, "the robot's URDF", "your robot description, with its meshes")
+        for name, value in r.package_dirs.items():
+            check(f"robot.package_dirs.{name}", value, f"the directory of package://{name}/", "where the meshes are",
+                  is_dir=True)
+    check("cameras.calibration", recipe.cameras.calibration, "the camera calibration JSON",
+          "format in the README, section 'Calibration file'")
+    if source_path is None:
+        check("source.path", recipe.source.path, "the directory of HDF5 episodes",
+              "episode_0.hdf5, episode_1.hdf5, ... as the ALOHA/AgileX recorder writes them", is_dir=True)
+    return problems
 
 
 def find_recipe(name: str) -> Path:

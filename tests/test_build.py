@@ -139,3 +139,30 @@ def test_source_is_never_modified(sim_dir, tmp_path):
     assert main(["--repo", "local/x", "--recipe", str(write_recipe(tmp_path)), "--source", str(src),
                  "--root", str(tmp_path / "out"), "--no-progress"]) == 0
     assert {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in src.iterdir()} == before
+
+
+PAPER_TASKS = ("banana_basket", "green_bowl_pink_plate", "box_ears", "chips_pour", "sweep_trash", "fold_shirt",
+               "tape_box", "panda_plate")
+
+
+@pytest.mark.parametrize("name", PAPER_TASKS)
+def test_paper_recipes_say_what_is_missing(name, tmp_path, capsys, monkeypatch):
+    for var in ("IMAC_COBOT_MAGIC_URDF", "IMAC_COBOT_MAGIC_MESHES", "IMAC_COBOT_MAGIC_CALIBRATION", "IMAC_DATA_ROOT"):
+        monkeypatch.delenv(var, raising=False)
+    root = tmp_path / "out"
+    assert main(["--repo", f"local/{name}", "--root", str(root)]) == 2
+    err = capsys.readouterr().err
+    for var in ("IMAC_COBOT_MAGIC_URDF", "IMAC_COBOT_MAGIC_CALIBRATION", "IMAC_DATA_ROOT"):
+        assert var in err
+    assert not root.exists()
+    # with the variables set to places that do not exist, the message names the paths
+    monkeypatch.setenv("IMAC_COBOT_MAGIC_URDF", str(tmp_path / "rig.urdf"))
+    monkeypatch.setenv("IMAC_COBOT_MAGIC_MESHES", str(tmp_path))
+    monkeypatch.setenv("IMAC_COBOT_MAGIC_CALIBRATION", str(tmp_path / "calib.json"))
+    monkeypatch.setenv("IMAC_DATA_ROOT", str(tmp_path / "data"))
+    assert main(["--repo", f"local/{name}", "--root", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert f"not found at {tmp_path / 'rig.urdf'}" in err
+    assert f"not found at {tmp_path / 'data' / name}" in err
+    recipe = load_recipe(RECIPES_DIR / f"{name}.yaml")
+    assert recipe.fps == 30 and recipe.source.type == "aloha_hdf5"
