@@ -485,3 +485,183 @@ def depth_from_millimetres(depth_mm, *, name: str = "depth"):
             f"{float(metres[negative].min()) * 1000:.6g} mm); depth must be >= 0 (0 = invalid)"
         )
     return metres
+
+
+# ------------------------------------------------------------------ stored depth stream
+# The depth of camera ``cam`` is stored as the video feature ``observation.depth.{cam}``:
+# the frames are ``DepthCodec.encode_uint8`` colours, written with our own encoder
+# settings (``imac_data.video_streams``); codec, encoder settings and per-camera
+# intrinsics are recorded in ``meta/info.json["imac"]["depth"]``.
+
+DEPTH_KEY_PREFIX = "observation.depth."
+
+__all__ += ["DEPTH_KEY_PREFIX", "add_depth_streams", "depth_codec_of", "depth_stream_key", "resize_depth"]
+
+
+def depth_stream_key(camera: str) -> str:
+    """The dataset feature holding camera ``camera``'s depth: ``observation.depth.{camera}``."""
+    return DEPTH_KEY_PREFIX + camera
+
+
+def resize_depth(depth, size: tuple[int, int], *, name: str = "depth") -> np.ndarray:
+    """Nearest-neighbour resize of depth ``(..., H, W)`` to ``size = (h, w)`` (numpy).
+
+    Each output pixel takes the source pixel that contains its centre (pixel edges
+    scale, the convention of :func:`imac_data.cameras.rescale_intrinsics`), so depths
+    are never averaged across an edge (no flying pixels) and invalid pixels (0 / NaN)
+    are never mixed into valid ones: a value is either copied or not used.
+    """
+    depth = np.asarray(depth)
+    if depth.ndim < 2:
+        raise InputError(f"{name}: depth must be at least 2-D (..., H, W); got shape {depth.shape}")
+    try:
+        h, w = (int(v) for v in size)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: size must be (height, width); got {size!r}") from None
+    if h <= 0 or w <= 0:
+        raise InputError(f"{name}: size must be positive; got {size!r}")
+    H, W = depth.shape[-2:]
+    if (H, W) == (h, w):
+        return depth
+    ys = np.minimum(((np.arange(h) + 0.5) * (H / h)).astype(np.int64), H - 1)
+    xs = np.minimum(((np.arange(w) + 0.5) * (W / w)).astype(np.int64), W - 1)
+    return depth[..., ys[:, None], xs[None, :]]
+
+
+def depth_codec_of(info: Mapping[str, Any]) -> DepthCodec:
+    """The codec of a dataset's depth streams, from its ``meta/info.json`` dict (or
+    ``LeRobotDataset.meta.info``). Decode a loaded frame with
+    ``depth_codec_of(ds.meta.info).decode(item[key], channel_axis=-3)`` (LeRobot
+    returns float ``(3, H, W)`` colours in [0, 1]; the result is metres, 0 = invalid)."""
+    try:
+        meta = info["imac"]["depth"]["codec"]
+    except (KeyError, TypeError):
+        raise InputError("dataset info has no imac.depth.codec: it has no depth streams written by imac") from None
+    return DepthCodec.from_dict(meta, where="meta/info.json imac.depth.codec")
+
+
+def _as_numpy_depth(depth, name: str) -> np.ndarray:
+    if _is_torch(depth):
+        depth = depth.detach().cpu().numpy()
+    depth = np.asarray(depth)
+    if depth.ndim != 3:
+        raise InputError(f"{name}: depth must be (T, H, W) metres; got shape {depth.shape}")
+    if depth.dtype.kind != "f":
+        raise _integer_depth_error(name, depth)
+    return depth
+
+
+def add_depth_streams(root, episodes, *, cameras=None, codec: DepthCodec | None = None, encoding=None,
+                      size=None, source: Mapping[str, Any] | None = None, chunk_frames: int = 32,
+                      progress: bool = False) -> dict[str, dict]:
+    """Store metric depth as the video features ``observation.depth.{cam}`` of the
+    LeRobot dataset at ``root`` (see :mod:`imac_data.video_streams`).
+
+    ``episodes`` yields, in episode order, ``{cam: depth}`` with ``depth`` float
+    metres ``(T, H, W)`` (numpy or torch; 0 / NaN / inf = invalid, negative =
+    :class:`InputError`), ``T`` = the episode's length. Depth must be registered to
+    the camera image (same field of view, any resolution of the same aspect ratio).
+    ``cameras`` defaults to the dataset's calibrated cameras
+    (``info["imac"]["cameras"]``). ``size``: stored ``(h, w)`` for all cameras or
+    ``{cam: (h, w)}`` (default: the input's); depth is resized with
+    :func:`resize_depth` and the intrinsics recorded for the stream are the
+    calibration's rescaled with :func:`~imac_data.cameras.rescale_intrinsics`.
+    ``codec`` defaults to the ``manipulation`` preset, ``encoding`` to
+    :meth:`VideoEncoding.lossless_rgb` (bit-exact colours, chosen by measurement:
+    ``benchmarks/depth_fidelity.py``). ``source`` describes where the depth came
+    from (e.g. ``DepthSource.describe()``) and is recorded.
+
+    Records in ``info["imac"]["depth"]``: ``codec`` (``codec.to_dict()``),
+    ``encoding`` and ``encoder_versions``, ``source``, and per camera ``streams[cam]``
+    = ``{key, height, width, K}``; each feature's ``info`` block also carries
+    ``imac.depth_codec`` and ``imac.encoding`` (they survive ``aggregate_datasets``,
+    which drops ``info["imac"]``). Returns the feature dicts written.
+    """
+    import json
+    from pathlib import Path
+
+    from imac_data.cameras import rescale_intrinsics
+    from imac_data.video_streams import VideoEncoding, add_video_streams, encoder_versions
+
+    root = Path(root)
+    info_path = root / "meta" / "info.json"
+    if not info_path.is_file():
+        raise InputError(f"{root} is not a LeRobot dataset: {info_path} is missing")
+    info = json.loads(info_path.read_text())
+    calib = info.get("imac", {}).get("cameras", {})
+    if cameras is None:
+        cameras = sorted(calib)
+        if not cameras:
+            raise InputError(f"{root}: no calibrated cameras in info.json imac.cameras; pass cameras=[...]")
+    cameras = list(cameras)
+    if not cameras or len(set(cameras)) != len(cameras):
+        raise InputError(f"add_depth_streams: cameras must be distinct names, got {cameras}")
+    codec = DepthCodec.preset() if codec is None else codec
+    if not isinstance(codec, DepthCodec):
+        raise InputError(f"add_depth_streams: codec must be a DepthCodec, got {type(codec).__name__}")
+    encoding = VideoEncoding.lossless_rgb() if encoding is None else encoding
+    existing = info.get("imac", {}).get("depth")
+    if existing and existing.get("codec") != codec.to_dict():
+        raise InputError(f"{root}: already has depth streams with codec {existing.get('codec')}; "
+                         "all depth streams of a dataset must share one codec")
+    if isinstance(chunk_frames, bool) or not isinstance(chunk_frames, int) or chunk_frames < 1:
+        raise InputError(f"add_depth_streams: chunk_frames must be a positive integer, got {chunk_frames!r}")
+    if size is None or isinstance(size, Mapping):
+        sizes = dict(size or {})
+        unknown = sorted(set(sizes) - set(cameras))
+        if unknown:
+            raise InputError(f"add_depth_streams: size given for unknown camera(s) {unknown}")
+    else:
+        sizes = {cam: size for cam in cameras}
+    for cam, hw in sizes.items():
+        if (not isinstance(hw, (tuple, list)) or len(hw) != 2
+                or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in hw)):
+            raise InputError(f"add_depth_streams: size for {cam!r} must be (height, width) > 0, got {hw!r}")
+    keys = {cam: depth_stream_key(cam) for cam in cameras}
+
+    def frames(ep: int, cam: str, depth):
+        name = f"episode {ep} camera {cam!r}"
+        depth = _as_numpy_depth(depth, name)
+        in_hw = depth.shape[1:]
+        if cam in calib:
+            ch, cw = calib[cam]["height"], calib[cam]["width"]
+            if abs(in_hw[0] / in_hw[1] - ch / cw) > 0.01 * ch / cw:
+                raise InputError(f"{name}: depth is {in_hw[0]}x{in_hw[1]} but the camera is calibrated at "
+                                 f"{ch}x{cw} (another aspect ratio); depth must be registered to the camera image")
+        out_hw = tuple(int(v) for v in sizes.get(cam, in_hw))
+        for start in range(0, depth.shape[0], chunk_frames):
+            d = resize_depth(depth[start:start + chunk_frames], out_hw, name=name)
+            yield codec.encode_uint8(d, name=name)
+
+    def per_episode():
+        for ep, item in enumerate(episodes):
+            if not isinstance(item, Mapping):
+                raise InputError(f"episode {ep}: expected {{camera: depth}}, got {type(item).__name__}")
+            if set(item) != set(cameras):
+                raise InputError(f"episode {ep}: depth for cameras {sorted(item)}, expected {sorted(cameras)}")
+            yield {keys[cam]: frames(ep, cam, item[cam]) for cam in cameras}
+
+    def imac_block(features: dict[str, dict]) -> dict:
+        streams = dict(existing.get("streams", {})) if existing else {}
+        for cam in cameras:
+            h, w = features[keys[cam]]["shape"][:2]
+            entry: dict[str, Any] = {"key": keys[cam], "height": h, "width": w, "K": None}
+            if cam in calib:
+                K = rescale_intrinsics(np.asarray(calib[cam]["K"]), (calib[cam]["height"], calib[cam]["width"]),
+                                       (h, w))
+                entry["K"] = K.tolist()
+            streams[cam] = entry
+        return {"depth": {
+            "codec": codec.to_dict(),
+            "encoding": encoding.to_dict(),
+            "encoder_versions": encoder_versions(),
+            "source": dict(source) if source is not None else {"kind": "unspecified"},
+            "streams": streams,
+            "decode": "DepthCodec.from_dict(codec).decode(frame, channel_axis=-3) on LeRobot's float (3, H, W) "
+                      "colours -> metres, 0 = invalid",
+        }}
+
+    extra = {"imac.content": "depth", "imac.depth_codec": codec.to_dict()}
+    return add_video_streams(root, per_episode(), keys=[keys[c] for c in cameras], encodings=encoding,
+                             info_extra={keys[c]: extra for c in cameras}, imac_info=imac_block,
+                             progress=progress)

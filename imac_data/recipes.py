@@ -26,6 +26,13 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
       sim: {task: transfer_cube, noise: 0.3, seed: 0, height: 240, width: 320, frame_stride: 2,
            segmentation: true}
       episode_defaults: {source: teleop, policy_name: null, checkpoint: null}
+    augment:                                  # the added streams (see AugmentSettings)
+      height: 240
+      width: 320
+      motion_source: action                   # commanded configurations (phi) | state
+      depth_codec: manipulation               # or general
+      contact_chunk: 8                        # H; the reference is the chunk's first frame
+      contact_cap: null                       # metres; null = 99th percentile per chunk
 """
 
 from __future__ import annotations
@@ -95,6 +102,45 @@ class SourceSection:
 
 
 @dataclass(frozen=True)
+class AugmentSettings:
+    """How the control streams are made (the recipe's ``augment`` section; recorded in
+    ``info["imac"]["augment"]``)."""
+
+    height: int = 240  # resolution of the added streams
+    width: int = 320
+    motion_source: str = "action"  # "action" (commanded, through phi) | "state" (measured)
+    depth_codec: str = "manipulation"  # DepthCodec preset
+    contact_chunk: int = 8  # H: frames per chunk; reference = the chunk's start frame
+    contact_cap: float | None = None  # metres; None = the chunk's percentile per stream
+    contact_percentile: float = 99.0
+    robot_mask_dilate_px: int = 2  # robot removal from the reference depth
+
+    def __post_init__(self) -> None:
+        from imac_data.depth import DepthCodec
+
+        if self.height <= 0 or self.width <= 0:
+            raise InputError(f"augment: resolution must be positive, got {self.height}x{self.width}")
+        if self.motion_source not in ("action", "state"):
+            raise InputError(f"augment.motion_source: must be 'action' or 'state', got {self.motion_source!r}")
+        if self.contact_chunk < 1:
+            raise InputError(f"augment.contact_chunk: must be >= 1, got {self.contact_chunk}")
+        if self.contact_cap is not None and not self.contact_cap > 0:
+            raise InputError(f"augment.contact_cap: must be > 0 metres, got {self.contact_cap}")
+        if not 0 < self.contact_percentile <= 100:
+            raise InputError(f"augment.contact_percentile: must be in (0, 100], got {self.contact_percentile}")
+        if self.robot_mask_dilate_px < 0:
+            raise InputError(f"augment.robot_mask_dilate_px: must be >= 0, got {self.robot_mask_dilate_px}")
+        try:
+            DepthCodec.preset(self.depth_codec)
+        except InputError as e:
+            raise InputError(f"augment.depth_codec: {e}") from None
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return self.height, self.width
+
+
+@dataclass(frozen=True)
 class Recipe:
     name: str
     task: str
@@ -102,6 +148,7 @@ class Recipe:
     source: SourceSection
     fps: float | None = None
     cameras: CamerasSection = field(default_factory=CamerasSection)
+    augment: AugmentSettings = field(default_factory=AugmentSettings)
     file: str = ""  # where the recipe was read from (for messages and relative paths)
 
     def resolve_path(self, value: str | None) -> Path | None:

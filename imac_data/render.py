@@ -22,20 +22,22 @@ The CPU backend: :class:`RaycastRenderer`
 -----------------------------------------
 Open3D's ``RaycastingScene`` (Embree) on the CPU: no display, no GPU. Rebuilding
 its BVH for the posed robot every frame costs more than casting all three views
-(about 25-80 ms for the 60k-triangle ALOHA rig on 2 cores, most of the frame), so
-we never rebuild it. Instead the scene is built **once**, with every link's
-visual meshes in that *link's own frame*, each link a separate geometry placed
-at its own far-apart offset ("slot"). A camera ray is cast against a link by
-expressing it in the link frame (``T_link_cam = T_world_link^-1 T_world_cam``)
-and moving it into the link's slot; per pixel the nearest hit over all links
-wins (a z-buffer over links, ``scatter_reduce(amin)``). Slots are spaced so
-that a ray cannot reach another slot before it has left its own link's reach:
-a hit on a foreign geometry id is a miss of the intended link. Rays are only cast
-where a link can be: inside the image rectangle its bounding box projects to
-(the box is clipped against the near plane first), so the ray count is about
-twice the robot's pixel area instead of links x pixels. Everything per ray is
-batched torch (no Python loop over links, meshes or views); all frames, views
-and links of a chunk go to Embree in one ``cast_rays`` call.
+(about 30 ms for the 60k-triangle ALOHA rig on 2 cores), so we never rebuild it.
+The scene is built **once**, with every link's visual meshes in that *link's own
+frame*, each link a separate geometry placed at its own far-apart offset (a
+"slot"). A camera ray is cast against a link by expressing it in the link frame
+(``T_link_cam = T_world_link^-1 T_world_cam``) and moving it into the link's
+slot; per pixel the nearest hit over all links wins (a z-buffer over links).
+Slots are spaced so that a ray cannot reach another slot before it has left its
+own link's reach, so a hit on a foreign geometry id is a miss of the intended link.
+
+Rays are only cast where a link can appear: inside the silhouette of the link's
+convex hull (clipped against the near plane, projected, filled and grown by one
+pixel), about 1.7x the robot's pixel area over the three ALOHA views. Per frame
+that is one small vectorised projection, a few numpy/OpenCV calls per visible
+link (footprint, ray block, z-buffer), never a loop over meshes, triangles or
+pixels, and a single multi-threaded Embree call for all frames, views and links
+of a chunk. Shading only touches the winning rays.
 
 Conventions: pixel centres at integer coordinates, rays through ``K^-1 [u, v, 1]``
 (so the hit parameter *is* z-depth). Open3D's own ``create_rays_pinhole`` casts
@@ -50,6 +52,7 @@ from __future__ import annotations
 
 import abc
 import math
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -109,6 +112,10 @@ class Renderer(abc.ABC):
             missing = [name for name in self.link_names if name not in link_poses]
             if missing:
                 raise InputError(f"render: link_poses lacks link(s) {missing} of robot {self.robot.name!r}")
+            for cam in cams.values():
+                if cam.is_mounted and cam.link not in link_poses:
+                    raise InputError(f"render: link_poses lacks link {cam.link!r}, on which camera "
+                                     f"{cam.name!r} is mounted")
             for name in self.link_names:
                 if not torch.isfinite(link_poses[name]).all():
                     raise InputError(f"render: non-finite pose of link {name!r}")
@@ -158,17 +165,33 @@ class Renderer(abc.ABC):
 
 # ----------------------------------------------------------------------------- CPU ray casting
 
-# The 12 edges of a box given by its 8 corners in itertools.product order (bit i = axis i).
-_BOX_EDGES = torch.tensor([(a, a | (1 << ax)) for a in range(8) for ax in range(3) if not a & (1 << ax)])
+# The 12 edges of a box given by its 8 corners (corner c has bit i set = max along axis i).
+_BOX_EDGES = np.array([(a, a | (1 << ax)) for a in range(8) for ax in range(3) if not a & (1 << ax)])
 
 
-def _rigid_inverse(T: torch.Tensor) -> torch.Tensor:
-    R = T[..., :3, :3].transpose(-1, -2)
-    out = torch.zeros_like(T)
+def _rigid_inverse(T: np.ndarray) -> np.ndarray:
+    R = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
     out[..., :3, :3] = R
     out[..., :3, 3] = -(R @ T[..., :3, 3:4])[..., 0]
     out[..., 3, 3] = 1.0
     return out
+
+
+def _convex_hull(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(n, 3)`` and edges ``(m, 2)`` of the convex hull of a point set; its
+    bounding box where the hull is degenerate (flat or collinear geometry)."""
+    import trimesh
+
+    try:
+        hull = trimesh.convex.convex_hull(vertices)
+        if len(hull.vertices) >= 4 and len(hull.edges_unique):
+            return np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.edges_unique, dtype=np.int64)
+    except Exception:  # qhull refuses degenerate input
+        pass
+    lo, hi = vertices.min(0), vertices.max(0)
+    bits = np.array([[(c >> ax) & 1 for ax in range(3)] for c in range(8)], dtype=bool)
+    return np.where(bits, hi, lo), _BOX_EDGES
 
 
 class RaycastRenderer(Renderer):
@@ -180,16 +203,21 @@ class RaycastRenderer(Renderer):
     spacing; float32 resolution of the slots stays far below 0.1 mm).
     ``max_rays``: rays per Embree call; longer batches are cast frame-chunk by chunk.
     ``nthreads``: Embree threads, 0 = all cores.
+
+    Internals are numpy (single-threaded, predictable on a busy 2-core machine) around
+    one multi-threaded Embree call per chunk; torch only at the boundary.
     """
 
     def __init__(self, robot: RobotModel, *, near: float = 0.0, ambient: float = 0.3,
-                 max_range: float = 10.0, max_rays: int = 2_000_000, nthreads: int = 0):
+                 max_range: float = 10.0, max_rays: int = 1 << 20, nthreads: int = 0):
         super().__init__(robot)
         import open3d as o3d  # heavy import, only for this backend
 
         self._o3d = o3d
-        if not (math.isfinite(near) and near >= 0):
-            raise InputError(f"renderer near plane must be finite and >= 0, got {near}")
+        for name, value, ok in (("near", near, near >= 0), ("ambient", ambient, 0 <= ambient <= 1),
+                                ("max_range", max_range, max_range > 0), ("max_rays", max_rays, max_rays > 0)):
+            if not (math.isfinite(value) and ok):
+                raise InputError(f"renderer {name} out of range: {value}")
         self.near = float(near)
         self.ambient = float(ambient)
         self.max_range = float(max_range)
@@ -211,227 +239,251 @@ class RaycastRenderer(Renderer):
         link_verts = [np.concatenate(v) for v in verts]
         link_faces = [np.concatenate(f) for f in faces]
 
-        lo = np.stack([v.min(0) for v in link_verts])
-        hi = np.stack([v.max(0) for v in link_verts])
-        corners = np.stack([np.where(np.array([(c >> ax) & 1 for ax in range(3)], bool), hi, lo)
-                            for c in range(8)], axis=1)  # (L, 8, 3)
-        self._corners = torch.as_tensor(corners, dtype=torch.float64)
+        # Culling volume of each link: the convex hull of its visual vertices (link frame),
+        # padded to a common size by repeating a vertex / an edge.
+        hulls = [_convex_hull(v) for v in link_verts]
+        nv, ne = max(len(h[0]) for h in hulls), max(len(h[1]) for h in hulls)
+        self._hull_v = np.stack([np.concatenate([hv, np.repeat(hv[-1:], nv - len(hv), 0)]) for hv, _ in hulls])
+        self._hull_e = np.stack([np.concatenate([he, np.repeat(he[-1:], ne - len(he), 0)]) for _, he in hulls])
         reach = max(float(np.linalg.norm(v, axis=1).max()) for v in link_verts)
         # A ray's path to its own link's hit stays within max_range (+ near plane) of the
         # slot centre, a foreign link lies within `reach` of its own slot centre.
         self.slot_spacing = 2.0 * (self.max_range + reach) + 1.0
         n_axis = max(1, math.ceil(L ** (1 / 3) - 1e-9))
         grid = np.array([(i % n_axis, (i // n_axis) % n_axis, i // (n_axis * n_axis)) for i in range(L)])
-        self._slots = torch.as_tensor(grid * self.slot_spacing, dtype=torch.float64)  # (L, 3)
+        # centred on the origin: the smaller the coordinates, the finer float32 resolves them
+        self._slots = (grid - (n_axis - 1) / 2) * self.slot_spacing  # (L, 3)
 
         scene = o3d.t.geometry.RaycastingScene(nthreads=self.nthreads)
         for i in range(L):
-            v = (link_verts[i] + self._slots[i].numpy()).astype(np.float32)
+            v = (link_verts[i] + self._slots[i]).astype(np.float32)
             gid = scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(link_faces[i].astype(np.uint32)))
             if gid != i:  # pragma: no cover - Open3D numbers geometries in insertion order
                 raise RuntimeError(f"Open3D returned geometry id {gid} for link {i}")
+        # Embree builds the BVH lazily at the first cast: do it now, not in the first render.
+        scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], np.float32)))
         self._scene = scene
         tri_counts = [len(f) for f in link_faces]
-        self._tri_offset = torch.as_tensor(np.concatenate([[0], np.cumsum(tri_counts)[:-1]]), dtype=torch.long)
-        self._tri_colour = torch.as_tensor(np.concatenate([np.concatenate(c) for c in colours]))  # (F, 3)
+        self._tri_offset = np.concatenate([[0], np.cumsum(tri_counts)[:-1]]).astype(np.int64)
+        # per-triangle colour, pre-scaled to 0..255
+        self._tri_colour = 255.0 * np.concatenate([np.concatenate(c) for c in colours]).astype(np.float32)
         self.num_triangles = int(sum(tri_counts))
-        self._grid_cache: dict = {}
-        self._warm = False
+        self._rays = np.empty((0, 6), dtype=np.float32)
+        self._pix = np.empty(0, dtype=np.int64)
+        self._kernel = np.ones((3, 3), np.uint8)
+        self._lock = threading.Lock()  # the ray workspace is shared: one render at a time
 
     # ------------------------------------------------------------------ helpers
 
-    def _pixel_dirs(self, cam: Camera) -> torch.Tensor:
-        """``(H*W, 3)`` float64 camera-frame ray directions ``K^-1 [u, v, 1]`` (z == 1)."""
-        key = (cam.K.tobytes(), cam.width, cam.height)
-        if key not in self._grid_cache:
-            v, u = torch.meshgrid(torch.arange(cam.height, dtype=torch.float64),
-                                  torch.arange(cam.width, dtype=torch.float64), indexing="ij")
-            pix = torch.stack([u, v, torch.ones_like(u)], dim=-1).reshape(-1, 3)
-            d = pix @ torch.linalg.inv(torch.as_tensor(cam.K, dtype=torch.float64)).T
-            d[:, 2] = 1.0  # exact: K's last row is (0, 0, 1)
-            if len(self._grid_cache) > 32:
-                self._grid_cache.clear()
-            self._grid_cache[key] = d
-        return self._grid_cache[key]
+    def _footprints(self, T_cam_link: np.ndarray, K: np.ndarray, hw: np.ndarray) -> list[tuple]:
+        """Where each link can appear: for every (frame, view, link) whose convex hull reaches
+        in front of the camera, ``(frame, view, link, u0, v0, mask, count)`` with ``mask`` a boolean
+        ``(h, w)`` block of the image at ``(u0, v0)`` (the hull's silhouette grown by one pixel)
+        and ``count`` its number of pixels.
 
-    def _rectangles(self, T_cam_link: torch.Tensor, K: torch.Tensor, hw: torch.Tensor) -> torch.Tensor:
-        """Pixel rectangles (inclusive ``u0, u1, v0, v1``) that each link's bounding box can
-        cover, shape ``(N, V, L, 4)``; empty where ``u1 < u0``.
-
-        The box (corners in the link frame) is clipped against the plane z = zc in
-        front of the camera (zc = near, or 0.1 mm) before projecting, so boxes that
-        reach behind the camera still give a tight, correct rectangle.
+        The hull is clipped against the plane z = zc (the near plane, or 1 mm) before
+        projecting: its silhouette is the 2D convex hull of the projected vertices in front
+        of the plane and of the points where hull edges cross it, a superset of the link's.
         """
-        zc = max(self.near, 1e-4)
-        corners = self._corners.to(T_cam_link)  # (L, 8, 3)
-        p = (T_cam_link[..., None, :3, :3] @ corners[..., None])[..., 0] + T_cam_link[..., None, :3, 3]  # (N,V,L,8,3)
-        a, b = p[..., _BOX_EDGES[:, 0], :], p[..., _BOX_EDGES[:, 1], :]  # (N,V,L,12,3)
-        za, zb = a[..., 2], b[..., 2]
-        crosses = (za - zc) * (zb - zc) < 0
-        s = ((zc - za) / torch.where(crosses, zb - za, torch.ones_like(za))).clamp(0, 1)
-        x = a + s[..., None] * (b - a)
-        pts = torch.cat([p, x], dim=-2)  # (N,V,L,20,3)
-        ok = torch.cat([p[..., 2] >= zc, crosses], dim=-1)
-        z = torch.where(ok, pts[..., 2], torch.ones_like(pts[..., 2]))
-        Kb = K[None, :, None]  # (1, V, 1, 3, 3)
-        uvw = (Kb[..., None, :, :] @ pts[..., None])[..., 0]
-        uv = uvw[..., :2] / z[..., None]
-        big = torch.finfo(uv.dtype).max
-        umin = torch.where(ok, uv[..., 0], big).amin(-1)
-        umax = torch.where(ok, uv[..., 0], -big).amax(-1)
-        vmin = torch.where(ok, uv[..., 1], big).amin(-1)
-        vmax = torch.where(ok, uv[..., 1], -big).amax(-1)
-        any_ok = ok.any(-1)
-        H = hw[:, 0][None, :, None].to(uv)
-        W = hw[:, 1][None, :, None].to(uv)
-        # One pixel of margin: the box is conservative anyway, rounding must not be.
-        u0 = torch.floor(torch.minimum(umin.clamp(min=-1.0), W)) - 1
-        u1 = torch.ceil(torch.minimum(umax.clamp(min=-1.0), W)) + 1
-        v0 = torch.floor(torch.minimum(vmin.clamp(min=-1.0), H)) - 1
-        v1 = torch.ceil(torch.minimum(vmax.clamp(min=-1.0), H)) + 1
-        u0, v0 = u0.clamp(min=0), v0.clamp(min=0)
-        u1, v1 = torch.minimum(u1, W - 1), torch.minimum(v1, H - 1)
-        rect = torch.stack([u0, u1, v0, v1], dim=-1).long()
-        rect[~any_ok] = torch.tensor([0, -1, 0, -1])
-        return rect
+        import cv2
+
+        zc = max(self.near, 1e-3)
+        R, t = T_cam_link[..., :3, :3], T_cam_link[..., :3, 3]
+        p = self._hull_v @ np.swapaxes(R, -1, -2) + t[..., None, :]  # (N, V, L, P, 3) hull in camera frame
+        front = p[..., 2] >= zc
+        z = np.where(front, p[..., 2], 1.0)
+        fx, fy, cx, cy, skew = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 0, 1]
+        shp = (1, -1, 1, 1)
+        xn, yn = p[..., 0] / z, p[..., 1] / z
+        uv = np.stack([fx.reshape(shp) * xn + skew.reshape(shp) * yn + cx.reshape(shp),
+                       fy.reshape(shp) * yn + cy.reshape(shp)], axis=-1)  # (N, V, L, P, 2)
+        n_front = front.sum(-1)
+        out = []
+        for n, v, l in zip(*np.nonzero(n_front)):
+            q = uv[n, v, l]
+            if n_front[n, v, l] < front.shape[-1]:  # partly behind the plane: add the edge crossings
+                q = q[front[n, v, l]]
+                e = self._hull_e[l]
+                pa, pb = p[n, v, l, e[:, 0]], p[n, v, l, e[:, 1]]
+                cross = (pa[:, 2] - zc) * (pb[:, 2] - zc) < 0
+                pa, pb = pa[cross], pb[cross]
+                x = pa + ((zc - pa[:, 2]) / (pb[:, 2] - pa[:, 2]))[:, None] * (pb - pa)
+                q = np.concatenate([q, (x / x[:, 2:]) @ K[v, :2].T])
+            H, W = hw[v]
+            lo, hi = q.min(0), q.max(0)
+            u0, v0 = max(int(np.floor(lo[0])) - 1, 0), max(int(np.floor(lo[1])) - 1, 0)
+            u1, v1 = min(int(np.ceil(hi[0])) + 1, W - 1), min(int(np.ceil(hi[1])) + 1, H - 1)
+            if u1 < u0 or v1 < v0:
+                continue
+            mask = np.zeros((v1 - v0 + 1, u1 - u0 + 1), np.uint8)
+            poly = cv2.convexHull(np.round((q - (u0, v0)) * 16).astype(np.int32))  # 1/16 px fixed point
+            cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=4)
+            mask = cv2.dilate(mask, self._kernel)  # one pixel of margin: rounding must stay conservative
+            out.append((int(n), int(v), int(l), u0, v0, mask.view(bool), cv2.countNonZero(mask)))
+        return out
+
+    def _workspace(self, n: int) -> np.ndarray:
+        """A reused ``(n, 6)`` float32 ray buffer. Fresh large allocations are costly here:
+        first-touch page faults cost more than the arithmetic that fills them."""
+        if self._rays.shape[0] < n:
+            self._rays = np.empty((max(n, 2 * self._rays.shape[0]), 6), dtype=np.float32)
+        if self._pix.shape[0] < n:
+            self._pix = np.empty(max(n, 2 * self._pix.shape[0]), dtype=np.int64)
+        return self._rays[:n]
 
     # ------------------------------------------------------------------ render
 
     def render_link_poses(self, link_poses: Mapping[str, torch.Tensor],
                           cameras: Mapping[str, Camera]) -> dict[str, RenderOutput]:
+        with self._lock:
+            return self._render(link_poses, cameras)
+
+    def _render(self, link_poses: Mapping[str, torch.Tensor], cameras: Mapping[str, Camera]) -> dict[str, RenderOutput]:
         names = list(cameras)
         cams = [cameras[n] for n in names]
         ref = link_poses[self.link_names[0]]
         batch = tuple(ref.shape[:-2])
         device = ref.device
-        N = int(np.prod(batch)) if batch else 1
-        T_wl = torch.stack([link_poses[n].reshape(N, 4, 4) for n in self.link_names], dim=1).to(
-            "cpu", torch.float64)  # (N, L, 4, 4)
-        poses64 = {k: v.reshape(N, 4, 4).to("cpu", torch.float64) for k, v in link_poses.items()}
-        T_wc = torch.stack([c.pose(poses64, batch_shape=(N,), dtype=torch.float64) for c in cams], dim=1)
-        if not torch.isfinite(T_wc).all():
+        N = math.prod(batch)
+
+        def pose(name):
+            return link_poses[name].detach().reshape(N, 4, 4).to("cpu", torch.float64).numpy()
+
+        T_wl = np.stack([pose(n) for n in self.link_names], axis=1)  # (N, L, 4, 4)
+        T_wc = np.stack([np.broadcast_to(c.T_world_cam, (N, 4, 4)) if not c.is_mounted
+                         else (T_wl[:, self.link_names.index(c.link)] if c.link in self.link_names
+                               else pose(c.link)) @ c.T_link_cam for c in cams], axis=1)  # (N, V, 4, 4)
+        if not np.isfinite(T_wc).all():
             raise InputError("render: non-finite camera pose")
 
-        outputs = {n: {"depth": torch.zeros(N, c.height, c.width, dtype=torch.float32),
-                       "link": torch.full((N, c.height, c.width), -1, dtype=torch.int16),
-                       "rgb": torch.zeros(N, c.height, c.width, 3, dtype=torch.uint8)}
-                   for n, c in zip(names, cams)}
+        # Outputs; depth doubles as the z-buffer while rendering (inf = empty).
+        depth = [np.full((N, c.height, c.width), np.inf, dtype=np.float32) for c in cams]
+        mask = [np.zeros((N, c.height, c.width), dtype=bool) for c in cams]
+        link = [np.full((N, c.height, c.width), -1, dtype=np.int16) for c in cams]
+        rgb = [np.zeros((N, c.height, c.width, 3), dtype=np.uint8) for c in cams]
         if N:
-            K = torch.stack([torch.as_tensor(c.K, dtype=torch.float64) for c in cams])
-            hw = torch.tensor([[c.height, c.width] for c in cams])
-            dirs = [self._pixel_dirs(c) for c in cams]
+            K = np.stack([c.K for c in cams])
+            hw = np.array([[c.height, c.width] for c in cams])
             T_cam_link = _rigid_inverse(T_wc)[:, :, None] @ T_wl[:, None]  # (N, V, L, 4, 4)
-            rect = self._rectangles(T_cam_link, K, hw)
-            area = ((rect[..., 1] - rect[..., 0] + 1).clamp(min=0) * (rect[..., 3] - rect[..., 2] + 1).clamp(min=0))
-            rays_per_frame = area.sum(dim=(1, 2))
+            T_link_cam = _rigid_inverse(T_cam_link)
+            feet = []
+            for i in range(0, N, 16):  # bounded memory for the hull projection
+                feet += [(n + i, *rest) for n, *rest in self._footprints(T_cam_link[i:i + 16], K, hw)]
+            if feet:
+                n, v, l = np.array([f[:3] for f in feet]).T
+                dist = np.linalg.norm(T_link_cam[n, v, l, :3, 3], axis=-1)
+                if dist.max() > self.max_range:
+                    i = int(dist.argmax())
+                    raise InputError(f"camera {names[v[i]]!r} is {dist[i]:.1f} m from link "
+                                     f"{self.link_names[l[i]]!r} (frame {n[i]}), beyond the renderer's max_range "
+                                     f"{self.max_range} m (make the renderer with a larger max_range)")
+            # Per (frame, view, link): ray direction in the link frame = A @ [u, v, 1] with
+            # A = R_link_cam K^-1 (z component of K^-1 [u, v, 1] is 1, so the hit parameter
+            # is camera z-depth); origin = the camera centre in the link frame, in the link's slot.
+            A = (T_link_cam[..., :3, :3] @ np.linalg.inv(K)[None, :, None]).astype(np.float32)
+            origin = (T_link_cam[..., :3, 3] + self._slots).astype(np.float32)
+            counts = np.array([f[6] for f in feet], dtype=np.int64)
+            frame_of = np.array([f[0] for f in feet], dtype=np.int64)  # non-decreasing
+            per_frame = np.bincount(frame_of, weights=counts, minlength=N)
+            first = np.searchsorted(frame_of, np.arange(N + 1))  # feet of frame i: first[i]:first[i+1]
             start = 0
-            while start < N:  # frame chunks of at most max_rays rays (at least one frame)
-                stop = start + 1
-                total = int(rays_per_frame[start])
-                while stop < N and total + int(rays_per_frame[stop]) <= self.max_rays:
-                    total += int(rays_per_frame[stop])
+            while start < N:  # chunks of whole frames, at most max_rays rays (at least one frame)
+                stop, total = start + 1, per_frame[start]
+                while stop < N and total + per_frame[stop] <= self.max_rays:
+                    total += per_frame[stop]
                     stop += 1
-                self._render_chunk(start, stop, T_cam_link, rect, area, dirs, cams, names, outputs)
+                i, j = first[start], first[stop]
+                if j > i:
+                    self._render_chunk(feet[i:j], counts[i:j], A, origin, hw, depth, mask, link, rgb)
                 start = stop
 
         result = {}
-        for n, c in zip(names, cams):
-            o = outputs[n]
+        for k, (n, c) in enumerate(zip(names, cams)):
+            np.putmask(depth[k], ~mask[k], 0.0)
             shape = (*batch, c.height, c.width)
-            depth = o["depth"].reshape(shape).to(device)
-            result[n] = RenderOutput(rgb=o["rgb"].reshape(*shape, 3).to(device), mask=depth > 0,
-                                     depth=depth, link_id=o["link"].reshape(shape).to(device))
+            out = RenderOutput(rgb=torch.from_numpy(rgb[k]).reshape(*shape, 3),
+                               mask=torch.from_numpy(mask[k]).reshape(shape),
+                               depth=torch.from_numpy(depth[k]).reshape(shape),
+                               link_id=torch.from_numpy(link[k]).reshape(shape))
+            if device.type != "cpu":
+                out = RenderOutput(*(x.to(device) for x in (out.rgb, out.mask, out.depth, out.link_id)))
+            result[n] = out
         return result
 
-    def _render_chunk(self, start: int, stop: int, T_cam_link: torch.Tensor, rect: torch.Tensor,
-                      area: torch.Tensor, dirs: list[torch.Tensor], cams: list[Camera], names: list[str],
-                      outputs: dict) -> None:
-        n, V, L = stop - start, len(cams), len(self.link_names)
-        rect = rect[start:stop].reshape(-1, 4)
-        area = area[start:stop].reshape(-1)
-        T_lc = _rigid_inverse(T_cam_link[start:stop]).reshape(-1, 4, 4)  # camera in link frame
-        keep = torch.nonzero(area > 0)[:, 0]
-        if len(keep) == 0:
+    def _render_chunk(self, feet: list[tuple], counts: list[int], A: np.ndarray, origin: np.ndarray,
+                      hw: np.ndarray, depth: list[np.ndarray], mask: list[np.ndarray],
+                      link: list[np.ndarray], rgb: list[np.ndarray]) -> None:
+        """Cast the rays of some footprints (whole frames) in one Embree call and z-buffer them."""
+        f0, f1 = feet[0][0], feet[-1][0] + 1
+        ends = np.cumsum(counts)
+        starts = ends - counts
+        total = int(ends[-1]) if len(ends) else 0
+        if total == 0:
             return
-        rect, area, T_lc = rect[keep], area[keep], T_lc[keep]
-        b_idx = keep // (V * L)
-        v_idx = (keep // L) % V
-        l_idx = keep % L
+        rays = self._workspace(total)
+        pix = self._pix[:total]
+        near = self.near
+        # Ray generation, footprint by footprint: pixel (u, v) -> A [u, v, 1] per component
+        # (strided 1-D writes; no per-ray gathers of per-footprint data).
+        for (n, v, l, u0, v0, foot, _), s, e in zip(feet, starts, ends):
+            ys, xs = np.nonzero(foot)
+            uu, vv = xs + u0, ys + v0
+            W = int(hw[v, 1])
+            np.add(vv * W + uu, (n - f0) * int(hw[v, 0]) * W, out=pix[s:e])  # pixel index in frames f0:f1
+            uf, vf = uu.astype(np.float32), vv.astype(np.float32)
+            a, o = A[n, v, l], origin[n, v, l]
+            for k in range(3):
+                d = rays[s:e, 3 + k]
+                np.multiply(uf, a[k, 0], out=d)
+                d += vf * a[k, 1]
+                d += a[k, 2]
+                if near > 0:
+                    np.multiply(d, near, out=rays[s:e, k])
+                    rays[s:e, k] += o[k]
+                else:
+                    rays[s:e, k] = o[k]
 
-        dist = T_lc[:, :3, 3].norm(dim=-1)
-        if float(dist.max()) > self.max_range:
-            i = int(dist.argmax())
-            raise InputError(f"camera {names[int(v_idx[i])]!r} is {float(dist[i]):.1f} m from link "
-                             f"{self.link_names[int(l_idx[i])]!r}, beyond the renderer's max_range "
-                             f"{self.max_range} m (make the renderer with a larger max_range)")
+        hit = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays), nthreads=self.nthreads)
+        t_hit = hit["t_hit"].numpy()
+        if near > 0:
+            t_hit += near
+        gid = hit["geometry_ids"].numpy().view(np.int32)  # INVALID_ID (a miss) reads as -1
 
-        # Per rectangle: ray direction in the link frame = A @ [u, v, 1] with A = R_lc K^-1.
-        # Pixel directions come from the cached grids (exactly what backproject uses).
-        widths = torch.tensor([c.width for c in cams])
-        hws = torch.tensor([c.width * c.height for c in cams])
-        dir_base = torch.cumsum(torch.cat([torch.zeros(1, dtype=torch.long), hws[:-1]]), 0)
-        all_dirs = torch.cat(dirs)  # (sum HW, 3) float64
-        rid = torch.repeat_interleave(torch.arange(len(keep)), area)
-        local = torch.arange(len(rid)) - torch.repeat_interleave(torch.cumsum(area, 0) - area, area)
-        rw = (rect[:, 1] - rect[:, 0] + 1)[rid]
-        u = rect[rid, 0] + local % rw
-        v = rect[rid, 2] + local // rw
-        vr = v_idx[rid]
-        pix = v * widths[vr] + u
-        d_cam = all_dirs[dir_base[vr] + pix].to(torch.float32)
-        R = T_lc[:, :3, :3].to(torch.float32)
-        d_link = (R[rid] @ d_cam[:, :, None])[:, :, 0]
-        origin = (T_lc[:, :3, 3] + self._slots[l_idx]).to(torch.float32)[rid]
-        if self.near > 0:
-            origin = origin + self.near * d_link
-        rays = torch.cat([origin, d_link], dim=1).contiguous()
+        # z-buffer over links, footprint by footprint; a hit on a foreign slot is a miss.
+        winner = [np.full((f1 - f0, int(h), int(w)), -1, dtype=np.int32) for h, w in hw]  # ray index
+        for (n, v, l, *_), s, e in zip(feet, starts, ends):
+            zf, wf = depth[v][f0:f1].reshape(-1), winner[v].reshape(-1)
+            idx, t = pix[s:e], t_hit[s:e]
+            ok = gid[s:e] == l
+            ok &= t < zf[idx]
+            sel = np.flatnonzero(ok)
+            zf[idx[sel]] = t[sel]
+            wf[idx[sel]] = sel + s
 
-        o3c = self._o3d.core
-        hit = self._scene.cast_rays(o3c.Tensor.from_numpy(rays.numpy()), nthreads=self.nthreads)
-        t_hit = torch.from_numpy(hit["t_hit"].numpy())
-        gid = torch.from_numpy(hit["geometry_ids"].numpy().astype(np.int64))
-        lr = l_idx[rid]
-        valid = torch.nonzero((gid == lr) & torch.isfinite(t_hit))[:, 0]
-        if len(valid) == 0:
-            return
-        depth = t_hit[valid] + self.near
-
-        # z-buffer over links: flat output index (frame, view, pixel) -> nearest hit.
-        frame_hw = hws.to(torch.long)
-        view_base = torch.cumsum(torch.cat([torch.zeros(1, dtype=torch.long), n * frame_hw[:-1]]), 0)
-        rv = vr[valid]
-        out_idx = view_base[rv] + b_idx[rid[valid]] * frame_hw[rv] + pix[valid]
-        size = int(n * frame_hw.sum())
-        zbuf = torch.full((size,), math.inf, dtype=torch.float32)
-        zbuf.scatter_reduce_(0, out_idx, depth, "amin")
-        win = depth == zbuf[out_idx]
-        order = torch.arange(len(valid))
-        winner = torch.full((size,), -1, dtype=torch.long)
-        winner.scatter_reduce_(0, out_idx[win], order[win], "amax")
-        px = torch.nonzero(winner >= 0)[:, 0]
-        w = winner[px]  # index into `valid`
-        ray = valid[w]
-        link = lr[ray]
-        prim = torch.from_numpy(hit["primitive_ids"].numpy().astype(np.int64))[ray]
-        normal = torch.from_numpy(hit["primitive_normals"].numpy())[ray]
-        d = d_link[ray]
-        cos = (normal * d).sum(-1).abs() / (normal.norm(dim=-1) * d.norm(dim=-1)).clamp(min=1e-12)
-        shade = self.ambient + (1.0 - self.ambient) * cos
-        colour = self._tri_colour[self._tri_offset[link] + prim] * shade[:, None]
-        rgb = (colour * 255.0 + 0.5).clamp(0, 255).to(torch.uint8)
-
-        zflat = torch.zeros(size, dtype=torch.float32)
-        zflat[px] = depth[w]
-        lflat = torch.full((size,), -1, dtype=torch.int16)
-        lflat[px] = link.to(torch.int16)
-        cflat = torch.zeros(size, 3, dtype=torch.uint8)
-        cflat[px] = rgb
-        for k, (name, cam) in enumerate(zip(names, cams)):
-            s = slice(int(view_base[k]), int(view_base[k] + n * frame_hw[k]))
-            o = outputs[name]
-            o["depth"][start:stop] = zflat[s].view(n, cam.height, cam.width)
-            o["link"][start:stop] = lflat[s].view(n, cam.height, cam.width)
-            o["rgb"][start:stop] = cflat[s].view(n, cam.height, cam.width, 3)
+        # Shade the winning rays only: Lambertian with the light at the camera.
+        prim = hit["primitive_ids"].numpy().view(np.int32)
+        normal = hit["primitive_normals"].numpy()  # unit length, link frame
+        foot_link = np.array([f[2] for f in feet])
+        for k in range(len(depth)):
+            wv = winner[k].reshape(-1)
+            np.greater_equal(winner[k], 0, out=mask[k][f0:f1])
+            px = np.flatnonzero(wv >= 0)
+            if len(px) == 0:
+                continue
+            ray = wv[px]
+            lk = foot_link[np.searchsorted(ends, ray, side="right")]
+            nr = np.take(normal, ray, axis=0)
+            dr = np.take(rays, ray, axis=0)
+            dot = nr[:, 0] * dr[:, 3] + nr[:, 1] * dr[:, 4] + nr[:, 2] * dr[:, 5]
+            dd = dr[:, 3] * dr[:, 3] + dr[:, 4] * dr[:, 4] + dr[:, 5] * dr[:, 5]
+            shade = self.ambient + (1.0 - self.ambient) * (np.abs(dot) / np.sqrt(dd))
+            colour = np.take(self._tri_colour, self._tri_offset[lk] + np.take(prim, ray), axis=0)
+            colour *= shade[:, None]
+            colour += 0.5  # round; values stay in [0, 255.5)
+            link[k][f0:f1].reshape(-1)[px] = lk
+            out = rgb[k][f0:f1].reshape(-1, 3)
+            for c in range(3):
+                out[px, c] = colour[:, c]
 
 
 BACKENDS = {"open3d": RaycastRenderer}

@@ -1,0 +1,183 @@
+"""Per-episode augmentation: the control streams of one episode, and writing them.
+
+For one episode (joint states, actions, calibration, metric depth) this computes,
+per camera at the stream resolution (DESIGN.md sections 3 and 4):
+
+* ``control.motion.{cam}``: the robot rendered at the frame's commanded
+  configuration (:func:`imac_data.motion.frame_configurations`), wrist cameras posed
+  by FK of that configuration;
+* ``observation.depth.{cam}``: the depth, stored with the colour codec;
+* ``control.contact_r2s.{cam}`` / ``control.contact_s2g.{cam}``: the contact heatmaps,
+  chunk by chunk (reference = chunk start, :func:`imac_data.contact.chunk_plan`);
+* the per-frame column ``control.contact_cap`` (the two caps of the frame's chunk).
+
+:func:`augment_dataset` writes them into a LeRobot dataset that already holds the
+episode's base features (``ingest``), in place: callers give it a staging copy.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import torch
+
+from imac_data.cameras import Camera
+from imac_data.contact import colorize, episode_contact
+from imac_data.depth import DepthCodec, add_depth_streams, resize_depth
+from imac_data.errors import InputError
+from imac_data.motion import Controller, frame_configurations
+from imac_data.recipes import AugmentSettings
+from imac_data.render import Renderer
+from imac_data.robot import RobotModel
+from imac_data.video_streams import VideoEncoding, add_video_streams
+
+CAP_KEY = "control.contact_cap"
+MOTION, R2S, S2G = "control.motion", "control.contact_r2s", "control.contact_s2g"
+
+
+@dataclass
+class EpisodeStreams:
+    """The added streams of one episode: uint8 frames per key, metric depth per camera."""
+
+    frames: dict[str, np.ndarray]  # key -> (T, H, W, 3) uint8
+    depth: dict[str, np.ndarray]  # cam -> (T, H, W) float32 metres
+    caps: np.ndarray  # (T, 2) float32 metres: (r2s, s2g) of the frame's chunk
+
+
+def _stack_views(views, names, attr) -> torch.Tensor:
+    return torch.stack([getattr(views[n], attr) for n in names], dim=1)
+
+
+def episode_streams(state: np.ndarray, action: np.ndarray, depth: dict[str, np.ndarray],
+                    cameras: dict[str, Camera], robot: RobotModel, renderer: Renderer,
+                    settings: AugmentSettings, controller: Controller = Controller()) -> EpisodeStreams:
+    """All control streams of one episode (``state``, ``action`` ``(T, D)``; ``depth``
+    ``{cam: (T, h, w)}`` metres at any resolution registered to the camera)."""
+    names = list(cameras)
+    missing = [n for n in names if n not in depth]
+    if missing:
+        raise InputError(f"no depth for camera(s) {missing}")
+    T = len(state)
+    H, W = settings.resolution
+    cams = renderer.prepare_cameras(cameras, settings.resolution)
+    q_state = torch.as_tensor(state, dtype=torch.float32)
+    q_motion = torch.as_tensor(frame_configurations(state, action, source=settings.motion_source,
+                                                    controller=controller), dtype=torch.float32)
+    links_state = robot.link_poses(q_state)
+    links_motion = robot.link_poses(q_motion)
+    seen = renderer.render(cameras=cams, link_poses=links_state)
+    drawn = renderer.render(cameras=cams, link_poses=links_motion)
+    depth_hw = {n: resize_depth(np.asarray(depth[n], dtype=np.float32), (H, W), name=f"depth of {n}") for n in names}
+    for n, d in depth_hw.items():
+        if len(d) != T:
+            raise InputError(f"depth of {n} has {len(d)} frames, the episode has {T}")
+    K = torch.stack([torch.as_tensor(cams[n].K, dtype=torch.float32) for n in names])
+    gripper = _gripper_surface(robot)
+    contact = episode_contact(
+        torch.as_tensor(np.stack([depth_hw[n] for n in names], axis=1)), K,
+        torch.stack([cams[n].pose(links_state, batch_shape=(T,)) for n in names], 1),
+        _stack_views(seen, names, "mask"),
+        _stack_views(drawn, names, "depth"),
+        torch.stack([cams[n].pose(links_motion, batch_shape=(T,)) for n in names], 1),
+        gripper.points(links_motion),
+        chunk_size=settings.contact_chunk, cap=settings.contact_cap, percentile=settings.contact_percentile,
+        dilate_px=settings.robot_mask_dilate_px,
+    )
+    frames = {}
+    for v, n in enumerate(names):
+        frames[f"{MOTION}.{n}"] = drawn[n].rgb.numpy()
+        frames[f"{R2S}.{n}"] = contact.r2s_rgb[:, v].numpy()
+        frames[f"{S2G}.{n}"] = contact.s2g_rgb[:, v].numpy()
+    return EpisodeStreams(frames=frames, depth=depth_hw, caps=contact.caps.numpy().astype(np.float32))
+
+
+_GRIPPERS: dict[int, object] = {}
+
+
+def _gripper_surface(robot: RobotModel):
+    """Gripper mesh samples are a fixed function of the robot: sample once per process."""
+    from imac_data.contact import GripperSurface
+
+    key = id(robot)
+    if key not in _GRIPPERS:
+        _GRIPPERS[key] = GripperSurface(robot)
+    return _GRIPPERS[key]
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def augment_dataset(root: Path, episodes: list[EpisodeStreams], cameras: dict[str, Camera],
+                    settings: AugmentSettings, depth_source: dict, controller: Controller = Controller()) -> None:
+    """Write the streams of ``episodes`` (in episode order) into the dataset at ``root``."""
+    codec = DepthCodec.preset(settings.depth_codec)
+    add_depth_streams(root, (e.depth for e in episodes), cameras=list(cameras), codec=codec,
+                      size=settings.resolution, source=depth_source)
+    keys = list(episodes[0].frames)
+    add_video_streams(root, (e.frames for e in episodes), keys=keys, encodings=VideoEncoding.lossless_rgb(),
+                      info_extra={k: {"imac.stream": k.rsplit(".", 1)[0]} for k in keys})
+    add_frame_column(root, CAP_KEY, [e.caps for e in episodes], names=["r2s", "s2g"])
+    _merge_imac_info(root, {
+        "augment": asdict(settings),
+        "motion": {"source": settings.motion_source, "controller": controller.to_dict(),
+                   "frame_rule": "frame t shows phi(state[t-1], action[t-1]); frame 0 shows state[0]"
+                                 if settings.motion_source == "action" else "frame t shows state[t]"},
+        "contact": {
+            "chunk_size": settings.contact_chunk,
+            "reference_rule": "chunk c covers frames c*H+1..c*H+H with reference frame c*H; frame 0 is step 0",
+            "cap": settings.contact_cap if settings.contact_cap is not None
+            else f"p{settings.contact_percentile:g} per chunk and stream",
+            "cap_column": CAP_KEY,
+            "colormap": "jet of 1 - d/cap (near = red), black = no value",
+        },
+    })
+
+
+def add_frame_column(root: Path, key: str, per_episode: list[np.ndarray], names: list[str]) -> None:
+    """Add a float32 per-frame feature ``key`` (values ``(T_e, N)`` per episode, in episode
+    order) to the data parquet files, ``info.json`` and the stats."""
+    from lerobot.datasets.compute_stats import aggregate_stats, get_feature_stats
+
+    info_path = root / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    if key in info["features"]:
+        raise InputError(f"{root}: feature {key} already exists")
+    values = {ep: np.asarray(v, dtype=np.float32).reshape(len(v), -1) for ep, v in enumerate(per_episode)}
+    width = len(names)
+    lengths = np.array([len(values[ep]) for ep in range(len(values))])
+    offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    flat = np.concatenate([values[ep] for ep in range(len(values))])
+    for file in sorted((root / "data").rglob("*.parquet")):
+        table = pq.read_table(file)
+        eps = table.column("episode_index").to_numpy()
+        frame = table.column("frame_index").to_numpy()
+        column = flat[offsets[eps] + frame]
+        arr = pa.array(list(column), type=pa.list_(pa.float32()))
+        pq.write_table(table.append_column(key, arr), file)
+    info["features"][key] = {"dtype": "float32", "shape": [width], "names": names}
+    info_path.write_text(json.dumps(info, indent=4))
+    # stats: per episode (meta/episodes columns) and global (meta/stats.json), as LeRobot computes them
+    ep_stats = {ep: get_feature_stats(v, axis=0, keepdims=v.ndim == 1) for ep, v in values.items()}
+    for file in sorted((root / "meta" / "episodes").rglob("*.parquet")):
+        table = pq.read_table(file)
+        idx = table.column("episode_index").to_pylist()
+        for stat in ep_stats[idx[0]]:
+            col = [np.asarray(ep_stats[i][stat]).reshape(-1).tolist() for i in idx]
+            table = table.append_column(f"stats/{key}/{stat}", pa.array(col))
+        pq.write_table(table, file)
+    stats_path = root / "meta" / "stats.json"
+    stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
+    total = aggregate_stats([{key: s} for s in ep_stats.values()])[key]
+    stats[key] = {k: np.asarray(v).tolist() for k, v in total.items()}
+    stats_path.write_text(json.dumps(stats, indent=4))
+
+
+def _merge_imac_info(root: Path, block: dict) -> None:
+    from imac_data.ingest import update_imac_info
+
+    update_imac_info(root, block)
