@@ -111,20 +111,172 @@ def record_sim_episodes(recipe: Recipe, n: int | None, path: Path | None, progre
     return path
 
 
-def build(req: BuildRequest):
-    """Run the whole build; returns the loaded LeRobotDataset."""
+# --------------------------------------------------------------------------- per-episode shards
+
+
+@dataclass(frozen=True)
+class ShardJob:
+    """The unit of work: one source episode -> one complete one-episode dataset (base
+    features + control streams) at ``shard_dir``. Local processes and Ray tasks run the
+    same :func:`build_shard`; a shard directory appears atomically, so a killed build
+    resumes with the shards that are missing."""
+
+    index: int
+    episode: Path
+    shard_dir: Path
+    repo_id: str
+    recipe: Recipe
+    calibration_path: Path
+    options: object  # IngestOptions
+
+
+_PROCESS_CACHE: dict = {}
+
+
+def _process_state(recipe: Recipe):
+    """Robot model, renderer and controller, built once per worker process (the Open3D
+    scene cannot be pickled, so each process builds its own)."""
+    key = (recipe.name, recipe.file, repr(recipe.robot))
+    if key not in _PROCESS_CACHE:
+        from imac_data.motion import Controller, aloha_controller
+        from imac_data.render import make_renderer
+
+        robot = robot_of(recipe)
+        if recipe.robot.platform == "aloha_sim":
+            from imac_data.aloha import load_mujoco_model
+
+            controller = aloha_controller(load_mujoco_model(recipe.source.sim.task))
+        else:
+            controller = Controller()
+        _PROCESS_CACHE.clear()
+        _PROCESS_CACHE[key] = (robot, make_renderer(robot), controller)
+    return _PROCESS_CACHE[key]
+
+
+def build_shard(job: ShardJob) -> Path:
+    """Build one episode's shard dataset (idempotent: a finished shard is kept)."""
+    import shutil
+
+    from imac_data.aloha_hdf5 import read_episode
+    from imac_data.augment import augment_dataset, episode_streams
     from imac_data.cameras import load_calibration
-    from imac_data.ingest import IngestOptions, ingest_episodes
+    from imac_data.depth_sources import RecordedDepth, episode_views
+    from imac_data.ingest import ingest_episodes
+
+    if (job.shard_dir / "meta" / "info.json").is_file():
+        return job.shard_dir
+    robot, renderer, controller = _process_state(job.recipe)
+    calibration = load_calibration(job.calibration_path)
+    tmp = job.shard_dir.with_name(f".{job.shard_dir.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        ingest_episodes([job.episode], calibration=calibration, robot=robot, repo_id=job.repo_id, root=tmp,
+                        options=job.options, overwrite=True, progress=False)
+        raw = read_episode(job.episode)
+        views = episode_views(raw, calibration, robot, name=str(job.episode))
+        source = RecordedDepth()
+        streams = episode_streams(raw.qpos, raw.action, source.depth(views), dict(views.cameras), robot, renderer,
+                                  job.recipe.augment, controller)
+        augment_dataset(tmp, [streams], dict(views.cameras), job.recipe.augment, source.describe(), controller)
+        tmp.rename(job.shard_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return job.shard_dir
+
+
+def _init_worker(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+    quiet_libraries()
+
+
+def run_jobs(jobs: list[ShardJob], *, executor: str, workers: int, ray_address: str | None,
+             progress: bool) -> None:
+    """Run the shard jobs that are not done yet: in this process (1 worker), a local
+    process pool, or Ray tasks."""
+    from tqdm.auto import tqdm
+
+    todo = [j for j in jobs if not (j.shard_dir / "meta" / "info.json").is_file()]
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="augment episodes", unit="ep",
+               disable=not progress)
+    try:
+        if not todo:
+            return
+        if executor == "ray":
+            import ray
+
+            if not ray.is_initialized():
+                ray.init(address=ray_address, num_cpus=None if ray_address else workers,
+                         include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+            task = ray.remote(num_cpus=1)(_ray_shard)
+            pending = [task.remote(j) for j in todo]
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                ray.get(done)
+                bar.update(len(done))
+        elif workers <= 1 or len(todo) == 1:
+            for job in todo:
+                build_shard(job)
+                bar.update(1)
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            threads = max(1, (os.cpu_count() or 1) // workers)
+            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                                     initializer=_init_worker, initargs=(threads,)) as pool:
+                for future in as_completed([pool.submit(build_shard, j) for j in todo]):
+                    future.result()
+                    bar.update(1)
+    finally:
+        bar.close()
+
+
+def _ray_shard(job: ShardJob) -> str:
+    quiet_libraries()
+    return str(build_shard(job))
+
+
+def build_key(recipe: Recipe, paths: list[Path], calibration_path: Path, repo_id: str) -> str:
+    """What a resumable staging directory was built for: the recipe, the source files
+    (path, size, mtime), the calibration and our version. A different key starts over."""
+    from imac_data import __version__
+
+    h = hashlib.sha256()
+    h.update(json.dumps([repo_id, __version__, repr(recipe)], default=str).encode())
+    for p in [*paths, calibration_path]:
+        st = p.stat()
+        h.update(f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+    return h.hexdigest()
+
+
+def build(req: BuildRequest, *, executor: str = "local", workers: int | None = None,
+          ray_address: str | None = None):
+    """Run the whole build; returns the loaded LeRobotDataset at ``req.root``."""
+    import shutil
+
+    from lerobot.datasets.aggregate import aggregate_datasets
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from imac_data.cameras import load_calibration
+    from imac_data.dataset_card import write_card
+    from imac_data.ingest import IngestOptions, check_episodes, staging_dir, update_imac_info
 
     recipe = req.recipe
     if req.root.exists() and not req.overwrite:
         raise InputError(f"output {req.root} already exists; pass --overwrite to replace it")
+    if executor not in ("local", "ray"):
+        raise InputError(f"--executor must be 'local' or 'ray', got {executor!r}")
     problems = missing_inputs(recipe, req.source_path)
     if problems:
         raise InputError(f"recipe {recipe.file} needs inputs that are not there:\n  - " + "\n  - ".join(problems))
     robot = robot_of(recipe)
     paths, calibration_path = source_episodes(req)
     calibration = load_calibration(calibration_path)
+    check_episodes(paths, calibration, robot)
+    _check_stream_resolution(recipe, calibration)
     fps = recipe.fps or _fps_of(paths[0]) or None
     if fps is None:
         raise InputError(f"{recipe.file}: fps: the episodes do not record their rate; set fps in the recipe")
@@ -133,8 +285,54 @@ def build(req: BuildRequest):
         fps=fps, task=recipe.task, source=defaults.source, policy_name=defaults.policy_name,
         checkpoint=defaults.checkpoint, robot_type=robot.name, state_names=_state_names(recipe, robot),
     )
-    return ingest_episodes(paths, calibration=calibration, robot=robot, repo_id=req.repo_id, root=req.root,
-                           options=options, overwrite=req.overwrite, progress=req.progress)
+
+    # Staging: shards/ (one dataset per episode, kept across a killed run when the
+    # build key matches), then the aggregated dataset, renamed into place at the end.
+    staging = staging_dir(req.root)
+    key = build_key(recipe, paths, calibration_path, req.repo_id)
+    key_file = staging / "BUILD_KEY"
+    if staging.exists() and (not key_file.is_file() or key_file.read_text() != key):
+        shutil.rmtree(staging)
+    (staging / "shards").mkdir(parents=True, exist_ok=True)
+    key_file.write_text(key)
+    jobs = [ShardJob(i, p, staging / "shards" / f"episode_{i:06d}", req.repo_id, recipe, calibration_path, options)
+            for i, p in enumerate(paths)]
+    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    run_jobs(jobs, executor=executor, workers=workers, ray_address=ray_address, progress=req.progress)
+
+    final = staging / "dataset"
+    shutil.rmtree(final, ignore_errors=True)
+    shards = [j.shard_dir for j in jobs]
+    aggregate_datasets([req.repo_id] * len(shards), req.repo_id, roots=shards, aggr_root=final)
+    # aggregate_datasets rebuilds info.json without our block: restore it from a shard
+    imac = json.loads((shards[0] / "meta" / "info.json").read_text())["imac"]
+    imac["build"] = {"recipe": recipe.name, "command": f"python -m imac_data.build --repo {req.repo_id}",
+                     "episodes": len(jobs)}
+    update_imac_info(final, imac)
+    write_card(final, req.repo_id, recipe)
+    dataset = LeRobotDataset(req.repo_id, root=final)
+    validate(dataset)
+
+    # into place: the old output (--overwrite) is removed only once the new one is complete
+    old = req.root.with_name(f".{req.root.name}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    if req.root.exists():
+        req.root.rename(old)
+    final.rename(req.root)
+    shutil.rmtree(old, ignore_errors=True)
+    shutil.rmtree(staging, ignore_errors=True)
+    return LeRobotDataset(req.repo_id, root=req.root)
+
+
+def _check_stream_resolution(recipe: Recipe, calibration) -> None:
+    """The added streams keep each camera's aspect ratio (they are rescaled, not cropped)."""
+    h, w = recipe.augment.resolution
+    for cam in calibration.values():
+        if abs(h / w - cam.height / cam.width) > 0.01 * cam.height / cam.width:
+            raise InputError(
+                f"{recipe.file}: augment.height/width {h}x{w} has another aspect ratio than camera {cam.name!r} "
+                f"({cam.height}x{cam.width}); pick a size of the same aspect ratio"
+            )
 
 
 def _fps_of(path: Path) -> float | None:
@@ -153,17 +351,19 @@ def _state_names(recipe: Recipe, robot) -> tuple[str, ...] | None:
 
 
 def validate(dataset, sample: int = 4) -> None:
-    """Load a few frames through LeRobot's own loader and check every stream decodes."""
+    """Load a sample of frames (first, last, between) through LeRobot's own loader and
+    check that every stream decodes at the recorded size and the frame counts agree."""
     import numpy as np
 
     n = len(dataset)
-    if n != dataset.meta.total_frames:
+    if n != dataset.meta.total_frames or n != sum(dataset.meta.episodes["length"]):
         raise RuntimeError(f"dataset has {n} frames, metadata says {dataset.meta.total_frames}")
     for i in np.linspace(0, n - 1, min(sample, n)).astype(int):
         item = dataset[int(i)]
         for key in dataset.meta.video_keys:
-            if key not in item or item[key].ndim != 3:
-                raise RuntimeError(f"frame {i}: video stream {key} did not decode")
+            h, w, _ = dataset.meta.features[key]["shape"]
+            if key not in item or tuple(item[key].shape) != (3, h, w):
+                raise RuntimeError(f"frame {i}: video stream {key} did not decode to (3, {h}, {w})")
 
 
 # --------------------------------------------------------------------------- CLI
@@ -191,6 +391,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--source", type=Path, help="directory of raw episodes (overrides the recipe's source.path)")
     p.add_argument("--episodes", type=int, help="use the first N episodes (overrides the recipe)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output dataset")
+    p.add_argument("--workers", type=int, help="parallel episode workers (default: one per CPU core)")
+    p.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local process pool (default) or Ray tasks")
+    p.add_argument("--ray-address", help="Ray cluster address (default: start a local Ray)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
 
@@ -210,8 +414,9 @@ def main(argv: list[str] | None = None) -> int:
             source_path=args.source, episodes=args.episodes, overwrite=args.overwrite,
             progress=not args.no_progress,
         )
-        dataset = build(req)
-        validate(dataset)
+        if args.workers is not None and args.workers <= 0:
+            raise InputError(f"--workers must be positive, got {args.workers}")
+        dataset = build(req, executor=args.executor, workers=args.workers, ray_address=args.ray_address)
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
