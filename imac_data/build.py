@@ -304,6 +304,7 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     shutil.rmtree(final, ignore_errors=True)
     shards = [j.shard_dir for j in jobs]
     aggregate_datasets([req.repo_id] * len(shards), req.repo_id, roots=shards, aggr_root=final)
+    _order_stats(final)
     # aggregate_datasets rebuilds info.json without our block: restore it from a shard
     imac = json.loads((shards[0] / "meta" / "info.json").read_text())["imac"]
     imac["build"] = {"recipe": recipe.name, "command": f"python -m imac_data.build --repo {req.repo_id}",
@@ -322,6 +323,17 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     shutil.rmtree(old, ignore_errors=True)
     shutil.rmtree(staging, ignore_errors=True)
     return LeRobotDataset(req.repo_id, root=req.root)
+
+
+def _order_stats(root: Path) -> None:
+    """LeRobot's ``aggregate_stats`` collects feature names in a set, so the key order of
+    ``stats.json`` follows Python's per-process string hashing; write it in the
+    features' order so that equal builds are byte-identical."""
+    info = json.loads((root / "meta" / "info.json").read_text())
+    path = root / "meta" / "stats.json"
+    stats = json.loads(path.read_text())
+    order = [k for k in info["features"] if k in stats] + sorted(k for k in stats if k not in info["features"])
+    path.write_text(json.dumps({k: stats[k] for k in order}, indent=4))
 
 
 def _check_stream_resolution(recipe: Recipe, calibration) -> None:

@@ -71,6 +71,7 @@ steps' robot points go to it together.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -580,9 +581,10 @@ def _tile_representatives(group: torch.Tensor, pix: torch.Tensor, num_groups: in
 
 class _TilePyramid:
     """Pixel tiles of a point set (at most one point per pixel of ``num_groups`` images
-    ``H x W``; ``group``/``pix``: each point's image and flat pixel index).
-    Levels are built on demand on the points still unresolved; level 0 (all points) is
-    cached, since the s2g scene points serve every step of a chunk."""
+    ``H x W``; ``group``/``pix``: each point's image and flat pixel index). Levels are
+    built on demand on the points still unresolved; level 0 (all points) is cached with
+    each point's distance to its representative, since the s2g scene points serve every
+    step of a chunk."""
 
     def __init__(self, points, group, pix, num_groups: int, H: int, W: int, sizes: Sequence[int] = TILE_SIZES):
         self.points, self.group, self.pix = points, group, pix
@@ -590,18 +592,24 @@ class _TilePyramid:
         self._level0 = None
 
     def level(self, i: int, subset: torch.Tensor | None):
-        """Tiles of level ``i`` over ``subset`` (point indices; None = all): the tile of each
-        subset point and the representatives (indices into all points) of the tiles."""
+        """Tiles of level ``i`` over ``subset`` (point indices; None = all): ``(tile of each
+        subset point, representative per tile (index into all points, -1 = empty tile),
+        each subset point's distance to its representative)``."""
+        if subset is None and i == 0 and self._level0 is not None:
+            return self._level0
         if subset is None:
-            if i == 0 and self._level0 is not None:
-                return self._level0
-            out = _tile_representatives(self.group, self.pix, self.num_groups, self.H, self.W, self.sizes[i])
-            if i == 0:
-                self._level0 = out
-            return out
-        tile, rep = _tile_representatives(self.group[subset], self.pix[subset], self.num_groups, self.H, self.W,
-                                          self.sizes[i])
-        return tile, torch.where(rep >= 0, subset[rep.clamp(min=0)], rep)
+            tile, rep = _tile_representatives(self.group, self.pix, self.num_groups, self.H, self.W, self.sizes[i])
+            members = self.points
+        else:
+            tile, rep = _tile_representatives(self.group[subset], self.pix[subset], self.num_groups, self.H, self.W,
+                                              self.sizes[i])
+            rep = torch.where(rep >= 0, subset[rep.clamp(min=0)], rep)
+            members = self.points[subset]
+        gap = (members - self.points[rep[tile]]).norm(dim=-1)
+        out = (tile, rep, gap)
+        if subset is None and i == 0:
+            self._level0 = out
+        return out
 
 
 def _certified_distances(pyramid: _TilePyramid, query, tolerance: tuple[float, float],
@@ -619,33 +627,31 @@ def _certified_distances(pyramid: _TilePyramid, query, tolerance: tuple[float, f
         return out
     todo = None  # indices of the unresolved points; None = all
     for i in range(len(pyramid.sizes)):
-        tile, rep = pyramid.level(i, todo)
+        tile, rep, gap = pyramid.level(i, todo)
         at = torch.nonzero(rep >= 0)[:, 0]
-        members = points if todo is None else points[todo]
-        # One row per tile: representative r, d(r), nearest target point n_r.
-        table = torch.empty((rep.shape[0], 7), dtype=torch.float32, device=dev)
-        table[at, :3] = points[rep[at]]
-        # A representative farther than cap + (the largest member gap of this level, an
-        # upper bound of the tile diagonal) proves all its members beyond the cap.
-        bound = None
-        if max_distance is not None:
-            rows = table[tile, :3]
-            bound = max_distance + float((members - rows).norm(dim=-1).max())
-        d_rep, n_rep = query(table[at, :3], bound)
-        table[at, 3] = d_rep.to(dev)
-        table[at, 4:] = n_rep.to(dev)
+        # One row per tile: d(r) and the nearest target point n_r of its representative r.
+        table = torch.empty((rep.shape[0], 4), dtype=torch.float32, device=dev)
+        # A representative farther than cap + (the largest member gap of this level)
+        # proves all its members beyond the cap.
+        bound = None if max_distance is None else max_distance + float(gap.max())
+        d_rep, n_rep = query(points[rep[at]], bound)
+        table[at, 0] = d_rep.to(dev)
+        table[at, 1:] = n_rep.to(dev)
         m = table[tile]
-        gap = (members - m[:, :3]).norm(dim=-1)
-        d = m[:, 3]
+        members = points if todo is None else points[todo]
+        d = m[:, 0]
         lower = (d - gap).clamp(min=0)  # Lipschitz
-        upper = (members - m[:, 4:]).norm(dim=-1)  # distance to an actual target point
+        upper = (members - m[:, 1:]).norm(dim=-1)  # distance to an actual target point
         far = torch.isinf(d)
         ok = far | (upper - lower <= torch.clamp(tol_rel * lower, min=tol_abs))
         value = torch.where(far, d, upper)
-        idx = torch.arange(N, device=dev) if todo is None else todo
         keep = torch.nonzero(ok)[:, 0]
-        out.index_put_((idx.index_select(0, keep),), value.index_select(0, keep))
-        todo = idx.index_select(0, torch.nonzero(~ok)[:, 0])
+        if todo is None:
+            out.index_put_((keep,), value.index_select(0, keep))
+            todo = torch.nonzero(~ok)[:, 0]
+        else:
+            out.index_put_((todo.index_select(0, keep),), value.index_select(0, keep))
+            todo = todo.index_select(0, torch.nonzero(~ok)[:, 0])
         if todo.numel() == 0:
             break
     if todo is not None and todo.numel():
@@ -818,7 +824,7 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
                   gripper_points=None, *, gripper_mask=None, cap=None, percentile: float = DEFAULT_PERCENTILE,
                   dilate_px: int = DEFAULT_DILATE_PX, fill_px: int = DEFAULT_FILL_PX,
                   tolerance=DEFAULT_TOLERANCE, method: str = "auto", workers: int = -1,
-                  allow_empty_scene: bool = False, device=None) -> ContactChunk:
+                  allow_empty_scene: bool = False, device=None, cpu_threads: int | None = 1) -> ContactChunk:
     """Both contact streams for the S steps of one chunk.
 
     Reference (frame t, all V views): ``ref_depth (V, H, W)`` metres, ``K (V, 3, 3)``,
@@ -839,7 +845,12 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     tiles, :func:`_certified_distances`); ``None`` or 0 = exact per pixel (several times
     slower on the CPU).
     ``method``/``workers``: :class:`NearestNeighbours`. ``device``: where to compute
-    (default: the device of ``ref_depth``).
+    (default: the device of ``ref_depth``). ``cpu_threads``: torch intra-op threads for
+    the tensor work on the CPU during the call (restored afterwards; None = leave torch's
+    setting). The default 1 is deliberate: that work is gathers and scatters on ~1e5-1e6
+    elements, where torch's OpenMP pool gains little on an idle machine and, when the
+    cores are shared (CI, data-loader workers), its spinning threads made a chunk 3-10x
+    slower in our measurements. The KD-tree queries still use ``workers`` threads.
 
     An empty scene cloud (all reference depth invalid or covered by the robot) raises
     :class:`InputError`, unless ``allow_empty_scene``: then r2s is +inf on every robot
@@ -848,6 +859,29 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     """
     if device is None:
         device = torch.as_tensor(ref_depth).device
+    device = torch.device(device)
+    with _torch_threads(cpu_threads if device.type == "cpu" else None):
+        return _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam,
+                              gripper_points, gripper_mask, cap, percentile, dilate_px, fill_px, tolerance, method,
+                              workers, allow_empty_scene, device)
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int | None):
+    old = torch.get_num_threads()
+    if n is None or int(n) == old:
+        yield
+        return
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam, gripper_points,
+                   gripper_mask, cap, percentile, dilate_px, fill_px, tolerance, method, workers, allow_empty_scene,
+                   device) -> ContactChunk:
     fixed = _resolve_cap(cap)
     tol = _resolve_tolerance(tolerance)
     if not (0.0 <= float(percentile) <= 100.0):
@@ -883,9 +917,6 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     else:
         pyramid = _TilePyramid(r_points, step * V + view, pix, S * V, H, W)
         r_vals = _certified_distances(pyramid, lambda p, b: scene_nn.query(p, max_distance=b), tol, r_cap)
-    r2s = torch.full((S * V * HW,), math.nan, dtype=torch.float32, device=device)
-    r2s[rflat] = r_vals
-    r2s = r2s.reshape(S, V, H, W)
 
     # ---- s2g: per step, the (fixed) scene points against that step's gripper cloud
     g_flag = None if gm is None else gm.reshape(-1)[rflat]
@@ -903,21 +934,25 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
             s_vals[s] = gnn.distances(scene.points, max_distance=g_cap).to(device)
         else:
             s_vals[s] = _certified_distances(s_pyramid, lambda p, b: gnn.query(p, max_distance=b), tol, g_cap)
-    raw = torch.full((S, V * HW), math.nan, dtype=torch.float32, device=device)
-    raw[:, scene.flat] = s_vals
-    raw = raw.reshape(S, V, H, W)
 
+    # ---- caps, maps, colours (colours from the value arrays, then one scatter)
     caps = (torch.tensor(fixed, dtype=torch.float32) if fixed is not None
             else chunk_caps(r_vals, s_vals, percentile))
-    s2g = raw
+    r2s = torch.full((S * V * HW,), math.nan, dtype=torch.float32, device=device)
+    r2s[rflat] = r_vals
+    r_rgb = torch.zeros((S * V * HW, 3), dtype=torch.uint8, device=device)
+    r_rgb[rflat] = colorize(r_vals, float(caps[0]))
+    s2g = torch.full((S, V * HW), math.nan, dtype=torch.float32, device=device)
+    s2g[:, scene.flat] = s_vals
+    s_rgb = torch.zeros((S, V * HW, 3), dtype=torch.uint8, device=device)
+    s_rgb[:, scene.flat] = colorize(s_vals, float(caps[1]))
     if fill_px and len(scene.points):
         dst, src = _fill_sources(scene.valid, scene.mask, int(fill_px))
-        if len(dst):
-            s2g = raw.reshape(S, -1).clone()
-            s2g[:, dst] = s2g[:, src]
-            s2g = s2g.reshape(S, V, H, W)
-    return ContactChunk(r2s=r2s, s2g=s2g, r2s_rgb=colorize(r2s, float(caps[0])),
-                        s2g_rgb=colorize(s2g, float(caps[1])), caps=caps.to(device))
+        s2g[:, dst] = s2g[:, src]
+        s_rgb[:, dst] = s_rgb[:, src]
+    return ContactChunk(r2s=r2s.reshape(S, V, H, W), s2g=s2g.reshape(S, V, H, W),
+                        r2s_rgb=r_rgb.reshape(S, V, H, W, 3), s2g_rgb=s_rgb.reshape(S, V, H, W, 3),
+                        caps=caps.to(device))
 
 
 # ----------------------------------------------------------------------------- episodes

@@ -23,7 +23,9 @@ def sim_dir(tmp_path_factory):
 
 
 def write_recipe(tmp_path, **changes) -> Path:
+    """The shipped sim recipe, with the added streams at the tiny episodes' size."""
     data = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
+    data["augment"] = {"height": 64, "width": 80, "contact_chunk": 4}
     for dotted, value in changes.items():
         node = data
         *parents, leaf = dotted.split(".")
@@ -46,9 +48,21 @@ def test_cli_builds_a_loadable_dataset(sim_dir, tmp_path, capsys):
                "--root", str(root), "--no-progress"])
     assert rc == 0
     assert "built local/tiny: 2 episodes" in capsys.readouterr().out
-    ds = LeRobotDataset("local/tiny", root=root, delta_timestamps={"action": [0.0, 0.04]})
+    ds = LeRobotDataset("local/tiny", root=root, delta_timestamps={
+        "action": [0.0, 0.04], "control.motion.cam_high": [0.04, 0.08], "control.contact_s2g.cam_left_wrist": [0.04]})
     assert ds.meta.total_episodes == 2
-    assert ds[0]["action"].shape == (2, 14)
+    item = ds[0]
+    assert item["action"].shape == (2, 14)
+    assert item["control.motion.cam_high"].shape == (2, 3, 64, 80)
+    assert item["control.contact_s2g.cam_left_wrist"].shape == (3, 64, 80)  # LeRobot squeezes one timestamp
+    for cam in ("cam_high", "cam_left_wrist", "cam_right_wrist"):
+        for key in (f"observation.depth.{cam}", f"control.motion.{cam}", f"control.contact_r2s.{cam}",
+                    f"control.contact_s2g.{cam}"):
+            assert key in ds.meta.video_keys
+    assert tuple(ds.meta.features["control.contact_cap"]["shape"]) == (2,)
+    info = ds.meta.info["imac"]
+    assert info["contact"]["chunk_size"] == 4 and info["depth"]["codec"]["lam"] == -500
+    assert (root / "README.md").read_text().startswith("# local/tiny")
     # the output is complete: rebuilding without --overwrite is refused, with it succeeds
     assert main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
                  "--root", str(root), "--no-progress"]) == 2
@@ -102,6 +116,7 @@ def custom_robot_recipe(tmp_path, sim_dir, urdf_text: str) -> Path:
                   "package_dirs": {k: str(v) for k, v in dict(config.package_dirs).items()}},
         "cameras": {"calibration": str(sim_dir / "calibration.json")},
         "source": {"type": "aloha_hdf5", "path": str(sim_dir)},
+        "augment": {"height": 64, "width": 80, "contact_chunk": 4},
     }
     path = tmp_path / "custom.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -166,3 +181,50 @@ def test_paper_recipes_say_what_is_missing(name, tmp_path, capsys, monkeypatch):
     assert f"not found at {tmp_path / 'data' / name}" in err
     recipe = load_recipe(RECIPES_DIR / f"{name}.yaml")
     assert recipe.fps == 30 and recipe.source.type == "aloha_hdf5"
+
+
+def dataset_files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def reference_build(sim_dir, tmp_path_factory):
+    """An uninterrupted local build in this process (1 worker)."""
+    tmp = tmp_path_factory.mktemp("ref")
+    root = tmp / "out"
+    assert main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp)), "--source", str(sim_dir),
+                 "--root", str(root), "--no-progress", "--workers", "1"]) == 0
+    return root
+
+
+def test_ray_build_is_identical_to_local_build(sim_dir, tmp_path, reference_build):
+    root = tmp_path / "out"
+    assert main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
+                 "--root", str(root), "--no-progress", "--executor", "ray", "--workers", "2"]) == 0
+    assert dataset_files(root) == dataset_files(reference_build)
+
+
+def test_killed_build_resumes_to_the_same_dataset(sim_dir, tmp_path, reference_build):
+    """SIGKILL while the build runs (after its first episode's shard is complete), rerun:
+    the result equals an uninterrupted build."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root = tmp_path / "out"
+    shards = tmp_path / ".out.staging" / "shards"
+    cmd = [sys.executable, "-m", "imac_data.build", "--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)),
+           "--source", str(sim_dir), "--root", str(root), "--no-progress", "--workers", "1"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (shards / "episode_000000" / "meta" / "info.json").is_file():
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (shards / "episode_000000").is_dir(), "the build never finished its first episode"
+    assert not root.exists()
+    assert subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE).returncode == 0
+    assert dataset_files(root) == dataset_files(reference_build)
+    assert not (tmp_path / ".out.staging").exists()

@@ -1,0 +1,313 @@
+"""Contact images: time per future frame, the gain over a straightforward reference, and
+accuracy against MuJoCo's own geometric distances.
+
+    python -m benchmarks.contact_speed [--quick] [--cores 2] [--json PATH]
+
+Inputs: a scripted ``transfer_cube`` episode (seed 0, 25 fps, the right gripper
+approaches, grasps and lifts the cube) at 240x320, three views, with MuJoCo's
+ground-truth depth and segmentation; the robot rendered by our ray-casting renderer
+(mask, depth, link ids; rendering is shared with the motion images, so it is timed
+separately and not counted in the contact time), chunks of 8 future steps.
+
+Timed, on the same chunks and interleaved chunk by chunk (both sides see the same
+machine load):
+
+* ours, :func:`imac_data.contact.contact_chunk` with the default certified tolerance
+  (every distance within [exact, exact + max(1 mm, 2 %)]), and exact per pixel
+  (``tolerance=None``); everything included: scene cloud, KD-tree forest, both
+  streams, percentile caps, hole filling, colour images;
+* the reference (what public code does, DESIGN.md's 720 ms/frame): per future frame,
+  pose every robot visual mesh and sample 3000 points on each with trimesh, build a
+  scipy KD-tree (``workers=-1``) on the scene and query the robot samples, build one on
+  the finger samples and query the scene points. It produces distances only, no
+  images (so the ratio is conservative);
+* CUDA (if present): ours with everything on the GPU (exact brute force per tile).
+
+Accuracy: for every future frame, the smallest scene->gripper distance over the cube's
+pixels in the reference views (cube pixels from MuJoCo's segmentation) against
+``mj_geomDistance`` between the four finger geoms and the cube (cube at its reference
+pose, fingers at the future step), where that is under 5 cm; MuJoCo answers that
+contradict their own witness points are skipped (its convex solver occasionally
+returns 0 for separated geoms). Also the share of scene-cloud points that MuJoCo's
+segmentation calls robot (mask leak).
+
+``run()`` returns a flat dict: ``contact_fps_cpu``, ``contact_ms_per_frame_cpu``,
+``contact_ratio_vs_reference``, ``contact_err_max_mm_under_5cm``, ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import imac_data  # noqa: F401  (MUJOCO_GL=egl before mujoco is imported)
+import mujoco
+import numpy as np
+import torch
+
+from imac_data.aloha import camera_calibration, load_mujoco_model, robot_config
+from imac_data.contact import ContactBuilder, chunk_plan, contact_chunk, scene_cloud
+from imac_data.robot import RobotModel
+from imac_data.simulate import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
+
+CHUNK = 8
+REFERENCE_SAMPLES = 3000
+
+
+class _Capture(FrameRenderer):
+    """FrameRenderer that also keeps MuJoCo's full qpos of every recorded frame."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.qpos: list[np.ndarray] = []
+
+    def render(self, data):
+        self.qpos.append(data.qpos.copy())
+        return super().render(data)
+
+
+def episode(max_steps: int, seed: int = 0) -> dict:
+    model = load_mujoco_model("transfer_cube")
+    cap = _Capture(model, 320, 240, segmentation=True)
+    try:
+        ep = simulate_episode("transfer_cube", seed=seed, frame_stride=2, max_steps=max_steps, renderer=cap)
+    finally:
+        cap.close()
+    return {"model": model, "ep": ep, "qfull": np.array(cap.qpos)}
+
+
+# ----------------------------------------------------------------------------- reference
+
+
+class Reference:
+    """Mesh surface sampling (trimesh, 3000 points per visual mesh) + scipy KD-trees built
+    per frame both ways: distances of the robot samples to the scene and of the scene
+    points to the finger samples."""
+
+    def __init__(self, robot: RobotModel, seed: int = 0):
+        self.robot = robot
+        self.gripper = [i for i, m in enumerate(robot.visual_meshes) if m.link in robot.gripper_links]
+        self.rng = np.random.default_rng(seed)
+
+    def frame(self, q: torch.Tensor, scene_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        import trimesh
+        from scipy.spatial import cKDTree
+
+        verts = self.robot.posed_vertices(q[None].double())
+        samples = []
+        for mesh, v in zip(self.robot.visual_meshes, verts):
+            tm = trimesh.Trimesh(v[0].numpy(), mesh.faces, process=False)
+            pts, _ = trimesh.sample.sample_surface(tm, REFERENCE_SAMPLES, seed=int(self.rng.integers(1 << 31)))
+            samples.append(pts)
+        robot_pts = np.concatenate(samples)
+        grip_pts = np.concatenate([samples[i] for i in self.gripper])
+        r2s, _ = cKDTree(scene_points).query(robot_pts, workers=-1)
+        s2g, _ = cKDTree(grip_pts).query(scene_points, workers=-1)
+        return r2s, s2g, grip_pts
+
+
+# ----------------------------------------------------------------------------- accuracy
+
+
+def _mj_distance(model, data, g1, g2) -> float | None:
+    fromto = np.zeros(6)
+    d = mujoco.mj_geomDistance(model, data, g1, g2, 0.2, fromto)
+    if d < 0.2 and abs(np.linalg.norm(fromto[3:] - fromto[:3]) - abs(d)) > 1e-4:
+        return None  # inconsistent with its own witness points
+    return d
+
+
+class Oracle:
+    def __init__(self, model, qfull, seg, labels):
+        self.model, self.qfull, self.seg, self.labels = model, qfull, seg, labels
+        self.data = mujoco.MjData(model)
+        self.box = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "red_box")
+        self.adr = model.jnt_qposadr[model.body_jntadr[model.geom_bodyid[self.box]]]
+        self.fingers = [g for g in range(model.ngeom) if "finger" in model.geom(g).name]
+
+    def distance(self, ref: int, frame: int) -> float | None:
+        d = self.data
+        d.qpos[:] = self.qfull[frame]
+        d.qpos[self.adr:self.adr + 7] = self.qfull[ref][self.adr:self.adr + 7]
+        mujoco.mj_kinematics(self.model, d)
+        dists = [_mj_distance(self.model, d, g, self.box) for g in self.fingers]
+        return None if any(x is None for x in dists) else max(min(dists), 0.0)
+
+    def cube(self, ref: int) -> torch.Tensor:
+        return torch.as_tensor(self.seg[ref] == self.box)
+
+    def leak(self, ref: int, flat: torch.Tensor) -> tuple[int, int]:
+        robot = torch.as_tensor(robot_mask(self.seg[ref], self.labels)).reshape(-1)
+        return int(robot[flat].sum()), len(flat)
+
+
+# ----------------------------------------------------------------------------- run
+
+
+def _sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def run(quick: bool = False, cores: int | None = 2, max_steps: int | None = None, reference_frames: int | None = None,
+        seed: int = 0) -> dict:
+    if cores:
+        try:
+            os.sched_setaffinity(0, set(sorted(os.sched_getaffinity(0))[:cores]))
+        except (AttributeError, OSError):
+            pass
+        torch.set_num_threads(cores)
+    workers = cores or -1
+    max_steps = max_steps or (80 if quick else 120)
+    reference_frames = reference_frames or (8 if quick else 16)
+
+    sim = episode(max_steps, seed)
+    model, ep = sim["model"], sim["ep"]
+    cams = camera_calibration(model, 320, 240)
+    robot = RobotModel(robot_config())
+    builder = ContactBuilder(robot, cams, workers=workers)
+    names = builder.names
+    depth = torch.stack([torch.as_tensor(ep.depth_mm[n].astype(np.float32) / 1000.0) for n in names], 1)
+    seg = np.stack([ep.segmentation[n] for n in names], 1)
+    q = torch.as_tensor(ep.qpos, dtype=torch.float32)
+    T = len(q)
+    t0 = time.perf_counter()
+    inp = builder.robot_inputs(q)
+    render_ms = 1e3 * (time.perf_counter() - t0) / T
+    K = builder.K
+    oracle = Oracle(model, sim["qfull"], seg, segmentation_labels(model))
+    reference = Reference(robot, seed)
+
+    plan = [(r, [f for f in fs if f != r]) for r, fs in chunk_plan(T, CHUNK)]
+    plan = [(r, fs) for r, fs in plan if fs]
+    ours_s, exact_s, ref_s = 0.0, 0.0, 0.0
+    ours_n, exact_n, ref_n = 0, 0, 0
+    errors, ref_errors, leaks, skipped = [], [], [], 0
+    for ref, frames in plan:
+        args = (depth[ref], K, inp["T_world_cam"][ref], inp["mask"][ref], inp["depth"][frames],
+                inp["T_world_cam"][frames], inp["gripper_points"][frames])
+        t = time.perf_counter()
+        c = contact_chunk(*args, workers=workers)
+        ours_s += time.perf_counter() - t
+        ours_n += len(frames)
+        if exact_n < reference_frames:
+            t = time.perf_counter()
+            contact_chunk(*args, workers=workers, tolerance=None)
+            exact_s += time.perf_counter() - t
+            exact_n += len(frames)
+        scene = scene_cloud(depth[ref], K, inp["T_world_cam"][ref], inp["mask"][ref])
+        leaks.append(oracle.leak(ref, scene.flat))
+        cube = oracle.cube(ref) & scene.valid
+        cube_idx = torch.nonzero(cube.reshape(-1)[scene.flat])[:, 0].numpy()
+        for i, f in enumerate(frames):
+            run_ref = ref_n < reference_frames
+            if run_ref:
+                t = time.perf_counter()
+                _, s2g_ref, _ = reference.frame(q[f], scene.points.double().numpy())
+                ref_s += time.perf_counter() - t
+                ref_n += 1
+            mj = oracle.distance(ref, f)
+            if mj is None:
+                skipped += 1
+                continue
+            if mj < 0.05 and len(cube_idx):
+                errors.append((f, ref, mj, float(c.s2g[i][cube].min())))
+                if run_ref:
+                    ref_errors.append((f, ref, mj, float(s2g_ref[cube_idx].min())))
+
+    out = {
+        "device_cpu": platform.processor() or platform.machine(),
+        "cores": cores or os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "frames": T,
+        "future_frames_timed": ours_n,
+        "render_ms_per_frame_3views": render_ms,
+        "contact_ms_per_frame_cpu": 1e3 * ours_s / ours_n,
+        "contact_fps_cpu": ours_n / ours_s,
+        "contact_exact_ms_per_frame_cpu": 1e3 * exact_s / max(exact_n, 1),
+        "reference_ms_per_frame_cpu": 1e3 * ref_s / max(ref_n, 1),
+        "contact_ratio_vs_reference": (ref_s / max(ref_n, 1)) / (ours_s / ours_n),
+        "contact_exact_ratio_vs_reference": (ref_s / max(ref_n, 1)) / (exact_s / max(exact_n, 1)),
+        "oracle_samples_under_5cm": len(errors),
+        "oracle_skipped_inconsistent": skipped,
+        "mask_leak_percent": 100.0 * sum(a for a, _ in leaks) / max(sum(b for _, b in leaks), 1),
+        "mask_leak_percent_max_frame": 100.0 * max(a / max(b, 1) for a, b in leaks),
+    }
+    if errors:
+        e = np.array(errors)
+        err = np.abs(e[:, 3] - e[:, 2]) * 1e3
+        out.update(contact_err_max_mm_under_5cm=float(err.max()), contact_err_mean_mm_under_5cm=float(err.mean()),
+                   min_finger_cube_distance_mm=float(e[:, 2].min() * 1e3))
+    if ref_errors:
+        e = np.array(ref_errors)
+        out["reference_err_max_mm_under_5cm"] = float(np.abs(e[:, 3] - e[:, 2]).max() * 1e3)
+    if torch.cuda.is_available():
+        out.update(_cuda(depth, K, inp, plan))
+    return out
+
+
+def _cuda(depth, K, inp, plan) -> dict:
+    dev = torch.device("cuda")
+    cuda = {k: v.to(dev) for k, v in inp.items()}
+    depth, K = depth.to(dev), K.to(dev)
+    times, n = 0.0, 0
+    for rep in range(2):  # first pass warms up kernels and the allocator
+        for ref, frames in plan:
+            idx = torch.as_tensor(frames, device=dev)
+            args = (depth[ref], K, cuda["T_world_cam"][ref], cuda["mask"][ref], cuda["depth"][idx],
+                    cuda["T_world_cam"][idx], cuda["gripper_points"][idx])
+            _sync(dev)
+            t = time.perf_counter()
+            contact_chunk(*args)
+            _sync(dev)
+            if rep:
+                times += time.perf_counter() - t
+                n += len(frames)
+    return {"device_cuda": torch.cuda.get_device_name(0), "contact_ms_per_frame_cuda": 1e3 * times / n,
+            "contact_fps_cuda": n / times}
+
+
+def report(r: dict) -> str:
+    lines = [
+        f"contact images, 3 views at 240x320, chunks of {CHUNK}, {r['future_frames_timed']} future frames, "
+        f"{r['cores']} CPU cores ({r['torch_threads']} torch threads)",
+        f"  ours (default tolerance 1 mm / 2 %): {r['contact_ms_per_frame_cpu']:.1f} ms/frame = "
+        f"{r['contact_fps_cpu']:.1f} fps",
+        f"  ours, exact per pixel:               {r['contact_exact_ms_per_frame_cpu']:.1f} ms/frame",
+        f"  reference (trimesh 3000/mesh + KD-trees both ways): {r['reference_ms_per_frame_cpu']:.0f} ms/frame "
+        f"-> ratio {r['contact_ratio_vs_reference']:.1f}x (exact: {r['contact_exact_ratio_vs_reference']:.1f}x)",
+        f"  robot render (not counted): {r['render_ms_per_frame_3views']:.1f} ms/frame",
+    ]
+    if "contact_fps_cuda" in r:
+        lines.append(f"  CUDA ({r['device_cuda']}): {r['contact_ms_per_frame_cuda']:.2f} ms/frame = "
+                     f"{r['contact_fps_cuda']:.0f} fps")
+    if "contact_err_max_mm_under_5cm" in r:
+        lines.append(f"  vs MuJoCo mj_geomDistance (finger-cube < 5 cm, {r['oracle_samples_under_5cm']} frames, "
+                     f"{r['oracle_skipped_inconsistent']} inconsistent MuJoCo answers skipped): max "
+                     f"{r['contact_err_max_mm_under_5cm']:.2f} mm, mean {r['contact_err_mean_mm_under_5cm']:.2f} mm"
+                     + (f"; reference max {r['reference_err_max_mm_under_5cm']:.2f} mm"
+                        if "reference_err_max_mm_under_5cm" in r else ""))
+    lines.append(f"  robot pixels leaking into the scene cloud: {r['mask_leak_percent']:.3f} % "
+                 f"(worst frame {r['mask_leak_percent_max_frame']:.3f} %)")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.contact_speed", description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="shorter episode, fewer reference frames")
+    p.add_argument("--cores", type=int, default=2, help="pin to this many CPU cores (0 = all)")
+    p.add_argument("--json", type=Path, help="also write the results here")
+    args = p.parse_args(argv)
+    r = run(quick=args.quick, cores=args.cores or None)
+    print(report(r))
+    if args.json:
+        args.json.write_text(json.dumps(r, indent=1))
+    return r
+
+
+if __name__ == "__main__":
+    main()
