@@ -181,3 +181,95 @@ def _merge_imac_info(root: Path, block: dict) -> None:
     from imac_data.ingest import update_imac_info
 
     update_imac_info(root, block)
+
+
+# --------------------------------------------------------------------------- CLI: existing datasets
+
+
+def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = True) -> None:
+    """Add the control streams to the LeRobot dataset at ``root`` (e.g. one downloaded from
+    the hub, or a base dataset built by ``ingest``), in place and atomically: the streams
+    are written into a staging copy whose videos are hard links, swapped in at the end.
+    The original camera videos are never rewritten.
+
+    Depth and the episodes' joint data come from the raw episodes in ``source_dir``
+    (episode ``i`` of the dataset = the ``i``-th file in natural order); their states
+    must equal the dataset's, which is checked.
+    """
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from tqdm.auto import tqdm
+
+    from imac_data.aloha_hdf5 import episode_paths, read_episode
+    from imac_data.build import _process_state, validate
+    from imac_data.cameras import Camera, load_calibration
+    from imac_data.depth_sources import RecordedDepth, episode_views
+    from imac_data.video_streams import staged_dataset
+
+    info_path = root / "meta" / "info.json"
+    if not info_path.is_file():
+        raise InputError(f"{root} is not a LeRobot dataset ({info_path} is missing)")
+    info = json.loads(info_path.read_text())
+    existing = [k for k in info["features"] if k.startswith(("control.", "observation.depth."))]
+    if existing:
+        raise InputError(f"{root} already has control/depth streams {existing[:3]}...; start from the base dataset")
+    if recipe.cameras.calibration is not None:
+        calibration = load_calibration(recipe.resolve_path(recipe.cameras.calibration))
+    elif "cameras" in info.get("imac", {}):
+        calibration = {n: Camera(name=n, K=c["K"], width=c["width"], height=c["height"],
+                                 T_world_cam=c.get("T_world_cam"), link=c.get("link"), T_link_cam=c.get("T_link_cam"))
+                       for n, c in info["imac"]["cameras"].items()}
+    else:
+        raise InputError(f"{root}: no calibration: set cameras.calibration in {recipe.file}")
+    dataset = LeRobotDataset(info.get("repo_id", "local/dataset"), root=root)
+    paths = episode_paths(source_dir)
+    if len(paths) < dataset.meta.total_episodes:
+        raise InputError(f"{source_dir}: {len(paths)} raw episodes for a dataset of {dataset.meta.total_episodes}")
+    robot, renderer, controller = _process_state(recipe)
+    data = dataset.hf_dataset.with_format("numpy")
+    source = RecordedDepth()
+    streams = []
+    for ep in tqdm(range(dataset.meta.total_episodes), desc="augment episodes", unit="ep", disable=not progress):
+        raw = read_episode(paths[ep])
+        lo, hi = dataset.meta.episodes["dataset_from_index"][ep], dataset.meta.episodes["dataset_to_index"][ep]
+        state = np.asarray(data[lo:hi]["observation.state"], dtype=np.float64)
+        if state.shape != raw.qpos.shape or not np.allclose(state, raw.qpos, atol=1e-5):
+            raise InputError(f"{paths[ep]}: its qpos does not match episode {ep} of {root} "
+                             f"({raw.qpos.shape} vs {state.shape}); the raw episodes must be the dataset's")
+        action = np.asarray(data[lo:hi]["action"], dtype=np.float64)
+        views = episode_views(raw, calibration, robot, name=str(paths[ep]))
+        streams.append(episode_streams(state, action, source.depth(views), dict(views.cameras), robot, renderer,
+                                       recipe.augment, controller))
+    with staged_dataset(root) as work:
+        augment_dataset(work, streams, dict(views.cameras), recipe.augment, source.describe(), controller)
+        validate(LeRobotDataset(info.get("repo_id", "local/dataset"), root=work))
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    import sys
+
+    from imac_data.build import default_root, quiet_libraries
+    from imac_data.recipes import find_recipe, load_recipe
+
+    p = argparse.ArgumentParser(prog="python -m imac_data.augment",
+                                description="Add iMaC control streams to an existing LeRobot dataset.")
+    p.add_argument("--repo", required=True, help="dataset repo id (looked up under $HF_LEROBOT_HOME unless --root)")
+    p.add_argument("--root", type=Path, help="dataset directory")
+    p.add_argument("--recipe", type=Path, required=True, help="recipe YAML: robot, calibration, augment settings")
+    p.add_argument("--source", type=Path, required=True, help="raw HDF5 episodes of the dataset (recorded depth)")
+    p.add_argument("--no-progress", action="store_true")
+    args = p.parse_args(argv)
+    quiet_libraries()
+    try:
+        recipe = load_recipe(args.recipe if args.recipe.suffix else find_recipe(str(args.recipe)))
+        root = args.root or default_root(args.repo)
+        augment_existing(root, recipe, args.source, progress=not args.no_progress)
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"augmented {args.repo} at {root}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -73,7 +73,9 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -377,14 +379,22 @@ def _pixel_rays(K: torch.Tensor, H: int, W: int) -> torch.Tensor:
     return rays
 
 
-def _lift(depth_flat: torch.Tensor, rays: torch.Tensor, T: torch.Tensor, view: torch.Tensor,
+def _lift(depth_flat: torch.Tensor, rays: torch.Tensor, T: torch.Tensor, image: torch.Tensor, view: torch.Tensor,
           pix: torch.Tensor) -> torch.Tensor:
     """World points of selected pixels: ``depth * ray`` in the camera, then ``T_world_cam``.
-    ``view``/``pix`` index ``rays (V, HW, 3)``; ``T`` is ``(n, 4, 4)`` per point's camera or
-    ``(V, 4, 4)`` indexed by ``view``."""
+    ``view``/``pix`` index ``rays (V, HW, 3)``; ``T (I, 4, 4)`` holds the pose of each image
+    and ``image`` (sorted ascending, as ``nonzero`` returns it) the image of each point, so
+    each image's points are one contiguous block: one small matmul per image, not a
+    gathered 4x4 per point."""
     p_cam = rays[view, pix] * depth_flat[:, None]
-    R = T[..., :3, :3]
-    return (R @ p_cam[:, :, None])[:, :, 0] + T[..., :3, 3]
+    counts = torch.bincount(image, minlength=T.shape[0]).tolist()
+    out = torch.empty_like(p_cam)
+    start = 0
+    for i, n in enumerate(counts):  # one block per image (S * V of them), not per point
+        if n:
+            out[start:start + n] = p_cam[start:start + n] @ T[i, :3, :3].T + T[i, :3, 3]
+        start += n
+    return out
 
 
 @dataclass
@@ -446,7 +456,7 @@ def scene_cloud(depth, K, T_world_cam, robot_mask, *, dilate_px: int = DEFAULT_D
     flat = torch.nonzero(valid.reshape(-1))[:, 0]
     view, pix = flat // (H * W), flat % (H * W)
     rays = _pixel_rays(K, H, W)
-    points = _lift(depth.reshape(-1)[flat], rays, T[view], view, pix)
+    points = _lift(depth.reshape(-1)[flat], rays, T, view, view, pix)
     return SceneCloud(points=points, flat=flat, valid=valid, mask=~removed, robot_mask=removed)
 
 
@@ -850,7 +860,8 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     setting). The default 1 is deliberate: that work is gathers and scatters on ~1e5-1e6
     elements, where torch's OpenMP pool gains little on an idle machine and, when the
     cores are shared (CI, data-loader workers), its spinning threads made a chunk 3-10x
-    slower in our measurements. The KD-tree queries still use ``workers`` threads.
+    slower in our measurements. Instead, with ``cpu_threads`` set, the two streams run
+    concurrently on two Python threads; the KD-tree queries use ``workers`` threads.
 
     An empty scene cloud (all reference depth invalid or covered by the robot) raises
     :class:`InputError`, unless ``allow_empty_scene``: then r2s is +inf on every robot
@@ -863,7 +874,7 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     with _torch_threads(cpu_threads if device.type == "cpu" else None):
         return _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam,
                               gripper_points, gripper_mask, cap, percentile, dilate_px, fill_px, tolerance, method,
-                              workers, allow_empty_scene, device)
+                              workers, allow_empty_scene, device, cpu_threads)
 
 
 @contextlib.contextmanager
@@ -881,7 +892,7 @@ def _torch_threads(n: int | None):
 
 def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam, gripper_points,
                    gripper_mask, cap, percentile, dilate_px, fill_px, tolerance, method, workers, allow_empty_scene,
-                   device) -> ContactChunk:
+                   device, threads) -> ContactChunk:
     fixed = _resolve_cap(cap)
     tol = _resolve_tolerance(tolerance)
     if not (0.0 <= float(percentile) <= 100.0):
@@ -907,33 +918,49 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
     rflat = torch.nonzero(robot.reshape(-1))[:, 0]  # index into (S, V, H, W)
     step, view, pix = rflat // (V * HW), (rflat // HW) % V, rflat % HW
     rays = _pixel_rays(Kt, H, W)
-    r_points = _lift(rd.reshape(-1)[rflat], rays, T[step, view], view, pix)
+    r_points = _lift(rd.reshape(-1)[rflat], rays, T.reshape(S * V, 4, 4), rflat // HW, view, pix)
 
-    # ---- r2s: one scene index for the chunk, all steps' robot points in one query
     r_cap, g_cap = fixed if fixed is not None else (None, None)
-    scene_nn = NearestNeighbours(scene.points, method=method, workers=workers)
-    if tol is None:
-        r_vals = scene_nn.distances(r_points, max_distance=r_cap).to(device)
-    else:
-        pyramid = _TilePyramid(r_points, step * V + view, pix, S * V, H, W)
-        r_vals = _certified_distances(pyramid, lambda p, b: scene_nn.query(p, max_distance=b), tol, r_cap)
 
-    # ---- s2g: per step, the (fixed) scene points against that step's gripper cloud
-    g_flag = None if gm is None else gm.reshape(-1)[rflat]
-    s_view, s_pix = scene.flat // HW, scene.flat % HW
-    s_pyramid = (None if tol is None or len(scene.points) == 0 else
-                 _TilePyramid(scene.points, s_view, s_pix, V, H, W))
-    s_vals = torch.empty((S, len(scene.points)), dtype=torch.float32, device=device)
-    for s in range(S):  # one vectorised query (per pyramid level) per step
-        parts = [] if gp[s] is None else [gp[s].to(device=device, dtype=torch.float32)]
-        if g_flag is not None:
-            parts.append(r_points[g_flag & (step == s)])
-        g = torch.cat(parts) if parts else torch.zeros(0, 3, device=device)
-        gnn = NearestNeighbours(g, method=method, workers=workers)
-        if s_pyramid is None:
-            s_vals[s] = gnn.distances(scene.points, max_distance=g_cap).to(device)
-        else:
-            s_vals[s] = _certified_distances(s_pyramid, lambda p, b: gnn.query(p, max_distance=b), tol, g_cap)
+    def robot_to_scene() -> torch.Tensor:
+        # one scene index for the chunk, all steps' robot points in one query
+        scene_nn = NearestNeighbours(scene.points, method=method, workers=workers)
+        if tol is None:
+            return scene_nn.distances(r_points, max_distance=r_cap).to(device)
+        pyramid = _TilePyramid(r_points, step * V + view, pix, S * V, H, W)
+        return _certified_distances(pyramid, lambda p, b: scene_nn.query(p, max_distance=b), tol, r_cap)
+
+    def scene_to_gripper() -> torch.Tensor:
+        # per step, the (fixed) scene points against that step's gripper cloud
+        g_flag = None if gm is None else gm.reshape(-1)[rflat]
+        s_pyramid = (None if tol is None or len(scene.points) == 0 else
+                     _TilePyramid(scene.points, scene.flat // HW, scene.flat % HW, V, H, W))
+        out = torch.empty((S, len(scene.points)), dtype=torch.float32, device=device)
+        for s in range(S):  # one vectorised query (per pyramid level) per step
+            parts = [] if gp[s] is None else [gp[s].to(device=device, dtype=torch.float32)]
+            if g_flag is not None:
+                parts.append(r_points[g_flag & (step == s)])
+            g = torch.cat(parts) if parts else torch.zeros(0, 3, device=device)
+            gnn = NearestNeighbours(g, method=method, workers=workers)
+            if s_pyramid is None:
+                out[s] = gnn.distances(scene.points, max_distance=g_cap).to(device)
+            else:
+                out[s] = _certified_distances(s_pyramid, lambda p, b: gnn.query(p, max_distance=b), tol, g_cap)
+        return out
+
+    if device.type == "cpu" and threads is not None and (os.cpu_count() or 1) > 1:
+        # The two streams are independent: on the CPU, run them on two Python threads
+        # (torch ops and KD-tree queries release the GIL) instead of torch's OpenMP pool.
+        def job():
+            torch.set_num_threads(threads)  # OpenMP thread counts are per thread
+            return robot_to_scene()
+
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            pending = pool.submit(job)
+            s_vals = scene_to_gripper()
+            r_vals = pending.result()
+    else:
+        r_vals, s_vals = robot_to_scene(), scene_to_gripper()
 
     # ---- caps, maps, colours (colours from the value arrays, then one scatter)
     caps = (torch.tensor(fixed, dtype=torch.float32) if fixed is not None

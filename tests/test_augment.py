@@ -1,0 +1,72 @@
+"""Augmenting an existing LeRobot dataset in place: new streams, original videos untouched."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from imac_data import aloha
+from imac_data.augment import main
+from imac_data.cameras import load_calibration
+from imac_data.depth import depth_codec_of
+from imac_data.ingest import IngestOptions, ingest_episodes
+from imac_data.recipes import RECIPES_DIR
+from imac_data.robot import RobotModel
+from imac_data.simulate import SimConfig, record_dataset
+
+
+@pytest.fixture(scope="module")
+def sim_src(tmp_path_factory):
+    src = tmp_path_factory.mktemp("aug") / "src"
+    record_dataset(SimConfig(num_episodes=2, width=80, height=64, max_steps=16), src, progress=False)
+    return src
+
+
+@pytest.fixture
+def base(sim_src, tmp_path):
+    """A fresh base dataset (ingest only) of the recorded episodes."""
+    src, tmp = sim_src, tmp_path
+    root = tmp / "base"
+    ingest_episodes(sorted(src.glob("episode_*.hdf5")), calibration=load_calibration(src / "calibration.json"),
+                    robot=RobotModel(aloha.robot_config()), repo_id="local/base", root=root,
+                    options=IngestOptions(fps=25, task="t", state_names=aloha.STATE_NAMES), progress=False)
+    recipe = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
+    recipe["augment"] = {"height": 64, "width": 80, "contact_chunk": 4}
+    recipe_path = tmp / "recipe.yaml"
+    recipe_path.write_text(yaml.safe_dump(recipe))
+    return src, root, recipe_path
+
+
+def test_augment_existing_dataset_keeps_original_videos(base):
+    src, root, recipe = base
+    originals = {p: p.read_bytes() for p in (root / "videos").rglob("*.mp4")}
+    assert main(["--repo", "local/base", "--root", str(root), "--recipe", str(recipe), "--source", str(src),
+                 "--no-progress"]) == 0
+    for path, content in originals.items():
+        assert path.read_bytes() == content, f"{path} changed"
+    ds = LeRobotDataset("local/base", root=root)
+    assert "control.motion.cam_high" in ds.meta.video_keys
+    assert "observation.depth.cam_left_wrist" in ds.meta.video_keys
+    # depth decodes back to the recorded depth (bit-exact stream, 8-bit codec steps)
+    item = ds[3]
+    metres = depth_codec_of(ds.meta.info).decode(item["observation.depth.cam_high"], channel_axis=-3)
+    from imac_data.aloha_hdf5 import read_episode
+
+    truth = read_episode(sorted(src.glob("episode_*.hdf5"))[0]).depth_mm["cam_high"][3] / 1000.0
+    valid = (truth > 0.1) & (truth < 1.2)
+    assert np.median(np.abs(np.asarray(metres)[valid] - truth[valid])) < 3e-3
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert info["imac"]["contact"]["chunk_size"] == 4
+
+
+def test_augment_refuses_mismatched_source(base, tmp_path, capsys):
+    src, root, recipe = base
+    other = tmp_path / "other"
+    record_dataset(SimConfig(num_episodes=2, width=80, height=64, max_steps=16, seed=7), other, progress=False)
+    assert main(["--repo", "local/base", "--root", str(root), "--recipe", str(recipe), "--source", str(other),
+                 "--no-progress"]) == 2
+    assert "does not match" in capsys.readouterr().err
+    assert "control.motion.cam_high" not in json.loads((root / "meta" / "info.json").read_text())["features"]
+    assert not (root.parent / f".{root.name}.imac-staging").exists()
