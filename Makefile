@@ -3,7 +3,7 @@
 PY := .venv/bin/python
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test bench da3 clean
 
 setup:
 	@bash scripts/setup.sh
@@ -16,6 +16,10 @@ test: setup
 
 bench: setup
 	$(PY) -m benchmarks.run
+
+# Optional: Depth Anything 3 as a depth source (weights are not downloaded here).
+da3: setup
+	$(PY) -c "from imac_data.depth_sources import DA3_INSTALL; print(DA3_INSTALL)" | sed 's|^pip|$(PY) -m pip|' | sh
 
 clean:
 	rm -rf .venv .pytest_cache build *.egg-info

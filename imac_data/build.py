@@ -407,6 +407,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--executor", choices=("local", "ray"), default="local",
                    help="local process pool (default) or Ray tasks")
     p.add_argument("--ray-address", help="Ray cluster address (default: start a local Ray)")
+    p.add_argument("--push-to-hub", action="store_true",
+                   help="upload the result with LeRobot's push_to_hub (needs `huggingface-cli login`)")
+    p.add_argument("--private", action="store_true", help="with --push-to-hub: a private dataset repo")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
 
@@ -433,6 +436,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     dt = time.perf_counter() - t0
+    if args.push_to_hub:
+        from imac_data.dataset_card import push_to_hub
+
+        push_to_hub(req.root, args.repo, recipe, private=args.private)
+        print(f"pushed {args.repo} to the hub")
     size = sum(f.stat().st_size for f in req.root.rglob("*") if f.is_file())
     frames = dataset.meta.total_frames
     print(

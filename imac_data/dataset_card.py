@@ -26,3 +26,21 @@ def write_card(root: Path, repo_id: str, recipe) -> Path:
     path = root / "README.md"
     path.write_text(render_card(info, repo_id, recipe))
     return path
+
+
+def hub_card_kwargs(root: Path, repo_id: str, recipe) -> dict:
+    """What ``LeRobotDataset.push_to_hub`` gets for its card: our card as the dataset
+    description, plus tags. LeRobot renders and uploads the card itself."""
+    info = json.loads((root / "meta" / "info.json").read_text())
+    return {
+        "dataset_description": render_card(info, repo_id, recipe),
+        "tags": ["imac", "world-model", "robotics", f"robot:{info['imac']['robot']['name']}"],
+        "license": "apache-2.0",
+    }
+
+
+def push_to_hub(root: Path, repo_id: str, recipe, *, private: bool = False) -> None:
+    """Upload with LeRobot's own ``push_to_hub`` (needs a hub token and network)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    LeRobotDataset(repo_id, root=root).push_to_hub(private=private, **hub_card_kwargs(root, repo_id, recipe))

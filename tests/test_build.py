@@ -228,3 +228,19 @@ def test_killed_build_resumes_to_the_same_dataset(sim_dir, tmp_path, reference_b
     assert subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE).returncode == 0
     assert dataset_files(root) == dataset_files(reference_build)
     assert not (tmp_path / ".out.staging").exists()
+
+
+def test_hub_card_is_what_lerobot_uploads(reference_build):
+    """Everything up to the upload: LeRobot's own card builder renders our description
+    (the upload itself needs a token and network, which tests do not have)."""
+    from lerobot.datasets.utils import create_lerobot_dataset_card
+
+    from imac_data.dataset_card import hub_card_kwargs
+
+    recipe = load_recipe(RECIPES_DIR / "aloha_sim_transfer_cube.yaml")
+    kwargs = hub_card_kwargs(reference_build, "local/tiny", recipe)
+    ds = LeRobotDataset("local/tiny", root=reference_build)
+    card = create_lerobot_dataset_card(dataset_info=ds.meta.info, repo_id="local/tiny", **kwargs)
+    text = str(card)
+    assert "control.contact_s2g.cam_left_wrist" in text and "delta_timestamps" in text
+    assert "imac" in card.data.tags and card.data.license == "apache-2.0"
