@@ -324,6 +324,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--calibration", required=True, help="calibration JSON (imac_data.cameras schema)")
     p.add_argument("--out", required=True, help="output directory (must not exist, unless --overwrite)")
     p.add_argument("--robot", default="aloha", choices=sorted(ROBOTS), help="robot description")
+    p.add_argument("--recipe", default=None,
+                   help="take the robot (your URDF, joint map) from this build recipe instead of --robot")
     p.add_argument("--source", default="state", choices=("state", "action"),
                    help="render the measured state (default) or the commanded actions")
     p.add_argument("--format", default="mp4", choices=("mp4", "png"), dest="fmt")
@@ -333,7 +335,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
-        summary = overlay(args.episode, args.calibration, args.out, robot=args.robot, source=args.source,
+        robot = args.robot
+        if args.recipe:
+            from imac_data.build import robot_of
+            from imac_data.recipes import load_recipe
+
+            robot = robot_of(load_recipe(args.recipe))
+        summary = overlay(args.episode, args.calibration, args.out, robot=robot, source=args.source,
                           fmt=args.fmt, frames=args.frames, cameras=cams, overwrite=args.overwrite)
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
