@@ -107,7 +107,7 @@ DEFAULT_DILATE_PX = 2
 DEFAULT_FILL_PX = 2
 # Certified tolerance of the painted distances: |painted - exact| <= max(abs, rel * exact).
 DEFAULT_TOLERANCE = (0.001, 0.02)
-TILE_SIZES = (16, 8, 4, 2)  # pixel tiles of the certified pyramid, coarse to fine
+TILE_SIZES = (8, 4, 2)  # pixel tiles of the certified pyramid, coarse to fine
 DEFAULT_GRIPPER_SPACING = 0.002  # metres between gripper surface samples
 MIN_CAP = 1e-3  # metres; a percentile cap is never smaller (all-zero distances)
 EMPTY_CAP = 1.0  # metres; the cap of a stream with no finite distance in the chunk
@@ -548,7 +548,7 @@ def _voxel_thin(points: np.ndarray, size: float) -> np.ndarray:
 # are tiny: 0.03 mm mean, 0.5 mm p99 on our scenes at the default tolerance) and off
 # by at most U - L, a per-point *certified* bound: a member is accepted when
 # U - L <= max(abs, rel * L) <= max(abs, rel * d(p)).
-# The pyramid tries 16x16-pixel tiles, then 8x8, 4x4, 2x2 for the members not yet
+# The pyramid tries 8x8-pixel tiles, then 4x4 and 2x2 for the members not yet
 # accepted, and queries the rest exactly: contact regions (small distance, small
 # tolerance) and depth edges stay exact, smooth far regions cost a query per tile.
 
@@ -732,14 +732,16 @@ def chunk_caps(r2s: torch.Tensor, s2g: torch.Tensor, percentile: float = DEFAULT
     caps = []
     for d in (r2s, s2g):
         v = d.reshape(-1)
-        v = v[~torch.isnan(v)]
-        finite = v[torch.isfinite(v)]
-        if finite.numel() == 0:
+        nan = torch.isnan(v)
+        if bool(nan.any()):
+            v = v[~nan]
+        finite = torch.isfinite(v)
+        if not bool(finite.any()):
             caps.append(EMPTY_CAP)
             continue
         c = _quantile_with_inf(v, percentile)
         if math.isinf(c):
-            c = float(finite.max())
+            c = float(v[finite].max())
         caps.append(max(c, MIN_CAP))
     return torch.tensor(caps, dtype=torch.float32)
 
