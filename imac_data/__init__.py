@@ -9,7 +9,15 @@ Modules, one concept each:
 * ``simulate``    scripted-policy recorder writing ALOHA HDF5 episodes
 * ``aloha_hdf5``  the raw HDF5 episode format (read, validate, write)
 * ``ingest``      raw episodes -> base LeRobot dataset
-* ``depth``       the depth colour codec
+* ``motion``      the controller map phi: which configuration a motion image shows
+* ``render``      the robot renderer (RGB, mask, z-depth, link id per view)
+* ``depth``       the depth colour codec and depth streams
+* ``depth_sources`` recorded depth, Depth Anything 3
+* ``contact``     contact images (robot-to-scene, scene-to-gripper)
+* ``video_streams`` add video streams to a LeRobot dataset
+* ``augment``     the control streams of an episode; augmenting existing datasets
+* ``recipes``, ``build`` the build's recipes and CLI
+* ``qa``          calibration overlay
 """
 
 import os

@@ -134,6 +134,7 @@ def augment_dataset(root: Path, episodes: list[EpisodeStreams], cameras: dict[st
             else f"p{settings.contact_percentile:g} per chunk and stream",
             "cap_column": CAP_KEY,
             "colormap": "jet of 1 - d/cap (near = red), black = no value",
+            "tolerance": "painted distance d' satisfies d <= d' <= d + max(1 mm, 3% d) (contact.DEFAULT_TOLERANCE)",
         },
     })
 
