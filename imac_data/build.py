@@ -241,11 +241,13 @@ def _ray_shard(job: ShardJob) -> str:
 
 def build_key(recipe: Recipe, paths: list[Path], calibration_path: Path, repo_id: str) -> str:
     """What a resumable staging directory was built for: the recipe, the source files
-    (path, size, mtime), the calibration and our version. A different key starts over."""
+    (path, size, mtime), the calibration and our code. A different key starts over."""
     from imac_data import __version__
 
     h = hashlib.sha256()
     h.update(json.dumps([repo_id, __version__, repr(recipe)], default=str).encode())
+    for src in sorted(Path(__file__).parent.glob("*.py")):  # the code that made the shards
+        h.update(src.read_bytes())
     for p in [*paths, calibration_path]:
         st = p.stat()
         h.update(f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())

@@ -161,9 +161,11 @@ def ingest_episodes(paths: Sequence[str | Path], *, calibration: dict[str, Camer
     staging.parent.mkdir(parents=True, exist_ok=True)
     dataset = None
     try:
+        # LeRobot's standard writer (PNG frames, encoded per episode). Its streaming_encoding
+        # option is faster but drops the last frame of an episode in 0.4.4.
         dataset = LeRobotDataset.create(
             repo_id=repo_id, fps=int(round(options.fps)), features=features, root=staging,
-            robot_type=options.robot_type, use_videos=True, vcodec=options.vcodec, streaming_encoding=True,
+            robot_type=options.robot_type, use_videos=True, vcodec=options.vcodec,
         )
         episode_rows = []
         for path in tqdm(paths, desc="ingest episodes", unit="ep", disable=not progress):

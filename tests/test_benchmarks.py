@@ -1,0 +1,69 @@
+"""The benchmark runner in CI: ``python -m benchmarks.run --quick`` (tiny resolutions, a few
+frames, every section once) into a temporary directory, so ``make bench`` cannot rot.
+
+Not a timing test: nothing here asserts how fast anything is. It checks that the run
+completes, that ``latest.json`` carries every headline key as a finite number (or says
+why it could not be measured in the quick workload), that ``latest.md`` shows them, and
+that the committed results in ``benchmarks/results/`` are left alone. About 60 s on the
+2-core CI machine.
+"""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from benchmarks.run import REQUIRED_NUMBERS, REQUIRED_STRINGS, RESULTS
+
+REPO = Path(__file__).resolve().parent.parent
+# The quick workload records only a few steps: no finger gets within 5 cm of the cube.
+MAY_BE_UNMEASURED_IN_QUICK = {"contact_err_max_mm_under_5cm"}
+
+
+def _committed() -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(RESULTS.glob("latest.*"))} if RESULTS.is_dir() else {}
+
+
+def test_quick_benchmark_writes_every_figure(tmp_path):
+    before = _committed()
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.run", "--quick", "--out", str(tmp_path)],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, f"benchmark failed:\n{proc.stderr[-6000:]}"
+
+    result = json.loads((tmp_path / "latest.json").read_text())
+    assert result["quick"] is True
+    for key in REQUIRED_STRINGS:
+        assert isinstance(result[key], str) and result[key], key
+    assert result["commit"] == "unknown" or len(result["commit"]) == 40
+    for key in REQUIRED_NUMBERS:
+        assert key in result, key
+        value = result[key]
+        if value is None:
+            assert key in MAY_BE_UNMEASURED_IN_QUICK, f"{key} not measured: {result['not_measured'].get(key)}"
+            assert result["not_measured"][key]
+        else:
+            assert isinstance(value, (int, float)) and math.isfinite(value), (key, value)
+    assert len(result["load_avg"]["start"]) == 3 and len(result["load_avg"]["end"]) == 3
+
+    # plausibility, not speed: every figure is in its physical range
+    positive = ("fps_total_240", "peak_mem_mb_per_worker", "render_ms_per_view_240", "render_ratio_vs_mujoco",
+                "contact_fps_cpu", "contact_ratio_vs_reference")
+    for key in positive:
+        assert result[key] > 0, key
+    for key in ("mask_iou_head", "mask_iou_wrist_min"):
+        assert 0.9 <= result[key] <= 1.0, key  # the renderer matches MuJoCo's robot pixels
+    assert 0 <= result["depth_err_median_mm"] <= result["depth_err_p99_mm"]
+    assert result["depth_err_p99_mm"] < result["depth_err_p99_mm_lerobot_default"]
+    for b in result["builds"]:
+        assert b["frames"] > 0 and b["bytes_per_frame"]["total"] > 0
+    stages = next(iter(result["stages"].values()))
+    assert all(v >= 0 for v in stages["ms_per_frame"].values())
+    assert [row["views"] for row in result["scaling"]["views"]["rows"]] == [1, 2, 3]
+
+    md = (tmp_path / "latest.md").read_text()
+    for key in REQUIRED_NUMBERS:
+        assert f"`{key}`" in md, key
+    assert _committed() == before, "the quick run must not touch benchmarks/results/"
