@@ -27,7 +27,7 @@ import pyarrow.parquet as pq
 import torch
 
 from imac_data.cameras import Camera
-from imac_data.contact import colorize, episode_contact
+from imac_data.contact import iter_episode_contact
 from imac_data.depth import DepthCodec, add_depth_streams, resize_depth
 from imac_data.errors import InputError
 from imac_data.motion import Controller, frame_configurations
@@ -78,7 +78,9 @@ def episode_streams(state: np.ndarray, action: np.ndarray, depth: dict[str, np.n
             raise InputError(f"depth of {n} has {len(d)} frames, the episode has {T}")
     K = torch.stack([torch.as_tensor(cams[n].K, dtype=torch.float32) for n in names])
     gripper = _gripper_surface(robot)
-    contact = episode_contact(
+    # Chunk by chunk, keeping only the colour frames and caps (not the float distance maps).
+    r2s_rgb, s2g_rgb, caps = [], [], np.zeros((T, 2), np.float32)
+    for _, frames_of_chunk, chunk in iter_episode_contact(
         torch.as_tensor(np.stack([depth_hw[n] for n in names], axis=1)), K,
         torch.stack([cams[n].pose(links_state, batch_shape=(T,)) for n in names], 1),
         _stack_views(seen, names, "mask"),
@@ -87,13 +89,17 @@ def episode_streams(state: np.ndarray, action: np.ndarray, depth: dict[str, np.n
         gripper.points(links_motion),
         chunk_size=settings.contact_chunk, cap=settings.contact_cap, percentile=settings.contact_percentile,
         dilate_px=settings.robot_mask_dilate_px,
-    )
+    ):
+        r2s_rgb.append(chunk.r2s_rgb.cpu().numpy())
+        s2g_rgb.append(chunk.s2g_rgb.cpu().numpy())
+        caps[frames_of_chunk] = chunk.caps.cpu().numpy()
+    r2s_rgb, s2g_rgb = np.concatenate(r2s_rgb), np.concatenate(s2g_rgb)
     frames = {}
     for v, n in enumerate(names):
         frames[f"{MOTION}.{n}"] = drawn[n].rgb.numpy()
-        frames[f"{R2S}.{n}"] = contact.r2s_rgb[:, v].numpy()
-        frames[f"{S2G}.{n}"] = contact.s2g_rgb[:, v].numpy()
-    return EpisodeStreams(frames=frames, depth=depth_hw, caps=contact.caps.numpy().astype(np.float32))
+        frames[f"{R2S}.{n}"] = r2s_rgb[:, v]
+        frames[f"{S2G}.{n}"] = s2g_rgb[:, v]
+    return EpisodeStreams(frames=frames, depth=depth_hw, caps=caps)
 
 
 _GRIPPERS: dict[int, object] = {}
