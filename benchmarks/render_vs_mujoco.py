@@ -88,17 +88,10 @@ class MujocoViews:
         self.lut[robot + 1] = True
 
     def set(self, q14: np.ndarray) -> None:
-        from gym_aloha.constants import unnormalize_puppet_gripper_position
-
         m, d = self.model, self.data
         if m.nkey:
             mujoco.mj_resetDataKeyframe(m, d, 0)
-        for k, arm in enumerate(aloha.ARMS):
-            for i, j in enumerate(aloha.ARM_JOINTS):
-                d.qpos[m.joint(f"{arm}/{j}").qposadr[0]] = q14[7 * k + i]
-            finger = unnormalize_puppet_gripper_position(q14[7 * k + 6])
-            d.qpos[m.joint(f"{arm}/left_finger").qposadr[0]] = finger
-            d.qpos[m.joint(f"{arm}/right_finger").qposadr[0]] = -finger
+        aloha.set_mujoco_qpos(m, d, q14)
         mujoco.mj_forward(m, d)
 
     def pass_(self, camera: str, kind: str) -> np.ndarray:

@@ -167,3 +167,15 @@ def robot_config(cache_dir: str | Path | None = None):
     gripper_links = tuple(f"{arm}/{side}_finger_link" for arm in ARMS for side in ("left", "right"))
     return RobotConfig(name="aloha", urdf_path=urdf_path, joint_map=tuple(joint_map),
                        gripper_links=gripper_links, package_dirs={"gym_aloha": pkg_dir})
+
+
+def set_mujoco_qpos(model: mujoco.MjModel, data: mujoco.MjData, q14) -> None:
+    """Put gym-aloha's 14-D joint vector into ``data.qpos`` the way gym-aloha does
+    (left finger = unnormalised gripper, right finger = -left finger); other joints
+    are left as they are."""
+    for k, arm in enumerate(ARMS):
+        for i, joint in enumerate(ARM_JOINTS):
+            data.qpos[model.joint(f"{arm}/{joint}").qposadr[0]] = q14[7 * k + i]
+        finger = unnormalize_gripper(q14[7 * k + 6])
+        data.qpos[model.joint(f"{arm}/left_finger").qposadr[0]] = finger
+        data.qpos[model.joint(f"{arm}/right_finger").qposadr[0]] = -finger
