@@ -212,6 +212,10 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
     from imac_data.depth_sources import RecordedDepth, episode_views
     from imac_data.video_streams import staged_dataset
 
+    from imac_data.safety import refuse_overlap
+
+    refuse_overlap(root, {"raw episodes": source_dir,
+                          "calibration": recipe.resolve_path(recipe.cameras.calibration)}, what="dataset")
     info_path = root / "meta" / "info.json"
     if not info_path.is_file():
         raise InputError(f"{root} is not a LeRobot dataset ({info_path} is missing)")

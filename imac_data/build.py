@@ -22,6 +22,7 @@ from pathlib import Path
 
 from imac_data.errors import InputError
 from imac_data.recipes import Recipe, find_recipe, load_recipe, missing_inputs
+from imac_data.safety import refuse_overlap
 
 
 @dataclass(frozen=True)
@@ -274,8 +275,10 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     problems = missing_inputs(recipe, req.source_path)
     if problems:
         raise InputError(f"recipe {recipe.file} needs inputs that are not there:\n  - " + "\n  - ".join(problems))
+    refuse_overlap(req.root, _input_paths(req))  # before anything is recorded or written
     robot = robot_of(recipe)
     paths, calibration_path = source_episodes(req)
+    refuse_overlap(req.root, {"source episodes": paths[0].parent, "calibration": calibration_path})
     calibration = load_calibration(calibration_path)
     check_episodes(paths, calibration, robot)
     _check_stream_resolution(recipe, calibration)
@@ -325,6 +328,17 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     shutil.rmtree(old, ignore_errors=True)
     shutil.rmtree(staging, ignore_errors=True)
     return LeRobotDataset(req.repo_id, root=req.root)
+
+
+def _input_paths(req: BuildRequest) -> dict[str, Path | None]:
+    """The user's files a build reads (never written or deleted: :mod:`imac_data.safety`)."""
+    recipe = req.recipe
+    return {
+        "source episodes": req.source_path or recipe.resolve_path(recipe.source.path),
+        "calibration": recipe.resolve_path(recipe.cameras.calibration),
+        "recipe": Path(recipe.file) if recipe.file else None,
+        "robot URDF": recipe.resolve_path(recipe.robot.urdf),
+    }
 
 
 def _order_stats(root: Path) -> None:

@@ -1,0 +1,57 @@
+"""What protects the user's data: the inputs a command reads are never written or deleted.
+
+A build writes its output, a staging directory and a ``.old`` directory next to the
+output (``--overwrite`` removes the previous output once the new one is complete);
+``augment`` swaps a staged copy of the dataset into place. If any of those paths is,
+contains or lies inside an input (the raw episodes, the calibration, the robot
+description, the recipe), that input could be overwritten or deleted. Such a request
+is refused before any work starts, with an :class:`InputError` naming both paths.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+from imac_data.errors import InputError
+
+
+def _real(path: Path) -> Path:
+    # resolve() follows symlinks, so a link to the source counts as the source
+    return Path(path).expanduser().resolve()
+
+
+def _is_within(inner: Path, outer: Path) -> bool:
+    return inner == outer or outer in inner.parents
+
+
+def output_neighbours(root: Path) -> list[Path]:
+    """Every path a build or an augmentation of ``root`` may create, replace or delete."""
+    root = Path(root)
+    return [root] + [root.parent / f".{root.name}.{suffix}"
+                     for suffix in ("staging", "old", "imac-staging", "imac-old")]
+
+
+def refuse_overlap(output: Path, inputs: Mapping[str, Path | None], *, what: str = "--root") -> None:
+    """Raise :class:`InputError` if the output ``output`` (and the paths written next to it,
+    :func:`output_neighbours`) is, contains or lies inside any of ``inputs``.
+
+    ``inputs``: a description (``"source episodes"``, ``"calibration"``) -> path (a file or
+    a directory; ``None`` entries are skipped). Writing *next to* an input is fine; the
+    output may not enclose an input (``--overwrite`` would delete it) nor be inside an
+    input directory (the user's recording directory is not ours to write into).
+    """
+    written = [_real(p) for p in output_neighbours(output)]
+    for name, path in inputs.items():
+        if path is None:
+            continue
+        src = _real(path)
+        for w in written:
+            if _is_within(src, w):
+                raise InputError(
+                    f"{what} {output} would contain the {name} {path}: building there could overwrite or delete "
+                    f"it. Choose an output directory outside {path}")
+            if src.is_dir() and _is_within(w, src):
+                raise InputError(
+                    f"{what} {output} lies inside the {name} directory {path}: the source is only read, "
+                    f"never written. Choose an output directory outside {path}")
