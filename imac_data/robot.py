@@ -149,9 +149,21 @@ def resolve_filename(fname: str, urdf_path: Path, package_dirs: Mapping[str, Pat
 def _material_rgba(visual: yourdfpy.Visual, materials: Mapping[str, yourdfpy.Material]) -> np.ndarray:
     mat = visual.material
     if mat is not None and mat.color is None and mat.name in materials:
-        mat = materials[mat.name]  # a reference to a robot-level named material
+        mat = materials[mat.name]  # a reference by name to a material defined elsewhere
     rgba = mat.color.rgba if (mat is not None and mat.color is not None) else _DEFAULT_RGBA
     return np.asarray(rgba, dtype=np.float32)
+
+
+def named_materials(urdf: yourdfpy.URDF) -> dict[str, yourdfpy.Material]:
+    """Every named material with a colour: the robot-level ones, then those defined inside a
+    link's visual (urdfdom makes those global too, so another link may refer to them by
+    name; exported Panda and UR URDFs do). The first definition of a name wins, as in urdfdom."""
+    out: dict[str, yourdfpy.Material] = {}
+    inline = (v.material for link in urdf.robot.links for v in link.visuals)
+    for mat in (*urdf.robot.materials, *inline):
+        if mat is not None and mat.name and mat.color is not None:
+            out.setdefault(mat.name, mat)
+    return out
 
 
 def _geometry_mesh(geom: yourdfpy.Geometry, visual_name: str, urdf_path: Path,
@@ -176,7 +188,7 @@ def _geometry_mesh(geom: yourdfpy.Geometry, visual_name: str, urdf_path: Path,
 
 def load_visual_meshes(urdf: yourdfpy.URDF, urdf_path: Path,
                        package_dirs: Mapping[str, Path]) -> list[VisualMesh]:
-    materials = {m.name: m for m in urdf.robot.materials if m.name}
+    materials = named_materials(urdf)
     out = []
     for link in urdf.robot.links:
         for k, visual in enumerate(link.visuals):
@@ -207,6 +219,15 @@ class RobotModel:
             urdf = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False)
         except Exception as e:  # yourdfpy raises assorted errors on malformed XML
             raise InputError(f"robot {config.name!r}: cannot parse URDF {path}: {e}") from e
+        try:
+            self._kinematic_urdf, self.held_fixed = kinematic_urdf(self.urdf_text, path)
+        except ET.ParseError as e:
+            raise InputError(f"robot {config.name!r}: cannot parse URDF {path}: {e}") from e
+        for i in range(config.dof):
+            if config.joint_name(i) in self.held_fixed:
+                raise InputError(f"robot {config.name!r}: joint {config.joint_name(i)!r} (dataset index {i}) is "
+                                 f"the floating root joint of {path}, held fixed at its origin; it cannot be "
+                                 f"driven by the joint vector")
         config.validate(urdf)
         self.visual_meshes = load_visual_meshes(urdf, path, dict(config.package_dirs))
 
@@ -214,7 +235,6 @@ class RobotModel:
         # joints, so we compute every chain joint ourselves. Each chain joint is
         # an affine function of one dataset entry: q_chain[j] = a[j] * q[src[j]] + b[j]
         # (elementwise, not a matmul, so TF32 on GPUs cannot round it).
-        self._kinematic_urdf = _strip_geometry(self.urdf_text)
         chain = pk.build_chain_from_urdf(self._kinematic_urdf)
         self.joint_names: list[str] = chain.get_joint_parameter_names()
         self.link_names: list[str] = [chain.idx_to_frame[i] for i in range(len(chain.idx_to_frame))]
@@ -364,17 +384,76 @@ def _chain_joint_affine(joint_names: list[str], config: RobotConfig, mimic: Mapp
     return list(src), list(a), list(b)
 
 
-def _strip_geometry(urdf_text: str) -> str:
-    """The URDF without visual/collision/inertial elements: pytorch-kinematics only needs
-    the tree, and its bundled parser warns on valid attributes such as ``<visual name=...>``."""
+# Joint types the kinematics supports; a `floating` joint off the root link is held fixed.
+MOVABLE_JOINT_TYPES = ("revolute", "continuous", "prismatic")
+_KINEMATIC_JOINT_CHILDREN = ("origin", "parent", "child", "axis", "limit")
+
+
+def kinematic_urdf(urdf_text: str, urdf_path: Path | str = "<urdf>") -> tuple[str, tuple[str, ...]]:
+    """The URDF as pytorch-kinematics should read it, and the floating joints held fixed.
+
+    * Only the tree is kept (links without children, joints with origin/parent/child/axis/limit):
+      pytorch-kinematics needs nothing else, and its bundled parser warns on valid attributes
+      such as ``<visual name=...>`` and on common extensions such as ``<contact>``.
+    * A movable joint without ``<axis>`` (or without its ``xyz``) gets the URDF spec's default
+      ``1 0 0``; pytorch-kinematics would silently use z.
+    * A ``floating`` joint whose parent is a root link (a mobile base, a robot placed in a
+      world) is held fixed at its origin: the dataset vector cannot drive six free DoF.
+    * ``planar`` joints, floating joints elsewhere and unknown types raise :class:`InputError`
+      naming the file and joint (pytorch-kinematics would raise a bare ``KeyError``).
+    """
     root = ET.fromstring(urdf_text.encode())
-    for link in root.iter("link"):
+    joints = root.findall("joint")  # direct children only: <transmission> also has <joint> tags
+    children = {j.find("child").get("link") for j in joints if j.find("child") is not None}
+    roots = {link.get("name") for link in root.findall("link")} - children
+    held_fixed = []
+    for joint in joints:
+        name, kind = joint.get("name"), joint.get("type")
+        parent = joint.find("parent")
+        if kind == "floating" and parent is not None and parent.get("link") in roots:
+            joint.set("type", "fixed")
+            held_fixed.append(name)
+        elif kind in ("floating", "planar"):
+            where = "" if kind == "planar" else " that does not hang off the root link"
+            raise InputError(f"URDF {urdf_path}: joint {name!r} is a {kind!r} joint{where}, which the robot "
+                             f"model does not support (only {', '.join(MOVABLE_JOINT_TYPES)}, fixed, and a "
+                             f"floating joint off the root link, held fixed); make it fixed, or split it into "
+                             f"prismatic/revolute joints with dummy links")
+        elif kind not in (*MOVABLE_JOINT_TYPES, "fixed"):
+            raise InputError(f"URDF {urdf_path}: joint {name!r} has unknown type {kind!r}")
+        if kind in MOVABLE_JOINT_TYPES:
+            axis = joint.find("axis")
+            if axis is None:
+                axis = ET.SubElement(joint, "axis")
+            xyz = axis.get("xyz", "1 0 0")  # the URDF spec's default axis
+            try:
+                norm = math.sqrt(sum(float(v) ** 2 for v in xyz.split()))
+            except ValueError:
+                norm = float("nan")
+            if len(xyz.split()) != 3 or not norm > 0:
+                raise InputError(f"URDF {urdf_path}: joint {name!r} has axis xyz={xyz!r}; it needs three "
+                                 f"numbers, not all zero")
+            axis.set("xyz", xyz)
+        for child in list(joint):
+            if child.tag not in _KINEMATIC_JOINT_CHILDREN:
+                joint.remove(child)
+    for child in list(root):
+        if child.tag not in ("link", "joint"):
+            root.remove(child)
+    for link in root.findall("link"):
         for child in list(link):
-            if child.tag in ("visual", "collision", "inertial"):
-                link.remove(child)
-    return ET.tostring(root, encoding="unicode")
+            link.remove(child)
+    return ET.tostring(root, encoding="unicode"), tuple(held_fixed)
 
 
 def _as_float_tensor(x) -> torch.Tensor:
     t = torch.as_tensor(x)
     return t if t.is_floating_point() else t.to(torch.get_default_dtype())
+
+
+if __name__ == "__main__":  # python -m imac_data.robot joints ROBOT.urdf
+    import sys
+
+    from imac_data.urdf_summary import main
+
+    sys.exit(main())
