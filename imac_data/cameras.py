@@ -37,6 +37,22 @@ def opengl_to_opencv(T_world_cam_gl: np.ndarray) -> np.ndarray:
     return np.asarray(T_world_cam_gl, dtype=np.float64) @ _GL_TO_CV
 
 
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera pose (OpenCV axes) at ``eye`` looking at ``target``, with ``up`` pointing up in the
+    image; all in one parent frame (the world for a fixed camera, the link for a mounted one)."""
+    eye = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye
+    x = np.cross(z, np.asarray(up, dtype=np.float64))
+    if not (np.linalg.norm(z) > 0 and np.linalg.norm(x) > 1e-9 * np.linalg.norm(z)):
+        raise InputError(f"look_at: eye {eye.tolist()} and target {list(target)} must differ, and the viewing "
+                         f"direction must not be parallel to up {list(up)}")
+    z /= np.linalg.norm(z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, eye
+    return T
+
+
 def intrinsics_from_fovy(fovy_deg: float, width: int, height: int) -> np.ndarray:
     """K of an ideal pinhole with vertical field of view ``fovy_deg`` and square pixels
     (MuJoCo's camera model); the principal point is the image centre."""
