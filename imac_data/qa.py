@@ -9,6 +9,7 @@ segmentation + labels), it also reports the per-frame mask IoU.
     python -m imac_data.qa overlay EPISODE.hdf5 --calibration CALIB.json --out DIR
         [--robot aloha] [--source state|action] [--format mp4|png]
         [--frames START:STOP:STEP] [--cameras cam_high,cam_left_wrist] [--overwrite]
+    python -m imac_data.qa preview ROOT --episode N [--out FILE.mp4]   (imac_data/preview.py)
 
 Writes into ``DIR`` (created atomically: a temporary sibling renamed into place
 only when everything succeeded, so a failure leaves nothing behind):
@@ -332,7 +333,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--frames", default=None, help="frame selection START:STOP:STEP (python slice), or one index")
     p.add_argument("--cameras", default=None, help="comma-separated camera names (default: all in the episode)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
+    from imac_data import preview
+
+    preview.add_command(sub)
     args = parser.parse_args(argv)
+    if args.command == "preview":
+        try:
+            print(preview.run_command(args))
+        except InputError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        return 0
     try:
         cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
         robot = args.robot
