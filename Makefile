@@ -17,7 +17,7 @@ test: setup
 bench: setup
 	$(PY) -m benchmarks.run
 
-# Optional: Depth Anything 3 as a depth source (weights are not downloaded here).
+# Depth Anything 3's code (no weights): scripts/setup.sh installs it; this re-runs that install.
 da3: setup
 	$(PY) -c "from imac_data.depth_sources import DA3_INSTALL; print(DA3_INSTALL)" | sed 's|^pip|$(PY) -m pip|' | sh
 

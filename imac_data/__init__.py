@@ -4,6 +4,7 @@ Modules, one concept each:
 
 * ``cameras``     pinhole cameras, calibration files, projection (torch)
 * ``robot``       URDF robot model, joint maps, batched forward kinematics
+* ``urdf_summary`` a URDF's joints, limits, mimics, visuals; a recipe robot: block
 * ``mjcf_to_urdf`` export a MuJoCo model's robot to URDF
 * ``aloha``       the simulated ALOHA rig of gym-aloha
 * ``simulate``    scripted-policy recorder writing ALOHA HDF5 episodes
@@ -17,7 +18,7 @@ Modules, one concept each:
 * ``video_streams`` add video streams to a LeRobot dataset
 * ``augment``     the control streams of an episode; augmenting existing datasets
 * ``recipes``, ``build`` the build's recipes and CLI
-* ``qa``          calibration overlay
+* ``qa``          calibration overlay; ``preview``: an mp4 mosaic of a built episode
 """
 
 import os

@@ -9,6 +9,13 @@ through an explicit affine :class:`GripperMap` to a finger joint, and URDF
 :class:`RobotModel` loads the URDF once (yourdfpy for the visual geometry,
 pytorch-kinematics for FK) and then works on torch tensors of any batch shape
 ``(*B, D)``, on CPU or CUDA, in float32 or float64. World = the URDF root frame.
+
+URDFs are read as the spec says where pytorch-kinematics does not (:func:`kinematic_urdf`):
+a movable joint without ``<axis>`` turns about x; a ``floating`` joint off the root link is
+held fixed at its origin; ``planar`` joints and other floating joints are refused by name.
+A material defined inside one link's visual may be referred to by name from any other.
+``python -m imac_data.robot joints ROBOT.urdf`` lists what a recipe needs
+(:mod:`imac_data.urdf_summary`).
 """
 
 from __future__ import annotations
