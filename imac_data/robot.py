@@ -226,10 +226,7 @@ class RobotModel:
             urdf = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False)
         except Exception as e:  # yourdfpy raises assorted errors on malformed XML
             raise InputError(f"robot {config.name!r}: cannot parse URDF {path}: {e}") from e
-        try:
-            self._kinematic_urdf, self.held_fixed = kinematic_urdf(self.urdf_text, path)
-        except ET.ParseError as e:
-            raise InputError(f"robot {config.name!r}: cannot parse URDF {path}: {e}") from e
+        self._kinematic_urdf, self.held_fixed = kinematic_urdf(self.urdf_text, path)
         for i in range(config.dof):
             if config.joint_name(i) in self.held_fixed:
                 raise InputError(f"robot {config.name!r}: joint {config.joint_name(i)!r} (dataset index {i}) is "
@@ -409,7 +406,10 @@ def kinematic_urdf(urdf_text: str, urdf_path: Path | str = "<urdf>") -> tuple[st
     * ``planar`` joints, floating joints elsewhere and unknown types raise :class:`InputError`
       naming the file and joint (pytorch-kinematics would raise a bare ``KeyError``).
     """
-    root = ET.fromstring(urdf_text.encode())
+    try:
+        root = ET.fromstring(urdf_text.encode())
+    except ET.ParseError as e:
+        raise InputError(f"cannot parse URDF {urdf_path}: {e}") from e
     joints = root.findall("joint")  # direct children only: <transmission> also has <joint> tags
     children = {j.find("child").get("link") for j in joints if j.find("child") is not None}
     roots = {link.get("name") for link in root.findall("link")} - children

@@ -200,6 +200,12 @@ def test_joints_cli_as_a_module(tmp_path):
     assert res.returncode == 0, res.stderr
     assert "floating root joint(s) held fixed at their origin: place" in res.stdout
     assert "    - j1  # revolute [-3, 3] rad" in res.stdout
-    res = subprocess.run([sys.executable, "-m", "imac_data.robot", "joints", str(tmp_path / "none.urdf")],
-                         capture_output=True, text=True, env=env, cwd=REPO, timeout=120)
-    assert res.returncode == 2 and "none.urdf does not exist" in res.stderr
+
+
+def test_joints_cli_errors(tmp_path, capsys):
+    assert urdf_main(["joints", str(tmp_path / "none.urdf")]) == 2
+    assert "none.urdf does not exist" in capsys.readouterr().err
+    bad = tmp_path / "bad.urdf"
+    bad.write_text("<robot name='r'><link name='a'>")
+    assert urdf_main(["joints", str(bad)]) == 2
+    assert "cannot parse URDF" in capsys.readouterr().err
