@@ -1,0 +1,1 @@
+"""Evaluation building blocks of the world model (issue 17)."""
