@@ -28,6 +28,7 @@ from __future__ import annotations
 import csv
 import json
 from abc import ABC, abstractmethod
+from contextlib import contextmanager
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -136,13 +137,14 @@ class SuccessClassifierConfig:
     heldout_fraction: float = 0.25
     seed: int = 0
     threshold: float = 0.5
+    threads: int = 1  # torch threads while training/predicting: the tiny CNN only loses to synchronisation with more
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "cameras", tuple(self.cameras))
         object.__setattr__(self, "image_size", tuple(int(x) for x in self.image_size))
         if not self.cameras:
             raise InputError("SuccessClassifierConfig.cameras: at least one camera key")
-        for name in ("last_frames", "width", "epochs"):
+        for name in ("last_frames", "width", "epochs", "threads"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise InputError(f"SuccessClassifierConfig.{name}: must be a positive integer (got {v!r})")
@@ -166,6 +168,16 @@ class SuccessClassifierConfig:
         if unknown:
             raise InputError(f"success classifier config: unknown field(s) {unknown}")
         return cls(**dict(data))
+
+
+@contextmanager
+def _torch_threads(n: int):
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 class _TinyCNN(nn.Module):
@@ -227,7 +239,8 @@ class SuccessClassifier(SuccessJudge):
         if not episodes:
             return np.zeros(0)
         x, owner = self.inputs(episodes)
-        p = torch.sigmoid(self.net(x)).double()
+        with _torch_threads(self.config.threads):
+            p = torch.sigmoid(self.net(x)).double()
         sums = torch.zeros(len(episodes), dtype=torch.float64).index_add_(0, owner, p)
         counts = torch.bincount(owner, minlength=len(episodes)).double()
         return (sums / counts).numpy()
@@ -290,11 +303,12 @@ def fit_classifier(config: SuccessClassifierConfig, episodes: Sequence[EpisodeFr
     loss_fn = nn.BCEWithLogitsLoss(pos_weight=torch.tensor((len(y) - pos) / pos))
     opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     net.train()
-    for _ in range(config.epochs):
-        opt.zero_grad()
-        loss = loss_fn(net(x), y)
-        loss.backward()
-        opt.step()
+    with _torch_threads(config.threads):
+        for _ in range(config.epochs):
+            opt.zero_grad()
+            loss = loss_fn(net(x), y)
+            loss.backward()
+            opt.step()
     net.eval()
     return clf
 

@@ -446,11 +446,12 @@ class VideoMetricAccumulator:
                 vals = np.array([v for v in vals if v is not None], dtype=np.float64)
                 if metric not in pooled[key]:
                     continue
-                over_tasks[key][metric] = {
-                    "mean": _json_float(vals.mean()) if vals.size else None,
-                    "std": _json_float(vals.std()) if vals.size else None,
-                    "n_tasks": int(vals.size),
-                }
+                with np.errstate(invalid="ignore"):  # PSNR of identical videos is +inf: its std is undefined
+                    over_tasks[key][metric] = {
+                        "mean": _json_float(vals.mean()) if vals.size else None,
+                        "std": _json_float(vals.std()) if vals.size else None,
+                        "n_tasks": int(vals.size),
+                    }
         c = self.config
         protocol = {
             "frames": self.frames,
