@@ -103,15 +103,16 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
     if unknown:
         raise InputError(f"{dataset.root}: episodes {unknown} are not in the dataset "
                          f"(it has {len(index_of)} episodes)")
-    tasks = table["tasks"]
+    tasks, lengths = table["tasks"], table["length"]
+    starts = {cam: table[f"videos/{cam}/from_timestamp"] for cam in cameras}
     out = []
     for ep in wanted:
         row = index_of[ep]
-        length = int(table["length"][row])
+        length = int(lengths[row])
         times = [i / meta.fps for i in range(max(0, length - last), length)]
         frames = {}
         for cam in cameras:
-            start = float(table[f"videos/{cam}/from_timestamp"][row])
+            start = float(starts[cam][row])
             path = Path(dataset.root) / meta.get_video_file_path(ep, cam)
             frames[cam] = decode_video_frames(path, [start + t for t in times], dataset.tolerance_s,
                                               dataset.video_backend)
@@ -340,8 +341,9 @@ def train_success_classifier(dataset, config: SuccessClassifierConfig | None = N
     with the split and the training and held-out accuracies (on real frames)."""
     if config is None:
         config = SuccessClassifierConfig(cameras=tuple(cameras) if cameras else tuple(image_cameras(dataset)))
-    labels = {e: s for e, s in dataset_success_labels(dataset).items() if s is not None}
-    unlabelled = len(dataset_success_labels(dataset)) - len(labels)
+    all_labels = dataset_success_labels(dataset)
+    labels = {e: s for e, s in all_labels.items() if s is not None}
+    unlabelled = len(all_labels) - len(labels)
     train_ids, heldout_ids = split_episodes(labels, config.heldout_fraction, config.seed)
     frames = {ep.episode_index: ep for ep in episode_frames(dataset, train_ids + heldout_ids, config.cameras,
                                                             config.last_frames)}

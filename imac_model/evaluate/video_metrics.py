@@ -270,11 +270,13 @@ class VideoMetricsConfig:
         unknown = [m for m in self.metrics if m not in METRICS]
         if unknown or not self.metrics:
             raise InputError(f"VideoMetricsConfig.metrics: unknown {unknown}; choose from {METRICS}")
-        for name in ("mosaic_rows", "fid_frame_stride", "batch_size"):
+        for name, low in (("mosaic_rows", 0), ("fid_frame_stride", 1), ("batch_size", 1)):
             v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < (0 if name == "mosaic_rows" else 1):
-                raise InputError(f"VideoMetricsConfig.{name}: must be a {'non-negative' if name == 'mosaic_rows' else 'positive'} "
-                                 f"integer (got {v!r})")
+            if not isinstance(v, int) or isinstance(v, bool) or v < low:
+                raise InputError(f"VideoMetricsConfig.{name}: must be an integer >= {low} (got {v!r})")
+        object.__setattr__(self, "metrics", tuple(self.metrics))
+        if self.feature_keys is not None:
+            object.__setattr__(self, "feature_keys", tuple(self.feature_keys))
 
 
 @dataclass
@@ -317,9 +319,11 @@ class VideoMetricAccumulator:
         # extractors first: a missing weights file is reported before any work
         self.fid = self.fvd = None
         if "fid" in config.metrics:
-            self.fid = (fid_extractor or load_fid_extractor(fid_weights)).to(config.device).eval()
+            self.fid = (load_fid_extractor(fid_weights) if fid_extractor is None else fid_extractor)
+            self.fid = self.fid.to(config.device).eval()
         if "fvd" in config.metrics:
-            self.fvd = (fvd_extractor or load_fvd_extractor(fvd_weights)).to(config.device).eval()
+            self.fvd = (load_fvd_extractor(fvd_weights) if fvd_extractor is None else fvd_extractor)
+            self.fvd = self.fvd.to(config.device).eval()
         self.state = _State()
         self.frames: int | None = None
         self.resolution: dict[str, list[int]] = {}
@@ -370,7 +374,8 @@ class VideoMetricAccumulator:
         metrics, bs = self.config.metrics, self.config.batch_size
         for s in range(0, n, bs):
             part = slice(s, s + bs)
-            chunk = {v: (gen[v][part], rec[v][part]) for v in self.views}
+            dev = self.config.device
+            chunk = {v: (gen[v][part].to(dev), rec[v][part].to(dev)) for v in self.views}
             if self.mosaic:
                 rows = self.config.mosaic_rows
                 chunk[MOSAIC] = (tile_mosaic([chunk[v][0] for v in self.views], rows),
@@ -398,7 +403,7 @@ class VideoMetricAccumulator:
                 if self.fid is not None:
                     step = self.config.fid_frame_stride
                     for side, video in (("generated", g), ("recorded", r)):
-                        frames = _to_uint8(video[:, ::step]).to(self.config.device)
+                        frames = _to_uint8(video[:, ::step])
                         feats = self.fid(frames.flatten(0, 1)).cpu().reshape(b, frames.shape[1], -1)
                         for i, task in enumerate(chunk_tasks):
                             self.state.features[(task, key, "fid", side)].append(feats[i].numpy())
