@@ -38,7 +38,11 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=9)
     ap.add_argument("--size", type=int, default=224)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--metrics", default="pixel,fid,fvd", help="comma-separated groups: pixel, fid, fvd")
     args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     print(f"load average at start: {os.getloadavg()}; torch threads {torch.get_num_threads()}; device {args.device}")
     with tempfile.TemporaryDirectory() as tmp:
         fid = load_fid_extractor(save_random_weights("fid", Path(tmp) / "fid.pth"), device=args.device)
@@ -50,7 +54,8 @@ def main(argv=None) -> int:
     gen = {v: (x + 0.05 * torch.randn(x.shape, generator=g)).clamp(0, 1) for v, x in rec.items()}
     frames = args.samples * args.frames * (len(views) + 1)  # per side, views + mosaic
     videos = args.samples * (len(views) + 1)
-    for metrics in (("mse", "psnr", "ssim"), ("fid",), ("fvd",)):
+    groups = {"pixel": ("mse", "psnr", "ssim"), "fid": ("fid",), "fvd": ("fvd",)}
+    for metrics in (groups[g] for g in args.metrics.split(",")):
         config = VideoMetricsConfig(metrics=metrics, device=args.device)
         _, wall, cpu = timed(lambda: compute_video_metrics(gen, rec, config=config, fid_extractor=fid,
                                                            fvd_extractor=fvd))

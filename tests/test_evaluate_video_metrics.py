@@ -24,23 +24,29 @@ from imac_model.evaluate.video_metrics import (
 PIXEL_ONLY = VideoMetricsConfig(metrics=("mse", "psnr", "ssim"))
 
 
-@pytest.fixture()
-def no_network(monkeypatch):
+def _refuse_network(mp: pytest.MonkeyPatch) -> None:
     def refuse(*args, **kwargs):
         raise AssertionError("network access attempted")
 
-    monkeypatch.setattr(socket.socket, "connect", refuse)
-    monkeypatch.setattr(socket, "create_connection", refuse)
+    mp.setattr(socket.socket, "connect", refuse)
+    mp.setattr(socket, "create_connection", refuse)
+
+
+@pytest.fixture()
+def no_network(monkeypatch):
+    _refuse_network(monkeypatch)
 
 
 @pytest.fixture(scope="module")
 def random_extractors(tmp_path_factory):
     """The real FID Inception and FVD I3D, randomly initialised, written to files and
-    loaded back through the production loaders."""
+    loaded back through the production loaders, with the network refused."""
     d = tmp_path_factory.mktemp("weights")
-    fid = save_random_weights("fid", d / "fid.pth", seed=0)
-    fvd = save_random_weights("fvd", d / "fvd.pt", seed=0)
-    return load_fid_extractor(fid), load_fvd_extractor(fvd)
+    with pytest.MonkeyPatch.context() as mp:
+        _refuse_network(mp)
+        fid = save_random_weights("fid", d / "fid.pth", seed=0)
+        fvd = save_random_weights("fvd", d / "fvd.pt", seed=0)
+        return load_fid_extractor(fid), load_fvd_extractor(fvd)
 
 
 def ssim_oracle(x: np.ndarray, y: np.ndarray) -> float:
