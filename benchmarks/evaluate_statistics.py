@@ -81,6 +81,7 @@ def speed() -> dict:
     real = {(f"p{i}", g): rng.random(30) < 0.12 * i for i in range(6) for g in range(2)}
     from imac_model.evaluate.statistics import policy_correlation
 
+    policy_correlation(wm, real, replicates=10)  # first call imports scipy.stats
     t, c = time.perf_counter(), time.process_time()
     policy_correlation(wm, real, replicates=2000)
     out["policy_correlation_6x2x30_2000"] = {"wall_ms": 1e3 * (time.perf_counter() - t),
