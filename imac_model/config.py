@@ -167,7 +167,7 @@ class TrainConfig:
     warmup_steps: int = 50
     grad_clip: float = 1.0
     max_steps: int = 1000
-    max_minutes: float | None = None  # also stop (with a checkpoint) after this much wall time
+    max_minutes: float | None = None  # also stop (with a checkpoint) after this much training wall time
     ema_decay: float = 0.999  # 0 disables EMA
     log_every: int = 10
     eval_every: int = 100  # held-out flow loss every N steps (and at the start and end)

@@ -57,6 +57,7 @@ def view_size(source_hw: tuple[int, int], height: int, width: int | None = None,
                          f"multiple of {multiple} (the backbone's spatial compression x patch); use "
                          f"{lo or hi} or {hi}")
     aspect = source_hw[1] / source_hw[0]
+    explicit_width = width
     if width is None:
         width = max(w_step, int(round(height * aspect / w_step)) * w_step)
     elif width % w_step:
@@ -64,6 +65,13 @@ def view_size(source_hw: tuple[int, int], height: int, width: int | None = None,
         raise InputError(f"data.view_width: {width} cannot be patchified: the mosaic width {num_views} x {width} "
                          f"must be a multiple of {multiple}; use {lo or hi} or {hi}")
     change = abs(width / height / aspect - 1)
+    if change > MAX_ASPECT_CHANGE and explicit_width is None:
+        ok = [hh for hh in range(h_step, 8 * max(height, h_step) + 1, h_step)
+              if abs(max(w_step, round(hh * aspect / w_step) * w_step) / hh / aspect - 1) <= MAX_ASPECT_CHANGE]
+        near = sorted(ok, key=lambda hh: abs(hh - height))[:2]
+        raise InputError(f"{field}: no view width near the cameras' aspect {aspect:.3g} patchifies at height {height}; "
+                         f"use view_height {' or '.join(map(str, sorted(near)))} (mosaic sides must be multiples of "
+                         f"{multiple}; views are resized without padding)")
     if change > MAX_ASPECT_CHANGE:
         raise InputError(f"data.view_width: {height}x{width} per view changes the cameras' aspect "
                          f"({source_hw[0]}x{source_hw[1]}) by {100 * change:.0f} % (views are resized without "

@@ -145,7 +145,6 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
     from accelerate import Accelerator
     from tqdm.auto import tqdm
 
-    t_wall, t_cpu = time.time(), time.process_time()
     tc = run.train
     meta = open_metadata(run.data)
     spec, layout = model_spec(run, meta)
@@ -206,6 +205,7 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
             held_set.preload(num_workers=run.data.num_workers, progress=progress and main)
 
     model, optimizer = accelerator.prepare(model, optimizer)
+    t_wall, t_cpu = time.time(), time.process_time()  # train.max_minutes and the logged times count from here
     device = accelerator.device
     if main:
         out.mkdir(parents=True, exist_ok=True)
@@ -216,6 +216,9 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
     log_rows: list[dict] = _read_log(out / "log.jsonl", upto=step) if main and existing else []
     if main:
         _rewrite_log(out, log_rows)
+    if log_rows:  # a resumed run: the logged times continue
+        t_wall -= log_rows[-1].get("wall_s", 0.0)
+        t_cpu -= log_rows[-1].get("cpu_s", 0.0)
 
     def save(at: int) -> Path | None:
         accelerator.wait_for_everyone()
@@ -279,7 +282,8 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
                    "steps_per_s": len(window) / max(now - t_window, 1e-9)}
             if step % tc.eval_every == 0 or done:
                 row.update(evaluate())
-            row.update(wall_s=round(now - t_wall, 3), cpu_s=round(time.process_time() - t_cpu, 3))
+            row.update(wall_s=round(now - t_wall, 3), cpu_s=round(time.process_time() - t_cpu, 3),
+                       load=round(os.getloadavg()[0], 2))
             emit(row)
             window, t_window = [], time.time()
         if step % tc.checkpoint_every == 0 or done:
@@ -298,7 +302,7 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
 # --------------------------------------------------------------------------- logs
 
 
-LOG_FIELDS = ("step", "loss", "heldout_loss", "lr", "steps_per_s", "wall_s", "cpu_s")
+LOG_FIELDS = ("step", "loss", "heldout_loss", "lr", "steps_per_s", "wall_s", "cpu_s", "load")
 
 
 def _read_log(path: Path, upto: int) -> list[dict]:
