@@ -148,6 +148,11 @@ class FlowConfig:
     sample_shift: float = 1.0  # timestep shift of the sampler's schedule
     sample_steps: int = 20  # Euler steps
     reference_noise: float = 0.0  # std of Gaussian noise on the clean reference latent in training (release: 0.1)
+    # what the network outputs: the velocity (Wan's training; the paper), or the clean data, converted to the
+    # velocity v = (x1_hat - x_tau) / (1 - tau) before the same loss (Li & He 2025, "Back to Basics": pixel-space
+    # models with large patches cannot output full-rank noise through a narrow token; the small DiT's default)
+    prediction: Literal["velocity", "data"] = "velocity"
+    data_prediction_min_gap: float = 0.05  # the 1 - tau floor of that conversion
 
     def __post_init__(self) -> None:
         if self.train_shift <= 0 or self.sample_shift <= 0:
@@ -155,6 +160,8 @@ class FlowConfig:
         _positive(self, "sample_steps", "flow")
         if self.reference_noise < 0:
             raise InputError(f"flow.reference_noise: must be >= 0 (got {self.reference_noise})")
+        if not 0 < self.data_prediction_min_gap < 1:
+            raise InputError(f"flow.data_prediction_min_gap: must be in (0, 1) (got {self.data_prediction_min_gap})")
 
 
 @dataclass(frozen=True)
@@ -168,6 +175,7 @@ class TrainConfig:
     grad_clip: float = 1.0
     max_steps: int = 1000
     max_minutes: float | None = None  # also stop (with a checkpoint) after this much training wall time
+    max_cpu_minutes: float | None = None  # ... or this much CPU time of the process (a budget on a shared machine)
     ema_decay: float = 0.999  # 0 disables EMA
     log_every: int = 10
     eval_every: int = 100  # held-out flow loss every N steps (and at the start and end)
@@ -190,8 +198,9 @@ class TrainConfig:
             raise InputError("train.warmup_steps / grad_clip / weight_decay: must be >= 0")
         if self.cpu_threads is not None:
             _positive(self, "cpu_threads", "train")
-        if self.max_minutes is not None and self.max_minutes <= 0:
-            raise InputError(f"train.max_minutes: must be > 0 (got {self.max_minutes})")
+        for name in ("max_minutes", "max_cpu_minutes"):
+            if getattr(self, name) is not None and getattr(self, name) <= 0:
+                raise InputError(f"train.{name}: must be > 0 (got {getattr(self, name)})")
 
 
 @dataclass(frozen=True)

@@ -52,7 +52,7 @@ class TrainResult:
     step: int
     checkpoint: Path | None
     log: list[dict]
-    stopped: str  # "max_steps", "max_minutes" or "interrupted"
+    stopped: str  # "max_steps", "time" (max_minutes / max_cpu_minutes) or "interrupted"
 
 
 # --------------------------------------------------------------------------- setup
@@ -273,7 +273,8 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
         window.append(float(result.loss.detach()))
         bar.update(1)
         bar.set_postfix(loss=f"{window[-1]:.4f}")
-        timed_out = tc.max_minutes is not None and time.time() - t_wall > 60 * tc.max_minutes
+        timed_out = ((tc.max_minutes is not None and time.time() - t_wall > 60 * tc.max_minutes)
+                     or (tc.max_cpu_minutes is not None and time.process_time() - t_cpu > 60 * tc.max_cpu_minutes))
         interrupted = stop_after_steps is not None and step - start_step >= stop_after_steps
         done = step >= tc.max_steps or timed_out or interrupted
         if step % tc.log_every == 0 or step % tc.eval_every == 0 or done:
@@ -289,7 +290,7 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
         if step % tc.checkpoint_every == 0 or done:
             last_ckpt = save(step)
         if timed_out or interrupted:
-            stopped = "max_minutes" if timed_out else "interrupted"
+            stopped = "time" if timed_out else "interrupted"
             break
     bar.close()
     if step == start_step and main:  # nothing to do (already finished)

@@ -128,8 +128,11 @@ class WorldModel(nn.Module):
         t = flow.wan_timestep(tau.float())[:, None].expand(B, Fr).clone()
         t[:, 0] = 0.0
         tokens = self.controls(control_latents) if self.controls is not None else None
-        v = self.backbone.denoise(latents, t, control_tokens=tokens, context=context)
-        return v[:, :, 1:]
+        out = self.backbone.denoise(latents, t, control_tokens=tokens, context=context)[:, :, 1:]
+        if self.spec.flow.prediction == "data":  # the network predicts x1: v = (x1_hat - x_tau) / (1 - tau)
+            gap = (1.0 - tau.float()).clamp_min(self.spec.flow.data_prediction_min_gap).view(B, 1, 1, 1, 1)
+            return (out.float() - x_future.float()) / gap
+        return out
 
     def _inputs(self, batch: ChunkBatch, *, with_future: bool):
         batch.check(mosaic_hw=self.spec.mosaic_hw, horizon=self.spec.chunk, action_dim=self.spec.action_dim,
