@@ -161,6 +161,12 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
     elif resume is True:
         raise InputError(f"--resume: no checkpoints under {out / 'checkpoints'}")
 
+    if tc.tracker:
+        import importlib.util
+
+        module = {"tensorboard": "tensorboard", "wandb": "wandb"}[tc.tracker]
+        if importlib.util.find_spec(module) is None:
+            raise InputError(f"train.tracker: {tc.tracker} is not installed (pip install {module})")
     precision = tc.mixed_precision
     if precision == "auto":
         precision = "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"
