@@ -38,7 +38,6 @@ import torch
 from imac_data.errors import InputError
 from imac_model import checkpoint as ckpt
 from imac_model.backbones import spatial_multiple, temporal_factor
-from imac_model.batch import collate
 from imac_model.config import ModelSpec, RunConfig, load_run_config, save_config
 from imac_model.data import ChunkDataset, action_stats, open_metadata, resolve_layout, split_episodes
 from imac_model.world_model import WorldModel
