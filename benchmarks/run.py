@@ -358,23 +358,19 @@ class Pipeline:
     """What a build worker holds (built once per size, like ``build._process_state``)."""
 
     def __init__(self, recipe_path: Path, source: Path):
-        from imac_data.aloha import load_mujoco_model
-        from imac_data.build import robot_of
-        from imac_data.cameras import load_calibration
-        from imac_data.contact import GripperSurface
-        from imac_data.motion import aloha_controller
         from imac_data.recipes import load_recipe
-        from imac_data.render import make_renderer
+        from imac_data.rig import Rig
 
         t = time.perf_counter()  # imports excluded (a worker pays them once, before its first episode)
         self.recipe = load_recipe(recipe_path)
         self.settings = self.recipe.augment
-        self.robot = robot_of(self.recipe)
-        self.renderer = make_renderer(self.robot)
-        self.controller = aloha_controller(load_mujoco_model(self.recipe.source.sim.task))
-        self.gripper = GripperSurface(self.robot)
+        self.rig = Rig.from_recipe(self.recipe, source / "calibration.json")
+        self.robot = self.rig.robot
+        self.renderer = self.rig.renderer
+        self.controller = self.rig.controller
+        self.gripper = self.rig.gripper
         self.source = source
-        self.calibration = load_calibration(source / "calibration.json")
+        self.calibration = self.rig.cameras
         self.setup_s = time.perf_counter() - t
         import lerobot.datasets.aggregate  # noqa: F401  (imports outside the timed stages)
         import lerobot.datasets.compute_stats  # noqa: F401
@@ -418,7 +414,7 @@ def episode_stages(pipe: Pipeline, path: Path, tmp: Path, timer: Timer, *, camer
     root = shard or tmp / "stage_dataset"
     if full:
         with timer("ingest"):
-            ingest_episodes([path], calibration=pipe.calibration, robot=robot, repo_id="local/bench_stage",
+            ingest_episodes([path], rig=pipe.rig, repo_id="local/bench_stage",
                             root=root, options=pipe.ingest_options(fps), overwrite=True, progress=False)
     sl = slice(None, frames)
     state, action = raw.qpos[sl], raw.action[sl]
@@ -465,7 +461,7 @@ def episode_stages(pipe: Pipeline, path: Path, tmp: Path, timer: Timer, *, camer
     with timer("augment_dataset"):
         augment_dataset(root, [EpisodeStreams(frames=streams, depth=depth_hw,
                                               caps=contact.caps.numpy().astype(np.float32))],
-                        dict(views.cameras), s, source.describe(), pipe.controller)
+                        dict(views.cameras), s, source.describe())
     if shard is None:
         shutil.rmtree(root, ignore_errors=True)
     return T

@@ -30,10 +30,7 @@ from imac_data.cameras import Camera
 from imac_data.contact import iter_episode_contact
 from imac_data.depth import DepthCodec, add_depth_streams, resize_depth
 from imac_data.errors import InputError
-from imac_data.motion import Controller, frame_configurations
 from imac_data.recipes import AugmentSettings
-from imac_data.render import Renderer
-from imac_data.robot import RobotModel
 from imac_data.video_streams import VideoEncoding, add_video_streams
 
 CAP_KEY = "control.contact_cap"
@@ -49,44 +46,32 @@ class EpisodeStreams:
     caps: np.ndarray  # (T, 2) float32 metres: (r2s, s2g) of the frame's chunk
 
 
-def _stack_views(views, names, attr) -> torch.Tensor:
-    return torch.stack([getattr(views[n], attr) for n in names], dim=1)
-
-
 def episode_streams(state: np.ndarray, action: np.ndarray, depth: dict[str, np.ndarray],
-                    cameras: dict[str, Camera], robot: RobotModel, renderer: Renderer,
-                    settings: AugmentSettings, controller: Controller = Controller()) -> EpisodeStreams:
+                    cameras: dict[str, Camera], rig, settings: AugmentSettings) -> EpisodeStreams:
     """All control streams of one episode (``state``, ``action`` ``(T, D)``; ``depth``
-    ``{cam: (T, h, w)}`` metres at any resolution registered to the camera)."""
-    names = list(cameras)
+    ``{cam: (T, h, w)}`` metres at any resolution registered to the camera) for the
+    :class:`~imac_data.rig.Rig` ``rig`` with the episode's ``cameras``."""
+    rig = rig.with_image_sizes({n: (c.height, c.width) for n, c in cameras.items()})
+    names = rig.names
     missing = [n for n in names if n not in depth]
     if missing:
         raise InputError(f"no depth for camera(s) {missing}")
     T = len(state)
     H, W = settings.resolution
-    cams = renderer.prepare_cameras(cameras, settings.resolution)
     q_state = torch.as_tensor(state, dtype=torch.float32)
-    q_motion = torch.as_tensor(frame_configurations(state, action, source=settings.motion_source,
-                                                    controller=controller), dtype=torch.float32)
-    links_state = robot.link_poses(q_state)
-    links_motion = robot.link_poses(q_motion)
-    seen = renderer.render(cameras=cams, link_poses=links_state)
-    drawn = renderer.render(cameras=cams, link_poses=links_motion)
+    q_motion = torch.as_tensor(rig.frame_configurations(state, action, source=settings.motion_source),
+                               dtype=torch.float32)
+    seen = rig.robot_views(q_state, resolution=settings.resolution, gripper=False)
+    drawn = rig.robot_views(q_motion, resolution=settings.resolution)
     depth_hw = {n: resize_depth(np.asarray(depth[n], dtype=np.float32), (H, W), name=f"depth of {n}") for n in names}
     for n, d in depth_hw.items():
         if len(d) != T:
             raise InputError(f"depth of {n} has {len(d)} frames, the episode has {T}")
-    K = torch.stack([torch.as_tensor(cams[n].K, dtype=torch.float32) for n in names])
-    gripper = _gripper_surface(robot)
     # Chunk by chunk, keeping only the colour frames and caps (not the float distance maps).
     r2s_rgb, s2g_rgb, caps = [], [], np.zeros((T, 2), np.float32)
     for _, frames_of_chunk, chunk in iter_episode_contact(
-        torch.as_tensor(np.stack([depth_hw[n] for n in names], axis=1)), K,
-        torch.stack([cams[n].pose(links_state, batch_shape=(T,)) for n in names], 1),
-        _stack_views(seen, names, "mask"),
-        _stack_views(drawn, names, "depth"),
-        torch.stack([cams[n].pose(links_motion, batch_shape=(T,)) for n in names], 1),
-        gripper.points(links_motion),
+        torch.as_tensor(np.stack([depth_hw[n] for n in names], axis=1)), rig.intrinsics(settings.resolution),
+        seen.T_world_cam, seen.mask, drawn.depth, drawn.T_world_cam, drawn.gripper_points,
         chunk_size=settings.contact_chunk, cap=settings.contact_cap, percentile=settings.contact_percentile,
         dilate_px=settings.robot_mask_dilate_px,
     ):
@@ -96,30 +81,17 @@ def episode_streams(state: np.ndarray, action: np.ndarray, depth: dict[str, np.n
     r2s_rgb, s2g_rgb = np.concatenate(r2s_rgb), np.concatenate(s2g_rgb)
     frames = {}
     for v, n in enumerate(names):
-        frames[f"{MOTION}.{n}"] = drawn[n].rgb.numpy()
+        frames[f"{MOTION}.{n}"] = drawn.rgb[:, v].numpy()
         frames[f"{R2S}.{n}"] = r2s_rgb[:, v]
         frames[f"{S2G}.{n}"] = s2g_rgb[:, v]
     return EpisodeStreams(frames=frames, depth=depth_hw, caps=caps)
-
-
-_GRIPPERS: dict[int, object] = {}
-
-
-def _gripper_surface(robot: RobotModel):
-    """Gripper mesh samples are a fixed function of the robot: sample once per process."""
-    from imac_data.contact import GripperSurface
-
-    key = id(robot)
-    if key not in _GRIPPERS:
-        _GRIPPERS[key] = GripperSurface(robot)
-    return _GRIPPERS[key]
 
 
 # --------------------------------------------------------------------------- writing
 
 
 def augment_dataset(root: Path, episodes: list[EpisodeStreams], cameras: dict[str, Camera],
-                    settings: AugmentSettings, depth_source: dict, controller: Controller = Controller()) -> None:
+                    settings: AugmentSettings, depth_source: dict) -> None:
     """Write the streams of ``episodes`` (in episode order) into the dataset at ``root``."""
     codec = DepthCodec.preset(settings.depth_codec)
     add_depth_streams(root, (e.depth for e in episodes), cameras=list(cameras), codec=codec,
@@ -130,7 +102,7 @@ def augment_dataset(root: Path, episodes: list[EpisodeStreams], cameras: dict[st
     add_frame_column(root, CAP_KEY, [e.caps for e in episodes], names=["r2s", "s2g"])
     _merge_imac_info(root, {
         "augment": asdict(settings),
-        "motion": {"source": settings.motion_source, "controller": controller.to_dict(),
+        "motion": {"source": settings.motion_source,
                    "frame_rule": "frame t shows phi(state[t-1], action[t-1]); frame 0 shows state[0]"
                                  if settings.motion_source == "action" else "frame t shows state[t]"},
         "contact": {
@@ -207,12 +179,13 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
     from tqdm.auto import tqdm
 
     from imac_data.aloha_hdf5 import episode_paths, read_episode
-    from imac_data.build import _process_state, validate
-    from imac_data.cameras import Camera, load_calibration
+    from imac_data.build import validate
+    from imac_data.dataset.info import base_block
     from imac_data.depth_sources import RecordedDepth, episode_views
-    from imac_data.video_streams import staged_dataset
-
+    from imac_data.rig import Rig
+    from imac_data.robot_files import DESCRIPTION_DIR, write_description
     from imac_data.safety import refuse_overlap
+    from imac_data.video_streams import staged_dataset
 
     refuse_overlap(root, {"raw episodes": source_dir,
                           "calibration": recipe.resolve_path(recipe.cameras.calibration)}, what="dataset")
@@ -224,18 +197,15 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
     if existing:
         raise InputError(f"{root} already has control/depth streams {existing[:3]}...; start from the base dataset")
     if recipe.cameras.calibration is not None:
-        calibration = load_calibration(recipe.resolve_path(recipe.cameras.calibration))
+        rig = Rig.from_recipe(recipe)
     elif "cameras" in info.get("imac", {}):
-        calibration = {n: Camera(name=n, K=c["K"], width=c["width"], height=c["height"],
-                                 T_world_cam=c.get("T_world_cam"), link=c.get("link"), T_link_cam=c.get("T_link_cam"))
-                       for n, c in info["imac"]["cameras"].items()}
+        rig = Rig.from_recipe(recipe, Rig.from_info(info, root).cameras)
     else:
         raise InputError(f"{root}: no calibration: set cameras.calibration in {recipe.file}")
     dataset = LeRobotDataset(info.get("repo_id", "local/dataset"), root=root)
     paths = episode_paths(source_dir)
     if len(paths) < dataset.meta.total_episodes:
         raise InputError(f"{source_dir}: {len(paths)} raw episodes for a dataset of {dataset.meta.total_episodes}")
-    robot, renderer, controller = _process_state(recipe)
     data = dataset.hf_dataset.with_format("numpy")
     source = RecordedDepth()
     streams = []
@@ -247,11 +217,13 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
             raise InputError(f"{paths[ep]}: its qpos does not match episode {ep} of {root} "
                              f"({raw.qpos.shape} vs {state.shape}); the raw episodes must be the dataset's")
         action = np.asarray(data[lo:hi]["action"], dtype=np.float64)
-        views = episode_views(raw, calibration, robot, name=str(paths[ep]))
-        streams.append(episode_streams(state, action, source.depth(views), dict(views.cameras), robot, renderer,
-                                       recipe.augment, controller))
+        views = episode_views(raw, rig.cameras, rig.robot, name=str(paths[ep]))
+        streams.append(episode_streams(state, action, source.depth(views), dict(views.cameras), rig, recipe.augment))
+    rig = rig.with_image_sizes({n: (c.height, c.width) for n, c in views.cameras.items()})
     with staged_dataset(root) as work:
-        augment_dataset(work, streams, dict(views.cameras), recipe.augment, source.describe(), controller)
+        write_description(rig.robot, work / DESCRIPTION_DIR)
+        _merge_imac_info(work, base_block(rig))
+        augment_dataset(work, streams, dict(views.cameras), recipe.augment, source.describe())
         validate(LeRobotDataset(info.get("repo_id", "local/dataset"), root=work))
 
 

@@ -49,28 +49,6 @@ def cache_home() -> Path:
 # --------------------------------------------------------------------------- stages
 
 
-def robot_of(recipe: Recipe):
-    from imac_data.robot import GripperMap, RobotConfig, RobotModel
-
-    r = recipe.robot
-    if r.platform == "aloha_sim":
-        from imac_data import aloha
-
-        return RobotModel(aloha.robot_config())
-    urdf = recipe.resolve_path(r.urdf)
-    if not urdf.is_file():
-        raise InputError(f"{recipe.file}: robot.urdf: file not found: {urdf}")
-    joint_map = tuple(
-        entry if isinstance(entry, str) else GripperMap(i, entry.gripper, scale=entry.scale, offset=entry.offset)
-        for i, entry in enumerate(r.joint_map)
-    )
-    config = RobotConfig(
-        name=recipe.name, urdf_path=urdf, joint_map=joint_map, gripper_links=r.gripper_links,
-        package_dirs={k: recipe.resolve_path(v) for k, v in r.package_dirs.items()},
-    )
-    return RobotModel(config)
-
-
 def source_episodes(req: BuildRequest) -> tuple[list[Path], Path]:
     """The episode files to ingest and the calibration file that goes with them."""
     from imac_data.aloha_hdf5 import episode_paths
@@ -120,37 +98,32 @@ class ShardJob:
     """The unit of work: one source episode -> one complete one-episode dataset (base
     features + control streams) at ``shard_dir``. Local processes and Ray tasks run the
     same :func:`build_shard`; a shard directory appears atomically, so a killed build
-    resumes with the shards that are missing."""
+    resumes with the shards that are missing. The rig travels as its ``info.json`` block
+    plus the packaged robot description in the staging directory: every worker renders
+    exactly the robot the dataset will carry."""
 
     index: int
     episode: Path
     shard_dir: Path
     repo_id: str
     recipe: Recipe
-    calibration_path: Path
+    rig_block: dict
+    description_dir: Path
     options: object  # IngestOptions
 
 
 _PROCESS_CACHE: dict = {}
 
 
-def _process_state(recipe: Recipe):
-    """Robot model, renderer and controller, built once per worker process (the Open3D
-    scene cannot be pickled, so each process builds its own)."""
-    key = (recipe.name, recipe.file, repr(recipe.robot))
+def worker_rig(block: dict, description_dir: Path):
+    """The rig of a job, built once per worker process (the Open3D scene cannot be pickled,
+    so each process builds its own renderer)."""
+    from imac_data.rig import Rig
+
+    key = (str(description_dir), json.dumps(block, sort_keys=True))
     if key not in _PROCESS_CACHE:
-        from imac_data.motion import Controller, aloha_controller
-        from imac_data.render import make_renderer
-
-        robot = robot_of(recipe)
-        if recipe.robot.platform == "aloha_sim":
-            from imac_data.aloha import load_mujoco_model
-
-            controller = aloha_controller(load_mujoco_model(recipe.source.sim.task))
-        else:
-            controller = Controller()
         _PROCESS_CACHE.clear()
-        _PROCESS_CACHE[key] = (robot, make_renderer(robot), controller)
+        _PROCESS_CACHE[key] = Rig.from_block(block, description_dir)
     return _PROCESS_CACHE[key]
 
 
@@ -160,25 +133,23 @@ def build_shard(job: ShardJob) -> Path:
 
     from imac_data.aloha_hdf5 import read_episode
     from imac_data.augment import augment_dataset, episode_streams
-    from imac_data.cameras import load_calibration
     from imac_data.depth_sources import RecordedDepth, episode_views
     from imac_data.ingest import ingest_episodes
 
     if (job.shard_dir / "meta" / "info.json").is_file():
         return job.shard_dir
-    robot, renderer, controller = _process_state(job.recipe)
-    calibration = load_calibration(job.calibration_path)
+    rig = worker_rig(job.rig_block, job.description_dir)
     tmp = job.shard_dir.with_name(f".{job.shard_dir.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        ingest_episodes([job.episode], calibration=calibration, robot=robot, repo_id=job.repo_id, root=tmp,
-                        options=job.options, overwrite=True, progress=False)
+        ingest_episodes([job.episode], rig=rig, repo_id=job.repo_id, root=tmp, options=job.options,
+                        overwrite=True, progress=False)
         raw = read_episode(job.episode)
-        views = episode_views(raw, calibration, robot, name=str(job.episode))
+        views = episode_views(raw, rig.cameras, rig.robot, name=str(job.episode))
         source = RecordedDepth()
-        streams = episode_streams(raw.qpos, raw.action, source.depth(views), dict(views.cameras), robot, renderer,
-                                  job.recipe.augment, controller)
-        augment_dataset(tmp, [streams], dict(views.cameras), job.recipe.augment, source.describe(), controller)
+        streams = episode_streams(raw.qpos, raw.action, source.depth(views), dict(views.cameras), rig,
+                                  job.recipe.augment)
+        augment_dataset(tmp, [streams], dict(views.cameras), job.recipe.augment, source.describe())
         tmp.rename(job.shard_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -263,9 +234,10 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     from lerobot.datasets.aggregate import aggregate_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from imac_data.cameras import load_calibration
     from imac_data.dataset_card import write_card
     from imac_data.ingest import IngestOptions, check_episodes, staging_dir, update_imac_info
+    from imac_data.rig import Rig
+    from imac_data.robot_files import DESCRIPTION_DIR, write_description
 
     recipe = req.recipe
     if req.root.exists() and not req.overwrite:
@@ -276,19 +248,19 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     if problems:
         raise InputError(f"recipe {recipe.file} needs inputs that are not there:\n  - " + "\n  - ".join(problems))
     refuse_overlap(req.root, _input_paths(req))  # before anything is recorded or written
-    robot = robot_of(recipe)
+    robot = Rig.robot_from_recipe(recipe)  # a bad URDF or joint map fails before any recording
     paths, calibration_path = source_episodes(req)
     refuse_overlap(req.root, {"source episodes": paths[0].parent, "calibration": calibration_path})
-    calibration = load_calibration(calibration_path)
-    check_episodes(paths, calibration, robot)
-    _check_stream_resolution(recipe, calibration)
+    rig = Rig.from_recipe(recipe, calibration_path, robot=robot)
+    check_episodes(paths, rig.cameras, robot)
+    _check_stream_resolution(recipe, rig.cameras)
     fps = recipe.fps or _fps_of(paths[0]) or None
     if fps is None:
         raise InputError(f"{recipe.file}: fps: the episodes do not record their rate; set fps in the recipe")
     defaults = recipe.source.episode_defaults
     options = IngestOptions(
         fps=fps, task=recipe.task, source=defaults.source, policy_name=defaults.policy_name,
-        checkpoint=defaults.checkpoint, robot_type=robot.name, state_names=_state_names(recipe, robot),
+        checkpoint=defaults.checkpoint, robot_type=robot.name, state_names=rig.state_names,
     )
 
     # Staging: shards/ (one dataset per episode, kept across a killed run when the
@@ -300,7 +272,10 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
         shutil.rmtree(staging)
     (staging / "shards").mkdir(parents=True, exist_ok=True)
     key_file.write_text(key)
-    jobs = [ShardJob(i, p, staging / "shards" / f"episode_{i:06d}", req.repo_id, recipe, calibration_path, options)
+    description = staging / "robot"
+    write_description(robot, description)
+    block = rig.to_info()
+    jobs = [ShardJob(i, p, staging / "shards" / f"episode_{i:06d}", req.repo_id, recipe, block, description, options)
             for i, p in enumerate(paths)]
     workers = workers or min(len(jobs), os.cpu_count() or 1)
     run_jobs(jobs, executor=executor, workers=workers, ray_address=ray_address, progress=req.progress)
@@ -315,6 +290,7 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     imac["build"] = {"recipe": recipe.name, "command": f"python -m imac_data.build --repo {req.repo_id}",
                      "episodes": len(jobs)}
     update_imac_info(final, imac)
+    shutil.copytree(shards[0] / DESCRIPTION_DIR, final / DESCRIPTION_DIR)
     write_card(final, req.repo_id, recipe)
     dataset = LeRobotDataset(req.repo_id, root=final)
     validate(dataset)
@@ -368,14 +344,6 @@ def _fps_of(path: Path) -> float | None:
 
     with h5py.File(path, "r") as f:
         return float(f.attrs["fps"]) if "fps" in f.attrs else None
-
-
-def _state_names(recipe: Recipe, robot) -> tuple[str, ...] | None:
-    if recipe.robot.platform == "aloha_sim":
-        from imac_data.aloha import STATE_NAMES
-
-        return STATE_NAMES
-    return None
 
 
 def validate(dataset, sample: int = 4) -> None:

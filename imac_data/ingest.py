@@ -15,8 +15,6 @@ is complete; on any error the staging directory is removed.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -28,7 +26,6 @@ import pyarrow.parquet as pq
 import torch
 from tqdm.auto import tqdm
 
-from imac_data import __version__
 from imac_data.aloha_hdf5 import SOURCES, probe_episode, read_episode
 from imac_data.cameras import Camera
 from imac_data.errors import InputError
@@ -127,18 +124,17 @@ def _features(probe_images: dict[str, tuple[int, int]], dof: int, names: Sequenc
     return features
 
 
-def robot_description(robot: RobotModel) -> dict:
-    text = Path(robot.config.urdf_path).read_bytes()
-    return {"name": robot.config.name, "urdf_sha256": hashlib.sha256(text).hexdigest()}
-
-
-def ingest_episodes(paths: Sequence[str | Path], *, calibration: dict[str, Camera], robot: RobotModel,
-                    repo_id: str, root: str | Path, options: IngestOptions, overwrite: bool = False,
-                    progress: bool = True):
-    """Write ``paths`` (ALOHA HDF5 episodes) as a LeRobot dataset at ``root``. Returns the
-    loaded :class:`LeRobotDataset`."""
+def ingest_episodes(paths: Sequence[str | Path], *, rig, repo_id: str, root: str | Path, options: IngestOptions,
+                    overwrite: bool = False, progress: bool = True):
+    """Write ``paths`` (ALOHA HDF5 episodes) as a LeRobot dataset at ``root``, with the
+    rig (:class:`~imac_data.rig.Rig`) in ``info["imac"]`` and its robot description under
+    ``meta/imac/robot/``. Returns the loaded :class:`LeRobotDataset`."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    from imac_data.dataset.info import base_block, update_imac_info
+    from imac_data.robot_files import DESCRIPTION_DIR, write_description
+
+    calibration, robot = rig.cameras, rig.robot
     paths = [Path(p) for p in paths]
     root = Path(root)
     if root.exists() and not overwrite:
@@ -149,10 +145,8 @@ def ingest_episodes(paths: Sequence[str | Path], *, calibration: dict[str, Camer
 
     first = read_episode(paths[0], load_depth=False)
     image_hw = {cam: first.images[cam].shape[1:3] for cam in first.cameras}
-    calibration = {
-        name: cam if (cam.height, cam.width) == image_hw[name] else cam.rescaled(image_hw[name][1], image_hw[name][0])
-        for name, cam in calibration.items()
-    }
+    rig = rig.with_image_sizes(image_hw)
+    calibration = rig.cameras
     features = _features(image_hw, probe["dof"], options.state_names, first.qvel is not None)
 
     staging = staging_dir(root)
@@ -199,12 +193,8 @@ def ingest_episodes(paths: Sequence[str | Path], *, calibration: dict[str, Camer
             del episode
         dataset.finalize()
         add_episode_columns(staging, episode_rows)
-        update_imac_info(staging, {
-            "builder_version": __version__,
-            "robot": robot_description(robot),
-            "cameras": {name: cam.to_dict() for name, cam in calibration.items()},
-            "camera_pose_convention": "camera-to-world, OpenCV axes, row-major 4x4",
-        })
+        write_description(robot, staging / DESCRIPTION_DIR)
+        update_imac_info(staging, base_block(rig))
         if root.exists():
             shutil.rmtree(root)
         staging.rename(root)
@@ -244,8 +234,7 @@ def add_episode_columns(root: Path, rows: list[dict]) -> None:
 
 
 def update_imac_info(root: Path, block: dict) -> None:
-    """Merge ``block`` into the ``imac`` key of ``meta/info.json``."""
-    info_path = root / "meta" / "info.json"
-    info = json.loads(info_path.read_text())
-    info.setdefault("imac", {}).update(block)
-    info_path.write_text(json.dumps(info, indent=4))
+    """Merge ``block`` into the ``imac`` key of ``meta/info.json`` (see :mod:`imac_data.dataset.info`)."""
+    from imac_data.dataset.info import update_imac_info as update
+
+    update(root, block)

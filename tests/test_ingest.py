@@ -14,6 +14,7 @@ from imac_data.aloha_hdf5 import read_episode, write_episode
 from imac_data.cameras import load_calibration, save_calibration
 from imac_data.errors import InputError
 from imac_data.ingest import IngestOptions, ingest_episodes, staging_dir
+from imac_data.rig import Rig
 from imac_data.robot import RobotModel
 from imac_data.simulate import SimConfig, record_dataset
 
@@ -45,7 +46,7 @@ def options(**kw):
 def ingest(src, robot, root, **kw):
     paths = sorted(src.glob("episode_*.hdf5"))
     calib = load_calibration(src / "calibration.json")
-    return ingest_episodes(paths, calibration=calib, robot=robot, repo_id="local/test", root=root,
+    return ingest_episodes(paths, rig=Rig(robot, calib), repo_id="local/test", root=root,
                            options=kw.pop("opts", options()), progress=False, **kw)
 
 
