@@ -36,8 +36,9 @@ import numpy as np
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from imac_data.depth import DepthCodec, add_depth_streams, depth_stream_key  # noqa: E402
-from imac_data.video_streams import VideoEncoding, encode_video, read_video_frames  # noqa: E402
+from imac_data.dataset.depth_streams import add_depth_streams  # noqa: E402
+from imac_data.dataset.videos import VideoEncoding, encode_video, read_video_frames  # noqa: E402
+from imac_data.depth import DepthCodec, depth_stream_key  # noqa: E402
 
 NEAR, FAR = 0.1, 1.2
 CAMS = ("cam_high", "cam_left_wrist", "cam_right_wrist")

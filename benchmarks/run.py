@@ -306,7 +306,8 @@ def tree_bytes(root: Path) -> dict:
 def child_build(spec_path: str) -> int:
     """Subprocess side of a whole build: ``build()`` timed end to end, then peak RSS."""
     spec = json.loads(Path(spec_path).read_text())
-    from imac_data.build import BuildRequest, build, quiet_libraries
+    from imac_data.build import BuildRequest, build
+    from imac_data.cli import quiet_libraries
     from imac_data.recipes import load_recipe
 
     quiet_libraries()
@@ -401,7 +402,7 @@ def episode_stages(pipe: Pipeline, path: Path, tmp: Path, timer: Timer, *, camer
     from imac_data.depth_sources import RecordedDepth, episode_views
     from imac_data.ingest import ingest_episodes
     from imac_data.motion import frame_configurations
-    from imac_data.video_streams import VideoEncoding, encode_video
+    from imac_data.dataset.videos import VideoEncoding, encode_video
 
     s, robot, renderer = pipe.settings, pipe.robot, pipe.renderer
     H, W = s.resolution
@@ -471,9 +472,8 @@ def stage_times(work: Workload, size, recipe: Path, source: Path, tmp: Path) -> 
     from imac_data.aloha_hdf5 import episode_paths
 
     from lerobot.datasets.aggregate import aggregate_datasets
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from imac_data.build import validate
+    from imac_data.dataset.validate import validate_dataset
 
     pipe = Pipeline(recipe, source)
     paths = episode_paths(source)
@@ -493,7 +493,7 @@ def stage_times(work: Workload, size, recipe: Path, source: Path, tmp: Path) -> 
     with timer("aggregate"):
         aggregate_datasets([repo] * len(shards), repo, roots=shards, aggr_root=final)
     with timer("validate"):
-        validate(LeRobotDataset(repo, root=final))
+        validate_dataset(final).raise_if_invalid()
     wall = time.perf_counter() - t0
     for d in (*shards, final):
         shutil.rmtree(d, ignore_errors=True)
@@ -1134,7 +1134,7 @@ def main(argv: list[str] | None = None) -> int:
     if work.episodes < 1 or work.max_steps < 2:
         p.error("--episodes must be >= 1 and --max-steps >= 2")
 
-    from imac_data.build import quiet_libraries
+    from imac_data.cli import quiet_libraries
 
     quiet_libraries()
     tmp = a.keep or Path(tempfile.mkdtemp(prefix="imac_bench_"))

@@ -39,13 +39,13 @@ from pathlib import Path
 import torch
 
 from imac_data.cameras import Camera, camera_from_dict
+from imac_data.contact import DEFAULT_GRIPPER_SPACING
 from imac_data.errors import InputError
 from imac_data.motion import Controller, frame_configurations, rollout
 from imac_data.robot import RobotConfig, RobotModel
 
 __all__ = ["Rig", "RobotViews", "DEFAULT_GRIPPER_SPACING", "RIG_KEYS"]
 
-DEFAULT_GRIPPER_SPACING = 0.002  # metres between gripper surface samples (contact s2g)
 RIG_KEYS = ("robot", "cameras", "controller", "gripper_surface")  # what to_info writes into info["imac"]
 
 

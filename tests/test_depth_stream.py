@@ -20,9 +20,10 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from imac_data import aloha
 from imac_data.aloha_hdf5 import episode_paths, read_episode
 from imac_data.cameras import load_calibration, rescale_intrinsics
+from imac_data.dataset.depth_streams import add_depth_streams
+from imac_data.dataset.videos import VideoEncoding
 from imac_data.depth import (
     DepthCodec,
-    add_depth_streams,
     depth_codec_of,
     depth_stream_key,
     resize_depth,
@@ -33,7 +34,6 @@ from imac_data.ingest import IngestOptions, ingest_episodes
 from imac_data.rig import Rig
 from imac_data.robot import RobotModel
 from imac_data.simulate import SimConfig, record_dataset
-from imac_data.video_streams import VideoEncoding
 
 CAMS = ["cam_high", "cam_left_wrist", "cam_right_wrist"]
 CODEC = DepthCodec.preset("manipulation")
