@@ -116,11 +116,14 @@ class NearestNeighbours:
     exact ``torch.cdist`` + min on the target's device, CPU or CUDA), or ``"auto"`` (CUDA
     -> torch; CPU -> kdtree, except brute force for tiny targets). ``workers``: threads of
     the KD-tree queries (-1 = all cores). ``chunk_pairs``: query-target pairs per torch
-    block (memory bound: 4 bytes each).
+    block (memory bound: 4 bytes each). ``leafsize``: points per KD-tree leaf; 64 made the
+    contact streams' queries (robot points 10-40 cm from the scene, scene points far from
+    the gripper: each visits many leaves) 15-25 % faster than scipy's 16, with identical
+    distances and nearest points on our episodes.
     """
 
     def __init__(self, target, *, method: str = "auto", workers: int = -1, chunk_pairs: int | None = None,
-                 leafsize: int = 16):
+                 leafsize: int = 64):
         self.target = _points(target, "nearest-distance target")
         if method not in ("auto", "kdtree", "torch"):
             raise InputError(f"nearest-distance method must be 'auto', 'kdtree' or 'torch', got {method!r}")
