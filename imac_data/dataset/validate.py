@@ -78,6 +78,7 @@ class _Context:
         self._dataset = None
         self._lengths: dict[int, int] | None = None
         self._episodes = None
+        self.decoded_depth: dict[tuple[int, str], np.ndarray] = {}  # sampled depth frames, for check_depth
 
     @property
     def features(self) -> dict:
@@ -296,6 +297,8 @@ def check_decode(ctx: _Context) -> list[str]:
             h, w, _ = ctx.features[key]["shape"]
             if key not in item or tuple(item[key].shape) != (3, h, w):
                 problems.append(f"frame {i}: {key} did not decode to (3, {h}, {w})")
+            elif key.startswith("observation.depth."):
+                ctx.decoded_depth[(int(i), key)] = np.asarray(item[key])
     return problems
 
 
@@ -335,10 +338,10 @@ def check_depth(ctx: _Context) -> list[str]:
                 if path.is_file():
                     judge(f"{key} {path.relative_to(ctx.root)}", read_video_frames(path))
     else:
-        for i in ctx.sample_indices():
-            item = ctx.dataset[int(i)]
-            for key in keys:
-                judge(f"frame {i} {key}", np.asarray(item[key]))
+        if not ctx.decoded_depth:  # run on its own (--check depth): decode the samples here
+            check_decode(ctx)
+        for (i, key), frame in ctx.decoded_depth.items():  # the frames check_decode decoded
+            judge(f"frame {i} {key}", frame)
     return problems
 
 
