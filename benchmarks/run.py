@@ -12,7 +12,7 @@ contact s2g) plus the tabular columns.
    with ``--executor ray`` and 2 workers. Frames/s; CPU seconds per frame (the build
    process and its pool workers by ``getrusage``; for Ray the workers' own CPU from the
    build's timings, which leave out Ray's own processes); peak RSS per worker (each worker's
-   ``ru_maxrss``, from the build's timings); the load average at start and end.
+   ``VmHWM``, from the build's timings); the load average at start and end.
 2. **Stages**: the build's own stage timings (the side file every build writes to its
    staging directory, here passed out with ``--timings``), never a second copy of the
    pipeline: wall and CPU seconds per stage of the 1-worker build, and what stands between
@@ -262,6 +262,7 @@ def child_build(spec_path: str) -> int:
     from imac_data.build import BuildRequest, build
     from imac_data.cli import quiet_libraries
     from imac_data.recipes import load_recipe
+    from imac_data.workers import peak_rss_mb
 
     quiet_libraries()
     root = Path(spec["root"])
@@ -283,7 +284,7 @@ def child_build(spec_path: str) -> int:
     result = {
         "build_s": seconds, "cpu_s": cpu + worker_cpu, "frames": int(dataset.meta.total_frames),
         "episodes": int(dataset.meta.total_episodes), "load_avg_start": load_start, "load_avg_end": load_avg(),
-        "rss_coordinator_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "rss_coordinator_mb": peak_rss_mb(),
         "peak_rss_mb_per_worker": max(e["peak_rss_mb"] for e in shards),
         "threads": report["threads"], "timings": report, "bytes": tree_bytes(root),
     }
@@ -741,8 +742,8 @@ def markdown(r: dict) -> str:
                      f"{b['peak_mem_mb_per_worker']:.0f} | {b['peak_mem_mb_coordinator']:.0f} | "
                      f"{b['bytes_per_frame']['total'] / 1024:.1f} | {b['load_avg_start'][0]} -> {b['load_avg_end'][0]} |")
         L.append("\n(build s: `build()` alone; CPU: the build process and its pool workers (`getrusage`), for Ray its "
-                 "workers' own CPU from the build's timings; peak RSS per worker: each worker's `ru_maxrss` at the end "
-                 "of its episodes, as the build records it.)")
+                 "workers' own CPU from the build's timings; peak RSS per worker: each worker's peak (`VmHWM`) at the "
+                 "end of its episodes, as the build records it; with 1 worker the build process is the worker.)")
         for size in {tag(b["size"]) for b in r["builds"]}:
             ws = {b["workers"]: b for b in r["builds"] if tag(b["size"]) == size and b["executor"] == "local"}
             if 1 in ws and 2 in ws:

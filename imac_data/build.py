@@ -149,11 +149,11 @@ def build_shard(job: ShardJob) -> Path:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    import resource
+    from imac_data.workers import peak_rss_mb
 
     write_timings(job.timings_file, timer, episode=str(job.episode), threads=job.threads, pid=os.getpid(),
                   shard_wall_s=time.perf_counter() - wall, shard_cpu_s=time.process_time() - cpu,
-                  peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+                  peak_rss_mb=peak_rss_mb())
     return job.shard_dir
 
 

@@ -213,7 +213,12 @@ class EpisodePipeline:
                 streams[f"{S2G}.{c}"] = s2g[:, v]
             caps = np.repeat(chunk.caps.cpu().numpy()[None].astype(np.float32), hi - lo, axis=0)
             timer.frames += hi - lo
-            yield ChunkOutput(lo, hi, {k: streams[k] for k in self.keys}, caps, rgb if images else {}, poses)
+            out = ChunkOutput(lo, hi, {k: streams[k] for k in self.keys}, caps, rgb if images else {}, poses)
+            # only the reference depth carries over: drop this chunk's arrays before the next
+            # one is made, so that no more than one chunk is alive at a time
+            del rgb, mm, links, links_ref, drawn, seen, views, metres, depth_hw, streams, chunk, r2s, s2g, motion
+            yield out
+            del out
 
     def imac_block(self) -> dict:
         """The stream settings' part of ``info["imac"]`` (``augment``, ``motion``, ``contact``)."""

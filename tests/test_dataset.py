@@ -68,25 +68,19 @@ def test_lerobot_style_writer_is_lerobots_encoder(tmp_path):
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    """Two one-episode datasets of one rig (tiny), built by the build CLI."""
+    """A one-episode dataset (tiny), built by the build CLI, and a copy of it."""
     tmp = tmp_path_factory.mktemp("dataset_pkg")
     src = tmp / "src"
-    record_dataset(SimConfig(num_episodes=2, width=80, height=64, max_steps=14), src, progress=False)
+    record_dataset(SimConfig(num_episodes=1, width=80, height=64, max_steps=14), src, progress=False)
     data = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
     data["augment"] = {"height": 32, "width": 40, "contact_chunk": 4}
     recipe = tmp / "recipe.yaml"
     recipe.write_text(yaml.safe_dump(data))
-    roots = []
-    for i in range(2):
-        one = tmp / f"src{i}"
-        one.mkdir()
-        shutil.copy(src / "calibration.json", one)
-        shutil.copy(src / f"episode_{i}.hdf5", one / "episode_0.hdf5")
-        root = tmp / f"ds{i}"
-        assert build_main(["--repo", "local/pkg", "--recipe", str(recipe), "--source", str(one), "--root", str(root),
-                           "--no-progress", "--workers", "1", "--episodes", "1"]) == 0
-        roots.append(root)
-    return roots
+    root = tmp / "ds0"
+    assert build_main(["--repo", "local/pkg", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
+                       "--no-progress", "--workers", "1", "--episodes", "1"]) == 0
+    shutil.copytree(root, tmp / "ds1")
+    return [root, tmp / "ds1"]
 
 
 def test_built_dataset_is_valid_every_frame(built, capsys):

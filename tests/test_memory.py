@@ -3,7 +3,7 @@
 One recorded episode is tiled (played forward and backward) into a short and a long
 episode; each is built into a complete one-episode dataset (what a build worker does:
 read, FK, render, depth, contact, encode every stream, LeRobot's writer) in a fresh
-process, whose peak resident memory (``ru_maxrss``) is the measurement. The pipeline
+process, whose peak resident memory (``VmHWM``) is the measurement. The pipeline
 before streaming held every frame of an episode and grew by about 1 MB per frame at this
 resolution (64x80), i.e. by some 150 MB between the two episodes; the bound below is a few
 frames' worth. No timing is asserted.
@@ -25,7 +25,7 @@ SHORT, LONG = 32, 192
 GROWTH_LIMIT_MB = 50.0
 
 WORKER = """
-import json, resource, sys
+import json, sys
 from pathlib import Path
 from imac_data.cli import quiet_libraries
 from imac_data.ingest import IngestOptions
@@ -38,7 +38,8 @@ r = load_recipe(recipe)
 rig = Rig.from_recipe(r, episode.parent / "calibration.json")
 options = IngestOptions(fps=25, task="t", robot_type=rig.robot.name, state_names=rig.state_names)
 write_episode_dataset(episode, out, "local/mem", rig, r.augment, options)
-print(json.dumps({"peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+from imac_data.workers import peak_rss_mb  # VmHWM: ru_maxrss would carry the test process's peak over
+print(json.dumps({"peak_mb": peak_rss_mb()}))
 """
 
 
