@@ -31,7 +31,7 @@ __all__ = ["JointInfo", "VisualLinkInfo", "UrdfSummary", "summarize_urdf", "reci
 
 # How a recipe entry converts a dataset value in other units to a joint position.
 AFFINE_HINT = ("# An entry whose dataset values are not radians / metres (degrees, -100..100, a 0..1 gripper)\n"
-               "# needs an affine map, position = offset + scale * value: {gripper: JOINT, scale: S, offset: O}.")
+               "# needs an affine map, position = offset + scale * value: {joint: JOINT, scale: S, offset: O}.")
 
 
 @dataclass(frozen=True)
