@@ -187,6 +187,20 @@ def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> tor
     return torch.stack([u, v], dim=-1)
 
 
+def pixel_rays(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Camera-frame rays ``K^-1 [u, v, 1]`` through every pixel centre (integer ``u, v``),
+    shape ``(*B, H*W, 3)`` for ``K (*B, 3, 3)``, row-major pixels, z component exactly 1,
+    so ``depth * ray`` is the pixel's point at planar z-depth ``depth``. The one place
+    pixels become rays: :func:`backproject`, the contact streams' scene and robot points.
+    """
+    v, u = torch.meshgrid(torch.arange(height, device=K.device, dtype=K.dtype),
+                          torch.arange(width, device=K.device, dtype=K.dtype), indexing="ij")
+    pix = torch.stack([u, v, torch.ones_like(u)], dim=-1).reshape(-1, 3)
+    rays = pix @ torch.linalg.inv(K).transpose(-1, -2)
+    rays[..., 2] = 1.0
+    return rays
+
+
 def backproject(depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> torch.Tensor:
     """Lift a z-depth map ``(*B, H, W)`` to world points ``(*B, H, W, 3)``.
 
@@ -194,10 +208,7 @@ def backproject(depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor)
     scaled by that value; callers mask them with ``depth > 0``.
     """
     H, W = depth.shape[-2:]
-    uv = pixel_grid(H, W, device=depth.device, dtype=depth.dtype)
-    K_inv = torch.linalg.inv(K)
-    rays = torch.cat([uv, torch.ones_like(uv[..., :1])], dim=-1)  # (H, W, 3)
-    rays = rays @ K_inv[..., None, :, :].transpose(-1, -2)  # (*B, H, W, 3), z component == 1
+    rays = pixel_rays(K.to(depth.dtype), H, W).reshape(*K.shape[:-2], H, W, 3)  # (*B, H, W, 3)
     p_cam = rays * depth[..., None]
     R = T_world_cam[..., None, :3, :3]
     t = T_world_cam[..., None, None, :3, 3]
@@ -216,6 +227,22 @@ def save_calibration(path: str | Path, cameras: Mapping[str, Camera]) -> None:
     Path(path).write_text(json.dumps(payload, indent=2))
 
 
+def camera_from_dict(name: str, entry, where: str = "camera") -> Camera:
+    """A :class:`Camera` from its :meth:`Camera.to_dict` form (calibration files, ``info.json``)."""
+    if not isinstance(entry, dict):
+        raise InputError(f"{where}: expected a mapping")
+    missing = [k for k in ("K", "width", "height") if k not in entry]
+    if missing:
+        raise InputError(f"{where}: missing key(s) {missing}")
+    try:
+        return Camera(name=name, K=entry["K"], width=int(entry["width"]), height=int(entry["height"]),
+                      T_world_cam=entry.get("T_world_cam"), link=entry.get("link"), T_link_cam=entry.get("T_link_cam"))
+    except InputError as e:
+        raise InputError(f"{where}: {e}") from None
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{where}: {e}") from None
+
+
 def load_calibration(path: str | Path) -> dict[str, Camera]:
     """Read a calibration JSON written by :func:`save_calibration` (or by hand in that schema)."""
     path = Path(path)
@@ -227,26 +254,8 @@ def load_calibration(path: str | Path) -> dict[str, Camera]:
         raise InputError(f"{path}: not valid JSON ({e})") from None
     if not isinstance(payload, dict) or not isinstance(payload.get("cameras"), dict):
         raise InputError(f"{path}: expected a top-level 'cameras' mapping")
-    cameras = {}
-    for name, entry in payload["cameras"].items():
-        where = f"{path}: cameras.{name}"
-        if not isinstance(entry, dict):
-            raise InputError(f"{where}: expected a mapping")
-        missing = [k for k in ("K", "width", "height") if k not in entry]
-        if missing:
-            raise InputError(f"{where}: missing key(s) {missing}")
-        try:
-            cameras[name] = Camera(
-                name=name,
-                K=entry["K"],
-                width=int(entry["width"]),
-                height=int(entry["height"]),
-                T_world_cam=entry.get("T_world_cam"),
-                link=entry.get("link"),
-                T_link_cam=entry.get("T_link_cam"),
-            )
-        except InputError as e:
-            raise InputError(f"{where}: {e}") from None
+    cameras = {name: camera_from_dict(name, entry, f"{path}: cameras.{name}")
+               for name, entry in payload["cameras"].items()}
     if not cameras:
         raise InputError(f"{path}: no cameras")
     return cameras

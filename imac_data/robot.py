@@ -2,8 +2,9 @@
 
 A :class:`RobotConfig` says which URDF to use and how each index of the
 dataset's ``observation.state`` / ``action`` vector maps to a URDF joint
-(DESIGN.md section 2): arm indices name a joint directly, gripper indices go
-through an explicit affine :class:`GripperMap` to a finger joint, and URDF
+(DESIGN.md section 2): each index names a URDF joint, through an explicit affine
+map where the recorded unit is not the URDF's (:class:`JointEntry`: a gripper's
+normalised opening to a finger slide, degrees to radians, ...), and URDF
 ``<mimic>`` joints (the second finger) follow their leader.
 
 :class:`RobotModel` loads the URDF once (yourdfpy for the visual geometry,
@@ -42,33 +43,51 @@ _DEFAULT_RGBA = (0.5, 0.5, 0.5, 1.0)  # MuJoCo's default geom colour, for visual
 
 
 @dataclass(frozen=True)
-class GripperMap:
-    """Dataset gripper value -> finger joint position: ``offset + scale * value``."""
+class JointEntry:
+    """One entry of the dataset joint vector -> its URDF joint: ``q_urdf = offset + scale * value``.
+
+    Any entry may carry an affine map: a gripper's normalised opening to a finger slide in
+    metres, a joint recorded in degrees (``scale = pi / 180``), a -100..100 range, ...
+    """
 
     index: int  # index in the dataset joint vector
-    joint: str  # URDF finger joint it drives
-    scale: float
+    joint: str  # URDF joint it drives
+    scale: float = 1.0
     offset: float = 0.0
 
     def __post_init__(self):
         if not (math.isfinite(self.scale) and math.isfinite(self.offset)) or self.scale == 0:
-            raise InputError(f"gripper map of index {self.index} ({self.joint!r}): scale must be finite and "
+            raise InputError(f"joint map of index {self.index} ({self.joint!r}): scale must be finite and "
                              f"non-zero and offset finite, got scale={self.scale}, offset={self.offset}")
+
+    @property
+    def is_identity(self) -> bool:
+        return self.scale == 1.0 and self.offset == 0.0
+
+    def to_dict(self) -> str | dict:
+        """The recipe / ``info.json`` form: the joint name, or ``{joint, scale, offset}``."""
+        if self.is_identity:
+            return self.joint
+        return {"joint": self.joint, "scale": self.scale, "offset": self.offset}
+
+
+# The name of the affine entry when only grippers could carry one (kept for callers).
+GripperMap = JointEntry
 
 
 @dataclass(frozen=True)
 class RobotConfig:
     """Which URDF, and how the dataset's joint vector drives it.
 
-    ``joint_map[i]`` is the URDF joint name of dataset index ``i``, or a
-    :class:`GripperMap` (whose ``index`` must be ``i``). URDF joints that are
-    neither mapped nor mimic followers stay at 0. ``package_dirs`` maps a
+    ``joint_map[i]`` is the URDF joint name of dataset index ``i`` (identity map), or a
+    :class:`JointEntry` (whose ``index`` must be ``i``) with its affine map. URDF joints
+    that are neither mapped nor mimic followers stay at 0. ``package_dirs`` maps a
     package name to the directory that ``package://<name>/`` stands for.
     """
 
     name: str
     urdf_path: Path
-    joint_map: tuple[str | GripperMap, ...]
+    joint_map: tuple[str | JointEntry, ...]
     gripper_links: tuple[str, ...] = ()
     package_dirs: tuple[tuple[str, Path], ...] = ()
 
@@ -85,15 +104,15 @@ class RobotConfig:
             raise InputError(f"robot {self.name!r}: joint_map is empty")
         seen = set()
         for i, entry in enumerate(self.joint_map):
-            if isinstance(entry, GripperMap):
+            if isinstance(entry, JointEntry):
                 if entry.index != i:
-                    raise InputError(f"robot {self.name!r}: joint_map[{i}] is a GripperMap with index "
+                    raise InputError(f"robot {self.name!r}: joint_map[{i}] is a JointEntry with index "
                                      f"{entry.index}")
                 joint = entry.joint
             elif isinstance(entry, str) and entry:
                 joint = entry
             else:
-                raise InputError(f"robot {self.name!r}: joint_map[{i}] must be a joint name or a GripperMap, "
+                raise InputError(f"robot {self.name!r}: joint_map[{i}] must be a joint name or a JointEntry, "
                                  f"got {entry!r}")
             if joint in seen:
                 raise InputError(f"robot {self.name!r}: joint {joint!r} is mapped twice in joint_map")
@@ -105,7 +124,49 @@ class RobotConfig:
 
     def joint_name(self, i: int) -> str:
         entry = self.joint_map[i]
-        return entry.joint if isinstance(entry, GripperMap) else entry
+        return entry.joint if isinstance(entry, JointEntry) else entry
+
+    def joint_entry(self, i: int) -> JointEntry:
+        """Entry ``i`` with its affine map (identity for a plain joint name)."""
+        entry = self.joint_map[i]
+        return entry if isinstance(entry, JointEntry) else JointEntry(i, entry)
+
+    def joint_map_dict(self) -> list:
+        """The joint map as recorded in recipes and ``info.json``: a joint name per identity
+        entry, ``{joint, scale, offset}`` per affine one."""
+        return [self.joint_entry(i).to_dict() for i in range(self.dof)]
+
+    @staticmethod
+    def parse_joint_map(entries, where: str = "joint_map") -> tuple[str | JointEntry, ...]:
+        """The inverse of :meth:`joint_map_dict` (also accepts the old gripper form
+        ``{gripper: joint, scale, offset}``); :class:`InputError` names the entry."""
+        if not isinstance(entries, (list, tuple)) or not entries:
+            raise InputError(f"{where}: expected a non-empty list of joint names or {{joint, scale, offset}}")
+        out: list[str | JointEntry] = []
+        for i, e in enumerate(entries):
+            if isinstance(e, JointEntry):
+                out.append(e if e.index == i else JointEntry(i, e.joint, e.scale, e.offset))
+                continue
+            if isinstance(e, str) and e:
+                out.append(e)
+                continue
+            if not isinstance(e, Mapping):
+                raise InputError(f"{where}[{i}]: expected a joint name or {{joint, scale, offset}}, got {e!r}")
+            e = dict(e)
+            name_key = "joint" if "joint" in e else "gripper" if "gripper" in e else None
+            unknown = sorted(set(e) - {name_key, "scale", "offset"})
+            if name_key is None or unknown or ("joint" in e and "gripper" in e):
+                raise InputError(f"{where}[{i}]: expected {{joint: NAME, scale: S, offset: O}}, got {e!r}")
+            try:
+                scale, offset = float(e.get("scale", 1.0)), float(e.get("offset", 0.0))
+            except (TypeError, ValueError):
+                raise InputError(f"{where}[{i}]: scale and offset must be numbers, got {e!r}") from None
+            try:
+                entry = JointEntry(i, str(e[name_key]), scale, offset)
+            except InputError as err:
+                raise InputError(f"{where}[{i}]: {err}") from None
+            out.append(entry.joint if entry.is_identity else entry)
+        return tuple(out)
 
     def validate(self, urdf: yourdfpy.URDF) -> None:
         """Check the config against a parsed URDF; InputError names what is missing."""
@@ -363,14 +424,14 @@ def _chain_joint_affine(joint_names: list[str], config: RobotConfig, mimic: Mapp
                         ) -> tuple[list[int], list[float], list[float]]:
     """For each chain joint j: (src[j], a[j], b[j]) with q_chain[j] = a[j] * q[src[j]] + b[j].
 
-    Arm joints copy their dataset entry, gripper joints apply their GripperMap,
+    Mapped joints apply their entry's affine map (identity for a plain name),
     mimic followers compose their leader's map with the mimic's; joints that
     nothing drives get a = b = 0 (held at 0).
     """
     direct = {}
-    for i, entry in enumerate(config.joint_map):
-        gripper = isinstance(entry, GripperMap)
-        direct[config.joint_name(i)] = (i, entry.scale, entry.offset) if gripper else (i, 1.0, 0.0)
+    for i in range(config.dof):
+        entry = config.joint_entry(i)
+        direct[entry.joint] = (i, entry.scale, entry.offset)
 
     def resolve(name: str, seen: tuple[str, ...] = ()) -> tuple[int, float, float]:
         if name in direct:
