@@ -40,6 +40,8 @@ from imac_model import checkpoint as ckpt
 from imac_model.backbones import spatial_multiple, temporal_factor
 from imac_model.config import ModelSpec, RunConfig, load_run_config, save_config
 from imac_model.data import ChunkDataset, action_stats, open_metadata, resolve_layout, split_episodes
+from imac_model.online_controls import CONTACT_STREAMS, OnlineControls
+from imac_model.rollout import rollout_loss
 from imac_model.world_model import WorldModel
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss
@@ -203,6 +205,12 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
                 if held_eps else None)
     if len(train_set) == 0:
         raise InputError(f"data: no training chunks (episodes {train_eps})")
+    rc = run.rollout
+    clips = train_set.clips(rc.chunks) if rc.chunks > 1 else None
+    if clips is not None and not clips:
+        raise InputError(f"rollout.chunks: no training episode has {rc.chunks} chunks")
+    n_items = len(clips) if clips is not None else len(train_set)
+    steps_per_epoch = max(n_items // tc.batch_size, 1)  # as batch_indices counts them
     eval_items = _evaluation_items(held_set, tc.eval_batches * tc.batch_size) if held_set is not None else []
     if run.data.cache == "memory":
         train_set.preload(num_workers=run.data.num_workers, progress=progress and main)
@@ -210,8 +218,15 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
             held_set.preload(num_workers=run.data.num_workers, progress=progress and main)
 
     model, optimizer = accelerator.prepare(model, optimizer)
-    t_wall, t_cpu = time.time(), time.process_time()  # train.max_minutes and the logged times count from here
     device = accelerator.device
+    online = None
+    if rc.chunks > 1 and any(s in spec.conditioning.streams for s in CONTACT_STREAMS):
+        contact_device = device if rc.device == "auto" else torch.device(rc.device)
+        online = OnlineControls.from_dataset(train_set.lerobot.root, spec, info=meta.info,
+                                             resolution=rc.resolution, max_walk_distance=rc.max_walk_distance,
+                                             device=contact_device)
+        online.rig.renderer, online.rig.gripper  # noqa: B018 - built before the clock starts
+    t_wall, t_cpu = time.time(), time.process_time()  # train.max_minutes and the logged times count from here
     if main:
         out.mkdir(parents=True, exist_ok=True)
         save_config(run, out / "config.yaml")
@@ -258,15 +273,27 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
     bar = tqdm(total=tc.max_steps, initial=step, desc="training", unit="step", disable=not (progress and main))
     rank, world = accelerator.process_index, accelerator.num_processes
     window: list[float] = []
+    extras: dict[str, list] = {}
     t_window = time.time()
     stopped, last_ckpt, start_step = "max_steps", None, step
     while step < tc.max_steps:
-        idx = batch_indices(step, len(train_set), tc.batch_size, tc.seed)[rank::world]
-        batch = train_set.batch(idx).to(device)
+        epoch = step / steps_per_epoch
+        streams = ("motion",) if epoch < rc.stage_one_epochs else None  # stage one: motion images alone
+        idx = batch_indices(step, n_items, tc.batch_size, tc.seed)[rank::world]
         gen = step_generator(tc.seed, step, rank)
-        with accelerator.autocast():
-            result = model(batch, generator=gen)
-        accelerator.backward(result.loss)
+        if clips is None:
+            batch = train_set.batch(idx).to(device)
+            with accelerator.autocast():
+                result = model(batch, generator=gen, streams=streams)
+            accelerator.backward(result.loss)
+        else:
+            clip = [train_set.batch([clips[i][r] for i in idx]).to(device) for r in range(rc.chunks)]
+            result = rollout_loss(model, clip, online, generator=gen, clean_reference=epoch < rc.warmup_epochs,
+                                  streams=streams, commanded_state=rc.reference_state == "commanded",
+                                  backward=accelerator.backward, autocast=accelerator.autocast)
+            extras.setdefault("chunk_losses", []).append([float(x) for x in result.chunk_losses])
+            if result.invalid_depth:
+                extras.setdefault("invalid_depth", []).append(float(np.mean(result.invalid_depth)))
         if tc.grad_clip > 0:
             accelerator.clip_grad_norm_(trainable, tc.grad_clip)
         optimizer.step()
@@ -285,7 +312,15 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
         if step % tc.log_every == 0 or step % tc.eval_every == 0 or done:
             now = time.time()
             row = {"step": step, "loss": float(np.mean(window)), "lr": scheduler.get_last_lr()[0],
-                   "steps_per_s": len(window) / max(now - t_window, 1e-9)}
+                   "steps_per_s": len(window) / max(now - t_window, 1e-9), "epoch": round(step / steps_per_epoch, 4)}
+            if rc.stage_one_epochs > 0:
+                row["stage"] = 1 if streams is not None else 2
+            if clips is not None:
+                row["clean_reference"] = epoch < rc.warmup_epochs
+                row["chunk_losses"] = np.mean(extras.get("chunk_losses", [[np.nan]]), axis=0).round(6).tolist()
+                if extras.get("invalid_depth"):
+                    row["invalid_depth"] = round(float(np.mean(extras["invalid_depth"])), 6)
+            extras = {}
             if step % tc.eval_every == 0 or done:
                 row.update(evaluate())
             row.update(wall_s=round(now - t_wall, 3), cpu_s=round(time.process_time() - t_cpu, 3),
@@ -308,7 +343,7 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
 # --------------------------------------------------------------------------- logs
 
 
-LOG_FIELDS = ("step", "loss", "heldout_loss", "lr", "steps_per_s", "wall_s", "cpu_s", "load")
+LOG_FIELDS = ("step", "loss", "heldout_loss", "lr", "steps_per_s", "wall_s", "cpu_s", "load", "epoch")
 
 
 def _read_log(path: Path, upto: int) -> list[dict]:
