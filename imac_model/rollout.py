@@ -14,8 +14,9 @@ same robot: ``tests/test_model_rollout.py``). The target stays the recorded futu
 supervision). The loss is ``(1/R) sum_r L_r``; each chunk's graph ends at its detached
 reference, so ``backward`` may be called per chunk (memory of one chunk).
 
-* ``clean_reference=True`` (warm-up epochs): every chunk keeps its recorded reference and
-  stored controls; the clip is then R ordinary chunks.
+* ``clean_reference=True``: every chunk keeps its recorded reference and stored controls;
+  the clip is then R ordinary chunks (the trainer's clean-reference warm-up trains single
+  chunks instead, :class:`imac_model.train.RolloutSchedule`).
 * ``streams``: the active control streams (stage one: ``("motion",)``; nothing is rebuilt
   when no contact stream is active).
 * Reference states: the recorded state at each chunk's reference frame (what the build
