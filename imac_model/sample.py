@@ -301,8 +301,8 @@ def _rollout_main(args, model, spec, chunks, run, path) -> int:
                                                     seed=args.seed, recorded_states=args.recorded_states)
                 for i, part in enumerate(parts):
                     per_index.setdefault(i, []).append(robot_region_errors(part)["mse"])
-        print(f"{len(per_index.get(0, []))} rollouts of {args.chunks} chunks, episodes {args.episode} ({path}): pixel MSE "
-              "vs recorded per chunk " + ", ".join(f"{i + 1}: {np.mean(v):.4f}" for i, v in sorted(per_index.items())))
+        print(f"{len(per_index.get(0, []))} rollouts of {args.chunks} chunks, episodes {args.episode} ({path}): "
+              "pixel MSE vs recorded per chunk " + ", ".join(f"{i + 1}: {np.mean(v):.4f}" for i, v in sorted(per_index.items())))
         return 0
     episode = args.episode[0]
     whole, parts, invalid = sample_rollout_chunks(model, chunks, episode, args.chunk, args.chunks, online,

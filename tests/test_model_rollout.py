@@ -11,7 +11,6 @@ computed by hand.
 import json
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,7 +29,6 @@ from imac_data.simulate import SimConfig, record_dataset
 from imac_model import mosaic
 from imac_model import sample as sample_cli
 from imac_model import train as train_cli
-from imac_model.batch import ChunkBatch
 from imac_model.config import RolloutConfig, RunConfig, load_run_config, parse, save_config, to_dict
 from imac_model.data import ChunkDataset, open_metadata
 from imac_model.online_controls import OnlineControls, decode_depth
