@@ -3,7 +3,7 @@
 PY := .venv/bin/python
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test bench da3 clean
+.PHONY: setup demo test bench experiment da3 clean
 
 setup:
 	@bash scripts/setup.sh
@@ -16,6 +16,11 @@ test: setup
 
 bench: setup
 	$(PY) -m benchmarks.run
+
+# The small-scale comparison of docs/experiment (about 60-90 minutes on an idle 2-core machine; resumable:
+# every stage is cached under runs/experiment).
+experiment: setup
+	$(PY) -m imac_model.experiment --work runs/experiment --docs docs/experiment
 
 # Depth Anything 3's code (no weights): scripts/setup.sh installs it; this re-runs that install.
 da3: setup

@@ -7,6 +7,7 @@ A run is described by one :class:`RunConfig` (YAML or JSON; every section option
     conditioning: {mode: motion+contact}                           # none | motion | motion+contact | action-vector
     flow:         {train_shift: 1.0, sample_steps: 20}
     train:        {batch_size: 4, max_steps: 2000, output_dir: runs/sim10}
+    rollout:      {chunks: 4, warmup_epochs: 1, stage_one_epochs: 0}     # training-time rollout (R = 4)
 
 Parsing is strict: an unknown key, a wrong type or a bad value raises
 :class:`~imac_data.errors.InputError` naming the file and the dotted field. Every
@@ -204,12 +205,44 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
+class RolloutConfig:
+    """Training-time rollout (paper section 3.4) and the online rebuild of controls
+    (:mod:`imac_model.rollout`, :mod:`imac_model.online_controls`).
+
+    An epoch is one pass over the run's training items: chunks, or clips of ``chunks``
+    consecutive chunks when ``chunks > 1``."""
+
+    chunks: int = 1  # R: chunks per training clip; 1 = no rollout (every chunk from its recorded reference)
+    warmup_epochs: float = 0.0  # the first epochs keep every chunk's recorded (clean) reference and stored controls
+    stage_one_epochs: float = 0.0  # motion+contact: the first epochs inject the motion stream alone (stage one)
+    resolution: Literal["model", "dataset"] = "model"  # where contact/motion images are rebuilt (online_controls)
+    max_walk_distance: float = 0.1  # a predicted depth colour farther than this from the codec's walk is invalid
+    reference_state: Literal["recorded", "commanded"] = "recorded"  # chunk r > 1's robot state: the dataset's,
+    # or the previous chunk's last commanded configuration (what a closed loop knows)
+    device: Literal["auto", "cpu", "cuda"] = "auto"  # the contact computation (auto: the model's device)
+
+    def __post_init__(self) -> None:
+        _positive(self, "chunks", "rollout")
+        for name in ("warmup_epochs", "stage_one_epochs"):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"rollout.{name}: must be >= 0 (got {getattr(self, name)})")
+        if not 0 < self.max_walk_distance <= 1:
+            raise InputError(f"rollout.max_walk_distance: must be in (0, 1] RGB units (got {self.max_walk_distance})")
+
+
+@dataclass(frozen=True)
 class RunConfig:
     data: DataConfig = field(default_factory=DataConfig)
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     conditioning: ConditioningConfig = field(default_factory=ConditioningConfig)
     flow: FlowConfig = field(default_factory=FlowConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    rollout: RolloutConfig = field(default_factory=RolloutConfig)
+
+    def __post_init__(self) -> None:
+        if self.rollout.stage_one_epochs > 0 and self.conditioning.mode != "motion+contact":
+            raise InputError(f"rollout.stage_one_epochs: stage one (motion only, then contact added) needs "
+                             f"conditioning.mode motion+contact (got {self.conditioning.mode!r})")
 
     def to_dict(self) -> dict:
         return to_dict(self)

@@ -45,13 +45,19 @@ class ControlInjector(nn.Module):
         elif init != "zeros" and init != "copy_patch_embedding":
             raise ValueError(f"unknown control init {init!r}")
 
-    def forward(self, control_latents: dict[str, torch.Tensor]) -> torch.Tensor:
+    def forward(self, control_latents: dict[str, torch.Tensor],
+                streams: tuple[str, ...] | None = None) -> torch.Tensor:
         """Summed control tokens ``(B, D, F, h', w')`` from ``{stream: latents (B, C, F, h, w)}``;
-        zero on latent frame 0 (the reference) unless ``on_reference``."""
-        missing = [s for s in self.streams if s not in control_latents]
+        zero on latent frame 0 (the reference) unless ``on_reference``. ``streams``: the
+        active subset (default all; training stage one uses the motion stream alone)."""
+        streams = self.streams if streams is None else tuple(streams)
+        unknown = [s for s in streams if s not in self.streams]
+        if unknown or not streams:
+            raise ValueError(f"active control streams {list(streams)}: must be a non-empty subset of {self.streams}")
+        missing = [s for s in streams if s not in control_latents]
         if missing:
             raise ValueError(f"control streams {missing} are missing from the batch")
-        tokens = sum(self.layers[s](control_latents[s].to(self.layers[s].weight.dtype)) for s in self.streams)
+        tokens = sum(self.layers[s](control_latents[s].to(self.layers[s].weight.dtype)) for s in streams)
         if not self.on_reference:
             keep = torch.ones(tokens.shape[2], device=tokens.device, dtype=tokens.dtype)
             keep[0] = 0.0

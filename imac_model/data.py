@@ -25,7 +25,7 @@ from __future__ import annotations
 import hashlib
 import os
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +35,7 @@ from torch.utils.data import Dataset
 from imac_data.errors import InputError
 from imac_model import dataset_meta, mosaic
 from imac_model.batch import collate
-from imac_model.config import DataConfig
+from imac_model.config import CONTROL_STREAMS, DataConfig
 
 
 @dataclass(frozen=True)
@@ -157,14 +157,22 @@ class ChunkDataset(Dataset):
         self.cache_file = None
         if self.cache is not None and cache_dir is not None:
             self.cache_file = Path(cache_dir) / f"chunks-{self._fingerprint()}.pt"
+            # a run with every control stream leaves a cache that runs with fewer streams reuse
+            full = Path(cache_dir) / f"chunks-{self._fingerprint(CONTROL_STREAMS)}.pt"
             if self.cache_file.is_file():
                 self.cache = torch.load(self.cache_file, weights_only=True)
+            elif full.is_file() and set(layout.streams) < set(CONTROL_STREAMS):
+                drop = {f"control.{s}" for s in CONTROL_STREAMS if s not in layout.streams}
+                self.cache = {i: {k: v for k, v in item.items() if k not in drop}
+                              for i, item in torch.load(full, weights_only=True).items()}
 
-    def _fingerprint(self) -> str:
-        """What the cached items depend on: the dataset's files and the layout."""
+    def _fingerprint(self, streams: Sequence[str] | None = None) -> str:
+        """What the cached items depend on: the dataset's files and the layout (with
+        ``streams`` instead of the layout's own, if given)."""
         root = Path(self.lerobot.root)
         files = sorted(p for p in (root / "meta").rglob("*") if p.is_file())
-        h = hashlib.sha256(repr((asdict(self.layout), self.index)).encode())
+        layout = self.layout if streams is None else replace(self.layout, streams=tuple(streams))
+        h = hashlib.sha256(repr((asdict(layout), self.index)).encode())
         for p in files:
             h.update(p.name.encode())
             h.update(p.read_bytes())
@@ -233,6 +241,15 @@ class ChunkDataset(Dataset):
     def episode_chunks(self, episode: int) -> list[int]:
         """Item indices of one episode's chunks, in time order."""
         return [i for i, (_, e, _) in enumerate(self.index) if e == episode]
+
+    def clips(self, length: int) -> list[tuple[int, ...]]:
+        """Every run of ``length`` consecutive chunks of one episode (item indices, time
+        order): the training items of a training-time rollout over ``length`` chunks."""
+        by_episode: dict[int, list[int]] = {}
+        for i, (_, e, _) in enumerate(self.index):
+            by_episode.setdefault(e, []).append(i)
+        return [tuple(items[c:c + length]) for e, items in by_episode.items()
+                for c in range(len(items) - length + 1)]
 
     def batch(self, indices: Sequence[int]):
         """A :class:`~imac_model.batch.ChunkBatch` of the given items."""

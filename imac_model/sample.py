@@ -1,6 +1,11 @@
 """Generate a future chunk for a dataset episode and show it beside the recording:
 ``python -m imac_model.sample --checkpoint runs/x --episode 8 [--chunk 3] [--out sample.mp4]``.
 
+``--chunks N`` rolls out N chunks autoregressively (:func:`imac_model.rollout.sample_rollout`):
+each next reference is the last generated frame, and the motion and contact images are
+rebuilt online from the generated depth and the recorded actions at every chunk boundary
+(:mod:`imac_model.online_controls`).
+
 The mp4 shows, per future frame, the generated mosaic, the recorded mosaic and the
 control images the model was given (one row per stream, views side by side).
 ``--png`` also writes a still: rows = future frames (first, middle, last), columns =
@@ -66,6 +71,59 @@ def sample_chunk(model, chunks: ChunkDataset, episode: int, chunk: int = 0, *, s
     return ChunkSample(generated=out.frames[0].cpu(), recorded=batch.future[0],
                        controls={s: mosaic.control_views(c[0], V) for s, c in batch.controls.items()},
                        valid=batch.valid_mask()[0], reference=batch.reference[0], episode=episode, reference_frame=int(batch.frame_index[0]))
+
+
+def online_controls_for(spec: ModelSpec, chunks: ChunkDataset, run: dict | None = None):
+    """The dataset's :class:`~imac_model.online_controls.OnlineControls` for a model (None for a
+    model without control streams), with the run's ``rollout`` settings."""
+    from imac_model.config import RolloutConfig, parse
+    from imac_model.online_controls import OnlineControls
+
+    if not spec.conditioning.streams:
+        return None
+    rc = parse(RolloutConfig, (run or {}).get("rollout") or {}, "rollout")
+    return OnlineControls.from_dataset(chunks.lerobot.root, spec, info=chunks.lerobot.meta.info,
+                                       resolution=rc.resolution, max_walk_distance=rc.max_walk_distance)
+
+
+def sample_rollout_chunks(model, chunks: ChunkDataset, episode: int, chunk: int, n: int, online, *,
+                          steps: int | None = None, seed: int = 0, recorded_states: bool = False
+                          ) -> tuple[ChunkSample, list[ChunkSample], list[float]]:
+    """Roll out ``n`` chunks of ``episode`` from chunk ``chunk``'s recorded reference
+    (:func:`imac_model.rollout.sample_rollout`): the first chunk gets the dataset's controls,
+    every later one controls rebuilt online from the generated depth and the recorded actions,
+    with the robot state at each boundary = the last commanded configuration (or the recorded
+    state with ``recorded_states``). Returns the whole rollout as one :class:`ChunkSample`
+    (n x H frames), one per chunk, and the share of invalid generated depth per rebuild."""
+    from imac_model.rollout import sample_rollout
+
+    items = chunks.episode_chunks(episode)
+    if chunk < 0 or chunk + n > len(items):
+        raise InputError(f"--chunk {chunk} --chunks {n}: episode {episode} has chunks 0..{len(items) - 1}")
+    batches = [chunks.batch([items[chunk + i]]) for i in range(n)]
+    device = next(model.parameters()).device
+    first = batches[0].to(device)
+    actions = torch.stack([b.actions for b in batches], dim=1).to(device)
+    states = None
+    if recorded_states:
+        if any(b.state is None for b in batches):
+            raise InputError("--recorded-states: the dataset has no observation.state")
+        states = torch.stack([b.state for b in batches], dim=1)
+    out = sample_rollout(model, first, actions, online, states=states, steps=steps, seed=seed)
+    V = len(model.spec.views)
+    per_chunk = []
+    for i, b in enumerate(batches):
+        per_chunk.append(ChunkSample(
+            generated=out.frames[0, i].cpu(), recorded=b.future[0],
+            controls={s: mosaic.control_views(c[0].cpu(), V) for s, c in out.controls[i].items()},
+            valid=b.valid_mask()[0], reference=out.references[i][0].cpu(), episode=episode,
+            reference_frame=int(b.frame_index[0])))
+    whole = ChunkSample(generated=torch.cat([c.generated for c in per_chunk]),
+                        recorded=torch.cat([c.recorded for c in per_chunk]),
+                        controls={s: torch.cat([c.controls[s] for c in per_chunk]) for s in per_chunk[0].controls},
+                        valid=torch.cat([c.valid for c in per_chunk]), reference=per_chunk[0].reference,
+                        episode=episode, reference_frame=per_chunk[0].reference_frame)
+    return whole, per_chunk, out.invalid_depth
 
 
 def robot_region_errors(s: ChunkSample) -> dict[str, float]:
@@ -184,6 +242,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoint", required=True, help="checkpoint directory, or a run directory (latest checkpoint)")
     p.add_argument("--episode", type=int, nargs="+", required=True, help="episode(s); several only with --evaluate")
     p.add_argument("--chunk", type=int, default=0, help="which chunk of the episode (default: the first)")
+    p.add_argument("--chunks", type=int, default=1,
+                   help="roll out this many chunks autoregressively from --chunk, rebuilding the controls from the "
+                        "generated depth at every chunk boundary (default 1)")
+    p.add_argument("--recorded-states", action="store_true",
+                   help="with --chunks: the robot state at each boundary is the recorded one, not the last command")
     p.add_argument("--evaluate", action="store_true",
                    help="no video: sample every chunk of the episodes and print the mean errors")
     p.add_argument("--dataset", help="LeRobot repo id (default: the one the model was trained on)")
@@ -204,6 +267,10 @@ def main(argv: list[str] | None = None) -> int:
         dataset = args.dataset or spec.dataset
         root = args.root if args.root is not None else (run.get("data", {}).get("root") if not args.dataset else None)
         chunks = open_chunks(spec, dataset, root, episodes=args.episode)
+        if args.chunks < 1:
+            raise InputError(f"--chunks {args.chunks}: must be >= 1")
+        if args.chunks > 1:
+            return _rollout_main(args, model, spec, chunks, run, path)
         if args.evaluate:
             e = evaluate_episodes(model, chunks, args.episode, steps=args.steps, seed=args.seed)
             print(f"{e['chunks']} chunks of episodes {args.episode} ({path}): {_summary(e)}")
@@ -220,6 +287,37 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"wrote {out}" + (f" and {args.png}" if args.png else "") + f" (episode {episode}, reference frame "
           f"{s.reference_frame}, {int(s.valid.sum())} future frames): {_summary(robot_region_errors(s))}")
+    return 0
+
+
+def _rollout_main(args, model, spec, chunks, run, path) -> int:
+    online = online_controls_for(spec, chunks, run)
+    if args.evaluate:
+        per_index: dict[int, list[float]] = {}
+        for e in args.episode:
+            n_items = len(chunks.episode_chunks(e))
+            for start in range(0, n_items - args.chunks + 1, args.chunks):
+                _, parts, _ = sample_rollout_chunks(model, chunks, e, start, args.chunks, online, steps=args.steps,
+                                                    seed=args.seed, recorded_states=args.recorded_states)
+                for i, part in enumerate(parts):
+                    per_index.setdefault(i, []).append(robot_region_errors(part)["mse"])
+        print(f"{len(per_index.get(0, []))} rollouts of {args.chunks} chunks, episodes {args.episode} ({path}): "
+              "pixel MSE vs recorded per chunk " + ", ".join(f"{i + 1}: {np.mean(v):.4f}" for i, v in sorted(per_index.items())))
+        return 0
+    episode = args.episode[0]
+    whole, parts, invalid = sample_rollout_chunks(model, chunks, episode, args.chunk, args.chunks, online,
+                                                  steps=args.steps, seed=args.seed,
+                                                  recorded_states=args.recorded_states)
+    out = (Path(args.out) if args.out else
+           path / "samples" / f"episode_{episode}_chunk_{args.chunk}_x{args.chunks}.mp4")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_mp4(whole, out, spec.fps, args.scale)
+    if args.png:
+        write_png(whole, Path(args.png), args.scale)
+    errors = ", ".join(f"{i + 1}: {robot_region_errors(p)['mse']:.4f}" for i, p in enumerate(parts))
+    extra = f"; invalid generated depth at the boundaries {np.round(invalid, 4).tolist()}" if invalid else ""
+    print(f"wrote {out}" + (f" and {args.png}" if args.png else "") + f" (episode {episode}, {args.chunks} chunks "
+          f"from reference frame {whole.reference_frame}): pixel MSE vs recorded per chunk {errors}{extra}")
     return 0
 
 

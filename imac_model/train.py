@@ -16,6 +16,11 @@ has it (``train.mixed_precision: auto``).
   batches and noise are a function of (seed, step), and the optimizer, schedule and
   EMA are restored, so an interrupted run ends with the same weights as an
   uninterrupted one.
+* Training-time rollout (``rollout.chunks`` R > 1, paper section 3.4): after
+  ``rollout.warmup_epochs`` of ordinary steps, each step trains clips of R consecutive
+  chunks, chunk r > 1 from chunk r-1's one-step clean estimate with its contact images
+  rebuilt online (:func:`imac_model.rollout.rollout_loss`, :class:`RolloutSchedule`).
+  ``rollout.stage_one_epochs``: motion images alone first (stage one), then contact added.
 * Logs: ``log.jsonl`` and ``log.csv`` in the output directory (loss, learning rate,
   held-out loss, steps/s, wall and CPU seconds), an optional tracker
   (``train.tracker``), a progress bar.
@@ -26,6 +31,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
 import sys
 import time
@@ -40,6 +46,8 @@ from imac_model import checkpoint as ckpt
 from imac_model.backbones import spatial_multiple, temporal_factor
 from imac_model.config import ModelSpec, RunConfig, load_run_config, save_config
 from imac_model.data import ChunkDataset, action_stats, open_metadata, resolve_layout, split_episodes
+from imac_model.online_controls import CONTACT_STREAMS, OnlineControls
+from imac_model.rollout import rollout_loss
 from imac_model.world_model import WorldModel
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss
@@ -79,6 +87,27 @@ def batch_indices(step: int, n: int, batch_size: int, seed: int) -> list[int]:
     if n < batch_size:
         perm = np.resize(perm, batch_size)
     return perm[pos * batch_size:(pos + 1) * batch_size].tolist()
+
+
+class RolloutSchedule:
+    """Which kind of step ``step`` is, and where it is in epochs (passes over the training
+    chunks). Without rollout (``rollout.chunks`` = 1) every step trains a batch of chunks.
+    With rollout, the first ``rollout.warmup_epochs`` train single chunks from their recorded
+    (clean) references: a clip with clean references is R independent chunks, and training
+    them as single chunks keeps the optimizer steps of an ordinary run. Every later step
+    trains a batch of R-chunk clips, which counts as R batches of chunks."""
+
+    def __init__(self, n_chunks: int, batch_size: int, rollout):
+        self.R = rollout.chunks
+        self.per_epoch = max(n_chunks // batch_size, 1)  # chunk batches per epoch, as batch_indices counts them
+        self.warmup_steps = math.ceil(rollout.warmup_epochs * self.per_epoch) if self.R > 1 else 0
+
+    def at(self, step: int) -> tuple[str, int, float]:
+        """``(phase, step within the phase, epoch)``; phase ``chunk`` or ``clip``."""
+        if self.R == 1 or step < self.warmup_steps:
+            return "chunk", step, step / self.per_epoch
+        k = step - self.warmup_steps
+        return "clip", k, (self.warmup_steps + k * self.R) / self.per_epoch
 
 
 def step_generator(seed: int, step: int, rank: int) -> torch.Generator:
@@ -203,6 +232,11 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
                 if held_eps else None)
     if len(train_set) == 0:
         raise InputError(f"data: no training chunks (episodes {train_eps})")
+    rc = run.rollout
+    clips = train_set.clips(rc.chunks) if rc.chunks > 1 else None
+    if clips is not None and not clips:
+        raise InputError(f"rollout.chunks: no training episode has {rc.chunks} chunks")
+    schedule = RolloutSchedule(len(train_set), tc.batch_size, rc)
     eval_items = _evaluation_items(held_set, tc.eval_batches * tc.batch_size) if held_set is not None else []
     if run.data.cache == "memory":
         train_set.preload(num_workers=run.data.num_workers, progress=progress and main)
@@ -210,8 +244,15 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
             held_set.preload(num_workers=run.data.num_workers, progress=progress and main)
 
     model, optimizer = accelerator.prepare(model, optimizer)
-    t_wall, t_cpu = time.time(), time.process_time()  # train.max_minutes and the logged times count from here
     device = accelerator.device
+    online = None
+    if rc.chunks > 1 and any(s in spec.conditioning.streams for s in CONTACT_STREAMS):
+        contact_device = device if rc.device == "auto" else torch.device(rc.device)
+        online = OnlineControls.from_dataset(train_set.lerobot.root, spec, info=meta.info,
+                                             resolution=rc.resolution, max_walk_distance=rc.max_walk_distance,
+                                             device=contact_device)
+        online.rig.renderer, online.rig.gripper  # noqa: B018 - built before the clock starts
+    t_wall, t_cpu = time.time(), time.process_time()  # train.max_minutes and the logged times count from here
     if main:
         out.mkdir(parents=True, exist_ok=True)
         save_config(run, out / "config.yaml")
@@ -258,15 +299,28 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
     bar = tqdm(total=tc.max_steps, initial=step, desc="training", unit="step", disable=not (progress and main))
     rank, world = accelerator.process_index, accelerator.num_processes
     window: list[float] = []
+    extras: dict[str, list] = {}
     t_window = time.time()
     stopped, last_ckpt, start_step = "max_steps", None, step
     while step < tc.max_steps:
-        idx = batch_indices(step, len(train_set), tc.batch_size, tc.seed)[rank::world]
-        batch = train_set.batch(idx).to(device)
+        phase, k, epoch = schedule.at(step)
+        streams = ("motion",) if epoch < rc.stage_one_epochs else None  # stage one: motion images alone
         gen = step_generator(tc.seed, step, rank)
-        with accelerator.autocast():
-            result = model(batch, generator=gen)
-        accelerator.backward(result.loss)
+        if phase == "chunk":  # an ordinary step, also the clean-reference warm-up of a rollout run
+            idx = batch_indices(k, len(train_set), tc.batch_size, tc.seed)[rank::world]
+            batch = train_set.batch(idx).to(device)
+            with accelerator.autocast():
+                result = model(batch, generator=gen, streams=streams)
+            accelerator.backward(result.loss)
+        else:
+            idx = batch_indices(k, len(clips), tc.batch_size, tc.seed + 1)[rank::world]
+            clip = [train_set.batch([clips[i][r] for i in idx]).to(device) for r in range(rc.chunks)]
+            result = rollout_loss(model, clip, online, generator=gen, streams=streams,
+                                  commanded_state=rc.reference_state == "commanded",
+                                  backward=accelerator.backward, autocast=accelerator.autocast)
+            extras.setdefault("chunk_losses", []).append([float(x) for x in result.chunk_losses])
+            if result.invalid_depth:
+                extras.setdefault("invalid_depth", []).append(float(np.mean(result.invalid_depth)))
         if tc.grad_clip > 0:
             accelerator.clip_grad_norm_(trainable, tc.grad_clip)
         optimizer.step()
@@ -285,7 +339,16 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
         if step % tc.log_every == 0 or step % tc.eval_every == 0 or done:
             now = time.time()
             row = {"step": step, "loss": float(np.mean(window)), "lr": scheduler.get_last_lr()[0],
-                   "steps_per_s": len(window) / max(now - t_window, 1e-9)}
+                   "steps_per_s": len(window) / max(now - t_window, 1e-9), "epoch": round(schedule.at(step)[2], 4)}
+            if rc.stage_one_epochs > 0:
+                row["stage"] = 1 if streams is not None else 2
+            if clips is not None:
+                row["phase"] = "rollout" if phase == "clip" else "warmup"
+                if extras.get("chunk_losses"):
+                    row["chunk_losses"] = np.mean(extras["chunk_losses"], axis=0).round(6).tolist()
+                if extras.get("invalid_depth"):
+                    row["invalid_depth"] = round(float(np.mean(extras["invalid_depth"])), 6)
+            extras = {}
             if step % tc.eval_every == 0 or done:
                 row.update(evaluate())
             row.update(wall_s=round(now - t_wall, 3), cpu_s=round(time.process_time() - t_cpu, 3),
@@ -308,7 +371,7 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
 # --------------------------------------------------------------------------- logs
 
 
-LOG_FIELDS = ("step", "loss", "heldout_loss", "lr", "steps_per_s", "wall_s", "cpu_s", "load")
+LOG_FIELDS = ("step", "loss", "heldout_loss", "lr", "steps_per_s", "wall_s", "cpu_s", "load", "epoch")
 
 
 def _read_log(path: Path, upto: int) -> list[dict]:

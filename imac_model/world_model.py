@@ -97,11 +97,12 @@ class WorldModel(nn.Module):
         z = self.backbone.encode(torch.cat([reference[:, None], future], dim=1))
         return z[:, :, :1], z[:, :, 1:]
 
-    def encode_controls(self, controls: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    def encode_controls(self, controls: dict[str, torch.Tensor],
+                        streams: tuple[str, ...] | None = None) -> dict[str, torch.Tensor]:
         """``{stream: (B, H, 3, ., .)}`` -> ``{stream: latents (B, C, F, h, w)}``, each video
-        given a black frame in the reference slot first."""
+        given a black frame in the reference slot first (``streams``: default all of the model's)."""
         out = {}
-        for s in self.streams:
+        for s in self.streams if streams is None else streams:
             c = controls[s]
             black = torch.zeros_like(c[:, :1])
             out[s] = self.backbone.encode(torch.cat([black, c], dim=1))
@@ -127,27 +128,40 @@ class WorldModel(nn.Module):
         B, Fr = latents.shape[0], latents.shape[2]
         t = flow.wan_timestep(tau.float())[:, None].expand(B, Fr).clone()
         t[:, 0] = 0.0
-        tokens = self.controls(control_latents) if self.controls is not None else None
+        tokens = (self.controls(control_latents, tuple(control_latents)) if self.controls is not None else None)
         out = self.backbone.denoise(latents, t, control_tokens=tokens, context=context)[:, :, 1:]
         if self.spec.flow.prediction == "data":  # the network predicts x1: v = (x1_hat - x_tau) / (1 - tau)
             gap = (1.0 - tau.float()).clamp_min(self.spec.flow.data_prediction_min_gap).view(B, 1, 1, 1, 1)
             return (out.float() - x_future.float()) / gap
         return out
 
-    def _inputs(self, batch: ChunkBatch, *, with_future: bool):
+    def active_streams(self, streams: tuple[str, ...] | None) -> tuple[str, ...]:
+        """The control streams a call uses: all of the model's (None), or a non-empty subset
+        (training stage one: ``("motion",)``)."""
+        if streams is None:
+            return self.streams
+        streams = tuple(streams)
+        if not streams or any(s not in self.streams for s in streams):
+            raise ValueError(f"streams {list(streams)}: must be a non-empty subset of the model's {self.streams}")
+        return streams
+
+    def _inputs(self, batch: ChunkBatch, *, with_future: bool, streams: tuple[str, ...] | None = None):
+        streams = self.active_streams(streams)
         batch.check(mosaic_hw=self.spec.mosaic_hw, horizon=self.spec.chunk, action_dim=self.spec.action_dim,
-                    streams=self.streams)
+                    streams=streams)
         z_ref, x1 = self.encode_chunk(batch.reference, batch.future if with_future else None)
-        controls = self.encode_controls(batch.controls) if self.streams else None
+        controls = self.encode_controls(batch.controls, streams) if streams else None
         return z_ref, x1, controls, self.context(batch.actions)
 
     def forward(self, batch: ChunkBatch, *, generator: torch.Generator | None = None,
-                tau: torch.Tensor | None = None, noise: torch.Tensor | None = None) -> FlowOutput:
+                tau: torch.Tensor | None = None, noise: torch.Tensor | None = None,
+                streams: tuple[str, ...] | None = None) -> FlowOutput:
         """The flow-matching loss of a batch (training). ``tau`` / ``noise`` default to
-        draws from ``generator`` (``tau ~ U(0, 1)``, shifted by ``flow.train_shift``)."""
+        draws from ``generator`` (``tau ~ U(0, 1)``, shifted by ``flow.train_shift``).
+        ``streams``: the active control streams (default all; stage one: motion only)."""
         if batch.future is None:
             raise ValueError("ChunkBatch.future is needed for the loss")
-        z_ref, x1, controls, context = self._inputs(batch, with_future=True)
+        z_ref, x1, controls, context = self._inputs(batch, with_future=True, streams=streams)
         B, dev = x1.shape[0], x1.device
         gen_dev = generator.device if generator is not None else dev
         if tau is None:
@@ -170,9 +184,10 @@ class WorldModel(nn.Module):
 
     @torch.no_grad()
     def sample(self, batch: ChunkBatch, *, steps: int | None = None, shift: float | None = None,
-               generator: torch.Generator | None = None, noise: torch.Tensor | None = None) -> SampleOutput:
+               generator: torch.Generator | None = None, noise: torch.Tensor | None = None,
+               streams: tuple[str, ...] | None = None) -> SampleOutput:
         """Generate the future chunk of ``batch`` (its ``future`` is ignored)."""
-        z_ref, _, controls, context = self._inputs(batch, with_future=False)
+        z_ref, _, controls, context = self._inputs(batch, with_future=False, streams=streams)
         B = z_ref.shape[0]
         F_future = self.backbone.latent_frames(self.spec.chunk + 1) - 1
         shape = (B, z_ref.shape[1], F_future, *z_ref.shape[3:])
