@@ -15,6 +15,7 @@ from imac_data.cameras import load_calibration
 from imac_data.errors import InputError
 from imac_data.ingest import IngestOptions, ingest_episodes
 from imac_data.robot import RobotModel
+from imac_data.rig import Rig
 from imac_data.simulate import SimConfig, record_dataset
 from imac_model.evaluate.success import (
     CallableJudge, CsvJudge, EpisodeFrames, SuccessClassifier, SuccessClassifierConfig, dataset_success_labels,
@@ -33,8 +34,8 @@ def sim_dataset(tmp_path_factory):
     record_dataset(SimConfig(num_episodes=4, width=64, height=48, noise=0.5, seed=4, with_depth=False), src,
                    progress=False)
     root = tmp_path_factory.mktemp("ds") / "succ"
-    return ingest_episodes(sorted(src.glob("episode_*.hdf5")), calibration=load_calibration(src / "calibration.json"),
-                           robot=RobotModel(aloha.robot_config()), repo_id="local/succ", root=root,
+    return ingest_episodes(sorted(src.glob("episode_*.hdf5")), rig=Rig(RobotModel(aloha.robot_config()), load_calibration(src / "calibration.json")),
+                           repo_id="local/succ", root=root,
                            options=IngestOptions(fps=25, task="transfer the cube", source="policy"), progress=False)
 
 
