@@ -343,7 +343,9 @@ def _model_args(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m imac_model.evaluate", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m imac_model.evaluate",
+                                description="Evaluation of the world model: closed-loop policy evaluation, open-loop "
+                                            "video metrics, success labels, world-model vs real correlations.")
     sub = p.add_subparsers(dest="command", required=True)
 
     c = sub.add_parser("closed-loop", help="run a policy in the world model; write a LeRobot dataset of its episodes")
