@@ -1,0 +1,271 @@
+"""Policies that act inside the world model: a callable from an observation to an action chunk.
+
+A **policy** here is any callable ``policy(observation) -> actions`` where ``observation`` is a
+LeRobot-style dict of one (unbatched) time step:
+
+* ``observation.images.{view}``: ``(3, h, w)`` float in [0, 1], the world model's generated RGB
+  of that view (at the model's view size);
+* ``observation.state``: ``(D,)`` float, the robot state (in a closed loop: the last commanded
+  configuration);
+* ``task``: the task string of the episode;
+
+and ``actions`` is an ``(K, D)`` chunk (any K >= 1), executed in order. An optional ``reset()``
+is called at the start of every episode.
+
+:class:`ActionQueue` gives any such policy LeRobot's ``select_action`` semantics in a world
+model that advances H frames at a time: actions are taken from a queue, and the policy is
+asked for a new chunk only when the queue is empty, on the latest generated frame. A policy
+whose chunk is 24 actions long thus runs three world-model chunks of 8 before it sees a new
+frame (the public iMaC release's protocol); one that returns fewer than H actions is asked
+again within the chunk, on the same latest frame (the frames in between do not exist until
+the chunk is generated).
+
+:class:`LeRobotPolicy` adapts a LeRobot policy checkpoint (``save_pretrained`` directory):
+``PreTrainedConfig.from_pretrained`` + the policy class's ``from_pretrained`` (what LeRobot's
+``make_policy`` calls for a pretrained path) and ``make_pre_post_processors(config,
+pretrained_path=...)``. Generated views are passed under the policy's own camera keys
+(``camera_map``) and resized to the image shape its config declares. Each call runs the
+policy's own ``select_action`` ``n_action_steps`` times (its own action queue and observation
+history: ACT's chunk, Diffusion Policy's ``n_obs_steps``; temporal ensembling re-plans every
+step) and returns those actions, un-normalised by its post-processor.
+
+:func:`recorded_actions_policy` and :func:`hold_policy` are scripted policies (a replay of
+recorded actions; holding the start state), for baselines and tests.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from imac_data.errors import InputError
+
+IMAGE_PREFIX = "observation.images."
+STATE_KEY = "observation.state"
+
+Observation = dict  # {"observation.images.<view>": (3, h, w), "observation.state": (D,), "task": str}
+Policy = Callable[[Observation], torch.Tensor]
+
+
+def image_key(view: str) -> str:
+    return f"{IMAGE_PREFIX}{view}"
+
+
+def policy_name(policy) -> str:
+    return str(getattr(policy, "name", None) or getattr(policy, "__name__", None) or type(policy).__name__)
+
+
+def as_action_chunk(actions, action_dim: int, who: str = "policy") -> torch.Tensor:
+    """A policy's output as a float ``(K, D)`` tensor on the CPU, checked: a leading batch
+    dimension of 1 is dropped; the action dimension must be the world model's."""
+    a = torch.as_tensor(actions).detach().float().cpu()
+    if a.ndim == 3 and a.shape[0] == 1:
+        a = a[0]
+    if a.ndim == 1:
+        a = a[None]
+    if a.ndim != 2 or a.shape[0] < 1:
+        raise InputError(f"{who} returned actions of shape {tuple(a.shape)}; expected an (K, D) chunk")
+    if a.shape[1] != action_dim:
+        raise InputError(f"{who} returned {a.shape[1]}-dimensional actions; the world model's dataset has "
+                         f"{action_dim}-dimensional actions")
+    if not torch.isfinite(a).all():
+        raise InputError(f"{who} returned non-finite actions")
+    return a
+
+
+class ActionQueue:
+    """``select_action`` semantics for a chunk policy (see the module docstring)."""
+
+    def __init__(self, policy: Policy, action_dim: int):
+        if not callable(policy):
+            raise InputError(f"a policy must be callable (observation -> actions), got {type(policy).__name__}")
+        self.policy, self.action_dim = policy, int(action_dim)
+        self.queue: deque[torch.Tensor] = deque()
+        self.calls = 0
+
+    def reset(self) -> None:
+        self.queue.clear()
+        reset = getattr(self.policy, "reset", None)
+        if callable(reset):
+            reset()
+
+    def take(self, observation: Observation, n: int) -> torch.Tensor:
+        """The next ``n`` actions ``(n, D)``; the policy sees ``observation`` whenever the queue runs out."""
+        out = []
+        while len(out) < n:
+            if not self.queue:
+                self.queue.extend(as_action_chunk(self.policy(observation), self.action_dim, policy_name(self.policy)))
+                self.calls += 1
+            out.append(self.queue.popleft())
+        return torch.stack(out)
+
+
+# --------------------------------------------------------------------------- scripted policies
+
+
+def recorded_actions_policy(actions: torch.Tensor, name: str = "recorded") -> Policy:
+    """Replays ``actions (T, D)`` in order whatever it sees (then holds the last one): with the
+    world model's closed loop this is an open-loop replay of a recorded episode."""
+    actions = torch.as_tensor(actions).float()
+    state = {"t": 0}
+
+    def policy(observation: Observation) -> torch.Tensor:
+        t = state["t"]
+        state["t"] += 1
+        return actions[min(t, len(actions) - 1)][None]
+
+    policy.reset = lambda: state.update(t=0)
+    policy.name = name
+    return policy
+
+
+def hold_policy(observation: Observation) -> torch.Tensor:
+    """Commands the current state (absolute joint-position actions): the robot stays put."""
+    return torch.as_tensor(observation[STATE_KEY]).float()[None]
+
+
+hold_policy.name = "hold"
+
+
+# --------------------------------------------------------------------------- LeRobot policies
+
+
+class LeRobotPolicy:
+    """A LeRobot policy checkpoint as a policy callable (see the module docstring).
+
+    ``camera_map``: ``{policy camera key: world-model view}``; by default each of the policy's
+    ``observation.images.X`` keys reads view ``X``.
+    """
+
+    def __init__(self, policy, preprocessor, postprocessor, *, camera_map: Mapping[str, str] | None = None,
+                 name: str | None = None):
+        from lerobot.configs.types import FeatureType
+
+        self.policy, self.preprocessor, self.postprocessor = policy, preprocessor, postprocessor
+        self.config = policy.config
+        self.name = name or f"lerobot:{self.config.type}"
+        inputs = dict(self.config.input_features or {})
+        self.image_shapes = {k: tuple(f.shape) for k, f in inputs.items() if f.type is FeatureType.VISUAL}
+        self.other_inputs = {k: tuple(f.shape) for k, f in inputs.items()
+                             if f.type is not FeatureType.VISUAL and k != STATE_KEY}
+        self.state_shape = tuple(inputs[STATE_KEY].shape) if STATE_KEY in inputs else None
+        out = dict(self.config.output_features or {})
+        self.action_dim = int(out["action"].shape[0]) if "action" in out else None
+        self.camera_map = dict(camera_map) if camera_map else {
+            k: k[len(IMAGE_PREFIX):] for k in self.image_shapes if k.startswith(IMAGE_PREFIX)}
+        self.n_action_steps = int(getattr(self.config, "n_action_steps", 1) or 1)
+
+    @classmethod
+    def from_pretrained(cls, path: str | Path, *, camera_map: Mapping[str, str] | None = None, device: str = "cpu",
+                        name: str | None = None) -> LeRobotPolicy:
+        """Load a local checkpoint directory (``config.json``, ``model.safetensors`` and the
+        processors' files, as ``save_pretrained`` writes them). Nothing is downloaded."""
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+        path = Path(path)
+        for f in ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
+            if not (path / f).is_file():
+                raise InputError(f"{path}: not a LeRobot policy checkpoint directory (no {f}; a checkpoint is what "
+                                 "`policy.save_pretrained`, `preprocessor.save_pretrained` and "
+                                 "`postprocessor.save_pretrained` write, e.g. lerobot-train's "
+                                 "checkpoints/<step>/pretrained_model)")
+        try:
+            config = PreTrainedConfig.from_pretrained(str(path), local_files_only=True)
+        except Exception as e:  # draccus / json errors of many kinds
+            raise InputError(f"{path / 'config.json'}: unreadable LeRobot policy config: {type(e).__name__}: {e}") \
+                from None
+        config.device = device
+        config.pretrained_path = str(path)
+        policy = get_policy_class(config.type).from_pretrained(str(path), config=config, local_files_only=True)
+        overrides = {"device_processor": {"device": device}}
+        pre, post = make_pre_post_processors(config, pretrained_path=str(path), preprocessor_overrides=overrides)
+        return cls(policy, pre, post, camera_map=camera_map, name=name or f"lerobot:{config.type}:{path.name}")
+
+    def check(self, *, views: Sequence[str], action_dim: int, state_dim: int | None) -> None:
+        """Refuse a policy the world model cannot serve: camera keys it would not get, another
+        action or state dimension, inputs other than images and the state."""
+        where = f"policy {self.name}"
+        if self.action_dim is not None and self.action_dim != action_dim:
+            raise InputError(f"{where} outputs {self.action_dim}-dimensional actions, but the world model's dataset has "
+                             f"{action_dim}-dimensional actions")
+        if self.state_shape is not None and state_dim is not None and self.state_shape != (state_dim,):
+            raise InputError(f"{where} expects observation.state of shape {self.state_shape}, but the world model's "
+                             f"dataset has ({state_dim},)")
+        if self.state_shape is not None and state_dim is None:
+            raise InputError(f"{where} needs observation.state, but the world model's dataset has none")
+        if self.other_inputs:
+            raise InputError(f"{where} needs inputs the world model does not generate: {sorted(self.other_inputs)}")
+        if not self.image_shapes:
+            return
+        unmapped = [k for k in self.image_shapes if k not in self.camera_map]
+        bad = {k: v for k, v in self.camera_map.items() if k in self.image_shapes and v not in views}
+        extra = [k for k in self.camera_map if k not in self.image_shapes]
+        if unmapped or bad or extra:
+            raise InputError(
+                f"{where}: its camera keys {sorted(self.image_shapes)} do not match the world model's views "
+                f"{list(views)}" + (f"; no view for {unmapped}" if unmapped else "")
+                + (f"; mapped to unknown views {bad}" if bad else "")
+                + (f"; the camera map names keys the policy does not have: {extra}" if extra else "")
+                + " (map them with camera_map / --camera-map POLICY_KEY=VIEW)")
+
+    def reset(self) -> None:
+        self.policy.reset()
+
+    def observation(self, observation: Observation) -> dict:
+        """The world model's observation under the policy's keys, images at its shapes."""
+        out = {}
+        for key, view in self.camera_map.items():
+            img = torch.as_tensor(observation[image_key(view)]).float()
+            shape = self.image_shapes[key]
+            if tuple(img.shape[-2:]) != tuple(shape[-2:]):
+                img = F.interpolate(img[None], size=tuple(shape[-2:]), mode="bilinear", antialias=True,
+                                    align_corners=False)[0].clamp(0, 1)
+            out[key] = img
+        if self.state_shape is not None:
+            out[STATE_KEY] = torch.as_tensor(observation[STATE_KEY]).float()
+        if "task" in observation:
+            out["task"] = observation["task"] or ""
+        return out
+
+    @torch.no_grad()
+    def __call__(self, observation: Observation) -> torch.Tensor:
+        batch = self.preprocessor(self.observation(observation))
+        actions = torch.stack([self.policy.select_action(batch) for _ in range(self.n_action_steps)], dim=1)
+        return self.postprocessor(actions)[0].float().cpu()  # (n_action_steps, D)
+
+
+def load_policy(spec: str, *, camera_map: Mapping[str, str] | None = None, device: str = "cpu") -> Policy:
+    """A policy from a command-line spec: ``lerobot:DIR`` (a LeRobot checkpoint directory),
+    ``hold``, or ``python:MODULE:NAME`` (a callable; a class or factory taking no argument is
+    called once to make it). ``recorded`` is resolved per episode by the closed loop."""
+    import importlib
+
+    if spec.startswith("lerobot:"):
+        return LeRobotPolicy.from_pretrained(spec[len("lerobot:"):], camera_map=camera_map, device=device)
+    if camera_map:
+        raise InputError("--camera-map only applies to lerobot: policies")
+    if spec == "hold":
+        return hold_policy
+    if spec.startswith("python:"):
+        parts = spec[len("python:"):].split(":")
+        if len(parts) != 2:
+            raise InputError(f"policy {spec!r}: expected python:MODULE:NAME")
+        try:
+            obj = getattr(importlib.import_module(parts[0]), parts[1])
+        except (ImportError, AttributeError) as e:
+            raise InputError(f"policy {spec!r}: {e}") from None
+        if isinstance(obj, type) or getattr(obj, "is_policy_factory", False):
+            obj = obj()
+        if not callable(obj):
+            raise InputError(f"policy {spec!r} is not callable")
+        return obj
+    raise InputError(f"unknown policy {spec!r}: use recorded, hold, lerobot:DIR or python:MODULE:NAME")
+
+
+__all__ = ["ActionQueue", "LeRobotPolicy", "as_action_chunk", "hold_policy", "image_key", "load_policy",
+           "policy_name", "recorded_actions_policy"]
