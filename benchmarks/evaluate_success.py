@@ -37,6 +37,7 @@ def main(argv=None) -> int:
     from imac_data import aloha
     from imac_data.cameras import load_calibration
     from imac_data.ingest import IngestOptions, ingest_episodes
+    from imac_data.rig import Rig
     from imac_data.robot import RobotModel
     from imac_data.simulate import SimConfig, record_dataset
     from imac_model.evaluate.success import (
@@ -51,8 +52,8 @@ def main(argv=None) -> int:
         record_dataset(SimConfig(num_episodes=args.episodes, width=args.width, height=args.height,
                                  noise=args.noise, seed=0, with_depth=False), src, progress=True)
     if not root.exists():
-        ingest_episodes(sorted(src.glob("episode_*.hdf5")), calibration=load_calibration(src / "calibration.json"),
-                        robot=RobotModel(aloha.robot_config()), repo_id="local/success_bench", root=root,
+        ingest_episodes(sorted(src.glob("episode_*.hdf5")), rig=Rig(RobotModel(aloha.robot_config()), load_calibration(src / "calibration.json")),
+                        repo_id="local/success_bench", root=root,
                         options=IngestOptions(fps=25, task="transfer the cube", source="policy"), progress=True)
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
