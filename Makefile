@@ -14,8 +14,17 @@ demo: setup
 test: setup
 	$(PY) -m pytest -q
 
+# The data layer's benchmark (benchmarks/results/latest.{json,md}), then the model and evaluation
+# benchmarks, each printing its own figures (JSON beside latest.json where the script writes one).
 bench: setup
 	$(PY) -m benchmarks.run
+	$(PY) -m benchmarks.model_train --json benchmarks/results/model_train.json
+	$(PY) -m benchmarks.model_rollout --json benchmarks/results/model_rollout.json
+	$(PY) -m benchmarks.evaluate_closed_loop --json benchmarks/results/evaluate_closed_loop.json
+	$(PY) -m benchmarks.evaluate_video_metrics --samples 2
+	$(PY) -m benchmarks.evaluate_statistics --markdown benchmarks/results/evaluate_statistics.md
+	$(PY) -m benchmarks.evaluate_success
+	$(PY) -m benchmarks.panda_vs_pybullet --json benchmarks/results/panda_vs_pybullet.json
 
 # The small-scale comparison of docs/experiment (about 60-90 minutes on an idle 2-core machine; resumable:
 # every stage is cached under runs/experiment).
