@@ -15,7 +15,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from benchmarks.run import REQUIRED_NUMBERS, REQUIRED_STRINGS, RESULTS
+from benchmarks.run import REQUIRED_STRINGS, RESULTS
+from benchmarks.run_report import REQUIRED_NUMBERS
 
 REPO = Path(__file__).resolve().parent.parent
 # The quick workload records only a few steps: no finger gets within 5 cm of the cube.
