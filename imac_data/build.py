@@ -438,7 +438,8 @@ def _input_paths(req: BuildRequest) -> dict[str, Path | None]:
     """The user's files a build reads (never written or deleted: :mod:`imac_data.safety`)."""
     recipe = req.recipe
     return {
-        "source episodes": req.source_path or recipe.resolve_path(recipe.source.path),
+        "source dataset" if recipe.source.type == "lerobot" else "source episodes":
+            req.source_path or recipe.resolve_path(recipe.source.path),
         "calibration": recipe.resolve_path(recipe.cameras.calibration),
         "recipe": Path(recipe.file) if recipe.file else None,
         "robot URDF": recipe.resolve_path(recipe.robot.urdf),

@@ -65,8 +65,8 @@ def build_from_lerobot(req, robot):
     staging.mkdir(parents=True)
     try:
         path = req.source_path or recipe.resolve_path(src_cfg.path)
+        refuse_overlap(req.root, {"source dataset": path})  # the user's; staged copies are ours
         root, origin = locate_source(path, src_cfg.repo_id, staging)
-        refuse_overlap(req.root, {"source dataset": root})
         src = SourceDataset.open(root)
         cameras = camera_map(src, src_cfg.cameras, rig.names, where)  # source key -> camera
         check_joint_layout(src, src_cfg.state_key, src_cfg.action_key, src_cfg.action_space, robot.dof, where)

@@ -248,3 +248,71 @@ def test_episode_metadata_errors_name_the_file_and_entry(tmp_path):
     assert rows[1] == {"imac/source": "teleop", "imac/policy_name": "act", "imac/checkpoint": "step_1000",
                        "imac/success": False}
     assert rows[0]["imac/success"] is None
+
+
+def write_v21(v30, out):
+    """The LeRobot v2.1 layout of the v3.0 dataset ``v30`` (per-episode data and video files,
+    jsonl metadata), as LeRobot 0.3 wrote it; the videos re-encoded per episode."""
+    import pandas as pd
+
+    from imac_data.dataset.videos import encode_video, read_video_frames
+
+    info = json.loads((v30 / "meta" / "info.json").read_text())
+    episodes = pd.concat([pd.read_parquet(f) for f in sorted((v30 / "meta" / "episodes").rglob("*.parquet"))])
+    data = pd.concat([pd.read_parquet(f) for f in sorted((v30 / "data").rglob("*.parquet"))])
+    tasks = pd.read_parquet(v30 / "meta" / "tasks.parquet")
+    videos = [k for k, f in info["features"].items() if f["dtype"] == "video"]
+    info.update(codebase_version="v2.1", total_chunks=1, total_videos=len(videos) * len(episodes),
+                data_path="data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
+                video_path="videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4")
+    for key in ("data_files_size_in_mb", "video_files_size_in_mb"):
+        info.pop(key, None)
+    (out / "meta").mkdir(parents=True)
+    (out / "meta" / "info.json").write_text(json.dumps(info, indent=4))
+    with open(out / "meta" / "tasks.jsonl", "w") as f:
+        for task, row in tasks.iterrows():
+            f.write(json.dumps({"task_index": int(row["task_index"]), "task": task}) + "\n")
+    with open(out / "meta" / "episodes.jsonl", "w") as f, open(out / "meta" / "episodes_stats.jsonl", "w") as g:
+        for _, row in episodes.iterrows():
+            ep = int(row["episode_index"])
+            f.write(json.dumps({"episode_index": ep, "tasks": list(row["tasks"]), "length": int(row["length"])}) + "\n")
+            stats = {}
+            for col in (c for c in episodes.columns if c.startswith("stats/")):
+                _, key, stat = col.split("/")
+                stats.setdefault(key, {})[stat] = np.asarray(row[col].tolist() if hasattr(row[col], "tolist")
+                                                             else row[col], dtype=object).tolist()
+            g.write(json.dumps({"episode_index": ep, "stats": stats}, default=lambda a: np.asarray(a).tolist()) + "\n")
+            part = out / "data" / "chunk-000" / f"episode_{ep:06d}.parquet"
+            part.parent.mkdir(parents=True, exist_ok=True)
+            data[data["episode_index"] == ep].to_parquet(part, index=False)
+            for key in videos:
+                src = v30 / "videos" / key / "chunk-000" / "file-000.mp4"
+                frames = read_video_frames(src)[int(row["dataset_from_index"]):int(row["dataset_to_index"])]
+                encode_video(out / "videos" / "chunk-000" / key / f"episode_{ep:06d}.mp4", frames, fps=info["fps"])
+    return out
+
+
+def test_v21_source_is_converted_by_lerobot_on_a_staged_copy(source, sim, tmp_path):
+    from imac_data.dataset.videos import read_video_frames
+
+    v21 = write_v21(source, tmp_path / "v21")
+    before = tree_digest(v21)
+    recipe = recipe_file(tmp_path, v21, sim / "sim" / "calibration.json", depth={"source": "none"})
+    ds = build(BuildRequest("local/from_v21", recipe, tmp_path / "out", progress=False))
+    assert tree_digest(v21) == before and not (tmp_path / "v21_old").exists()  # converted elsewhere
+    assert ds.meta.info["codebase_version"] == "v3.0" and ds.meta.total_episodes == 2
+    assert ds.meta.info["imac"]["build"]["source"]["codebase_version"] == "v2.1"
+    out = read_video_frames(tmp_path / "out" / "videos" / "observation.images.cam_high" / "chunk-000" / "file-000.mp4")
+    recorded = np.concatenate([read_video_frames(v21 / "videos" / "chunk-000" / KEYS["cam_high"] / f"episode_{e:06d}.mp4")
+                               for e in range(2)])
+    np.testing.assert_array_equal(out, recorded)  # concatenated by the converter, not re-encoded
+
+
+def test_output_inside_the_source_dataset_is_refused(source, sim, tmp_path):
+    before = tree_digest(source)
+    recipe = recipe_file(tmp_path, source, sim / "sim" / "calibration.json", depth={"source": "none"})
+    with pytest.raises(InputError, match=r"lies inside the source dataset directory .*source"):
+        build(BuildRequest("local/x", recipe, source / "out", progress=False))
+    with pytest.raises(InputError, match=r"would contain the source dataset .*source"):
+        build(BuildRequest("local/x", recipe, source.parent, overwrite=True, progress=False))
+    assert tree_digest(source) == before
