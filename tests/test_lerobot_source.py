@@ -316,3 +316,13 @@ def test_output_inside_the_source_dataset_is_refused(source, sim, tmp_path):
     with pytest.raises(InputError, match=r"would contain the source dataset .*source"):
         build(BuildRequest("local/x", recipe, source.parent, overwrite=True, progress=False))
     assert tree_digest(source) == before
+
+
+def test_hdf5_build_with_depth_none_has_motion_streams_only(sim, tmp_path):
+    """The depth section reaches the HDF5 build's shard workers too."""
+    recipe = recipe_file(tmp_path, sim / "sim", sim / "sim" / "calibration.json", depth={"source": "none"},
+                         source={"type": "aloha_hdf5", "cameras": {}})
+    ds = build(BuildRequest("local/h5", recipe, tmp_path / "out", progress=False), workers=1)
+    added = sorted(k for k in ds.meta.video_keys if not k.startswith("observation.images."))
+    assert added == sorted(f"control.motion.{c}" for c in KEYS)
+    assert "control.contact_cap" not in ds.meta.features and ds.meta.info["imac"]["contact"] is None
