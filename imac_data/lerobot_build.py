@@ -54,9 +54,11 @@ def build_from_lerobot(req, robot):
     from imac_data.rig import Rig
     from imac_data.robot_files import DESCRIPTION_DIR, write_description
     from imac_data.safety import refuse_overlap
-    from imac_data.workers import threads_per_worker
+    from imac_data.workers import pin_threads, threads_per_worker
 
     t0 = time.perf_counter()
+    threads = threads_per_worker(1)
+    pin_threads(threads)  # this process is the build's one worker
     recipe, src_cfg, where = req.recipe, req.recipe.source, req.recipe.file or "<recipe>"
     rig = Rig.from_recipe(recipe, robot=robot)
     check_depth_inputs(recipe.depth, recipe.file, len(rig.names))  # a missing model directory fails here
@@ -106,7 +108,7 @@ def build_from_lerobot(req, robot):
         readers = (LeRobotEpisodeReader(out, row, out_cams, states[i], actions[i], depth_feature)
                    for i, row in enumerate(out.episodes))
         add_episode_streams(work, readers, rig, recipe.augment, depth_source=depth_source,
-                            states=list(zip(states, actions)), timer=timer, threads=threads_per_worker(1),
+                            states=list(zip(states, actions)), timer=timer, threads=threads,
                             progress=req.progress)
         update_imac_info(work, {"build": {
             "recipe": recipe.name, "episodes": len(src.episodes),

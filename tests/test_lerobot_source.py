@@ -326,3 +326,44 @@ def test_hdf5_build_with_depth_none_has_motion_streams_only(sim, tmp_path):
     added = sorted(k for k in ds.meta.video_keys if not k.startswith("observation.images."))
     assert added == sorted(f"control.motion.{c}" for c in KEYS)
     assert "control.contact_cap" not in ds.meta.features and ds.meta.info["imac"]["contact"] is None
+
+
+READER = """
+import json, sys
+from pathlib import Path
+from imac_data.lerobot_reader import _VideoFrames
+from imac_data.workers import peak_rss_mb
+path, length, step = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+frames = _VideoFrames(path, 0.0, 25.0, length, "memory test")
+total = 0
+for lo in range(0, length, step):
+    total += int(frames.read(lo, min(lo + step, length))[:, 0, 0, 0].astype(int).sum() >= 0)
+frames.close()
+print(json.dumps({"peak_mb": peak_rss_mb(), "chunks": total}))
+"""
+
+
+def test_reader_memory_does_not_grow_with_episode_length(tmp_path):
+    """Peak memory of reading a camera video chunk by chunk (9 frames, as the pipeline does),
+    for a 24-frame and a 400-frame episode at 240x320: a reader that held the episode would
+    grow by 90 MB between them."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from imac_data.dataset.videos import VideoEncoding, encode_video
+
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 256, (8, 240, 320, 3), dtype=np.uint8)
+    peaks = {}
+    for n in (24, 400):
+        path = encode_video(tmp_path / f"{n}.mp4", np.resize(base, (n, 240, 320, 3)), fps=25,
+                            encoding=VideoEncoding.lerobot_default())
+        out = subprocess.run([sys.executable, "-c", READER, str(path), str(n), "9"], capture_output=True, text=True,
+                             timeout=300, cwd=Path(__file__).resolve().parent.parent)
+        assert out.returncode == 0, out.stderr[-3000:]
+        result = json.loads(out.stdout.strip().splitlines()[-1])
+        assert result["chunks"] == -(-n // 9)
+        peaks[n] = result["peak_mb"]
+    print(f"reader peak RSS: {peaks} MB")
+    assert peaks[400] - peaks[24] < 30.0, peaks
