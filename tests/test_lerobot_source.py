@@ -126,7 +126,8 @@ def test_lerobot_v30_source_built_with_da3(source, sim, da3_weights, tmp_path):
     assert list(ds.meta.episodes["imac/source"]) == ["policy", "policy"]
     assert list(ds.meta.episodes["imac/policy_name"]) == ["act", "act"]
     imac = ds.meta.info["imac"]
-    assert imac["depth"]["source"]["kind"] == "depth_anything_3" and imac["depth"]["source"]["model"] == str(da3_weights)
+    assert imac["depth"]["source"]["kind"] == "depth_anything_3"
+    assert imac["depth"]["source"]["model"] == str(da3_weights)
     assert imac["build"]["source"]["cameras"]["observation.images.top"] == "cam_high"
 
 
@@ -227,7 +228,7 @@ def test_hub_source_offline_is_a_clear_error(tmp_path, monkeypatch):
     from imac_data.lerobot_source import locate_source
 
     monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
-    with pytest.raises(InputError, match="source.repo_id 'lerobot/pusht': LeRobot cannot download it here.*source.path"):
+    with pytest.raises(InputError, match="source.repo_id 'lerobot/pusht': LeRobot cannot download it.*source.path"):
         locate_source(None, "lerobot/pusht", tmp_path / "staging")
 
 
@@ -303,8 +304,8 @@ def test_v21_source_is_converted_by_lerobot_on_a_staged_copy(source, sim, tmp_pa
     assert ds.meta.info["codebase_version"] == "v3.0" and ds.meta.total_episodes == 2
     assert ds.meta.info["imac"]["build"]["source"]["codebase_version"] == "v2.1"
     out = read_video_frames(tmp_path / "out" / "videos" / "observation.images.cam_high" / "chunk-000" / "file-000.mp4")
-    recorded = np.concatenate([read_video_frames(v21 / "videos" / "chunk-000" / KEYS["cam_high"] / f"episode_{e:06d}.mp4")
-                               for e in range(2)])
+    episodes = v21 / "videos" / "chunk-000" / KEYS["cam_high"]
+    recorded = np.concatenate([read_video_frames(episodes / f"episode_{e:06d}.mp4") for e in range(2)])
     np.testing.assert_array_equal(out, recorded)  # concatenated by the converter, not re-encoded
 
 
