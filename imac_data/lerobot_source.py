@@ -294,8 +294,6 @@ def copy_source(src: SourceDataset, dst: Path, cameras: dict[str, str]) -> None:
         write_parquet_atomic(table, f)
     info = json.loads((dst / "meta" / "info.json").read_text())
     info["features"] = {rename.get(k, k): v for k, v in info["features"].items() if k not in drop}
-    if "total_videos" in info:
-        info["total_videos"] = None
     atomic_write_json(dst / "meta" / "info.json", info)
     stats_path = dst / "meta" / "stats.json"
     if stats_path.is_file():

@@ -368,3 +368,17 @@ def test_reader_memory_does_not_grow_with_episode_length(tmp_path):
         peaks[n] = result["peak_mb"]
     print(f"reader peak RSS: {peaks} MB")
     assert peaks[400] - peaks[24] < 30.0, peaks
+
+
+def test_unmapped_cameras_are_left_out(source, sim, tmp_path):
+    calibration = tmp_path / "calibration.json"
+    save_calibration(calibration, {"cam_high": load_calibration(sim / "sim" / "calibration.json")["cam_high"]})
+    recipe = recipe_file(tmp_path, source, calibration, depth={"source": "none"},
+                         source={"cameras": {"observation.images.top": "cam_high"}})
+    ds = build(BuildRequest("local/top", recipe, tmp_path / "out", progress=False))
+    assert ds.meta.video_keys == ["observation.images.cam_high", "control.motion.cam_high"]
+    assert not any("wrist" in c for c in ds.meta.episodes.column_names)
+    assert sorted(p.name for p in (tmp_path / "out" / "videos").iterdir()) == sorted(ds.meta.video_keys)
+    top = source / "videos" / "observation.images.top" / "chunk-000" / "file-000.mp4"
+    assert (tmp_path / "out" / "videos" / "observation.images.cam_high" / "chunk-000" / "file-000.mp4").read_bytes() \
+        == top.read_bytes()
