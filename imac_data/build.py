@@ -105,9 +105,28 @@ class ShardJob:
     options: object  # IngestOptions
     timings_file: Path
     threads: int = 1
+    depth: object = None  # the recipe's DepthSection (None: recorded depth)
+    recipe_file: str = ""  # for the depth section's relative model paths
 
 
 _PROCESS_CACHE: dict = {}
+_DEPTH_CACHE: dict = {}
+
+
+def worker_depth_source(section, recipe_file: str, num_cameras: int, timer=None):
+    """The recipe's depth source, built once per worker process (a DA3 model loads once)."""
+    import contextlib
+
+    from imac_data.depth_choice import make_depth_source
+
+    if section is None:
+        return None
+    key = (repr(section), recipe_file, num_cameras)
+    if key not in _DEPTH_CACHE:
+        with timer("setup") if timer is not None else contextlib.nullcontext():
+            _DEPTH_CACHE.clear()
+            _DEPTH_CACHE[key] = make_depth_source(section, recipe_file, num_cameras)
+    return _DEPTH_CACHE[key]
 
 
 def worker_rig(block: dict, description_dir: Path, timer=None):
@@ -140,11 +159,12 @@ def build_shard(job: ShardJob) -> Path:
     timer = StageTimer()
     wall, cpu = time.perf_counter(), time.process_time()
     rig = worker_rig(job.rig_block, job.description_dir, timer)
+    depth_source = worker_depth_source(job.depth, job.recipe_file, len(rig.names), timer)
     tmp = job.shard_dir.with_name(f".{job.shard_dir.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         write_episode_dataset(job.episode, tmp, job.repo_id, rig, job.settings, job.options, timer=timer,
-                              threads=job.threads, with_description=False)
+                              threads=job.threads, with_description=False, depth_source=depth_source)
         tmp.rename(job.shard_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -306,10 +326,17 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
         raise InputError(f"recipe {recipe.file} needs inputs that are not there:\n  - " + "\n  - ".join(problems))
     refuse_overlap(req.root, _input_paths(req))  # before anything is recorded or written
     robot = Rig.robot_from_recipe(recipe)  # a bad URDF or joint map fails before any recording
+    if recipe.source.type == "lerobot":
+        from imac_data.lerobot_build import build_from_lerobot
+
+        return build_from_lerobot(req, robot)
     paths, calibration_path = source_episodes(req)
     refuse_overlap(req.root, {"source episodes": paths[0].parent, "calibration": calibration_path})
     rig = Rig.from_recipe(recipe, calibration_path, robot=robot)
     check_episodes(paths, rig.cameras, robot)
+    from imac_data.depth_choice import check_depth_inputs
+
+    check_depth_inputs(recipe.depth, recipe.file, len(rig.names))
     _check_stream_resolution(recipe, rig.cameras)
     fps = recipe.fps or _fps_of(paths[0]) or None
     if fps is None:
@@ -335,7 +362,7 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     workers = workers or default_workers(len(paths))
     threads = threads_per_worker(min(workers, len(paths)))
     jobs = [ShardJob(i, p, staging / "shards" / f"episode_{i:06d}", req.repo_id, recipe.augment, block, description,
-                     options, staging / "timings" / f"episode_{i:06d}.json", threads)
+                     options, staging / "timings" / f"episode_{i:06d}.json", threads, recipe.depth, recipe.file)
             for i, p in enumerate(paths)]
     t_jobs = time.perf_counter()
     run_jobs(jobs, executor=executor, workers=workers, ray_address=ray_address, progress=req.progress)
@@ -411,10 +438,12 @@ def _input_paths(req: BuildRequest) -> dict[str, Path | None]:
     """The user's files a build reads (never written or deleted: :mod:`imac_data.safety`)."""
     recipe = req.recipe
     return {
-        "source episodes": req.source_path or recipe.resolve_path(recipe.source.path),
+        "source dataset" if recipe.source.type == "lerobot" else "source episodes":
+            req.source_path or recipe.resolve_path(recipe.source.path),
         "calibration": recipe.resolve_path(recipe.cameras.calibration),
         "recipe": Path(recipe.file) if recipe.file else None,
         "robot URDF": recipe.resolve_path(recipe.robot.urdf),
+        "episode metadata": recipe.resolve_path(recipe.source.metadata),
     }
 
 

@@ -1,10 +1,13 @@
-"""Where depth comes from: one small interface (:class:`DepthSource`), two sources.
+"""Where depth comes from: one small interface (:class:`DepthSource`), and the sources.
 
 * :class:`RecordedDepth`: the depth stored in the raw episodes (a depth sensor's
   uint16 millimetres, or the simulator's ground truth), converted to metres.
-* :class:`DepthAnything3`: Depth Anything 3 (optional extra ``da3``), run on all
-  views of a timestep at once with their intrinsics and camera poses, so its depth
+* :class:`DepthAnything3`: Depth Anything 3 (installed by ``scripts/setup.sh``), run on
+  all views of a timestep at once with their intrinsics and camera poses, so its depth
   comes out in the units of the poses (metres).
+* :class:`DepthAnything3Metric`: DA3's monocular metric model (``da3metric-large``), one
+  view at a time, metres from the focal length; for rigs with fewer than three posed views.
+* :class:`NoDepth`: no depth at all; the pipeline then makes the motion streams only.
 
 A source maps one episode's views to ``{cam: (T, H, W) float32 metres}`` at the
 stored image resolution (0 = invalid), ready for
@@ -37,7 +40,9 @@ __all__ = [
     "DA3_INSTALL",
     "DEFAULT_DA3_MODEL",
     "DepthAnything3",
+    "DepthAnything3Metric",
     "DepthSource",
+    "NoDepth",
     "EpisodeViews",
     "RecordedDepth",
     "check_view_geometry",
@@ -55,6 +60,9 @@ DA3_INSTALL = (
 )
 # DA3-BASE: Apache-2.0 weights (DA3-LARGE / -GIANT are CC BY-NC 4.0).
 DEFAULT_DA3_MODEL = "depth-anything/DA3-BASE"
+# DA3's monocular metric model (preset da3metric-large): metres = focal * output / 300.
+DEFAULT_DA3_METRIC_MODEL = "depth-anything/DA3METRIC-LARGE"
+DA3_METRIC_FOCAL_SCALE = 300.0  # depth_anything_3.utils.alignment.apply_metric_scaling
 
 
 # ------------------------------------------------------------------------------ input
@@ -151,6 +159,19 @@ class RecordedDepth:
 
     def describe(self) -> dict[str, Any]:
         return {"kind": "recorded", "from": "the raw episodes' depth (millimetres -> metres)"}
+
+
+class NoDepth:
+    """No depth: ``depth: none`` in a recipe. The pipeline writes the motion streams only
+    (no depth, no contact streams, no caps); :meth:`depth` is never called."""
+
+    needs_images = False
+
+    def depth(self, views: EpisodeViews) -> dict[str, np.ndarray]:
+        raise InputError(f"{views.name}: this build has no depth source (depth.source: none)")
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": "none", "from": "no depth: motion streams only, no depth or contact streams"}
 
 
 # -------------------------------------------------------------------- Depth Anything 3
@@ -505,3 +526,75 @@ class DepthAnything3:
         d = depth if depth.shape == (H, W) else cv2.resize(depth, (W, H), interpolation=cv2.INTER_LINEAR)
         d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
         return d.astype(np.float32)
+
+
+class DepthAnything3Metric(DepthAnything3):
+    """Depth Anything 3's monocular metric model (``da3metric-large``; default weights
+    :data:`DEFAULT_DA3_METRIC_MODEL`), for rigs with fewer than three posed views, where the
+    multi-view model's scale fit is not determined. Each view is predicted on its own; DA3's
+    metric rule turns the network's output into metres with the view's focal length at the
+    processing size: ``metres = (fx + fy) / 2 * output / 300`` (DA3's ``apply_metric_scaling``).
+    Loading, devices, precision and batching over time are :class:`DepthAnything3`'s.
+
+    Verified here with random weights only (shapes, the focal rule: halving the focal length
+    halves the depth); its accuracy with real weights is not measured.
+    """
+
+    def describe(self) -> dict[str, Any]:
+        d = super().describe()
+        d.update(kind="depth_anything_3_metric",
+                 scale=f"monocular metric model: metres = mean focal (px, at the processing size) * output / "
+                       f"{DA3_METRIC_FOCAL_SCALE:g}")
+        return d
+
+    def predict(self, images: Sequence[np.ndarray], intrinsics: Sequence[np.ndarray],
+                poses: Sequence[np.ndarray] | None = None, *, where: str = "views",
+                names: Sequence[str] | None = None) -> list[np.ndarray]:
+        """Depth of each view ``(T, H_v, W_v)`` float32 metres; ``poses`` are not needed."""
+        import cv2
+        import torch
+
+        names = list(names) if names is not None else [f"view {v}" for v in range(len(images))]
+        out = []
+        for v, (im, K) in enumerate(zip(images, intrinsics)):
+            im = np.asarray(im)
+            if im.ndim != 4 or im.shape[-1] != 3 or im.dtype != np.uint8 or len(im) == 0:
+                raise InputError(f"{where} {names[v]}: images must be (T, H, W, 3) uint8 RGB; got {im.shape} "
+                                 f"{im.dtype}")
+            K = np.asarray(K, dtype=np.float64)
+            if K.shape != (3, 3) or not np.isfinite(K).all() or not (K[0, 0] > 0 and K[1, 1] > 0):
+                raise InputError(f"{where} {names[v]}: intrinsics must be a finite (3, 3) matrix with fx, fy > 0")
+            T, H, W = im.shape[:3]
+            h, w = self.processed_size(H, W)
+            Kp = rescale_intrinsics(K, (H, W), (h, w))
+            focal = 0.5 * (Kp[0, 0] + Kp[1, 1])
+            interp = cv2.INTER_AREA if h * w < H * W else cv2.INTER_CUBIC
+            depth = np.zeros((T, H, W), np.float32)
+            net = self._api_model
+            dtype = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}[self._autocast_dtype_name()]
+            for start in range(0, T, self.batch_size):
+                ts = range(start, min(T, start + self.batch_size))
+                x = torch.stack([net.input_processor(
+                    [np.ascontiguousarray(cv2.resize(im[t], (w, h), interpolation=interp))], None, None,
+                    self.process_res, "upper_bound_resize", num_workers=1, sequential=True)[0] for t in ts])
+                x = x.to(self.device).float()  # (B, 1, 3, h, w)
+                with torch.inference_mode():
+                    if dtype is None:
+                        pred = net.model(x, None, None, [], False, False, "first")
+                    else:
+                        with torch.autocast(device_type=self.device.type, dtype=dtype):
+                            pred = net.model(x, None, None, [], False, False, "first")
+                d = pred["depth"].float().cpu().numpy().reshape(len(ts), h, w) * (focal / DA3_METRIC_FOCAL_SCALE)
+                for b, t in enumerate(ts):
+                    depth[t] = self._resize_back(d[b], (H, W))
+            out.append(depth)
+        return out
+
+    def depth(self, views: EpisodeViews) -> dict[str, np.ndarray]:
+        cams = self.cameras if self.cameras is not None else sorted(views.cameras)
+        missing = [c for c in cams if c not in views.images or c not in views.cameras]
+        if missing:
+            raise InputError(f"{views.name}: camera(s) {missing} lack images or calibration")
+        out = self.predict([views.images[c] for c in cams], [views.cameras[c].K for c in cams],
+                           where=views.name, names=cams)
+        return dict(zip(cams, out))

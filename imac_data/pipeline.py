@@ -103,11 +103,13 @@ class StageTimer:
 # ----------------------------------------------------------------------------- the pipeline
 
 
-def stream_keys(cameras) -> list[str]:
+def stream_keys(cameras, *, depth: bool = True) -> list[str]:
     """The added video streams in the dataset's order: depth per camera, then per camera
-    motion, robot-to-scene, scene-to-gripper."""
+    motion, robot-to-scene, scene-to-gripper (``depth=False``: motion only)."""
     from imac_data.depth import depth_stream_key
 
+    if not depth:
+        return [f"{MOTION}.{c}" for c in cameras]
     return [depth_stream_key(c) for c in cameras] + [f"{k}.{c}" for c in cameras for k in (MOTION, R2S, S2G)]
 
 
@@ -118,7 +120,7 @@ class ChunkOutput:
     start: int
     stop: int
     streams: dict[str, np.ndarray]  # key -> (n, h, w, 3) uint8, keys as stream_keys()
-    caps: np.ndarray  # (n, 2) float32 metres: (r2s, s2g) of the chunk
+    caps: np.ndarray | None  # (n, 2) float32 metres: (r2s, s2g) of the chunk; None without depth
     images: dict[str, np.ndarray]  # cam -> (n, H, W, 3) uint8 recorded RGB ({} unless asked for)
     poses: dict[str, np.ndarray]  # cam -> (n, 4, 4) float64 camera-to-world at the measured state
 
@@ -128,7 +130,8 @@ class EpisodePipeline:
 
     ``rig``: the :class:`~imac_data.rig.Rig`; ``settings``: the recipe's
     :class:`~imac_data.recipes.AugmentSettings`; ``depth_source``: a
-    :class:`~imac_data.depth_sources.DepthSource` (default: the recorded depth).
+    :class:`~imac_data.depth_sources.DepthSource` (default: the recorded depth;
+    :class:`~imac_data.depth_sources.NoDepth`: the motion streams only).
     ``threads``: the worker's share of the cores (renderer, contact, KD-tree queries).
     """
 
@@ -141,11 +144,12 @@ class EpisodePipeline:
         self.timer = timer if timer is not None else StageTimer()
         self.threads = max(1, int(threads))
         self.codec = DepthCodec.preset(settings.depth_codec)
+        self.with_depth = getattr(self.depth_source, "describe", dict)().get("kind") != "none"
         rig.set_threads(self.threads)
 
     @property
     def keys(self) -> list[str]:
-        return stream_keys(self.rig.names)
+        return stream_keys(self.rig.names, depth=self.with_depth)
 
     def chunks(self, reader, *, state=None, action=None, images: bool = False) -> Iterator[ChunkOutput]:
         """Stream the episode of ``reader`` (:class:`~imac_data.aloha_hdf5.EpisodeReader`).
@@ -179,11 +183,21 @@ class EpisodePipeline:
             lo, hi = frames[0], frames[-1] + 1
             with timer("read"):
                 rgb = {c: reader.images(c, lo, hi) for c in names} if need_images else {}
-                mm = {c: d for c in names if (d := reader.depth_mm(c, lo, hi)) is not None}
+                mm = {c: d for c in names if self.with_depth and (d := reader.depth_mm(c, lo, hi)) is not None}
             with timer("fk"):
                 poses = camera_poses(rig.cameras, rig.robot, state[lo:hi])
                 links = rig.link_poses(q_drawn[lo:hi])
                 links_ref = rig.link_poses(q_state[ref:ref + 1])
+            if not self.with_depth:  # motion streams only
+                with timer("render"):
+                    motion = rig.robot_views(link_poses=links, resolution=res, gripper=False).rgb.numpy()
+                timer.frames += hi - lo
+                out = ChunkOutput(lo, hi, {f"{MOTION}.{c}": motion[:, v] for v, c in enumerate(names)}, None,
+                                  rgb if images else {}, poses)
+                del rgb, mm, links, links_ref, motion
+                yield out
+                del out
+                continue
             with timer("render"):
                 drawn = rig.robot_views(link_poses=links, resolution=res)
                 seen = rig.robot_views(link_poses=links_ref, resolution=res, gripper=False)
@@ -223,11 +237,12 @@ class EpisodePipeline:
     def imac_block(self) -> dict:
         """The stream settings' part of ``info["imac"]`` (``augment``, ``motion``, ``contact``)."""
         s = self.settings
+        if not self.with_depth:
+            return {"augment": asdict(s), "motion": self._motion_block(), "contact": None,
+                    "depth": {"source": self.depth_source.describe()}}
         return {
             "augment": asdict(s),
-            "motion": {"source": s.motion_source,
-                       "frame_rule": "frame t shows phi(state[t-1], action[t-1]); frame 0 shows state[0]"
-                                     if s.motion_source == "action" else "frame t shows state[t]"},
+            "motion": self._motion_block(),
             "contact": {
                 "chunk_size": s.contact_chunk,
                 "reference_rule": "chunk c covers frames c*H+1..c*H+H with reference frame c*H; frame 0 is step 0",
@@ -237,6 +252,12 @@ class EpisodePipeline:
                 "tolerance": "painted distance d' satisfies d <= d' <= d + max(1 mm, 3% d) (contact.DEFAULT_TOLERANCE)",
             },
         }
+
+    def _motion_block(self) -> dict:
+        s = self.settings
+        return {"source": s.motion_source,
+                "frame_rule": "frame t shows phi(state[t-1], action[t-1]); frame 0 shows state[0]"
+                              if s.motion_source == "action" else "frame t shows state[t]"}
 
     def stream_writer(self, root: Path, calibration: dict):
         """A :class:`~imac_data.dataset.streams.StreamWriter` for this pipeline's streams in
@@ -251,6 +272,8 @@ class EpisodePipeline:
         extra = {k: depth_info_extra(self.codec) if k in depth_keys else {"imac.stream": k.rsplit(".", 1)[0]}
                  for k in self.keys}
         source = self.depth_source.describe()
+        if not self.with_depth:
+            return StreamWriter(root, self.keys, encoding, info_extra=extra, threads=self.threads)
         return StreamWriter(root, self.keys, encoding, info_extra=extra, threads=self.threads,
                             imac_info=lambda f: depth_imac_block(f, names, calibration, self.codec, encoding, source))
 
@@ -259,7 +282,8 @@ class EpisodePipeline:
 
 
 def write_episode_dataset(path: Path, root: Path, repo_id: str, rig, settings, options, *,
-                          timer: StageTimer | None = None, threads: int = 1, with_description: bool = True) -> None:
+                          timer: StageTimer | None = None, threads: int = 1, with_description: bool = True,
+                          depth_source=None) -> None:
     """One raw episode -> a complete one-episode dataset at ``root`` (must not exist): the
     base features (LeRobot's writer, our streaming encoder) and every added stream, written
     in one pass over the episode's chunks. The build's shard."""
@@ -269,7 +293,7 @@ def write_episode_dataset(path: Path, root: Path, repo_id: str, rig, settings, o
     from imac_data.ingest import BaseWriter
 
     timer = timer if timer is not None else StageTimer()
-    pipe = EpisodePipeline(rig, settings, timer=timer, threads=threads)
+    pipe = EpisodePipeline(rig, settings, depth_source, timer=timer, threads=threads)
     base = streams = None
     with EpisodeReader(path) as ep:
         rig = rig.with_image_sizes(ep.image_hw)
@@ -287,13 +311,15 @@ def write_episode_dataset(path: Path, root: Path, repo_id: str, rig, settings, o
                     base.add(ep.qpos[lo:hi], ep.action[lo:hi], None if ep.qvel is None else ep.qvel[lo:hi],
                              out.images, out.poses)
                     streams.write(out.streams)
-                    caps[lo:hi] = out.caps
+                    if out.caps is not None:
+                        caps[lo:hi] = out.caps
             with timer("write"):
                 base.end_episode()
                 streams.end_episode()
                 base.finish(rig, with_description=with_description)
                 streams.commit()
-                add_frame_column(root, CAP_KEY, [caps], names=["r2s", "s2g"])
+                if pipe.with_depth:
+                    add_frame_column(root, CAP_KEY, [caps], names=["r2s", "s2g"])
                 update_imac_info(root, pipe.imac_block())
         except BaseException:
             if streams is not None:
@@ -327,13 +353,15 @@ def add_episode_streams(root: Path, readers, rig, settings, *, depth_source=None
                 for out in pipe.chunks(ep, state=state, action=action):
                     with timer("encode"):
                         streams.write(out.streams)
-                        ep_caps[out.start:out.stop] = out.caps
+                        if out.caps is not None:
+                            ep_caps[out.start:out.stop] = out.caps
                 streams.end_episode()
                 caps.append(ep_caps)
         with timer("write"):
             streams.commit()
     with timer("write"):
-        add_frame_column(root, CAP_KEY, caps, names=["r2s", "s2g"])
+        if pipe.with_depth:
+            add_frame_column(root, CAP_KEY, caps, names=["r2s", "s2g"])
         update_imac_info(root, pipe.imac_block())
 
 

@@ -27,9 +27,17 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
     cameras:
       calibration: path/to/calibration.json   # not needed for aloha_sim
     source:
-      type: aloha_sim | aloha_hdf5
-      path: path/to/episodes                  # aloha_sim: where to record (default: a cache dir)
+      type: aloha_sim | aloha_hdf5 | lerobot
+      path: path/to/episodes                  # aloha_sim: where to record (default: a cache dir);
+                                              # lerobot: the dataset's root directory
       episodes: 2                             # how many (first N), null = all
+      repo_id: user/dataset                   # lerobot without path: downloaded through LeRobot
+      cameras: {observation.images.top: cam_high}  # lerobot: source video key -> calibrated camera
+      state_key: observation.state            # lerobot: the joint vectors (robot.joint_map: one
+      action_key: action                      #   entry per index of these)
+      action_space: joint                     # lerobot: joint (required) | ee (refused, clearly)
+      metadata: episodes.csv                  # lerobot: success, policy_name, checkpoint, source
+                                              #   per episode_index (CSV or JSON)
       sim: {task: transfer_cube, noise: 0.3, seed: 0, height: 240, width: 320, frame_stride: 2,
            segmentation: true}
       episode_defaults: {source: teleop, policy_name: null, checkpoint: null}
@@ -40,6 +48,12 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
       depth_codec: manipulation               # or general
       contact_chunk: 8                        # H; the reference is the chunk's first frame
       contact_cap: null                       # metres; null = 99th percentile per chunk
+    depth:                                    # where depth comes from (imac_data.depth_choice)
+      source: recorded                        # recorded | da3 | none (motion streams only)
+      model: depth-anything/DA3-BASE          # da3: hub id or local weights directory
+      monocular_model: null                   # da3 with < 3 posed views: DA3's metric model
+      feature: observation.depth.{cam}        # recorded, lerobot source: the depth feature
+      format: millimetres                     #   millimetres | metres | codec
 """
 
 from __future__ import annotations
@@ -57,7 +71,9 @@ from imac_data.errors import InputError
 
 RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
 PLATFORMS = ("aloha_sim",)
-SOURCE_TYPES = ("aloha_sim", "aloha_hdf5")
+SOURCE_TYPES = ("aloha_sim", "aloha_hdf5", "lerobot")
+DEPTH_SOURCES = ("recorded", "da3", "none")
+DEPTH_FORMATS = ("millimetres", "metres", "codec")
 
 
 @dataclass(frozen=True)
@@ -149,6 +165,12 @@ class SourceSection:
     type: str
     path: str | None = None
     episodes: int | None = None
+    repo_id: str | None = None  # lerobot: a hub dataset, when no path is given
+    cameras: dict[str, str] = field(default_factory=dict)  # lerobot: source video key -> camera name
+    state_key: str = "observation.state"  # lerobot: joint vectors, one robot.joint_map entry per index
+    action_key: str = "action"
+    action_space: str = "joint"  # lerobot: "joint" | "ee" (end-effector actions are refused)
+    metadata: str | None = None  # lerobot: CSV or JSON of episode metadata keyed by episode_index
     sim: SimSection = field(default_factory=SimSection)
     episode_defaults: EpisodeDefaults = field(default_factory=EpisodeDefaults)
 
@@ -193,6 +215,21 @@ class AugmentSettings:
 
 
 @dataclass(frozen=True)
+class DepthSection:
+    """Where the depth streams come from (``depth:``; :mod:`imac_data.depth_choice`)."""
+
+    source: str = "recorded"  # recorded | da3 | none
+    model: str | None = None  # da3: hub id or local weights directory (default DA3-BASE)
+    monocular_model: str | None = None  # da3, fewer than 3 posed views: DA3's monocular metric model
+    feature: str | None = None  # recorded from a LeRobot source: feature key, "{cam}" = camera name
+    format: str = "millimetres"  # recorded LeRobot feature: millimetres | metres | codec
+    codec: str = "manipulation"  # format codec: the DepthCodec preset the feature was encoded with
+    device: str | None = None  # da3: cuda, cpu, ... (default: CUDA when available)
+    batch_size: int = 4  # da3: timesteps per forward pass
+    process_res: int = 504  # da3: long side the network sees (a multiple of 14)
+
+
+@dataclass(frozen=True)
 class Recipe:
     name: str
     task: str
@@ -201,6 +238,7 @@ class Recipe:
     fps: float | None = None
     cameras: CamerasSection = field(default_factory=CamerasSection)
     augment: AugmentSettings = field(default_factory=AugmentSettings)
+    depth: DepthSection = field(default_factory=DepthSection)
     file: str = ""  # where the recipe was read from (for messages and relative paths)
 
     def resolve_path(self, value: str | None) -> Path | None:
@@ -302,6 +340,26 @@ def _validate(recipe: Recipe) -> None:
         raise InputError(f"{f}: source.type: unknown source type {s.type!r}; known: {SOURCE_TYPES}")
     if s.type == "aloha_hdf5" and s.path is None:
         raise InputError(f"{f}: source.path: required for source.type aloha_hdf5 (the directory of .hdf5 episodes)")
+    if s.type == "lerobot" and s.path is None and s.repo_id is None:
+        raise InputError(f"{f}: source: type lerobot needs 'path' (a local dataset root) or 'repo_id' (a hub dataset)")
+    if s.action_space not in ("joint", "ee"):
+        raise InputError(f"{f}: source.action_space: must be 'joint' or 'ee', got {s.action_space!r}")
+    if s.type != "lerobot":
+        extra = [k for k in ("repo_id", "metadata") if getattr(s, k) is not None] + (["cameras"] if s.cameras else [])
+        if extra:
+            raise InputError(f"{f}: source: {extra} only apply to source.type lerobot")
+    d = recipe.depth
+    if d.source not in DEPTH_SOURCES:
+        raise InputError(f"{f}: depth.source: must be one of {DEPTH_SOURCES}, got {d.source!r}")
+    if d.format not in DEPTH_FORMATS:
+        raise InputError(f"{f}: depth.format: must be one of {DEPTH_FORMATS}, got {d.format!r}")
+    if d.feature is not None and (s.type != "lerobot" or d.source != "recorded"):
+        raise InputError(f"{f}: depth.feature: only for depth.source recorded with source.type lerobot")
+    if s.type == "lerobot" and d.source == "recorded" and d.feature is None:
+        raise InputError(f"{f}: depth.feature: a LeRobot source has no HDF5 depth; name its depth feature "
+                         "(e.g. observation.depth.{cam}), or set depth.source to da3 or none")
+    if d.batch_size < 1 or d.process_res < 14 or d.process_res % 14:
+        raise InputError(f"{f}: depth: batch_size must be >= 1 and process_res a positive multiple of 14")
     if s.type == "aloha_sim" and r.platform != "aloha_sim":
         raise InputError(f"{f}: source.type aloha_sim records the simulated rig: set robot.platform: aloha_sim")
     if s.type != "aloha_sim" and recipe.cameras.calibration is None:
@@ -396,9 +454,13 @@ def missing_inputs(recipe: Recipe, source_path: Path | None = None) -> list[str]
                   is_dir=True)
     check("cameras.calibration", recipe.cameras.calibration, "the camera calibration JSON",
           "format in the README, section 'Calibration file'")
-    if source_path is None:
+    if source_path is None and recipe.source.type == "lerobot":
+        check("source.path", recipe.source.path, "the LeRobot dataset's root directory",
+              "the directory holding meta/info.json", is_dir=True)
+    elif source_path is None:
         check("source.path", recipe.source.path, "the directory of HDF5 episodes",
               "episode_0.hdf5, episode_1.hdf5, ... as the ALOHA/AgileX recorder writes them", is_dir=True)
+    check("source.metadata", recipe.source.metadata, "the episode metadata file", "CSV or JSON keyed by episode_index")
     return problems
 
 
