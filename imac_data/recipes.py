@@ -43,7 +43,7 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
       contact_workspace:                      # scene points the contact streams use (imac_data.workspace)
         min: [-0.8, -0.6, -0.05]              # world box, metres; no min/max = the robot's reach + margin
         max: [0.8, 0.6, 0.7]
-        depth_range: [0.1, 2.5]               # metres of z-depth; default [0, the depth codec's max depth)
+        depth_range: [0.1, 2.5]               # metres of z-depth; default [0, where the depth codec saturates)
 """
 
 from __future__ import annotations

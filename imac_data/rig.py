@@ -45,7 +45,7 @@ from imac_data.contact import DEFAULT_GRIPPER_SPACING
 from imac_data.errors import InputError
 from imac_data.motion import Controller, frame_configurations, rollout
 from imac_data.robot import RobotConfig, RobotModel
-from imac_data.workspace import Workspace, as_workspace, resolve_workspace
+from imac_data.workspace import Workspace, as_workspace, resolve_workspace, saturation_depth
 
 __all__ = ["Rig", "RobotViews", "DEFAULT_GRIPPER_SPACING", "RIG_KEYS"]
 
@@ -121,7 +121,7 @@ class Rig:
         cameras = load_calibration(calibration) if isinstance(calibration, (str, Path)) else dict(calibration)
         robot = robot if robot is not None else cls.robot_from_recipe(recipe)
         a = recipe.augment
-        workspace = resolve_workspace(a.contact_workspace, robot, DepthCodec.preset(a.depth_codec).max_depth)
+        workspace = resolve_workspace(a.contact_workspace, robot, saturation_depth(DepthCodec.preset(a.depth_codec)))
         r = recipe.robot
         if r.platform is not None:
             task = recipe.source.sim.task if recipe.source.type == "aloha_sim" else None

@@ -27,9 +27,10 @@ Defaults, so that a recipe need not set anything (:func:`resolve_workspace`):
   bounding-box corners at all of them, grown by ``margin`` (default 0.10 m) and rounded
   outwards to the millimetre. Joint limits ignore collisions, so the box also holds the
   table the robot stands on; a floor or wall beyond arm's length falls outside it.
-* depth range: ``[0, max_depth)`` of the dataset's depth codec: depth the stored depth
-  stream cannot represent decodes as ``max_depth`` (saturated), so neither the build nor an
-  online rebuild from decoded depth may use it.
+* depth range: ``[0, saturation)`` of the dataset's depth codec (:func:`saturation_depth`):
+  the codec's top code stands for every depth beyond ``max_depth``, so such depth is
+  saturated in the stored stream; neither the build nor an online rebuild from decoded depth
+  may use it (3.736 m for the ``manipulation`` preset, 306.869 m for ``general``).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ import torch
 from imac_data.errors import InputError
 
 __all__ = ["Workspace", "WorkspaceSettings", "depth_in_range", "points_in_box", "reach_box", "resolve_workspace",
-           "DEFAULT_MARGIN", "DEFAULT_REACH_SAMPLES"]
+           "saturation_depth", "DEFAULT_MARGIN", "DEFAULT_REACH_SAMPLES"]
 
 DEFAULT_MARGIN = 0.10  # metres added around the robot's reach
 DEFAULT_REACH_SAMPLES = 1024  # joint vectors sampled for the reach box
@@ -163,7 +164,7 @@ class WorkspaceSettings:
           min: [-0.8, -0.6, -0.05]   # world box, metres (both or neither);
           max: [0.8, 0.6, 0.7]       #   neither = the robot's reach + margin
           margin: 0.1                # metres around the reach (only without min/max)
-          depth_range: [0.1, 2.5]    # metres of z-depth; default [0, the depth codec's max depth)
+          depth_range: [0.1, 2.5]    # metres of z-depth; default [0, where the depth codec saturates)
     """
 
     min: tuple[float, ...] | None = None
@@ -242,12 +243,21 @@ def reach_box(robot, *, samples: int = DEFAULT_REACH_SAMPLES, margin: float = DE
     return tuple(float(x) for x in lo), tuple(float(x) for x in hi)
 
 
-def resolve_workspace(settings: WorkspaceSettings | None, robot, max_depth: float, *,
+def saturation_depth(codec) -> float:
+    """Where a :class:`~imac_data.depth.DepthCodec` saturates: its ``max_depth`` less half
+    the 8-bit step there (rounded down to the millimetre). Depth beyond encodes to the codec's
+    last codes, which decode to about ``max_depth`` whatever the true depth was."""
+    far = codec.max_depth - float(codec.quantisation_step(codec.max_depth)) / 2
+    return math.floor(far * 1000.0) / 1000.0
+
+
+def resolve_workspace(settings: WorkspaceSettings | None, robot, far: float, *,
                       samples: int = DEFAULT_REACH_SAMPLES) -> Workspace:
     """The workspace a recipe's ``augment.contact_workspace`` describes, defaults filled in:
-    the robot's reach (:func:`reach_box`) and ``[0, max_depth)`` (the depth codec's)."""
+    the robot's reach (:func:`reach_box`) and the depth range ``[0, far)`` (the depth
+    codec's :func:`saturation_depth`)."""
     s = settings if settings is not None else WorkspaceSettings()
-    depth_range = tuple(s.depth_range) if s.depth_range is not None else (0.0, float(max_depth))
+    depth_range = tuple(s.depth_range) if s.depth_range is not None else (0.0, float(far))
     if s.min is not None:
         return Workspace(tuple(s.min), tuple(s.max), depth_range, source="recipe")
     margin = DEFAULT_MARGIN if s.margin is None else float(s.margin)

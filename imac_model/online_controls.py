@@ -35,9 +35,9 @@ Steps (per batch item; every stage batched over the items and steps of a chunk):
    percentile and mask dilation from ``meta/info.json``) from the decoded depth, the robot
    mask and camera poses at the reference state ``q_ref``, and the future configurations.
    The scene is cropped to the dataset's workspace (``imac.workspace``, carried by the rig:
-   world box and depth range), as the build cropped it; the default depth range ends at the
-   codec's ``max_depth``, so saturated decoded depth is invalid online as the raw far depth
-   was offline.
+   world box and depth range), as the build cropped it; the default depth range ends where
+   the codec saturates (:func:`imac_data.workspace.saturation_depth`), so saturated decoded
+   depth is invalid online as the raw far depth was offline.
 
 Resolution (``resolution``): ``"model"`` computes at the model's view size, with the cameras
 rescaled exactly as the mosaic resizes the views (:func:`imac_model.mosaic.rescale_cameras`,

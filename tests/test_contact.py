@@ -32,7 +32,7 @@ from imac_data.errors import InputError
 from imac_data.rig import Rig
 from imac_data.robot import RobotModel
 from imac_data.simulate import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
-from imac_data.workspace import Workspace, resolve_workspace
+from imac_data.workspace import Workspace, resolve_workspace, saturation_depth
 
 METHODS = ["kdtree", "torch"]
 
@@ -554,7 +554,7 @@ def test_workspace_crop_keeps_far_and_saturated_depth_out_of_the_caps(grasp):
     5 mm + half a colour level at a workspace-sized cap, and the caps stay within the
     workspace's diagonal; without the crop the s2g cap is tens of metres."""
     model, inp, labels, rig = grasp["model"], grasp["inputs"], grasp["labels"], grasp["rig"]
-    ws = resolve_workspace(None, rig.robot, DepthCodec.preset("manipulation").max_depth)
+    ws = resolve_workspace(None, rig.robot, saturation_depth(DepthCodec.preset("manipulation")))
     data = mujoco.MjData(model)
     box = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "red_box")
     adr = model.jnt_qposadr[model.body_jntadr[model.geom_bodyid[box]]]
