@@ -248,4 +248,4 @@ def test_hub_card_is_what_lerobot_uploads(reference_build):
     ws = json.loads((reference_build / "meta" / "info.json").read_text())["imac"]["workspace"]
     assert ws["source"].startswith("robot reach") and ws["depth_range"] == [0.0, 3.736]  # the contact crop
     assert f"world box min `{json.dumps(ws['min'])}`, max `{json.dumps(ws['max'])}` m" in text
-    assert "depth range [0.0, 3.736) m" in text
+    assert "depth lies in\n[0.0, 3.736) m" in text
