@@ -5,7 +5,10 @@ and online (the world model rebuilding contact images from its own predicted dep
 Streams (chunk size H, reference frame t = the chunk start)
 ------------------------------------------------------------
 * The reference scene cloud ``P_s(t)``: every view's reference depth with the
-  (dilated) reference robot mask removed, back-projected to world points.
+  (dilated) reference robot mask removed, back-projected to world points, cropped to the
+  workspace (:mod:`imac_data.workspace`: depth outside its range is invalid, points outside
+  its world box are no scene), so that far background and saturated depth never enter it
+  or the caps.
 * ``r2s`` (robot -> scene): for each future step t+k, every *robot pixel* of view v
   (the robot rendered at q_{t+k} into the camera pose of t+k) stores the distance of
   its surface point to the nearest point of ``P_s(t)``. NaN where there is no robot.
@@ -86,6 +89,7 @@ from imac_data.nearest import (
     nearest_distances,
     resolve_tolerance,
 )
+from imac_data.workspace import as_workspace
 
 __all__ = [
     "JET_LUT",
@@ -208,8 +212,9 @@ class SceneCloud:
 
     ``points (P, 3)`` world; ``flat (P,)`` index of each point's pixel in the flattened
     ``(V, H, W)`` reference images; ``valid (V, H, W)`` pixels that gave a point;
-    ``mask (V, H, W)`` the scene mask (not in the dilated robot mask), where s2g is
-    painted; ``robot_mask`` the dilated reference robot mask that was removed.
+    ``mask (V, H, W)`` the scene mask (neither in the dilated robot mask nor outside the
+    workspace box), where s2g is painted; ``robot_mask`` the dilated reference robot mask
+    that was removed; ``outside (V, H, W)`` pixels whose point lay outside the workspace box.
     """
 
     points: torch.Tensor
@@ -217,6 +222,7 @@ class SceneCloud:
     valid: torch.Tensor
     mask: torch.Tensor
     robot_mask: torch.Tensor
+    outside: torch.Tensor | None = None
 
     @property
     def num_views(self) -> int:
@@ -247,22 +253,36 @@ def _check_views(depth, K, T_world_cam, robot_mask, *, what: str, device=None):
     return depth.to(torch.float32), K, T_world_cam, robot_mask.bool()
 
 
-def scene_cloud(depth, K, T_world_cam, robot_mask, *, dilate_px: int = DEFAULT_DILATE_PX,
+def scene_cloud(depth, K, T_world_cam, robot_mask, *, dilate_px: int = DEFAULT_DILATE_PX, workspace=None,
                 device=None) -> SceneCloud:
     """The reference scene cloud: reference depth ``(V, H, W)`` metres (0 / non-finite /
     negative = invalid), intrinsics ``K (V, 3, 3)``, camera-to-world poses ``(V, 4, 4)``
     (OpenCV axes) and the rendered reference robot mask ``(V, H, W)``, grown by
-    ``dilate_px`` pixels before removal (real masks are imperfect). May be empty; the
-    callers decide what that means (:func:`contact_chunk`)."""
+    ``dilate_px`` pixels before removal (real masks are imperfect).
+
+    ``workspace`` (:class:`~imac_data.workspace.Workspace`, its dict form, or None = no
+    crop): depth outside its range ``[near, far)`` is invalid like 0; points outside its
+    world box leave the cloud and the scene mask. May be empty; the callers decide what
+    that means (:func:`contact_chunk`)."""
     depth, K, T, rmask = _check_views(depth, K, T_world_cam, robot_mask, what="reference views", device=device)
+    workspace = as_workspace(workspace)
     V, H, W = depth.shape
     removed = dilate_mask(rmask, dilate_px)
-    valid = torch.isfinite(depth) & (depth > 0) & ~removed
+    good = torch.isfinite(depth) & (depth > 0) if workspace is None else workspace.valid_depth(depth)
+    valid = good & ~removed
     flat = torch.nonzero(valid.reshape(-1))[:, 0]
     view, pix = flat // (H * W), flat % (H * W)
     rays = pixel_rays(K, H, W)
     points = _lift(depth.reshape(-1)[flat], rays, T, view, view, pix)
-    return SceneCloud(points=points, flat=flat, valid=valid, mask=~removed, robot_mask=removed)
+    mask, outside = ~removed, None
+    if workspace is not None:
+        inside = workspace.contains(points)
+        outside = torch.zeros(V * H * W, dtype=torch.bool, device=depth.device)
+        outside[flat[~inside]] = True
+        outside = outside.reshape(V, H, W)
+        valid, mask = valid & ~outside, mask & ~outside
+        flat, points = flat[inside], points[inside]
+    return SceneCloud(points=points, flat=flat, valid=valid, mask=mask, robot_mask=removed, outside=outside)
 
 
 # ----------------------------------------------------------------------------- gripper surface
@@ -491,7 +511,7 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
                   dilate_px: int = DEFAULT_DILATE_PX, fill_px: int = DEFAULT_FILL_PX,
                   tolerance=DEFAULT_TOLERANCE, method: str = "auto", workers: int = -1,
                   allow_empty_scene: bool = False, device=None, cpu_threads: int | None = 1,
-                  parallel: int | None = None) -> ContactChunk:
+                  parallel: int | None = None, workspace=None) -> ContactChunk:
     """Both contact streams for the S steps of one chunk.
 
     Reference (frame t, all V views): ``ref_depth (V, H, W)`` metres, ``K (V, 3, 3)``,
@@ -507,6 +527,9 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     ``cap``: None = per-stream ``percentile`` of this chunk's distances (:func:`chunk_caps`);
     a number or ``(r2s, s2g)`` = fixed caps in metres (distances beyond are culled to +inf).
     ``fill_px``: hole filling of s2g inside the scene mask (:func:`_fill_sources`).
+    ``workspace``: the crop of the reference scene (:func:`scene_cloud`; a
+    :class:`~imac_data.workspace.Workspace`, its dict form, or None = no crop): far
+    background and saturated depth never enter the scene cloud or the caps.
     ``tolerance``: ``(metres, relative)``: every painted (not hole-filled) distance d'
     satisfies ``exact <= d' <= exact + max(metres, relative * exact)`` (certified pixel
     tiles, :func:`certified_distances`); ``None`` or 0 = exact per pixel (several times
@@ -533,7 +556,7 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     with _torch_threads(cpu_threads if device.type == "cpu" else None):
         return _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam,
                               gripper_points, gripper_mask, cap, percentile, dilate_px, fill_px, tolerance, method,
-                              workers, allow_empty_scene, device, cpu_threads, parallel)
+                              workers, allow_empty_scene, device, cpu_threads, parallel, workspace)
 
 
 @contextlib.contextmanager
@@ -551,14 +574,15 @@ def _torch_threads(n: int | None):
 
 def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam, gripper_points,
                    gripper_mask, cap, percentile, dilate_px, fill_px, tolerance, method, workers, allow_empty_scene,
-                   device, threads, parallel=None) -> ContactChunk:
+                   device, threads, parallel=None, workspace=None) -> ContactChunk:
     fixed = _resolve_cap(cap)
     tol = resolve_tolerance(tolerance)
     if not (0.0 <= float(percentile) <= 100.0):
         raise InputError(f"cap percentile must be in [0, 100], got {percentile}")
     if int(fill_px) < 0:
         raise InputError(f"fill_px must be >= 0, got {fill_px}")
-    scene = scene_cloud(ref_depth, K, ref_T_world_cam, ref_robot_mask, dilate_px=dilate_px, device=device)
+    scene = scene_cloud(ref_depth, K, ref_T_world_cam, ref_robot_mask, dilate_px=dilate_px, workspace=workspace,
+                        device=device)
     V, H, W = scene.valid.shape
     HW = H * W
     Kt = torch.as_tensor(K, device=device, dtype=torch.float32)
@@ -568,9 +592,11 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
         d = torch.as_tensor(ref_depth, device=device)
         n_valid = int((torch.isfinite(d) & (d > 0)).sum())
         why = ("no reference pixel has valid depth (all 0 / non-finite)" if n_valid == 0 else
-               f"all {n_valid} pixels with valid depth lie inside the (dilated by {dilate_px} px) robot mask")
-        raise InputError(f"reference scene is empty: {why}; check the depth units/validity and the robot "
-                         "mask, or pass allow_empty_scene=True")
+               f"all {n_valid} pixels with valid depth lie inside the (dilated by {dilate_px} px) robot mask"
+               + ("" if scene.outside is None else
+                  f", outside the workspace box or outside its depth range {list(as_workspace(workspace).depth_range)}"))
+        raise InputError(f"reference scene is empty: {why}; check the depth units/validity, the robot "
+                         "mask and the workspace, or pass allow_empty_scene=True")
 
     # ---- robot points of every step and view: back-projected robot depth
     robot = torch.isfinite(rd) & (rd > 0)  # (S, V, H, W)

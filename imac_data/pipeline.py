@@ -218,7 +218,7 @@ class EpisodePipeline:
                 chunk = contact_chunk(torch.as_tensor(ref_depth), K, seen.T_world_cam[0], seen.mask[0], drawn.depth,
                                       drawn.T_world_cam, drawn.gripper_points, cap=s.contact_cap,
                                       percentile=s.contact_percentile, dilate_px=s.robot_mask_dilate_px,
-                                      workers=self.threads, parallel=self.threads)
+                                      workspace=rig.workspace, workers=self.threads, parallel=self.threads)
             r2s, s2g = chunk.r2s_rgb.cpu().numpy(), chunk.s2g_rgb.cpu().numpy()
             motion = drawn.rgb.numpy()
             for v, c in enumerate(names):
@@ -247,6 +247,7 @@ class EpisodePipeline:
                 "chunk_size": s.contact_chunk,
                 "reference_rule": "chunk c covers frames c*H+1..c*H+H with reference frame c*H; frame 0 is step 0",
                 "cap": s.contact_cap if s.contact_cap is not None else f"p{s.contact_percentile:g} per chunk and stream",
+                "scene_crop": "imac.workspace" if self.rig.workspace is not None else None,
                 "cap_column": CAP_KEY,
                 "colormap": "jet of 1 - d/cap (near = red), black = no value",
                 "tolerance": "painted distance d' satisfies d <= d' <= d + max(1 mm, 3% d) (contact.DEFAULT_TOLERANCE)",

@@ -48,6 +48,10 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
       depth_codec: manipulation               # or general
       contact_chunk: 8                        # H; the reference is the chunk's first frame
       contact_cap: null                       # metres; null = 99th percentile per chunk
+      contact_workspace:                      # scene points the contact streams use (imac_data.workspace)
+        min: [-0.8, -0.6, -0.05]              # world box, metres; no min/max = the robot's reach + margin
+        max: [0.8, 0.6, 0.7]
+        depth_range: [0.1, 2.5]               # metres of z-depth; default [0, where the depth codec saturates)
     depth:                                    # where depth comes from (imac_data.depth_choice)
       source: recorded                        # recorded | da3 | none (motion streams only)
       model: depth-anything/DA3-BASE          # da3: hub id or local weights directory
@@ -68,6 +72,7 @@ from pathlib import Path
 import yaml
 
 from imac_data.errors import InputError
+from imac_data.workspace import WorkspaceSettings
 
 RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
 PLATFORMS = ("aloha_sim",)
@@ -188,6 +193,7 @@ class AugmentSettings:
     contact_cap: float | None = None  # metres; None = the chunk's percentile per stream
     contact_percentile: float = 99.0
     robot_mask_dilate_px: int = 2  # robot removal from the reference depth
+    contact_workspace: WorkspaceSettings = field(default_factory=WorkspaceSettings)  # box + depth range
 
     def __post_init__(self) -> None:
         from imac_data.depth import DepthCodec

@@ -6,6 +6,8 @@ A :class:`Rig` turns joint vectors into pixels. It holds
   maps, mimic joints, batched FK),
 * the calibrated cameras (fixed or mounted on a link; view order = the dataset's),
 * the controller map phi (:class:`~imac_data.motion.Controller`),
+* the workspace the contact streams crop the scene to (:class:`~imac_data.workspace.Workspace`:
+  a world box and a depth range; from the recipe, by default the robot's reach; None = no crop),
 * and, built on first use in each process, the renderer and the gripper surface samples.
 
 It is made in one of two ways, which give the same rig:
@@ -43,10 +45,11 @@ from imac_data.contact import DEFAULT_GRIPPER_SPACING
 from imac_data.errors import InputError
 from imac_data.motion import Controller, frame_configurations, rollout
 from imac_data.robot import RobotConfig, RobotModel
+from imac_data.workspace import Workspace, as_workspace, resolve_workspace, saturation_depth
 
 __all__ = ["Rig", "RobotViews", "DEFAULT_GRIPPER_SPACING", "RIG_KEYS"]
 
-RIG_KEYS = ("robot", "cameras", "controller", "gripper_surface")  # what to_info writes into info["imac"]
+RIG_KEYS = ("robot", "cameras", "controller", "gripper_surface", "workspace")  # what to_info writes into info["imac"]
 
 
 @dataclass
@@ -76,6 +79,7 @@ class Rig:
     state_names: tuple[str, ...] | None = None
     gripper_spacing: float = DEFAULT_GRIPPER_SPACING
     threads: int = 0  # renderer (Embree) and contact threads; 0 = all cores
+    workspace: Workspace | None = None  # the contact streams' scene crop; None = none
 
     def __post_init__(self) -> None:
         if not self.cameras:
@@ -93,6 +97,7 @@ class Rig:
                 raise InputError(f"rig: {len(self.state_names)} state names for a {self.robot.dof}-D joint vector")
         if not (math.isfinite(self.gripper_spacing) and self.gripper_spacing > 0):
             raise InputError(f"rig: gripper spacing must be > 0 metres, got {self.gripper_spacing}")
+        self.workspace = as_workspace(self.workspace)
         self._renderer = None
         self._gripper = None
 
@@ -103,8 +108,10 @@ class Rig:
                     robot: RobotModel | None = None) -> Rig:
         """The rig a recipe describes. ``calibration``: a calibration file or cameras
         (default: the recipe's ``cameras.calibration``); ``robot``: the recipe's robot if
-        already loaded (:meth:`robot_from_recipe`)."""
+        already loaded (:meth:`robot_from_recipe`). The workspace is the recipe's
+        ``augment.contact_workspace``, defaults filled in (:func:`~imac_data.workspace.resolve_workspace`)."""
         from imac_data.cameras import load_calibration
+        from imac_data.depth import DepthCodec
 
         if calibration is None:
             path = recipe.resolve_path(recipe.cameras.calibration)
@@ -113,20 +120,22 @@ class Rig:
             calibration = path
         cameras = load_calibration(calibration) if isinstance(calibration, (str, Path)) else dict(calibration)
         robot = robot if robot is not None else cls.robot_from_recipe(recipe)
+        a = recipe.augment
+        workspace = resolve_workspace(a.contact_workspace, robot, saturation_depth(DepthCodec.preset(a.depth_codec)))
         r = recipe.robot
         if r.platform is not None:
             task = recipe.source.sim.task if recipe.source.type == "aloha_sim" else None
-            return cls.from_platform(r.platform, cameras, robot=robot, task=task)
+            return cls.from_platform(r.platform, cameras, robot=robot, task=task, workspace=workspace)
         controller = Controller()
         if r.controller is not None:
             from dataclasses import asdict
 
             controller = Controller.from_dict(asdict(r.controller), where=f"{recipe.file}: robot.controller")
-        return cls(robot, cameras, controller)
+        return cls(robot, cameras, controller, workspace=workspace)
 
     @classmethod
     def from_platform(cls, platform: str, cameras: Mapping[str, Camera], *, robot: RobotModel | None = None,
-                      task: str | None = None) -> Rig:
+                      task: str | None = None, workspace: Workspace | None = None) -> Rig:
         """A built-in rig by name with the given cameras. ``aloha_sim``: gym-aloha's two
         ViperX 300s (:mod:`imac_data.aloha`), its actuators' saturation in the controller
         (``task``: which scene's MJCF; the arms are the same in every task)."""
@@ -137,7 +146,7 @@ class Rig:
 
         robot = robot if robot is not None else RobotModel(aloha.robot_config())
         model = aloha.load_mujoco_model(task or aloha.TASKS[0])
-        return cls(robot, dict(cameras), aloha_controller(model), state_names=aloha.STATE_NAMES)
+        return cls(robot, dict(cameras), aloha_controller(model), state_names=aloha.STATE_NAMES, workspace=workspace)
 
     @staticmethod
     def robot_from_recipe(recipe) -> RobotModel:
@@ -199,9 +208,11 @@ class Rig:
                              gripper_links=tuple(rb.get("gripper_links", ())))
         cameras = {n: camera_from_dict(n, c, f"{where}.cameras.{n}") for n, c in block["cameras"].items()}
         surface = block.get("gripper_surface", {})
+        # schema 1 datasets have no workspace: their contact streams were not cropped
+        workspace = Workspace.from_dict(block.get("workspace"), f"{where}.workspace")
         return cls(RobotModel(config), cameras, Controller.from_dict(block["controller"], f"{where}.controller"),
                    state_names=rb.get("state_names"),
-                   gripper_spacing=float(surface.get("spacing", DEFAULT_GRIPPER_SPACING)))
+                   gripper_spacing=float(surface.get("spacing", DEFAULT_GRIPPER_SPACING)), workspace=workspace)
 
     def to_info(self) -> dict:
         """The rig's part of ``info["imac"]`` (:data:`RIG_KEYS`), JSON-ready."""
@@ -216,6 +227,7 @@ class Rig:
             "cameras": {name: cam.to_dict() for name, cam in self.cameras.items()},
             "controller": self.controller.to_dict(),
             "gripper_surface": {"links": list(config.gripper_links), "spacing": self.gripper_spacing, "seed": 0},
+            "workspace": None if self.workspace is None else self.workspace.to_dict(),
         }
 
     def with_image_sizes(self, sizes: Mapping[str, tuple[int, int]]) -> Rig:
@@ -228,7 +240,8 @@ class Rig:
                 raise InputError(f"camera {name!r}: images are {h}x{w} but the calibration is for "
                                  f"{cam.height}x{cam.width}, another aspect ratio")
             cams[name] = cam if (cam.height, cam.width) == (h, w) else cam.rescaled(w, h)
-        rig = Rig(self.robot, cams, self.controller, self.state_names, self.gripper_spacing, self.threads)
+        rig = Rig(self.robot, cams, self.controller, self.state_names, self.gripper_spacing, self.threads,
+                  self.workspace)
         rig._renderer, rig._gripper = self._renderer, self._gripper
         return rig
 
@@ -340,7 +353,8 @@ class Rig:
         With a leading batch axis (``(B, V, H, W)``, ``(B, D)``, ``(B, S, D)``) every tensor
         of the result gets one too. Cameras are rescaled to the depth's ``(H, W)``.
         ``options``: :func:`imac_data.contact.contact_chunk` (cap, percentile, dilate_px,
-        tolerance, method, device, ...). Returns a :class:`~imac_data.contact.ContactChunk`.
+        tolerance, method, device, ...); the scene is cropped to the rig's workspace unless
+        ``workspace`` is given (None = no crop). Returns a :class:`~imac_data.contact.ContactChunk`.
         """
         from imac_data.contact import ContactChunk, contact_chunk
 
@@ -365,6 +379,7 @@ class Rig:
         ref = self.robot_views(q_ref[None], resolution=hw, gripper=False)
         fut = self.robot_views(q_future, resolution=hw)
         device = options.pop("device", None) or ref_depth.device
+        options.setdefault("workspace", self.workspace)
         return contact_chunk(ref_depth.to(device), self.intrinsics(hw), ref.T_world_cam[0], ref.mask[0],
                              fut.depth, fut.T_world_cam, fut.gripper_points, device=device, **options)
 

@@ -34,6 +34,10 @@ Steps (per batch item; every stage batched over the items and steps of a chunk):
 4. **Contact images** (:func:`imac_data.contact.contact_chunk`, the dataset's cap rule,
    percentile and mask dilation from ``meta/info.json``) from the decoded depth, the robot
    mask and camera poses at the reference state ``q_ref``, and the future configurations.
+   The scene is cropped to the dataset's workspace (``imac.workspace``, carried by the rig:
+   world box and depth range), as the build cropped it; the default depth range ends where
+   the codec saturates (:func:`imac_data.workspace.saturation_depth`), so saturated decoded
+   depth is invalid online as the raw far depth was offline.
 
 Resolution (``resolution``): ``"model"`` computes at the model's view size, with the cameras
 rescaled exactly as the mosaic resizes the views (:func:`imac_model.mosaic.rescale_cameras`,
@@ -145,7 +149,8 @@ class OnlineControls:
         if not 0 < max_walk_distance:
             raise InputError(f"rollout.max_walk_distance: must be > 0, got {max_walk_distance}")
         cams = {v: rig.cameras[v] for v in views}
-        self.rig = Rig(rig.robot, cams, rig.controller, rig.state_names, rig.gripper_spacing, rig.threads)
+        self.rig = Rig(rig.robot, cams, rig.controller, rig.state_names, rig.gripper_spacing, rig.threads,
+                       rig.workspace)
         self.codec = codec
         self.views = tuple(views)
         self.view_hw = tuple(int(x) for x in view_hw)
@@ -266,7 +271,7 @@ class OnlineControls:
             chunks.append(contact_chunk(depth[b].to(dev, torch.float32), K, ref.T_world_cam[b].to(dev),
                                         ref.mask[b].to(dev), fut_depth[b].to(dev), fut_T[b].to(dev),
                                         grip[b].to(dev), allow_empty_scene=True, device=dev,
-                                        **self.contact_options))
+                                        **{"workspace": self.rig.workspace, **self.contact_options}))
         first = 1 if include_reference_step else 0
         r2s = torch.stack([c.r2s_rgb[first:] for c in chunks])  # (B, S', V, h, w, 3) uint8
         s2g = torch.stack([c.s2g_rgb[first:] for c in chunks])

@@ -1,5 +1,6 @@
 """The build CLI and recipes: a real build from recorded episodes, and bad input."""
 
+import json
 import shutil
 from pathlib import Path
 
@@ -244,3 +245,7 @@ def test_hub_card_is_what_lerobot_uploads(reference_build):
     text = str(card)
     assert "control.contact_s2g.cam_left_wrist" in text and "delta_timestamps" in text
     assert "imac" in card.data.tags and card.data.license == "apache-2.0"
+    ws = json.loads((reference_build / "meta" / "info.json").read_text())["imac"]["workspace"]
+    assert ws["source"].startswith("robot reach") and ws["depth_range"] == [0.0, 3.736]  # the contact crop
+    assert f"world box min `{json.dumps(ws['min'])}`, max `{json.dumps(ws['max'])}` m" in text
+    assert "depth lies in\n[0.0, 3.736) m" in text

@@ -27,10 +27,12 @@ from imac_data.contact import (
     nearest_distances,
     scene_cloud,
 )
+from imac_data.depth import DepthCodec
 from imac_data.errors import InputError
 from imac_data.rig import Rig
 from imac_data.robot import RobotModel
 from imac_data.simulate import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
+from imac_data.workspace import Workspace, resolve_workspace, saturation_depth
 
 METHODS = ["kdtree", "torch"]
 
@@ -494,3 +496,103 @@ def test_rig_contact_matches_the_episode_wiring(grasp):
     assert torch.equal(ep.s2g_rgb[4:6], c.s2g_rgb) and torch.equal(ep.caps[4], c.caps)
     with pytest.raises(InputError, match="reference depth must be"):
         rig.contact(grasp["depth"][3][:2], grasp["q"][3], grasp["q"][4:6])
+
+
+# ----------------------------------------------------------------------------- the workspace crop
+
+
+def test_workspace_crop_on_the_plane():
+    """Analytic: a box holding only x <= 0 of the plane and a depth range that rejects the
+    saturated and the far pixels. The cropped cloud is exactly the in-box, in-range plane
+    points; out-of-box pixels have no value (never hole-filled), out-of-range pixels are
+    invalid depth (holes, filled at the border like 0); the caps are the percentile of the
+    remaining points' brute-force distances."""
+    depth, K, T, rmask, rdepth, Tf, grip, heights = _plane_scene()
+    depth[0, 40:46, 18:24] = 65.535  # uint16 millimetres saturated
+    depth[0, 10:14, 50:54] = 8.0  # a far wall, beyond the depth range
+    ws = Workspace(min=(-1.0, -1.0, -0.05), max=(0.0, 1.0, 0.5), depth_range=(0.1, 4.0))
+    full = scene_cloud(depth, K, T, rmask)
+    scene = scene_cloud(depth, K, T, rmask, workspace=ws)
+    in_range = (depth[0] >= 0.1) & (depth[0] < 4.0)
+    keep = (full.points[:, 0] <= 0.0) & in_range.reshape(-1)[full.flat]
+    assert torch.equal(scene.flat, full.flat[keep]) and torch.equal(scene.points, full.points[keep])
+    assert (scene.points[:, 0] <= 0).all() and len(scene.points) > 1000
+    c = contact_chunk(depth, K, T, rmask, rdepth, Tf, grip, tolerance=None, workspace=ws.to_dict())
+    x = torch.arange(64, dtype=torch.float32) - 31.5  # pixel column -> x sign (camera x = world x)
+    right = (x > 2)[None].expand(48, 64)  # x > 0 by more than the 2-pixel fill
+    assert torch.isnan(c.s2g[:, 0][:, right]).all()
+    assert torch.isnan(c.s2g[:, 0, 42:44, 20:22]).all()  # saturated: interior of a hole, no value
+    assert torch.isfinite(c.s2g[:, 0, 40, 18:24]).all()  # its border is filled as any invalid depth
+    for k in range(len(heights)):
+        exact = brute(scene.points.double().numpy(), grip[k].double().numpy())
+        np.testing.assert_allclose(c.s2g[k, 0].reshape(-1)[scene.flat].numpy(), exact, atol=2e-6)
+    every = np.concatenate([brute(scene.points.double().numpy(), g.double().numpy()) for g in grip])
+    assert float(c.caps[1]) == pytest.approx(np.percentile(every, 99), abs=2e-6)
+    # without the crop the saturated pixels dominate the cap
+    assert float(contact_chunk(depth, K, T, rmask, rdepth, Tf, grip).caps[1]) > 60
+
+
+def _colour_distance(rgb: torch.Tensor, cap: float) -> torch.Tensor:
+    """Stored s2g colours (..., 3) back to metres: the middle of the distance interval of the
+    colour's level (level l <=> d in (cap (1 - (l+1)/256), cap (1 - l/256)]); NaN for black.
+    matplotlib's jet repeats 3 of its 256 colours: the nearer level is taken."""
+    key = lambda c: (c[..., 0] << 16) | (c[..., 1] << 8) | c[..., 2]  # noqa: E731
+    lut_keys = key(torch.as_tensor(JET_LUT, dtype=torch.int64))
+    level_of = dict(zip(lut_keys.tolist(), range(256)))  # later (nearer) levels overwrite
+    keys, inverse = torch.unique(key(rgb.to(torch.int64)), return_inverse=True)
+    levels = torch.tensor([level_of.get(k, -1) for k in keys.tolist()])[inverse]
+    assert ((levels >= 0) | (rgb == 0).all(-1)).all(), "a painted colour is not a jet colour"
+    d = cap * (1 - (levels.double() + 0.5) / 256)
+    return torch.where(levels >= 0, d, torch.full_like(d, math.nan))
+
+
+def test_workspace_crop_keeps_far_and_saturated_depth_out_of_the_caps(grasp):
+    """A recorded grasp whose reference depth gets a far background (8 m: the head camera's
+    upper rows, a wrist camera's lower rows) and uint16-saturated pixels (65.535 m, 2 % of
+    every view). With the default workspace (the robot's reach, the codec's depth range)
+    the stored s2g colour over the cube still gives MuJoCo's finger-cube distance within
+    5 mm + half a colour level at a workspace-sized cap, and the caps stay within the
+    workspace's diagonal; without the crop the s2g cap is tens of metres."""
+    model, inp, labels, rig = grasp["model"], grasp["inputs"], grasp["labels"], grasp["rig"]
+    ws = resolve_workspace(None, rig.robot, saturation_depth(DepthCodec.preset("manipulation")))
+    data = mujoco.MjData(model)
+    box = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "red_box")
+    adr = model.jnt_qposadr[model.body_jntadr[model.geom_bodyid[box]]]
+    fingers = [g for g in range(model.ngeom) if "finger" in model.geom(g).name]
+    K, rng = grasp["K"], np.random.default_rng(0)
+    tol = 0.005 + ws.diagonal / 512
+    errors = []
+    T_frames = len(grasp["q"])
+    for ref in (24, 48, 56):  # approach, closing in, squeezing the cube
+        frames = list(range(ref + 1, min(ref + 9, T_frames)))
+        cube = torch.as_tensor(grasp["seg"][ref] == box)
+        depth = grasp["depth"][ref].clone()
+        far = torch.zeros_like(cube)
+        far[0, :60], far[1, 200:] = True, True
+        depth[far & ~cube] = 8.0
+        saturated = torch.as_tensor(rng.random(cube.shape) < 0.02) & ~cube
+        depth[saturated] = 65.535
+        args = (depth, K, inp["T_world_cam"][ref], inp["mask"][ref], inp["depth"][frames], inp["T_world_cam"][frames],
+                inp["gripper_points"][frames])
+        c = contact_chunk(*args, workspace=ws)
+        assert (c.caps <= ws.diagonal).all(), c.caps
+        if ref == 24:
+            assert float(contact_chunk(*args).caps[1]) > 10 * ws.diagonal  # the poisoned scene, uncropped
+        scene = scene_cloud(depth, K, inp["T_world_cam"][ref], inp["mask"][ref], workspace=ws)
+        assert ws.contains(scene.points).all() and not scene.valid[far | saturated].any()
+        cube &= scene.valid
+        stored = _colour_distance(c.s2g_rgb[:, cube], float(c.caps[1]))  # (S, cube pixels)
+        for i, f in enumerate(frames):
+            data.qpos[:] = grasp["qfull"][f]
+            data.qpos[adr:adr + 7] = grasp["qfull"][ref][adr:adr + 7]
+            mujoco.mj_kinematics(model, data)
+            dists = [_mj_distance(model, data, g, box) for g in fingers]
+            if any(d is None for d in dists):
+                continue
+            mj = max(min(dists), 0.0)
+            if mj < 0.05:
+                errors.append((mj, float(c.s2g[i][cube].min()), float(stored[i].min())))
+    errors = np.array(errors)
+    assert len(errors) >= 12 and errors[:, 0].min() < 0.002
+    assert np.abs(errors[:, 1] - errors[:, 0]).max() <= 0.005  # the distances themselves
+    assert np.abs(errors[:, 2] - errors[:, 0]).max() <= tol, errors  # what the dataset stores

@@ -14,6 +14,7 @@ import yaml
 from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
 
 from imac_data.build import main as build_main
+from imac_data.dataset.info import SCHEMA_VERSION
 from imac_data.dataset.merge import merge_datasets
 from imac_data.dataset.validate import validate_dataset
 from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter
@@ -97,7 +98,7 @@ def test_merge_keeps_the_imac_block_and_refuses_two_rigs(built, tmp_path):
     merge_datasets(built, out, "local/pkg", imac_extra={"build": {"episodes": 2}})
     info = json.loads((out / "meta" / "info.json").read_text())
     first = json.loads((built[0] / "meta" / "info.json").read_text())["imac"]
-    assert info["total_episodes"] == 2 and info["imac"]["schema_version"] == 1
+    assert info["total_episodes"] == 2 and info["imac"]["schema_version"] == SCHEMA_VERSION
     assert {k: v for k, v in info["imac"].items() if k != "build"} == {k: v for k, v in first.items() if k != "build"}
     assert info["imac"]["build"] == {"episodes": 2}
     assert list(json.loads((out / "meta" / "stats.json").read_text())) == \

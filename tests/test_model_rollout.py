@@ -415,3 +415,45 @@ def test_rollout_training_and_long_sampling_clis(built, tmp_path, capsys):
     assert len(frames) == 2 * CHUNK and png.is_file()
     assert sample_cli.main(["--checkpoint", str(out), "--episode", "1", "--chunk", "5", "--chunks", "2"]) == 2
     assert "--chunk 5 --chunks 2: episode 1 has chunks 0..5" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- the workspace crop
+
+
+def test_online_rebuild_crops_to_the_datasets_workspace(built, stored):
+    """The online rebuild takes the dataset's workspace (``imac.workspace``, the crop the build
+    applied) and applies it to decoded depth: a reference whose depth holds uint16-saturated
+    values (65.535 m, through the colour codec) gives exactly the contact images of one with
+    invalid depth there; a far background (8 m) leaves the caps within the workspace; with the
+    crop switched off the s2g cap is tens of metres."""
+    root, _ = built
+    _, _, ep = stored
+    _, spec, _ = _spec(root, **{"data.view_height": HW[0]})
+    online = OnlineControls.from_dataset(root, spec)
+    info = json.loads((root / "meta" / "info.json").read_text())
+    ws = online.rig.workspace
+    assert ws is not None and ws.to_dict() == info["imac"]["workspace"]
+    ref, future = 4, [5, 6, 7, 8]
+    q_ref = torch.as_tensor(ep.qpos[ref], dtype=torch.float32)[None]
+    q_future = online.configurations(q_ref, torch.as_tensor(ep.action[[f - 1 for f in future]],
+                                                            dtype=torch.float32)[None])
+    depth = torch.stack([torch.as_tensor(depth_from_millimetres(ep.depth_mm[v][ref])) for v in VIEWS])
+    hit = torch.as_tensor(np.random.default_rng(0).random(depth.shape) < 0.03)
+
+    def through_codec(d):  # what the world model's depth row decodes to
+        colour = torch.as_tensor(online.codec.encode_uint8(d.numpy())).permute(0, 3, 1, 2).float() / 255
+        return decode_depth(colour, online.codec)[0]
+
+    saturated, invalid = depth.clone(), depth.clone()
+    saturated[hit], invalid[hit] = 65.535, 0.0
+    a = online.contact(through_codec(saturated)[None], q_ref, q_future)
+    b = online.contact(through_codec(invalid)[None], q_ref, q_future)
+    assert torch.equal(a.caps, b.caps), (a.caps, b.caps)
+    assert torch.equal(a.r2s, b.r2s) and torch.equal(a.s2g, b.s2g)
+    far = depth.clone()
+    far[0, : HW[0] // 3] = 8.0  # the head camera's upper third: a wall
+    c = online.contact(through_codec(far)[None], q_ref, q_future)
+    assert bool((c.caps <= ws.diagonal).all())
+    uncropped = OnlineControls(online.rig, online.codec, VIEWS, HW, HW,
+                               contact={**online.contact_options, "workspace": None})
+    assert float(uncropped.contact(saturated[None], q_ref, q_future).caps[0, 1]) > 10

@@ -15,6 +15,8 @@ import torch
 import yaml
 
 from imac_data import aloha
+from imac_data.depth import DepthCodec
+from imac_data.dataset.info import RIG_KEYS, SCHEMA_VERSION, imac_block
 from imac_data.errors import InputError
 from imac_data.ingest import IngestOptions, ingest_episodes
 from imac_data.recipes import RECIPES_DIR, load_recipe, parse_recipe
@@ -22,6 +24,7 @@ from imac_data.rig import Rig
 from imac_data.robot import JointEntry, RobotConfig, RobotModel
 from imac_data.robot_files import DESCRIPTION_DIR, packaged_description
 from imac_data.simulate import SimConfig, record_dataset
+from imac_data.workspace import DEFAULT_MARGIN, Workspace, depth_in_range, reach_box
 
 
 @pytest.fixture(scope="module")
@@ -49,10 +52,12 @@ def test_dataset_rebuilds_the_rig_exactly(base, recipe_rig):
     renders, gripper samples and controller."""
     info = json.loads((base / "meta" / "info.json").read_text())
     block = info["imac"]
-    assert block["schema_version"] == 1
+    assert block["schema_version"] == SCHEMA_VERSION == 2
     rig = Rig.from_info(info, base)
-    assert rig.to_info() == {k: block[k] for k in ("robot", "cameras", "controller", "gripper_surface")}
+    assert set(RIG_KEYS) == {"robot", "cameras", "controller", "gripper_surface", "workspace"}
+    assert rig.to_info() == {k: block[k] for k in RIG_KEYS}
     assert rig.to_info() == recipe_rig.to_info()  # the recipe's calibration is at the image size here
+    assert rig.workspace == recipe_rig.workspace and rig.workspace is not None  # the contact crop
     assert rig.robot.config.urdf_path.is_relative_to(base / DESCRIPTION_DIR)
     q = torch.randn(6, rig.dof, dtype=torch.float64) * 0.5
     a, b = recipe_rig.link_poses(q), rig.link_poses(q)
@@ -151,3 +156,88 @@ def test_contact_from_predicted_depth_has_a_batch_axis(recipe_rig, sim_dir):
     assert torch.equal(batched.r2s_rgb[1], single.r2s_rgb) and torch.equal(batched.caps[1], single.caps)
     with pytest.raises(InputError, match="reference depth"):
         recipe_rig.contact(depth[0, :2], q[0], q[1:3])
+
+
+def test_workspace_in_recipes_and_info(tmp_path, sim_dir, recipe_rig, base):
+    """The recipe's augment.contact_workspace: an explicit box and depth range are used as
+    given; the default is the robot's reach (+ margin) and the codec's range; bad values name
+    the field. Schema 1 blocks (no workspace) still load, as a rig without a crop."""
+    ws = recipe_rig.workspace
+    assert ws.source.startswith("robot reach") and ws.depth_range == (0.0, 3.736)  # where 'manipulation' saturates
+    codec = DepthCodec.preset("manipulation")
+    top = torch.as_tensor(codec.decode(codec.encode_uint8(np.array([[[3.9, 8.0, 65.535]]], np.float32))))
+    assert not depth_in_range(top, *ws.depth_range).any()  # saturated codes are invalid online too
+    assert (ws.min, ws.max) == reach_box(recipe_rig.robot, margin=DEFAULT_MARGIN)
+    # every vertex of MuJoCo's own robot meshes, posed by MuJoCo over a recorded episode, lies in the box
+    import mujoco
+
+    from imac_data.aloha_hdf5 import read_episode
+
+    model = aloha.load_mujoco_model("transfer_cube")
+    data = mujoco.MjData(model)
+    free = {model.jnt_bodyid[j] for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE}
+    geoms = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH
+             and model.geom_bodyid[g] != 0 and model.geom_bodyid[g] not in free]
+    assert len(geoms) >= 10
+    verts = [model.mesh_vert[model.mesh_vertadr[model.geom_dataid[g]]:][:model.mesh_vertnum[model.geom_dataid[g]]]
+             for g in geoms]
+    for q14 in read_episode(sorted(sim_dir.glob("episode_*.hdf5"))[0]).qpos:
+        aloha.set_mujoco_qpos(model, data, q14)
+        mujoco.mj_kinematics(model, data)
+        world = np.concatenate([v @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g] for g, v in zip(geoms, verts)])
+        assert ws.contains(torch.as_tensor(world)).all()
+    config = aloha.robot_config()
+    data_yaml = {"name": "custom", "task": "t", "fps": 25,
+                 "robot": {"urdf": str(config.urdf_path), "gripper_links": list(config.gripper_links),
+                           "package_dirs": {k: str(v) for k, v in config.package_dirs},
+                           "joint_map": config.joint_map_dict()},
+                 "cameras": {"calibration": str(sim_dir / "calibration.json")},
+                 "source": {"type": "aloha_hdf5", "path": str(sim_dir)},
+                 "augment": {"depth_codec": "general",
+                             "contact_workspace": {"min": [-0.7, 0.0, -0.05], "max": [0.7, 1.2, 0.6],
+                                                   "depth_range": [0.05, 2.0]}}}
+    path = tmp_path / "custom.yaml"
+    path.write_text(yaml.safe_dump(data_yaml))
+    rig = Rig.from_recipe(load_recipe(path))
+    assert rig.workspace == Workspace((-0.7, 0.0, -0.05), (0.7, 1.2, 0.6), (0.05, 2.0), source="recipe")
+    margin = {**data_yaml, "augment": {"depth_codec": "general", "contact_workspace": {"margin": 0.0}}}
+    path.write_text(yaml.safe_dump(margin))
+    wide = Rig.from_recipe(load_recipe(path)).workspace
+    assert wide.depth_range == (0.0, 306.869) and all(a < b for a, b in zip(ws.min, wide.min))  # general; no margin
+    for bad, field in [({"min": [0, 0, 0]}, "give both min and max"),
+                       ({"min": [0, 0, 0], "max": [1, 1, 1], "margin": 0.1}, r"contact_workspace\.margin"),
+                       ({"min": [0, 0], "max": [1, 1, 1]}, r"contact_workspace\.min"),
+                       ({"min": [0, 0, 1], "max": [1, 1, 1]}, "min must be below max"),
+                       ({"depth_range": [2.0, 1.0]}, r"contact_workspace\.depth_range"),
+                       ({"box": 1}, "unknown field")]:
+        with pytest.raises(InputError, match=field):
+            parse_recipe({**data_yaml, "augment": {"contact_workspace": bad}}, str(path))
+    # JSON round trip, an open far end included
+    assert Workspace.from_dict(json.loads(json.dumps(Workspace((0, 0, 0), (1, 1, 1), (0.1, math.inf)).to_dict()))) \
+        == Workspace((0, 0, 0), (1, 1, 1), (0.1, math.inf))
+    # schema 1: no workspace key; the rig loads without a crop; schema 2 requires the key
+    info = json.loads((base / "meta" / "info.json").read_text())
+    old = {**info, "imac": {k: v for k, v in info["imac"].items() if k != "workspace"}}
+    old["imac"]["schema_version"] = 1
+    assert Rig.from_info(old, base).workspace is None
+    imac_block(old, require=RIG_KEYS)
+    with pytest.raises(InputError, match="workspace"):
+        imac_block({**old, "imac": {**old["imac"], "schema_version": 2}}, require=RIG_KEYS)
+
+
+def test_rig_contact_crops_to_its_workspace(recipe_rig, sim_dir):
+    """Rig.contact applies the rig's workspace: saturated depth (65.535 m) gives exactly what
+    invalid depth (0) gives; with the crop switched off it ruins the caps."""
+    from imac_data.aloha_hdf5 import read_episode
+
+    ep = read_episode(sorted(sim_dir.glob("episode_*.hdf5"))[0])
+    depth = torch.stack([torch.as_tensor(ep.depth_mm[n][0].astype(np.float32) / 1000) for n in recipe_rig.names])
+    q = torch.as_tensor(ep.qpos[:3], dtype=torch.float32)
+    hit = torch.as_tensor(np.random.default_rng(0).random(depth.shape) < 0.05)
+    saturated, invalid = depth.clone(), depth.clone()
+    saturated[hit], invalid[hit] = 65.535, 0.0
+    a, b = recipe_rig.contact(saturated, q[0], q[1:]), recipe_rig.contact(invalid, q[0], q[1:])
+    for name in ("r2s_rgb", "s2g_rgb", "caps"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert (a.caps <= recipe_rig.workspace.diagonal).all()
+    assert float(recipe_rig.contact(saturated, q[0], q[1:], workspace=None).caps[1]) > 10
