@@ -99,7 +99,10 @@ def test_lerobot_v30_source_built_with_da3(source, sim, da3_weights, tmp_path):
     meta.write_text("episode_index,success,policy_name\n0,true,act\n1,0,act\n")
     recipe = recipe_file(tmp_path, source, sim / "sim" / "calibration.json",
                          source={"metadata": str(meta), "episode_defaults": {"source": "policy"}},
-                         depth={"source": "da3", "model": str(da3_weights), "process_res": 28, "device": "cpu"})
+                         depth={"source": "da3", "model": str(da3_weights), "process_res": 28, "device": "cpu"},
+                         # random weights give depth of no particular scale: crop nothing away
+                         augment={"contact_workspace": {"min": [-1e3] * 3, "max": [1e3] * 3,
+                                                        "depth_range": [0.0, 1e6]}})
     root = tmp_path / "out"
     ds = build(BuildRequest("local/out", recipe, root, progress=False))
 
