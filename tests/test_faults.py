@@ -2,9 +2,12 @@
 never modified, and nothing half-written is left behind."""
 
 import hashlib
+import json
 import shutil
 from pathlib import Path
 
+import h5py
+import numpy as np
 import pytest
 import yaml
 
@@ -91,3 +94,107 @@ def test_augment_refuses_a_dataset_inside_its_raw_episodes(sim_src, tmp_path, ca
     assert rc == 2
     assert "raw episodes" in capsys.readouterr().err
     assert tree_digest(src) == before
+
+
+# --------------------------------------------------------------------------- bad input: exit 2, nothing written
+
+
+def build_main(recipe: Path, src: Path, root: Path, *extra) -> int:
+    """The build CLI in this process (one worker: no pool), quiet."""
+    return main(["--repo", "local/x", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
+                 "--no-progress", "--workers", "1", *extra])
+
+
+def edit_calibration(src: Path, cam: str, edit) -> None:
+    path = src / "calibration.json"
+    data = json.loads(path.read_text())
+    edit(data["cameras"][cam])
+    path.write_text(json.dumps(data))
+
+
+def edit_datasets(path: Path, edit, keys: list[str] | None = None) -> None:
+    """Replace HDF5 datasets ``keys`` (default: every one) of episode ``path`` by ``edit(array)``."""
+    with h5py.File(path, "r+") as f:
+        if keys is None:
+            keys = []
+            f.visititems(lambda name, obj: keys.append(name) if isinstance(obj, h5py.Dataset) else None)
+        for key in keys:
+            value = edit(f[key][()])
+            del f[key]
+            f.create_dataset(key, data=value)
+
+
+def _scale_rotation(c):
+    c["T_world_cam"] = (np.asarray(c["T_world_cam"]) @ np.diag([1.1, 1.1, 1.1, 1.0])).tolist()
+
+
+def _reflect(c):
+    c["T_world_cam"][0][:3] = [-x for x in c["T_world_cam"][0][:3]]
+
+
+def _negative_focal(c):
+    c["K"][0][0] = -c["K"][0][0]
+
+
+def _last_row(c):
+    c["T_world_cam"][3] = [0.0, 0.0, 0.1, 1.0]
+
+
+def _principal_point(c):
+    c["K"][0][2] = 400.0
+
+
+def _unknown_link(c):
+    c["link"] = "vx300s_left/no_such_link"
+
+
+def _other_aspect(c):
+    c["width"] = 200
+
+
+DEPTH_HIGH, IMAGES_HIGH = "observations/images_depth/cam_high", "observations/images/cam_high"
+BAD_INPUT = {  # case -> (damage the source directory, what the message must name)
+    # calibration (item 2): the calibration file, the camera, the field
+    "rotation_scaled": (lambda s: edit_calibration(s, "cam_high", _scale_rotation),
+                        ["calibration.json", "cam_high", "T_world_cam", "not orthonormal"]),
+    "rotation_reflection": (lambda s: edit_calibration(s, "cam_high", _reflect),
+                            ["calibration.json", "cam_high", "T_world_cam", "det -1"]),
+    "negative_focal_length": (lambda s: edit_calibration(s, "cam_high", _negative_focal),
+                              ["calibration.json", "cam_high", "fx=-"]),
+    "pose_last_row": (lambda s: edit_calibration(s, "cam_high", _last_row),
+                      ["calibration.json", "cam_high", "last row", "[0, 0, 0, 1]"]),
+    "principal_point_outside": (lambda s: edit_calibration(s, "cam_high", _principal_point),
+                                ["calibration.json", "cam_high", "principal point"]),
+    "unknown_link": (lambda s: edit_calibration(s, "cam_left_wrist", _unknown_link),
+                     ["cam_left_wrist", "vx300s_left/no_such_link"]),
+    "calibration_other_aspect": (lambda s: edit_calibration(s, "cam_high", _other_aspect),
+                                 ["cam_high", "120x160", "aspect ratio"]),
+    # recorded depth (item 3) and the up-front checks (item 4): the file and the key
+    "depth_other_aspect": (lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:, :, :120], [DEPTH_HIGH]),
+                           ["episode_1.hdf5", DEPTH_HIGH, "aspect ratio"]),
+    "depth_dtype": (lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d.astype(np.int32), [DEPTH_HIGH]),
+                    ["episode_1.hdf5", DEPTH_HIGH, "int32", "uint16 or float"]),
+    "resolution_differs_between_episodes": (
+        lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:, ::2, ::2], [IMAGES_HIGH, DEPTH_HIGH]),
+        ["episode_1.hdf5", IMAGES_HIGH, "(60, 80)", "episode_0.hdf5"]),
+    "empty_episode": (lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:0]), ["episode_1.hdf5", "no frames"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUT))
+def test_bad_input_is_refused_before_any_work(sim_src, tmp_path, capsys, case):
+    """Exit 2 with one message naming the file, key or field; nothing new next to the
+    output; the source byte-identical."""
+    damage, names = BAD_INPUT[case]
+    src = copy_source(sim_src, tmp_path / "episodes")
+    damage(src)
+    recipe = recipe_file(tmp_path)
+    before, listing = tree_digest(src), sorted(p.name for p in tmp_path.iterdir())
+    rc = build_main(recipe, src, tmp_path / "out")
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    for name in names:
+        assert name in err, f"{name!r} not in {err!r}"
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert tree_digest(src) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == listing
