@@ -1,15 +1,21 @@
 """Faults a user can make, tried as a user would: each gets a clear error, the source is
 never modified, and nothing half-written is left behind."""
 
+import errno
 import hashlib
 import json
+import os
 import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 import yaml
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from imac_data.build import main
 from imac_data.recipes import RECIPES_DIR
@@ -198,3 +204,211 @@ def test_bad_input_is_refused_before_any_work(sim_src, tmp_path, capsys, case):
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert tree_digest(src) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == listing
+
+
+@pytest.mark.parametrize("kind", ["file", "other_directory"])
+def test_overwrite_replaces_only_a_dataset(sim_src, tmp_path, capsys, kind):
+    """--overwrite with --root an existing file, or a directory that is not a LeRobot dataset:
+    refused (exit 2), and it stays as it was."""
+    root = tmp_path / "out"
+    if kind == "file":
+        root.write_text("my notes")
+    else:
+        root.mkdir()
+        (root / "notes.txt").write_text("my notes")
+    recipe = recipe_file(tmp_path)
+    before, listing = tree_digest(tmp_path), sorted(p.name for p in tmp_path.iterdir())
+    assert build_main(recipe, sim_src, root, "--overwrite") == 2
+    err = capsys.readouterr().err
+    assert str(root) in err and ("is a file" if kind == "file" else "not a LeRobot dataset") in err
+    assert tree_digest(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == listing
+
+
+# --------------------------------------------------------------------------- environment: exit 3, resumable
+
+
+def staging_entries(staging: Path) -> list[str]:
+    """The directories a build left in staging, apart from the robot description and the timings."""
+    return sorted(str(p.relative_to(staging)) for p in staging.rglob("*")
+                  if p.is_dir() and p.parent in (staging, staging / "shards") and p.name not in ("robot", "timings"))
+
+
+def fail_with(code: int, after: int = 0):
+    """A stand-in writer that works ``after`` times (calling ``real``), then raises OSError(code)."""
+    calls = []
+
+    def wrap(real):
+        def writer(*args, **kwargs):
+            calls.append(args)
+            if len(calls) > after:
+                raise OSError(code, os.strerror(code), str(args[0]))
+            return real(*args, **kwargs)
+        return writer
+    return wrap
+
+
+def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_path, capsys, monkeypatch):
+    """Disk full while episode 1 is written, then a read-only file system at the merge: each
+    exits 3 with one line, leaves only the finished shards in staging (no partial shard, no
+    half-merged dataset, no lock), and the rerun completes, without any progress bar."""
+    from imac_data import dataset_card
+    from imac_data.dataset import columns
+
+    recipe, root = recipe_file(tmp_path), tmp_path / "out"
+    staging, source = tmp_path / ".out.staging", tree_digest(sim_src)
+
+    monkeypatch.setattr(columns, "add_frame_column", fail_with(errno.ENOSPC, after=1)(columns.add_frame_column))
+    assert build_main(recipe, sim_src, root) == 3
+    err = capsys.readouterr().err
+    assert "No space left on device (ENOSPC)" in err and len(err.strip().splitlines()) == 1, err
+    assert staging_entries(staging) == ["shards", "shards/episode_000000"]  # episode 1's partial shard removed
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".out.staging", "recipe.yaml"]
+    monkeypatch.undo()
+
+    monkeypatch.setattr(dataset_card, "write_card", fail_with(errno.EROFS)(dataset_card.write_card))
+    assert build_main(recipe, sim_src, root) == 3
+    err = capsys.readouterr().err
+    assert "Read-only file system (EROFS)" in err and len(err.strip().splitlines()) == 1, err
+    assert staging_entries(staging) == ["shards", "shards/episode_000000", "shards/episode_000001"]  # no dataset/
+    monkeypatch.undo()
+
+    assert build_main(recipe, sim_src, root) == 0
+    err = capsys.readouterr().err
+    assert "%|" not in err and "it/s" not in err, err  # --no-progress: LeRobot's bars too
+    assert LeRobotDataset("local/x", root=root).meta.total_episodes == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "recipe.yaml"]
+    assert tree_digest(sim_src) == source
+
+
+def test_output_parent_that_is_a_file(sim_src, tmp_path, capsys):
+    recipe = recipe_file(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    assert build_main(recipe, sim_src, tmp_path / "afile" / "out") == 3
+    err = capsys.readouterr().err
+    assert "afile is a file, not a directory" in err and len(err.strip().splitlines()) == 1
+    assert (tmp_path / "afile").read_text() == "x"
+
+
+@pytest.fixture
+def small_tmpfs(tmp_path):
+    """A real 2 MB file system (tmpfs), or a skip where mounting is not permitted."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"mounting a tmpfs is not permitted here: {r.stderr.strip()}")
+    yield mnt
+    subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def test_a_really_full_disk_warns_fails_cleanly_and_resumes(sim_src, tmp_path, small_tmpfs, capsys):
+    """The build into a 2 MB tmpfs: a warning before it starts, exit 3 when the disk fills,
+    only finished shards left; after the file system grows the rerun completes."""
+    recipe, root = recipe_file(tmp_path), small_tmpfs / "out"
+    assert build_main(recipe, sim_src, root) == 3
+    err = capsys.readouterr().err
+    assert "warning:" in err and "MB free" in err, err
+    assert "No space left on device (ENOSPC)" in err and "Traceback" not in err, err
+    staging = small_tmpfs / ".out.staging"
+    assert all(e == "shards" or e.startswith("shards/episode_0") for e in staging_entries(staging))
+    assert not list(staging.rglob("*.tmp")) and not list(staging.rglob("*.merging"))
+    subprocess.run(["mount", "-o", "remount,size=32m", str(small_tmpfs)], check=True)
+    assert build_main(recipe, sim_src, root) == 0
+    assert LeRobotDataset("local/x", root=root).meta.total_episodes == 2
+    assert sorted(p.name for p in small_tmpfs.iterdir()) == ["out"]
+
+
+# --------------------------------------------------------------------------- concurrency and killed builds
+
+
+HOLD_LOCK = """
+import os, sys, time
+from pathlib import Path
+from imac_data.lock import lock_path, output_lock
+root = Path(sys.argv[1])
+with output_lock(root):
+    print("locked", flush=True)
+    if len(sys.argv) < 3:
+        time.sleep(600)
+    else:  # "a build" that finishes once another one waits for its lock (a "->" line in /proc/locks)
+        inode = f":{os.stat(lock_path(root)).st_ino} "
+        while not any(line.split()[1] == "->" and inode in line for line in open("/proc/locks")):
+            time.sleep(0.05)
+        (root / "meta").mkdir(parents=True)
+        (root / "meta" / "info.json").write_text("{}")
+"""
+
+
+def hold_lock(root: Path, *args) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(root), *args], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "locked"
+    return proc
+
+
+def test_a_second_build_of_the_same_output_is_locked_out(sim_src, tmp_path, capsys):
+    """Another build holds the output's lock: refused with exit 3 naming its PID, nothing
+    written; the lock file lies next to the staging directory."""
+    from imac_data.lock import lock_path
+
+    recipe, root = recipe_file(tmp_path), tmp_path / "out"
+    assert lock_path(root).parent == root.parent
+    other = hold_lock(root)
+    try:
+        assert build_main(recipe, sim_src, root) == 3
+        err = capsys.readouterr().err
+        assert f"another build (PID {other.pid}) is writing {root}" in err and "--wait" in err, err
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".out.lock", "recipe.yaml"]  # the other's lock only
+    finally:
+        other.kill()
+        other.wait()
+
+
+def test_wait_waits_for_the_other_build(sim_src, tmp_path, capsys):
+    """--wait: the build waits for the lock's holder, then sees the output it made (exit 2,
+    already exists) instead of replacing it."""
+    recipe, root = recipe_file(tmp_path), tmp_path / "out"
+    other = hold_lock(root, "finish when waited for")
+    assert build_main(recipe, sim_src, root, "--wait") == 2
+    err = capsys.readouterr().err
+    assert f"waiting for the build with PID {other.pid}" in err and "already exists" in err, err
+    assert other.wait() == 0 and (root / "meta" / "info.json").read_text() == "{}"
+
+
+def _alive_children(pid: int) -> set[int]:
+    out = set()
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        out |= {int(c) for c in (task / "children").read_text().split()}
+    return out
+
+
+def _running(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"  # zombies are dead
+    except OSError:
+        return False
+
+
+def test_pool_workers_die_with_a_killed_build(sim_src, tmp_path):
+    """SIGKILL the build while a pool worker writes its episode: the worker dies with it and
+    finishes no shard afterwards."""
+    recipe, root = recipe_file(tmp_path), tmp_path / "out"
+    shards = tmp_path / ".out.staging" / "shards"
+    proc = subprocess.Popen([sys.executable, "-m", "imac_data.build", "--repo", "local/x", "--recipe", str(recipe),
+                             "--source", str(sim_src), "--root", str(root), "--no-progress", "--workers", "2"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 240
+    while time.time() < deadline:  # both episodes started, one still being written (by the pool worker)
+        writing, done = list(shards.glob(".episode_*.tmp")), list(shards.glob("episode_*"))
+        if writing and len(writing) + len(done) == 2:
+            break
+        time.sleep(0.05)
+    children = _alive_children(proc.pid)
+    proc.kill()
+    proc.wait()
+    assert children and writing, "the build started no pool worker"
+    deadline = time.time() + 10
+    while time.time() < deadline and any(_running(c) for c in children):
+        time.sleep(0.1)
+    assert not any(_running(c) for c in children), "a pool worker outlived the build"
+    time.sleep(1.0)
+    assert list(shards.glob("episode_*")) == done, "an orphan finished a shard after the build was killed"
