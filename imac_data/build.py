@@ -291,13 +291,13 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     from imac_data.rig import Rig
 
     recipe = req.recipe
-    check_output(req.root, overwrite=req.overwrite)
     if executor not in ("local", "ray"):
         raise InputError(f"--executor must be 'local' or 'ray', got {executor!r}")
     problems = missing_inputs(recipe, req.source_path)
     if problems:
         raise InputError(f"recipe {recipe.file} needs inputs that are not there:\n  - " + "\n  - ".join(problems))
     refuse_overlap(req.root, _input_paths(req))  # before anything is recorded or written
+    check_output(req.root, overwrite=req.overwrite)
     robot = Rig.robot_from_recipe(recipe)  # a bad URDF or joint map fails before any recording
     paths, calibration_path = source_episodes(req)
     refuse_overlap(req.root, {"source episodes": paths[0].parent, "calibration": calibration_path})
