@@ -278,6 +278,13 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     assert LeRobotDataset("local/x", root=root).meta.total_episodes == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "recipe.yaml"]
     assert tree_digest(sim_src) == source
+    # the free-space estimate is a lower bound of the staging peak (about twice the output)
+    from imac_data.diskspace import estimate_build_bytes
+
+    robot = sum(p.stat().st_size for p in (root / "meta" / "imac" / "robot").rglob("*") if p.is_file())
+    need = estimate_build_bytes(12, {c: (120, 160) for c in ("cam_high", "cam_left_wrist", "cam_right_wrist")},
+                                (60, 80), robot)
+    assert need <= 2 * sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
 
 
 def test_output_parent_that_is_a_file(sim_src, tmp_path, capsys):
