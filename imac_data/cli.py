@@ -27,12 +27,12 @@ __all__ = ["default_root", "cache_home", "quiet_libraries", "silence_progress_ba
 
 # errno -> what the user can do about it
 _ENVIRONMENT_ERRNOS = {
-    errno.ENOSPC: "free some space (finished episodes stay in staging: a rerun resumes)",
-    errno.EDQUOT: "free some space or raise the quota (a rerun resumes)",
-    errno.EROFS: "choose an output on a writable file system",
-    errno.EACCES: "choose an output you may write to",
-    errno.EPERM: "choose an output you may write to",
-    errno.ENOTDIR: "a parent of the path is a file, not a directory",
+    errno.ENOSPC: "free some space and rerun: finished episodes stay in staging, so the build resumes",
+    errno.EDQUOT: "free some space or raise the quota and rerun: the build resumes",
+    errno.EROFS: "the file system is read-only: choose another output",
+    errno.EACCES: "check the permissions of that path",
+    errno.EPERM: "check the permissions of that path",
+    errno.ENOTDIR: "a parent of that path is a file, not a directory",
     errno.EMFILE: "raise the open-file limit (ulimit -n)",
     errno.ENFILE: "the system ran out of open files",
     errno.EIO: "the disk reported an I/O error",
