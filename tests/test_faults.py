@@ -287,6 +287,27 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     assert need <= 2 * sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
 
 
+def test_environment_errors_are_recognised_however_they_arrive():
+    """From a pool worker (pickled), wrapped by a library (chained), or with only the text kept
+    (pyarrow, PyAV): still an environment fault; anything else is a bug."""
+    import pickle
+
+    from imac_data.cli import environment_problem
+
+    full = pickle.loads(pickle.dumps(OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/data/x.mp4")))
+    assert environment_problem(full).startswith("No space left on device (ENOSPC): /data/x.mp4 - free some space")
+    try:
+        try:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+        except OSError as e:
+            raise RuntimeError("could not write the video") from e
+    except RuntimeError as wrapped:
+        assert "(EROFS)" in environment_problem(wrapped)
+    assert "(ENOSPC)" in environment_problem(OSError("IOError: [Errno 28] No space left on device"))
+    assert environment_problem(OSError(errno.ENOENT, "No such file or directory")) is None
+    assert environment_problem(ValueError("a bug")) is None
+
+
 def test_output_parent_that_is_a_file(sim_src, tmp_path, capsys):
     recipe = recipe_file(tmp_path)
     (tmp_path / "afile").write_text("x")
