@@ -35,6 +35,13 @@ def _holder(path: Path) -> str:
         return "unknown"
 
 
+def _same_file(path: Path, fd: int) -> bool:
+    try:
+        return os.stat(path).st_ino == os.fstat(fd).st_ino
+    except FileNotFoundError:
+        return False
+
+
 def _acquire(path: Path, root: Path, wait: bool) -> int:
     """A descriptor of ``path`` holding its exclusive lock. The previous holder may unlink the
     file between our open and our lock: then the lock is on a dead inode, so try again."""
@@ -51,7 +58,7 @@ def _acquire(path: Path, root: Path, wait: bool) -> int:
                         "or pass --wait") from None
                 print(f"[lock] waiting for the build with PID {pid} to release {root}", file=sys.stderr)
                 fcntl.flock(fd, fcntl.LOCK_EX)
-            if os.path.exists(path) and os.stat(path).st_ino == os.fstat(fd).st_ino:
+            if _same_file(path, fd):
                 return fd
         except BaseException:
             os.close(fd)
@@ -63,6 +70,7 @@ def _acquire(path: Path, root: Path, wait: bool) -> int:
 def output_lock(root: Path, *, wait: bool = False) -> Iterator[Path]:
     """Hold the lock of output ``root`` (:func:`lock_path`) for the ``with`` block."""
     path = lock_path(root)
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd = _acquire(path, Path(root), wait)
     try:
         os.ftruncate(fd, 0)

@@ -254,15 +254,15 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     from imac_data import dataset_card
     from imac_data.dataset import columns
 
-    recipe, root = recipe_file(tmp_path), tmp_path / "out"
-    staging, source = tmp_path / ".out.staging", tree_digest(sim_src)
+    recipe, root = recipe_file(tmp_path), tmp_path / "local" / "out"  # like $HF_LEROBOT_HOME/local/<name>
+    staging, source = root.parent / ".out.staging", tree_digest(sim_src)
 
     monkeypatch.setattr(columns, "add_frame_column", fail_with(errno.ENOSPC, after=1)(columns.add_frame_column))
     assert build_main(recipe, sim_src, root) == 3
     err = capsys.readouterr().err
     assert "No space left on device (ENOSPC)" in err and len(err.strip().splitlines()) == 1, err
     assert staging_entries(staging) == ["shards", "shards/episode_000000"]  # episode 1's partial shard removed
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".out.staging", "recipe.yaml"]
+    assert sorted(p.name for p in root.parent.iterdir()) == [".out.staging"]  # no lock left behind
     monkeypatch.undo()
 
     monkeypatch.setattr(dataset_card, "write_card", fail_with(errno.EROFS)(dataset_card.write_card))
@@ -276,7 +276,7 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     err = capsys.readouterr().err
     assert "%|" not in err and "it/s" not in err, err  # --no-progress: LeRobot's bars too
     assert LeRobotDataset("local/x", root=root).meta.total_episodes == 2
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "recipe.yaml"]
+    assert sorted(p.name for p in root.parent.iterdir()) == ["out"]
     assert tree_digest(sim_src) == source
     # the free-space estimate is a lower bound of the staging peak (about twice the output)
     from imac_data.diskspace import estimate_build_bytes
