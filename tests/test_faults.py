@@ -154,6 +154,14 @@ def _unknown_link(c):
     c["link"] = "vx300s_left/no_such_link"
 
 
+def _twice_the_resolution(c):
+    """The same camera calibrated at 240x320: pixel edges scale by 2, centres c -> 2c + 0.5."""
+    K = np.asarray(c["K"])
+    K[:2, :2] *= 2
+    K[:2, 2] = 2 * K[:2, 2] + 0.5
+    c["K"], c["width"], c["height"] = K.tolist(), 2 * c["width"], 2 * c["height"]
+
+
 def _other_aspect(c):
     c["width"] = 200
 
@@ -250,15 +258,22 @@ def fail_with(code: int, after: int = 0):
 def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_path, capsys, monkeypatch):
     """Disk full while episode 1 is written, then a read-only file system at the merge: each
     exits 3 with one line, leaves only the finished shards in staging (no partial shard, no
-    half-merged dataset, no lock), and the rerun completes, without any progress bar."""
+    half-merged dataset, no lock), and the rerun completes, without any progress bar.
+
+    The source also holds what is accepted and rescaled (items 2, 3): a calibration made at
+    twice the images' resolution, and float depth at half of it in one episode."""
     from imac_data import dataset_card
     from imac_data.dataset import columns
 
+    src = copy_source(sim_src, tmp_path / "episodes")
+    K = np.asarray(json.loads((src / "calibration.json").read_text())["cameras"]["cam_high"]["K"])
+    edit_calibration(src, "cam_high", _twice_the_resolution)
+    edit_datasets(src / "episode_1.hdf5", lambda d: d[:, ::2, ::2].astype(np.float32), [DEPTH_HIGH])
     recipe, root = recipe_file(tmp_path), tmp_path / "local" / "out"  # like $HF_LEROBOT_HOME/local/<name>
-    staging, source = root.parent / ".out.staging", tree_digest(sim_src)
+    staging, source = root.parent / ".out.staging", tree_digest(src)
 
     monkeypatch.setattr(columns, "add_frame_column", fail_with(errno.ENOSPC, after=1)(columns.add_frame_column))
-    assert build_main(recipe, sim_src, root) == 3
+    assert build_main(recipe, src, root) == 3
     err = capsys.readouterr().err
     assert "No space left on device (ENOSPC)" in err and len(err.strip().splitlines()) == 1, err
     assert staging_entries(staging) == ["shards", "shards/episode_000000"]  # episode 1's partial shard removed
@@ -266,18 +281,21 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     monkeypatch.undo()
 
     monkeypatch.setattr(dataset_card, "write_card", fail_with(errno.EROFS)(dataset_card.write_card))
-    assert build_main(recipe, sim_src, root) == 3
+    assert build_main(recipe, src, root) == 3
     err = capsys.readouterr().err
     assert "Read-only file system (EROFS)" in err and len(err.strip().splitlines()) == 1, err
     assert staging_entries(staging) == ["shards", "shards/episode_000000", "shards/episode_000001"]  # no dataset/
     monkeypatch.undo()
 
-    assert build_main(recipe, sim_src, root) == 0
+    assert build_main(recipe, src, root) == 0
     err = capsys.readouterr().err
     assert "%|" not in err and "it/s" not in err, err  # --no-progress: LeRobot's bars too
-    assert LeRobotDataset("local/x", root=root).meta.total_episodes == 2
+    ds = LeRobotDataset("local/x", root=root)
+    assert ds.meta.total_episodes == 2
+    camera = ds.meta.info["imac"]["cameras"]["cam_high"]  # the simulator's own K at 120x160 again
+    assert (camera["height"], camera["width"]) == (120, 160) and np.allclose(camera["K"], K, atol=1e-9)
     assert sorted(p.name for p in root.parent.iterdir()) == ["out"]
-    assert tree_digest(sim_src) == source
+    assert tree_digest(src) == source
     # the free-space estimate is a lower bound of the staging peak (about twice the output)
     from imac_data.diskspace import estimate_build_bytes
 
