@@ -6,7 +6,10 @@ The augmentation stages (motion, depth, contact streams) plug in after ingest.
 
 The output lands where LeRobot looks for ``repo_id`` (``$HF_LEROBOT_HOME/<repo>``)
 unless ``--root`` says otherwise; it is assembled in a staging directory and
-moved into place only when complete. The source data is only read.
+moved into place only when complete, under an OS lock that keeps a second build of
+the same output out (:mod:`imac_data.lock`). The source data is only read. Failures exit
+with the codes of :mod:`imac_data.cli` (2 bad input, 3 the environment); the README's
+"Safety" section lists what is guaranteed and the tests that check it.
 """
 
 from __future__ import annotations

@@ -81,7 +81,13 @@ def rescale_intrinsics(K: np.ndarray, from_hw: tuple[int, int], to_hw: tuple[int
 @dataclass(frozen=True)
 class Camera:
     """One camera of a rig. Exactly one of ``T_world_cam`` (fixed) or ``link`` +
-    ``T_link_cam`` (mounted) is set."""
+    ``T_link_cam`` (mounted) is set.
+
+    Checked when made (a calibration file, a dataset's ``info.json``), with an
+    :class:`InputError` naming the camera and the field: the pose is rigid (rotation
+    orthonormal with det +1 within :data:`CALIBRATION_RIGID_TOL`, last row [0, 0, 0, 1]),
+    fx, fy > 0, the principal point lies inside the image. Whether ``link`` exists is the
+    rig's check (:class:`~imac_data.rig.Rig`), which knows the robot."""
 
     name: str
     K: np.ndarray
