@@ -6,7 +6,8 @@ One file per episode (``episode_0.hdf5``, ``episode_1.hdf5``, ...)::
     /observations/qvel                 (T, D) float   optional
     /observations/images/<cam>         (T, H, W, 3) uint8 RGB
                                        or (T, L) uint8 padded JPEG bytes when compressed
-    /observations/images_depth/<cam>   (T, H, W) uint16 millimetres (AgileX), optional
+    /observations/images_depth/<cam>   (T, h, w) uint16 (AgileX) or float millimetres, optional;
+                                       the images' aspect ratio (resized to them)
     /observations/segmentation/<cam>   (T, H, W) int16 MuJoCo geom id, -1 = none (simulator only)
     /action                            (T, D) float   commanded joint targets
     /compress_len                      (n_cams, T)    JPEG byte counts, rows in sorted camera order
@@ -228,7 +229,7 @@ def probe_episode(path: str | Path) -> dict:
                 raise InputError(
                     f"{path}: 'compress_len' has shape {lengths.shape}, expected ({len(cams)}, {T}) for cameras {cams}"
                 )
-        hw = None
+        image_hw = {}
         for cam in cams:
             key = f"observations/images/{cam}"
             ds = f[key]
@@ -237,19 +238,38 @@ def probe_episode(path: str | Path) -> dict:
             if not compressed:
                 if ds.ndim != 4 or ds.shape[-1] != 3 or ds.dtype != np.uint8:
                     raise InputError(f"{path}: '{key}' must be (T, H, W, 3) uint8, got {ds.shape} {ds.dtype}")
-                hw = hw or tuple(ds.shape[1:3])
+                image_hw[cam] = tuple(int(v) for v in ds.shape[1:3])
+            else:  # the first frame's size: a later one of another size fails when it is read
+                image_hw[cam] = tuple(_decode_jpeg_stack(ds[0:1], lengths[cams.index(cam), 0:1], path, key).shape[1:3])
         has_depth = "observations/images_depth" in f
         if has_depth:
             for cam in f["observations/images_depth"].keys():
-                key = f"observations/images_depth/{cam}"
                 if cam not in cams:
-                    raise InputError(f"{path}: '{key}' has no matching RGB camera in {cams}")
-                if f[key].shape[0] != T:
-                    raise InputError(f"{path}: '{key}' has {f[key].shape[0]} frames, 'observations/qpos' has {T}")
-                if f[key].ndim != 3 or f[key].dtype != np.uint16:
-                    raise InputError(f"{path}: '{key}' must be (T, H, W) uint16 millimetres, got "
-                                     f"{f[key].shape} {f[key].dtype}")
-        return {"num_frames": T, "dof": D, "cameras": cams, "compressed": compressed, "has_depth": has_depth}
+                    raise InputError(f"{path}: 'observations/images_depth/{cam}' has no matching RGB camera in {cams}")
+                _check_depth(f, path, cam, T, image_hw[cam])
+        return {"num_frames": T, "dof": D, "cameras": cams, "compressed": compressed, "has_depth": has_depth,
+                "image_hw": image_hw}
+
+
+DEPTH_DTYPES = "uint16 or float millimetres"
+
+
+def _check_depth(f: h5py.File, path: Path, cam: str, T: int, image_hw: tuple[int, int]) -> h5py.Dataset:
+    """The recorded depth of ``cam``: ``(T, h, w)`` uint16 or float millimetres, of the image's
+    aspect ratio (a smaller or larger depth map is resized to the image, as K is)."""
+    from imac_data.cameras import same_aspect
+
+    key = f"observations/images_depth/{cam}"
+    d = _dataset(f, path, key)
+    if d.ndim != 3 or not (d.dtype == np.uint16 or np.issubdtype(d.dtype, np.floating)):
+        raise InputError(f"{path}: '{key}' must be (T, H, W) {DEPTH_DTYPES}, got {d.shape} {d.dtype}")
+    if d.shape[0] != T:
+        raise InputError(f"{path}: '{key}' has {d.shape[0]} frames, 'observations/qpos' has {T}")
+    if not same_aspect(d.shape[1:3], image_hw):
+        raise InputError(f"{path}: '{key}' is {d.shape[1]}x{d.shape[2]} (HxW), another aspect ratio than the "
+                         f"{image_hw[0]}x{image_hw[1]} images of camera {cam!r}; depth must be registered to its "
+                         "colour camera")
+    return d
 
 
 class EpisodeReader:
@@ -288,7 +308,7 @@ class EpisodeReader:
                                     success=None if success is None else bool(success))
             self.fps = float(attrs["fps"]) if "fps" in attrs else None
             self._lengths = f["compress_len"][()] if self.compressed else None
-            self.image_hw = {c: self._image_hw(c) for c in self.cameras}
+            self.image_hw = {c: probe["image_hw"][c] for c in self.cameras}
         except BaseException:
             self._file.close()
             raise
@@ -311,11 +331,6 @@ class EpisodeReader:
         group = self._file.get("observations/images_depth")
         return sorted(c for c in group.keys() if c in self.cameras) if group is not None else []
 
-    def _image_hw(self, cam: str) -> tuple[int, int]:
-        if not self.compressed:
-            return tuple(int(v) for v in self._file[f"observations/images/{cam}"].shape[1:3])
-        return tuple(int(v) for v in self.images(cam, 0, 1).shape[1:3])
-
     def images(self, cam: str, start: int, stop: int) -> np.ndarray:
         """RGB frames ``start:stop`` of camera ``cam``, ``(n, H, W, 3)`` uint8."""
         key = f"observations/images/{cam}"
@@ -332,15 +347,11 @@ class EpisodeReader:
         return data
 
     def depth_mm(self, cam: str, start: int, stop: int) -> np.ndarray | None:
-        """Recorded depth frames ``start:stop`` of ``cam`` (``(n, h, w)`` uint16 millimetres),
+        """Recorded depth frames ``start:stop`` of ``cam`` (``(n, h, w)`` uint16 or float millimetres),
         or None when the episode has none for that camera."""
-        key = f"observations/images_depth/{cam}"
-        if key not in self._file:
+        if f"observations/images_depth/{cam}" not in self._file:
             return None
-        d = self._file[key]
-        if d.ndim != 3 or d.dtype != np.uint16:
-            raise InputError(f"{self.path}: '{key}' must be (T, H, W) uint16 millimetres, got {d.shape} {d.dtype}")
-        return d[start:stop]
+        return _check_depth(self._file, self.path, cam, self.num_frames, self.image_hw[cam])[start:stop]
 
     def segmentation(self, cam: str, start: int, stop: int) -> np.ndarray | None:
         key = f"observations/segmentation/{cam}"

@@ -39,6 +39,7 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
     from imac_data.dataset.files import staged_dataset
     from imac_data.dataset.info import base_block, update_imac_info
     from imac_data.dataset.validate import validate_dataset
+    from imac_data.lock import output_lock
     from imac_data.pipeline import add_episode_streams
     from imac_data.rig import Rig
     from imac_data.robot_files import DESCRIPTION_DIR, write_description
@@ -78,7 +79,7 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
             if ep == 0:
                 rig = rig.with_image_sizes(raw.image_hw)
         states.append((state, action))
-    with staged_dataset(root) as work:
+    with output_lock(root), staged_dataset(root) as work:  # one writer per dataset (imac_data.lock)
         write_description(rig.robot, work / DESCRIPTION_DIR)
         update_imac_info(work, base_block(rig))
         add_episode_streams(work, (EpisodeReader(p) for p in paths), rig, recipe.augment, states=states,
@@ -88,9 +89,8 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
 
 def main(argv: list[str] | None = None) -> int:
     import argparse
-    import sys
 
-    from imac_data.cli import EXIT_BAD_INPUT, default_root, quiet_libraries
+    from imac_data.cli import default_root, quiet_libraries, run_command, silence_progress_bars
     from imac_data.recipes import find_recipe, load_recipe
 
     p = argparse.ArgumentParser(prog="python -m imac_data.augment",
@@ -102,15 +102,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     quiet_libraries()
-    try:
+    if args.no_progress:
+        silence_progress_bars()
+
+    def run() -> None:
         recipe = load_recipe(args.recipe if args.recipe.suffix else find_recipe(str(args.recipe)))
         root = args.root or default_root(args.repo)
         augment_existing(root, recipe, args.source, progress=not args.no_progress)
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    print(f"augmented {args.repo} at {root}")
-    return 0
+        print(f"augmented {args.repo} at {root}")
+
+    return run_command(run)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,10 @@ The augmentation stages (motion, depth, contact streams) plug in after ingest.
 
 The output lands where LeRobot looks for ``repo_id`` (``$HF_LEROBOT_HOME/<repo>``)
 unless ``--root`` says otherwise; it is assembled in a staging directory and
-moved into place only when complete. The source data is only read.
+moved into place only when complete, under an OS lock that keeps a second build of
+the same output out (:mod:`imac_data.lock`). The source data is only read. Failures exit
+with the codes of :mod:`imac_data.cli` (2 bad input, 3 the environment); the README's
+"Safety" section lists what is guaranteed and the tests that check it.
 """
 
 from __future__ import annotations
@@ -20,10 +23,10 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from imac_data.cli import EXIT_BAD_INPUT, cache_home, default_root, quiet_libraries
+from imac_data.cli import cache_home, default_root, quiet_libraries, run_command, silence_progress_bars
 from imac_data.errors import InputError
 from imac_data.recipes import Recipe, find_recipe, load_recipe, missing_inputs
-from imac_data.safety import refuse_overlap
+from imac_data.safety import check_output, refuse_overlap
 
 
 @dataclass(frozen=True)
@@ -36,6 +39,7 @@ class BuildRequest:
     overwrite: bool = False
     progress: bool = True
     timings: Path | None = None  # also write the build's stage timings here (JSON)
+    wait: bool = False  # wait for another build of the same root instead of refusing (imac_data.lock)
 
 
 # --------------------------------------------------------------------------- stages
@@ -177,9 +181,10 @@ def build_shard(job: ShardJob) -> Path:
     return job.shard_dir
 
 
-def _init_worker(threads: int) -> None:
-    from imac_data.workers import pin_threads
+def _init_worker(threads: int, parent_pid: int) -> None:
+    from imac_data.workers import exit_with_parent, pin_threads
 
+    exit_with_parent(parent_pid)  # first: the imports below take seconds
     pin_threads(threads)
     quiet_libraries()
 
@@ -258,7 +263,7 @@ def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> No
     os.environ.update(thread_env(threads))  # pool workers size their pools at import
     try:
         with ProcessPoolExecutor(max_workers=workers - 1, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                                 initargs=(threads,)) as pool:
+                                 initargs=(threads, os.getpid())) as pool:
             remote = [threading.Thread(target=worker, args=(lambda j: pool.submit(build_shard, j).result(),))
                       for _ in range(workers - 1)]
             for t in remote:
@@ -298,33 +303,24 @@ def build_key(recipe: Recipe, paths: list[Path], calibration_path: Path, repo_id
 
 def build(req: BuildRequest, *, executor: str = "local", workers: int | None = None,
           ray_address: str | None = None):
-    """Run the whole build; returns the loaded LeRobotDataset at ``req.root``."""
+    """Run the whole build; returns the loaded LeRobotDataset at ``req.root``. Everything
+    is checked first (read-only), then the output's lock is taken for the writing part."""
     import resource
-    import shutil
-
-    from imac_data.pipeline import StageTimer
-    from imac_data.workers import default_workers, threads_per_worker
 
     t_start, usage_start = time.perf_counter(), _cpu_seconds(resource)
 
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    from imac_data.dataset.merge import merge_datasets
-    from imac_data.dataset.validate import validate_dataset
-    from imac_data.dataset_card import write_card
-    from imac_data.ingest import IngestOptions, check_episodes, staging_dir
+    from imac_data.ingest import IngestOptions, check_episodes
+    from imac_data.lock import output_lock
     from imac_data.rig import Rig
-    from imac_data.robot_files import write_description
 
     recipe = req.recipe
-    if req.root.exists() and not req.overwrite:
-        raise InputError(f"output {req.root} already exists; pass --overwrite to replace it")
     if executor not in ("local", "ray"):
         raise InputError(f"--executor must be 'local' or 'ray', got {executor!r}")
     problems = missing_inputs(recipe, req.source_path)
     if problems:
         raise InputError(f"recipe {recipe.file} needs inputs that are not there:\n  - " + "\n  - ".join(problems))
     refuse_overlap(req.root, _input_paths(req))  # before anything is recorded or written
+    check_output(req.root, overwrite=req.overwrite)
     robot = Rig.robot_from_recipe(recipe)  # a bad URDF or joint map fails before any recording
     if recipe.source.type == "lerobot":
         from imac_data.lerobot_build import build_from_lerobot
@@ -333,11 +329,12 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     paths, calibration_path = source_episodes(req)
     refuse_overlap(req.root, {"source episodes": paths[0].parent, "calibration": calibration_path})
     rig = Rig.from_recipe(recipe, calibration_path, robot=robot)
-    check_episodes(paths, rig.cameras, robot)
+    probe = check_episodes(paths, rig.cameras, robot)
     from imac_data.depth_choice import check_depth_inputs
 
     check_depth_inputs(recipe.depth, recipe.file, len(rig.names))
     _check_stream_resolution(recipe, rig.cameras)
+    _warn_if_short_of_space(req, probe, robot)
     fps = recipe.fps or _fps_of(paths[0]) or None
     if fps is None:
         raise InputError(f"{recipe.file}: fps: the episodes do not record their rate; set fps in the recipe")
@@ -348,7 +345,31 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     )
 
     # Staging: shards/ (one dataset per episode, kept across a killed run when the
-    # build key matches), then the aggregated dataset, renamed into place at the end.
+    # build key matches), then the aggregated dataset, renamed into place at the end;
+    # one build at a time per output (imac_data.lock).
+    with output_lock(req.root, wait=req.wait):
+        check_output(req.root, overwrite=req.overwrite)  # again: a build we waited for may have made it
+        return _build_staged(req, paths, calibration_path, rig, robot, options, executor=executor,
+                             workers=workers, ray_address=ray_address, t_start=t_start, usage_start=usage_start)
+
+
+def _build_staged(req: BuildRequest, paths, calibration_path, rig, robot, options, *, executor, workers,
+                  ray_address, t_start, usage_start):
+    """The build's writing part, under the output's lock: shards, merge, validation, swap."""
+    import resource
+    import shutil
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from imac_data.dataset.merge import merge_datasets
+    from imac_data.dataset.validate import validate_dataset
+    from imac_data.dataset_card import write_card
+    from imac_data.ingest import staging_dir
+    from imac_data.pipeline import StageTimer
+    from imac_data.robot_files import write_description
+    from imac_data.workers import default_workers, threads_per_worker
+
+    recipe = req.recipe
     staging = staging_dir(req.root)
     key = build_key(recipe, paths, calibration_path, req.repo_id)
     key_file = staging / "BUILD_KEY"
@@ -371,13 +392,17 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     timer = StageTimer()  # the build's own stages, in this process
     final = staging / "dataset"
     shutil.rmtree(final, ignore_errors=True)
-    with timer("merge"):
-        merge_datasets([j.shard_dir for j in jobs], final, req.repo_id, description_dir=description,
-                       imac_extra={"build": {"recipe": recipe.name, "episodes": len(jobs),
-                                             "command": f"python -m imac_data.build --repo {req.repo_id}"}})
-        write_card(final, req.repo_id, recipe)
-    with timer("validate"):  # first and last frame of every episode, every stream
-        validate_dataset(final, sample=2).raise_if_invalid()
+    try:  # a failed merge or validation leaves the shards, never a half-merged dataset
+        with timer("merge"):
+            merge_datasets([j.shard_dir for j in jobs], final, req.repo_id, description_dir=description,
+                           imac_extra={"build": {"recipe": recipe.name, "episodes": len(jobs),
+                                                 "command": f"python -m imac_data.build --repo {req.repo_id}"}})
+            write_card(final, req.repo_id, recipe)
+        with timer("validate"):  # first and last frame of every episode, every stream
+            validate_dataset(final, sample=2).raise_if_invalid()
+    except BaseException:
+        shutil.rmtree(final, ignore_errors=True)
+        raise
     report = _timings_report(jobs, timer, workers=workers, threads=threads, executor=executor,
                              episodes_wall_s=t_jobs, wall_s=time.perf_counter() - t_start,
                              cpu_s=_cpu_seconds(resource) - usage_start)
@@ -388,15 +413,36 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     if req.progress:
         print(_timings_table(report), file=sys.stderr)
 
-    # into place: the old output (--overwrite) is removed only once the new one is complete
-    old = req.root.with_name(f".{req.root.name}.old")
-    shutil.rmtree(old, ignore_errors=True)
-    if req.root.exists():
-        req.root.rename(old)
-    final.rename(req.root)
-    shutil.rmtree(old, ignore_errors=True)
+    _swap_into_place(final, req.root)
     shutil.rmtree(staging, ignore_errors=True)
     return LeRobotDataset(req.repo_id, root=req.root)
+
+
+def _swap_into_place(final: Path, root: Path) -> None:
+    """Rename the complete dataset ``final`` to ``root``; an old output (``--overwrite``) is
+    removed only once the new one is in place, and put back if the rename fails."""
+    import shutil
+
+    old = root.with_name(f".{root.name}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    if root.exists():
+        root.rename(old)
+    try:
+        final.rename(root)
+    except BaseException:
+        if old.exists():
+            old.rename(root)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _warn_if_short_of_space(req: BuildRequest, probe: dict, robot) -> None:
+    from imac_data.diskspace import estimate_build_bytes, warn_if_short_of_space
+    from imac_data.robot_files import description_bytes
+
+    need = estimate_build_bytes(probe["total_frames"], probe["image_hw"], req.recipe.augment.resolution,
+                                description_bytes(robot))
+    warn_if_short_of_space(req.root, need)
 
 
 def _cpu_seconds(resource) -> float:
@@ -490,30 +536,34 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--private", action="store_true", help="with --push-to-hub: a private dataset repo")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--timings", type=Path, help="write the build's stage timings (JSON) here as well")
+    p.add_argument("--wait", action="store_true",
+                   help="if another build is writing the same output, wait for it (default: refuse, exit 3)")
     args = p.parse_args(argv)
 
     quiet_libraries()
+    if args.no_progress:
+        silence_progress_bars()
+    return run_command(lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
-    try:
-        if "/" not in args.repo:
-            raise InputError(f"--repo must look like <user>/<name>, got {args.repo!r}")
-        recipe_path = args.recipe or find_recipe(args.repo.split("/", 1)[1])
-        recipe = load_recipe(recipe_path)
-        if args.episodes is not None and args.episodes <= 0:
-            raise InputError(f"--episodes must be positive, got {args.episodes}")
-        if args.source is not None and not args.source.exists():
-            raise InputError(f"--source: path does not exist: {args.source}")
-        req = BuildRequest(
-            repo_id=args.repo, recipe=recipe, root=args.root or default_root(args.repo),
-            source_path=args.source, episodes=args.episodes, overwrite=args.overwrite,
-            progress=not args.no_progress, timings=args.timings,
-        )
-        if args.workers is not None and args.workers <= 0:
-            raise InputError(f"--workers must be positive, got {args.workers}")
-        dataset = build(req, executor=args.executor, workers=args.workers, ray_address=args.ray_address)
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    if "/" not in args.repo:
+        raise InputError(f"--repo must look like <user>/<name>, got {args.repo!r}")
+    recipe_path = args.recipe or find_recipe(args.repo.split("/", 1)[1])
+    recipe = load_recipe(recipe_path)
+    if args.episodes is not None and args.episodes <= 0:
+        raise InputError(f"--episodes must be positive, got {args.episodes}")
+    if args.source is not None and not args.source.exists():
+        raise InputError(f"--source: path does not exist: {args.source}")
+    req = BuildRequest(
+        repo_id=args.repo, recipe=recipe, root=args.root or default_root(args.repo),
+        source_path=args.source, episodes=args.episodes, overwrite=args.overwrite,
+        progress=not args.no_progress, timings=args.timings, wait=args.wait,
+    )
+    if args.workers is not None and args.workers <= 0:
+        raise InputError(f"--workers must be positive, got {args.workers}")
+    dataset = build(req, executor=args.executor, workers=args.workers, ray_address=args.ray_address)
     dt = time.perf_counter() - t0
     if args.push_to_hub:
         from imac_data.dataset_card import push_to_hub

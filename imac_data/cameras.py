@@ -81,7 +81,13 @@ def rescale_intrinsics(K: np.ndarray, from_hw: tuple[int, int], to_hw: tuple[int
 @dataclass(frozen=True)
 class Camera:
     """One camera of a rig. Exactly one of ``T_world_cam`` (fixed) or ``link`` +
-    ``T_link_cam`` (mounted) is set."""
+    ``T_link_cam`` (mounted) is set.
+
+    Checked when made (a calibration file, a dataset's ``info.json``), with an
+    :class:`InputError` naming the camera and the field: the pose is rigid (rotation
+    orthonormal with det +1 within :data:`CALIBRATION_RIGID_TOL`, last row [0, 0, 0, 1]),
+    fx, fy > 0, the principal point lies inside the image. Whether ``link`` exists is the
+    rig's check (:class:`~imac_data.rig.Rig`), which knows the robot."""
 
     name: str
     K: np.ndarray
@@ -109,6 +115,11 @@ class Camera:
             )
         if self.width <= 0 or self.height <= 0:
             raise InputError(f"camera {self.name!r}: width and height must be positive")
+        _check_intrinsics(self.name, self.K, self.width, self.height)
+        pose, what = (self.T_world_cam, "T_world_cam") if self.link is None else (self.T_link_cam, "T_link_cam")
+        why = rigid_problem(pose, CALIBRATION_RIGID_TOL)
+        if why:
+            raise InputError(f"camera {self.name!r} {what}: {why}; a pose must be a rigid transform")
 
     @property
     def is_mounted(self) -> bool:
@@ -118,6 +129,18 @@ class Camera:
         """The same camera with its image resized to ``width`` x ``height``."""
         K = rescale_intrinsics(self.K, (self.height, self.width), (height, width))
         return Camera(self.name, K, width, height, self.T_world_cam, self.link, self.T_link_cam)
+
+    def for_images(self, height: int, width: int, *, where: str = "images") -> Camera:
+        """This camera for images of ``height`` x ``width``: itself, or rescaled when the
+        calibration was made at another resolution of the same aspect ratio (K follows);
+        any other size is an :class:`InputError` naming the camera."""
+        h, w = int(height), int(width)
+        if (h, w) == (self.height, self.width):
+            return self
+        if not same_aspect((h, w), (self.height, self.width)):
+            raise InputError(f"camera {self.name!r}: {where} are {h}x{w} (HxW) but its calibration is for "
+                             f"{self.height}x{self.width}, another aspect ratio; calibrate at the recorded size")
+        return self.rescaled(w, h)
 
     def pose(self, link_poses: Mapping[str, torch.Tensor] | None = None, *,
              batch_shape: tuple[int, ...] = (), device=None, dtype=torch.float32) -> torch.Tensor:
@@ -144,6 +167,43 @@ class Camera:
             d["link"] = self.link
             d["T_link_cam"] = self.T_link_cam.tolist()
         return d
+
+
+CALIBRATION_RIGID_TOL = 1e-3  # |R R^T - I| and |det R - 1| of a calibration's poses (hand-typed decimals pass)
+ASPECT_TOL = 0.01  # relative: sizes of one aspect ratio up to rounding of a resize
+
+
+def same_aspect(a_hw: tuple[int, int], b_hw: tuple[int, int]) -> bool:
+    """Whether two (H, W) image sizes have the same aspect ratio, up to the rounding of a resize."""
+    ra, rb = a_hw[0] / a_hw[1], b_hw[0] / b_hw[1]
+    return abs(ra - rb) <= ASPECT_TOL * rb
+
+
+def rigid_problem(T, tol: float) -> str | None:
+    """Why the pose(s) ``T`` ``(..., 4, 4)`` are not rigid transforms (None if they are):
+    last row [0, 0, 0, 1], rotation orthonormal and det +1 within ``tol``."""
+    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
+    R = T[:, :3, :3]
+    bad_row = np.abs(T[:, 3] - [0, 0, 0, 1]).max(-1) > 1e-6
+    if bad_row.any():
+        return f"last row is {T[np.argmax(bad_row), 3].tolist()}, not [0, 0, 0, 1]"
+    ortho = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max()
+    if ortho > tol:
+        return f"rotation is not orthonormal (|R R^T - I| = {ortho:.2g} > {tol:g})"
+    det = np.linalg.det(R)
+    if np.abs(det - 1).max() > tol:
+        return f"rotation has det {det[np.argmax(np.abs(det - 1))]:.4f}, not +1 (a reflection or a scale)"
+    return None
+
+
+def _check_intrinsics(name: str, K: np.ndarray, width: int, height: int) -> None:
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise InputError(f"camera {name!r} K: focal lengths fx={K[0, 0]:g}, fy={K[1, 1]:g} must be > 0")
+    if not (-0.5 <= K[0, 2] <= width - 0.5 and -0.5 <= K[1, 2] <= height - 0.5):
+        raise InputError(f"camera {name!r} K: principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside its "
+                         f"{width}x{height} (WxH) image")
+    if np.abs(K[2] - [0, 0, 1]).max() > 1e-9 or K[1, 0] != 0:
+        raise InputError(f"camera {name!r} K: must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
 
 
 def _matrix(value, shape: tuple[int, int], what: str) -> np.ndarray:

@@ -70,12 +70,15 @@ def staging_dir(root: Path) -> Path:
 
 def check_episodes(paths: Sequence[Path], calibration: dict[str, Camera], robot: RobotModel) -> dict:
     """Validate every episode against each other, the calibration and the robot, without
-    loading images. Returns the common probe (cameras, dof)."""
+    loading images (a compressed episode's first frames are decoded for their size).
+    Returns the common probe (cameras, dof, image sizes) with ``total_frames``."""
     if not paths:
         raise InputError("no episodes to ingest")
     first = probe_episode(paths[0])
+    total = first["num_frames"]
     for path in paths[1:]:
         probe = probe_episode(path)
+        total += probe["num_frames"]
         if probe["cameras"] != first["cameras"]:
             raise InputError(
                 f"episodes have different camera sets: {paths[0]} has {first['cameras']}, "
@@ -83,6 +86,10 @@ def check_episodes(paths: Sequence[Path], calibration: dict[str, Camera], robot:
             )
         if probe["dof"] != first["dof"]:
             raise InputError(f"{path}: joint vector has {probe['dof']} entries, {paths[0]} has {first['dof']}")
+        if probe["image_hw"] != first["image_hw"]:
+            cam = next(c for c in first["cameras"] if probe["image_hw"][c] != first["image_hw"][c])
+            raise InputError(f"{path}: 'observations/images/{cam}' is {probe['image_hw'][cam]} (HxW), "
+                             f"{paths[0]} has {first['image_hw'][cam]}; every episode needs the same resolution")
     cams = first["cameras"]
     extra = sorted(set(calibration) - set(cams))
     if extra:
@@ -100,7 +107,8 @@ def check_episodes(paths: Sequence[Path], calibration: dict[str, Camera], robot:
     for cam in calibration.values():
         if cam.link is not None and cam.link not in robot.link_names:
             raise InputError(f"camera {cam.name!r} is mounted on link {cam.link!r}, which the robot does not have")
-    return first
+        cam.for_images(*first["image_hw"][cam.name], where=f"the images of {paths[0]}")
+    return {**first, "total_frames": total}
 
 
 def camera_poses(calibration: dict[str, Camera], robot: RobotModel, qpos: np.ndarray) -> dict[str, np.ndarray]:

@@ -367,6 +367,9 @@ def add_episode_streams(root: Path, readers, rig, settings, *, depth_source=None
 
 
 def write_timings(path: Path, timer: StageTimer, **extra) -> None:
-    """A stage-timing side file (never inside a dataset)."""
+    """A stage-timing side file (never inside a dataset); atomic, so a full disk never leaves
+    a truncated one for the resumed build to read."""
+    from imac_data.dataset.files import atomic_write_text
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({**timer.to_dict(), **extra}, indent=1))
+    atomic_write_text(path, json.dumps({**timer.to_dict(), **extra}, indent=1))

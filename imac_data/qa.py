@@ -338,30 +338,26 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     preview.add_command(sub)
     args = parser.parse_args(argv)
-    if args.command == "preview":
-        try:
-            print(preview.run_command(args))
-        except InputError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
-        return 0
-    try:
-        cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
-        robot, controller = args.robot, None
-        if args.recipe:
-            from imac_data.recipes import load_recipe
-            from imac_data.rig import Rig
+    from imac_data.cli import run_command
 
-            rig = Rig.from_recipe(load_recipe(args.recipe), args.calibration)
-            robot, controller = rig.robot, rig.controller
-        summary = overlay(args.episode, args.calibration, args.out, robot=robot, source=args.source,
-                          fmt=args.fmt, frames=args.frames, cameras=cams, overwrite=args.overwrite,
-                          controller=controller)
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if args.command == "preview":
+        return run_command(lambda: print(preview.run_command(args)))
+    return run_command(lambda: _overlay_command(args))
+
+
+def _overlay_command(args: argparse.Namespace) -> None:
+    cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
+    robot, controller = args.robot, None
+    if args.recipe:
+        from imac_data.recipes import load_recipe
+        from imac_data.rig import Rig
+
+        rig = Rig.from_recipe(load_recipe(args.recipe), args.calibration)
+        robot, controller = rig.robot, rig.controller
+    summary = overlay(args.episode, args.calibration, args.out, robot=robot, source=args.source,
+                      fmt=args.fmt, frames=args.frames, cameras=cams, overwrite=args.overwrite,
+                      controller=controller)
     print(_format_summary(summary, Path(args.out)))
-    return 0
 
 
 if __name__ == "__main__":

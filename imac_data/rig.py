@@ -233,13 +233,8 @@ class Rig:
     def with_image_sizes(self, sizes: Mapping[str, tuple[int, int]]) -> Rig:
         """The same rig with each camera's calibration rescaled to the recorded image size
         ``(height, width)`` (same aspect ratio; K follows, :meth:`Camera.rescaled`)."""
-        cams = {}
-        for name, cam in self.cameras.items():
-            h, w = (int(v) for v in sizes.get(name, (cam.height, cam.width)))
-            if abs(h / w - cam.height / cam.width) > 0.01 * cam.height / cam.width:
-                raise InputError(f"camera {name!r}: images are {h}x{w} but the calibration is for "
-                                 f"{cam.height}x{cam.width}, another aspect ratio")
-            cams[name] = cam if (cam.height, cam.width) == (h, w) else cam.rescaled(w, h)
+        cams = {name: cam.for_images(*sizes.get(name, (cam.height, cam.width)))
+                for name, cam in self.cameras.items()}
         rig = Rig(self.robot, cams, self.controller, self.state_names, self.gripper_spacing, self.threads,
                   self.workspace)
         rig._renderer, rig._gripper = self._renderer, self._gripper

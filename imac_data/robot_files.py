@@ -74,6 +74,12 @@ def description_manifest(robot) -> dict:
     return {"path": f"{DESCRIPTION_DIR}/{URDF_NAME}", "urdf_sha256": _sha256(data), "files": hashes, "bytes": size}
 
 
+def description_bytes(robot) -> int:
+    """The size on disk of ``robot``'s packaged description (URDF and meshes)."""
+    text, files = packaged_description(robot)
+    return len(text.encode()) + sum(src.stat().st_size for src in files.values())
+
+
 def write_description(robot, dest: Path) -> dict:
     """Write the packaged description of ``robot`` into the directory ``dest`` (created
     atomically: a temporary sibling renamed into place; an existing ``dest`` is replaced).

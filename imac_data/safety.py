@@ -1,4 +1,5 @@
-"""What protects the user's data: the inputs a command reads are never written or deleted.
+"""What protects the user's data: the inputs a command reads are never written or deleted,
+and an output is replaced only when it is a dataset.
 
 A build writes its output, a staging directory and a ``.old`` directory next to the
 output (``--overwrite`` removes the previous output once the new one is complete);
@@ -6,14 +7,20 @@ output (``--overwrite`` removes the previous output once the new one is complete
 contains or lies inside an input (the raw episodes, the calibration, the robot
 description, the recipe), that input could be overwritten or deleted. Such a request
 is refused before any work starts, with an :class:`InputError` naming both paths.
+
+:func:`check_output` refuses, before any work, an output that ``--overwrite`` must not
+replace (a file, a directory that is not a LeRobot dataset) and one that cannot be made
+(a parent that is a file, a read-only or unwritable place: an
+:class:`~imac_data.errors.EnvironmentFault`).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from imac_data.errors import InputError
+from imac_data.errors import EnvironmentFault, InputError
 
 
 def _real(path: Path) -> Path:
@@ -29,7 +36,7 @@ def output_neighbours(root: Path) -> list[Path]:
     """Every path a build or an augmentation of ``root`` may create, replace or delete."""
     root = Path(root)
     return [root] + [root.parent / f".{root.name}.{suffix}"
-                     for suffix in ("staging", "old", "imac-staging", "imac-old")]
+                     for suffix in ("staging", "old", "lock", "imac-staging", "imac-old")]
 
 
 def refuse_overlap(output: Path, inputs: Mapping[str, Path | None], *, what: str = "--root") -> None:
@@ -55,3 +62,30 @@ def refuse_overlap(output: Path, inputs: Mapping[str, Path | None], *, what: str
                 raise InputError(
                     f"{what} {output} lies inside the {name} directory {path}: the source is only read, "
                     f"never written. Choose an output directory outside {path}")
+
+
+def check_output(root: Path, *, overwrite: bool, what: str = "--root") -> None:
+    """Refuse an output that may not be replaced, or cannot be made, before any work starts.
+
+    An existing ``root`` is replaced only with ``overwrite``, and only when it is a LeRobot
+    dataset (``meta/info.json``) or an empty directory: never a file nor someone's other
+    directory (:class:`InputError`). The nearest existing ancestor must be a directory this
+    process may write (else :class:`~imac_data.errors.EnvironmentFault`).
+    """
+    root = Path(root)
+    if root.exists() or root.is_symlink():
+        if not overwrite:
+            raise InputError(f"output {root} already exists; pass --overwrite to replace it")
+        if not root.is_dir():
+            raise InputError(f"{what} {root} is a file, not a dataset: --overwrite replaces only a LeRobot dataset "
+                             "directory. Remove the file yourself or choose another output")
+        if any(root.iterdir()) and not (root / "meta" / "info.json").is_file():
+            raise InputError(f"{what} {root} is a directory but not a LeRobot dataset (no meta/info.json): "
+                             "--overwrite replaces only a dataset. Choose another output")
+    parent = root.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise EnvironmentFault(f"cannot create {what} {root}: {parent} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise EnvironmentFault(f"cannot write {what} {root}: {parent} is read-only or not writable by this user")

@@ -1,6 +1,6 @@
 """``python -m imac_data.validate ROOT [--full]``: check a built dataset (see
 :mod:`imac_data.dataset.validate` for what is checked). Exit status 0 when valid, 2 with a
-report when not."""
+report when not; 3 when the machine fails it (:mod:`imac_data.cli`)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from imac_data.cli import EXIT_BAD_INPUT, EXIT_OK, quiet_libraries
+from imac_data.cli import EXIT_BAD_INPUT, EXIT_OK, quiet_libraries, run_command
 from imac_data.dataset.validate import CHECKS, validate_dataset
-from imac_data.errors import InputError
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -22,13 +21,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="run only this check (repeatable)")
     args = p.parse_args(argv)
     quiet_libraries()
-    try:
+
+    def run() -> int:
         report = validate_dataset(args.root, full=args.full, sample=args.sample, checks=args.check)
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    print(report.format())
-    return EXIT_OK if report.ok else EXIT_BAD_INPUT
+        print(report.format())
+        return EXIT_OK if report.ok else EXIT_BAD_INPUT
+
+    return run_command(run)
 
 
 if __name__ == "__main__":

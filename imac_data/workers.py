@@ -16,13 +16,17 @@ the same bytes with any thread count, and x264 (whose output does depend on its 
 count) runs with a fixed one (:meth:`~imac_data.dataset.videos.VideoEncoding.lossless_rgb`).
 So a build's bytes do not depend on ``--workers``, the executor or the machine's cores
 (``tests/test_build.py``: Ray with 2 workers = local with 1).
+
+A pool worker dies with the build that started it (:func:`exit_with_parent`), so no
+orphan keeps writing into the staging directory after the build was killed.
 """
 
 from __future__ import annotations
 
 import os
 
-__all__ = ["cpu_cores", "default_workers", "threads_per_worker", "pin_threads", "thread_env", "peak_rss_mb"]
+__all__ = ["cpu_cores", "default_workers", "threads_per_worker", "pin_threads", "thread_env", "peak_rss_mb",
+           "exit_with_parent"]
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 # glibc gives each thread that allocates its own malloc arena and keeps freed memory in it;
@@ -103,3 +107,23 @@ def peak_rss_mb() -> float:
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def exit_with_parent(parent_pid: int, interval_s: float = 0.2) -> None:
+    """Kill this process as soon as its parent ``parent_pid`` is gone (the orphan is
+    re-parented, so ``getppid`` changes), from a daemon thread that polls every ``interval_s``.
+
+    Why not ``prctl(PR_SET_PDEATHSIG)``: Linux sends that signal when the *thread* that
+    started the process ends, and a process pool starts its workers from whichever thread
+    submits first (the build's feeder threads, which end before the pool does), so it
+    would kill live workers. The poll costs nothing measurable."""
+    import signal
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(interval_s)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()

@@ -1,12 +1,21 @@
 """Faults a user can make, tried as a user would: each gets a clear error, the source is
 never modified, and nothing half-written is left behind."""
 
+import errno
 import hashlib
+import json
+import os
 import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 
+import h5py
+import numpy as np
 import pytest
 import yaml
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from imac_data.build import main
 from imac_data.recipes import RECIPES_DIR
@@ -91,3 +100,366 @@ def test_augment_refuses_a_dataset_inside_its_raw_episodes(sim_src, tmp_path, ca
     assert rc == 2
     assert "raw episodes" in capsys.readouterr().err
     assert tree_digest(src) == before
+
+
+# --------------------------------------------------------------------------- bad input: exit 2, nothing written
+
+
+def build_main(recipe: Path, src: Path, root: Path, *extra) -> int:
+    """The build CLI in this process (one worker: no pool), quiet."""
+    return main(["--repo", "local/x", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
+                 "--no-progress", "--workers", "1", *extra])
+
+
+def edit_calibration(src: Path, cam: str, edit) -> None:
+    path = src / "calibration.json"
+    data = json.loads(path.read_text())
+    edit(data["cameras"][cam])
+    path.write_text(json.dumps(data))
+
+
+def edit_datasets(path: Path, edit, keys: list[str] | None = None) -> None:
+    """Replace HDF5 datasets ``keys`` (default: every one) of episode ``path`` by ``edit(array)``."""
+    with h5py.File(path, "r+") as f:
+        if keys is None:
+            keys = []
+            f.visititems(lambda name, obj: keys.append(name) if isinstance(obj, h5py.Dataset) else None)
+        for key in keys:
+            value = edit(f[key][()])
+            del f[key]
+            f.create_dataset(key, data=value)
+
+
+def _scale_rotation(c):
+    c["T_world_cam"] = (np.asarray(c["T_world_cam"]) @ np.diag([1.1, 1.1, 1.1, 1.0])).tolist()
+
+
+def _reflect(c):
+    c["T_world_cam"][0][:3] = [-x for x in c["T_world_cam"][0][:3]]
+
+
+def _negative_focal(c):
+    c["K"][0][0] = -c["K"][0][0]
+
+
+def _last_row(c):
+    c["T_world_cam"][3] = [0.0, 0.0, 0.1, 1.0]
+
+
+def _principal_point(c):
+    c["K"][0][2] = 400.0
+
+
+def _unknown_link(c):
+    c["link"] = "vx300s_left/no_such_link"
+
+
+def _twice_the_resolution(c):
+    """The same camera calibrated at 240x320: pixel edges scale by 2, centres c -> 2c + 0.5."""
+    K = np.asarray(c["K"])
+    K[:2, :2] *= 2
+    K[:2, 2] = 2 * K[:2, 2] + 0.5
+    c["K"], c["width"], c["height"] = K.tolist(), 2 * c["width"], 2 * c["height"]
+
+
+def _other_aspect(c):
+    c["width"] = 200
+
+
+DEPTH_HIGH, IMAGES_HIGH = "observations/images_depth/cam_high", "observations/images/cam_high"
+BAD_INPUT = {  # case -> (damage the source directory, what the message must name)
+    # calibration (item 2): the calibration file, the camera, the field
+    "rotation_scaled": (lambda s: edit_calibration(s, "cam_high", _scale_rotation),
+                        ["calibration.json", "cam_high", "T_world_cam", "not orthonormal"]),
+    "rotation_reflection": (lambda s: edit_calibration(s, "cam_high", _reflect),
+                            ["calibration.json", "cam_high", "T_world_cam", "det -1"]),
+    "negative_focal_length": (lambda s: edit_calibration(s, "cam_high", _negative_focal),
+                              ["calibration.json", "cam_high", "fx=-"]),
+    "pose_last_row": (lambda s: edit_calibration(s, "cam_high", _last_row),
+                      ["calibration.json", "cam_high", "last row", "[0, 0, 0, 1]"]),
+    "principal_point_outside": (lambda s: edit_calibration(s, "cam_high", _principal_point),
+                                ["calibration.json", "cam_high", "principal point"]),
+    "unknown_link": (lambda s: edit_calibration(s, "cam_left_wrist", _unknown_link),
+                     ["cam_left_wrist", "vx300s_left/no_such_link"]),
+    "calibration_other_aspect": (lambda s: edit_calibration(s, "cam_high", _other_aspect),
+                                 ["cam_high", "120x160", "aspect ratio"]),
+    # recorded depth (item 3) and the up-front checks (item 4): the file and the key
+    "depth_other_aspect": (lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:, :, :120], [DEPTH_HIGH]),
+                           ["episode_1.hdf5", DEPTH_HIGH, "aspect ratio"]),
+    "depth_dtype": (lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d.astype(np.int32), [DEPTH_HIGH]),
+                    ["episode_1.hdf5", DEPTH_HIGH, "int32", "uint16 or float"]),
+    "resolution_differs_between_episodes": (
+        lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:, ::2, ::2], [IMAGES_HIGH, DEPTH_HIGH]),
+        ["episode_1.hdf5", IMAGES_HIGH, "(60, 80)", "episode_0.hdf5"]),
+    "empty_episode": (lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:0]), ["episode_1.hdf5", "no frames"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUT))
+def test_bad_input_is_refused_before_any_work(sim_src, tmp_path, capsys, case):
+    """Exit 2 with one message naming the file, key or field; nothing new next to the
+    output; the source byte-identical."""
+    damage, names = BAD_INPUT[case]
+    src = copy_source(sim_src, tmp_path / "episodes")
+    damage(src)
+    recipe = recipe_file(tmp_path)
+    before, listing = tree_digest(src), sorted(p.name for p in tmp_path.iterdir())
+    rc = build_main(recipe, src, tmp_path / "out")
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    for name in names:
+        assert name in err, f"{name!r} not in {err!r}"
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert tree_digest(src) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == listing
+
+
+@pytest.mark.parametrize("kind", ["file", "other_directory"])
+def test_overwrite_replaces_only_a_dataset(sim_src, tmp_path, capsys, kind):
+    """--overwrite with --root an existing file, or a directory that is not a LeRobot dataset:
+    refused (exit 2), and it stays as it was."""
+    root = tmp_path / "out"
+    if kind == "file":
+        root.write_text("my notes")
+    else:
+        root.mkdir()
+        (root / "notes.txt").write_text("my notes")
+    recipe = recipe_file(tmp_path)
+    before, listing = tree_digest(tmp_path), sorted(p.name for p in tmp_path.iterdir())
+    assert build_main(recipe, sim_src, root, "--overwrite") == 2
+    err = capsys.readouterr().err
+    assert str(root) in err and ("is a file" if kind == "file" else "not a LeRobot dataset") in err
+    assert tree_digest(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == listing
+
+
+# --------------------------------------------------------------------------- environment: exit 3, resumable
+
+
+def staging_entries(staging: Path) -> list[str]:
+    """The directories a build left in staging, apart from the robot description and the timings."""
+    return sorted(str(p.relative_to(staging)) for p in staging.rglob("*")
+                  if p.is_dir() and p.parent in (staging, staging / "shards") and p.name not in ("robot", "timings"))
+
+
+def fail_with(code: int, after: int = 0):
+    """A stand-in writer that works ``after`` times (calling ``real``), then raises OSError(code)."""
+    calls = []
+
+    def wrap(real):
+        def writer(*args, **kwargs):
+            calls.append(args)
+            if len(calls) > after:
+                raise OSError(code, os.strerror(code), str(args[0]))
+            return real(*args, **kwargs)
+        return writer
+    return wrap
+
+
+def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_path, capsys, monkeypatch):
+    """Disk full while episode 1 is written, then a read-only file system at the merge: each
+    exits 3 with one line, leaves only the finished shards in staging (no partial shard, no
+    half-merged dataset, no lock), and the rerun completes, without any progress bar.
+
+    The source also holds what is accepted and rescaled (items 2, 3): a calibration made at
+    twice the images' resolution, and float depth at half of it in one episode."""
+    from imac_data import dataset_card
+    from imac_data.dataset import columns
+
+    src = copy_source(sim_src, tmp_path / "episodes")
+    K = np.asarray(json.loads((src / "calibration.json").read_text())["cameras"]["cam_high"]["K"])
+    edit_calibration(src, "cam_high", _twice_the_resolution)
+    edit_datasets(src / "episode_1.hdf5", lambda d: d[:, ::2, ::2].astype(np.float32), [DEPTH_HIGH])
+    recipe, root = recipe_file(tmp_path), tmp_path / "local" / "out"  # like $HF_LEROBOT_HOME/local/<name>
+    staging, source = root.parent / ".out.staging", tree_digest(src)
+
+    monkeypatch.setattr(columns, "add_frame_column", fail_with(errno.ENOSPC, after=1)(columns.add_frame_column))
+    assert build_main(recipe, src, root) == 3
+    err = capsys.readouterr().err
+    assert "No space left on device (ENOSPC)" in err and len(err.strip().splitlines()) == 1, err
+    assert staging_entries(staging) == ["shards", "shards/episode_000000"]  # episode 1's partial shard removed
+    assert sorted(p.name for p in root.parent.iterdir()) == [".out.staging"]  # no lock left behind
+    monkeypatch.undo()
+
+    monkeypatch.setattr(dataset_card, "write_card", fail_with(errno.EROFS)(dataset_card.write_card))
+    assert build_main(recipe, src, root) == 3
+    err = capsys.readouterr().err
+    assert "Read-only file system (EROFS)" in err and len(err.strip().splitlines()) == 1, err
+    assert staging_entries(staging) == ["shards", "shards/episode_000000", "shards/episode_000001"]  # no dataset/
+    monkeypatch.undo()
+
+    assert build_main(recipe, src, root) == 0
+    err = capsys.readouterr().err
+    assert "%|" not in err and "it/s" not in err, err  # --no-progress: LeRobot's bars too
+    ds = LeRobotDataset("local/x", root=root)
+    assert ds.meta.total_episodes == 2
+    camera = ds.meta.info["imac"]["cameras"]["cam_high"]  # the simulator's own K at 120x160 again
+    assert (camera["height"], camera["width"]) == (120, 160) and np.allclose(camera["K"], K, atol=1e-9)
+    assert sorted(p.name for p in root.parent.iterdir()) == ["out"]
+    assert tree_digest(src) == source
+    # the free-space estimate is a lower bound of the staging peak (about twice the output)
+    from imac_data.diskspace import estimate_build_bytes
+
+    robot = sum(p.stat().st_size for p in (root / "meta" / "imac" / "robot").rglob("*") if p.is_file())
+    need = estimate_build_bytes(12, {c: (120, 160) for c in ("cam_high", "cam_left_wrist", "cam_right_wrist")},
+                                (60, 80), robot)
+    assert need <= 2 * sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+
+
+def test_environment_errors_are_recognised_however_they_arrive():
+    """From a pool worker (pickled), wrapped by a library (chained), or with only the text kept
+    (pyarrow, PyAV): still an environment fault; anything else is a bug."""
+    import pickle
+
+    from imac_data.cli import environment_problem
+
+    full = pickle.loads(pickle.dumps(OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/data/x.mp4")))
+    assert environment_problem(full).startswith("No space left on device (ENOSPC): /data/x.mp4 - free some space")
+    try:
+        try:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+        except OSError as e:
+            raise RuntimeError("could not write the video") from e
+    except RuntimeError as wrapped:
+        assert "(EROFS)" in environment_problem(wrapped)
+    assert "(ENOSPC)" in environment_problem(OSError("IOError: [Errno 28] No space left on device"))
+    assert environment_problem(OSError(errno.ENOENT, "No such file or directory")) is None
+    assert environment_problem(ValueError("a bug")) is None
+
+
+def test_output_parent_that_is_a_file(sim_src, tmp_path, capsys):
+    recipe = recipe_file(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    assert build_main(recipe, sim_src, tmp_path / "afile" / "out") == 3
+    err = capsys.readouterr().err
+    assert "afile is a file, not a directory" in err and len(err.strip().splitlines()) == 1
+    assert (tmp_path / "afile").read_text() == "x"
+
+
+@pytest.fixture
+def small_tmpfs(tmp_path):
+    """A real 2 MB file system (tmpfs), or a skip where mounting is not permitted."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"mounting a tmpfs is not permitted here: {r.stderr.strip()}")
+    yield mnt
+    subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def test_a_really_full_disk_warns_fails_cleanly_and_resumes(sim_src, tmp_path, small_tmpfs, capsys):
+    """The build into a 2 MB tmpfs: a warning before it starts, exit 3 when the disk fills,
+    only finished shards left; after the file system grows the rerun completes."""
+    recipe, root = recipe_file(tmp_path), small_tmpfs / "out"
+    assert build_main(recipe, sim_src, root) == 3
+    err = capsys.readouterr().err
+    assert "warning:" in err and "MB free" in err, err
+    assert "No space left on device (ENOSPC)" in err and "Traceback" not in err, err
+    staging = small_tmpfs / ".out.staging"
+    assert all(e == "shards" or e.startswith("shards/episode_0") for e in staging_entries(staging))
+    assert not list(staging.rglob("*.tmp")) and not list(staging.rglob("*.merging"))
+    subprocess.run(["mount", "-o", "remount,size=32m", str(small_tmpfs)], check=True)
+    assert build_main(recipe, sim_src, root) == 0
+    assert LeRobotDataset("local/x", root=root).meta.total_episodes == 2
+    assert sorted(p.name for p in small_tmpfs.iterdir()) == ["out"]
+
+
+# --------------------------------------------------------------------------- concurrency and killed builds
+
+
+HOLD_LOCK = """
+import os, sys, time
+from pathlib import Path
+from imac_data.lock import lock_path, output_lock
+root = Path(sys.argv[1])
+with output_lock(root):
+    print("locked", flush=True)
+    if len(sys.argv) < 3:
+        time.sleep(600)
+    else:  # "a build" that finishes once another one waits for its lock (a "->" line in /proc/locks)
+        inode = f":{os.stat(lock_path(root)).st_ino} "
+        while not any(line.split()[1] == "->" and inode in line for line in open("/proc/locks")):
+            time.sleep(0.05)
+        (root / "meta").mkdir(parents=True)
+        (root / "meta" / "info.json").write_text("{}")
+"""
+
+
+def hold_lock(root: Path, *args) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(root), *args], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "locked"
+    return proc
+
+
+def test_a_second_build_of_the_same_output_is_locked_out(sim_src, tmp_path, capsys):
+    """Another build holds the output's lock: refused with exit 3 naming its PID, nothing
+    written; the lock file lies next to the staging directory."""
+    from imac_data.lock import lock_path
+
+    recipe, root = recipe_file(tmp_path), tmp_path / "out"
+    assert lock_path(root).parent == root.parent
+    other = hold_lock(root)
+    try:
+        assert build_main(recipe, sim_src, root) == 3
+        err = capsys.readouterr().err
+        assert f"another build (PID {other.pid}) is writing {root}" in err and "--wait" in err, err
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".out.lock", "recipe.yaml"]  # the other's lock only
+    finally:
+        other.kill()
+        other.wait()
+
+
+def test_wait_waits_for_the_other_build(sim_src, tmp_path, capsys):
+    """--wait: the build waits for the lock's holder, then sees the output it made (exit 2,
+    already exists) instead of replacing it."""
+    recipe, root = recipe_file(tmp_path), tmp_path / "out"
+    other = hold_lock(root, "finish when waited for")
+    assert build_main(recipe, sim_src, root, "--wait") == 2
+    err = capsys.readouterr().err
+    assert f"waiting for the build with PID {other.pid}" in err and "already exists" in err, err
+    assert other.wait() == 0 and (root / "meta" / "info.json").read_text() == "{}"
+
+
+def _alive_children(pid: int) -> set[int]:
+    """PIDs of the processes whose parent is ``pid`` (from /proc/*/stat)."""
+    out = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                out.add(int(stat.parent.name))
+        except (OSError, ValueError, IndexError):
+            pass  # gone meanwhile
+    return out
+
+
+def _running(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"  # zombies are dead
+    except OSError:
+        return False
+
+
+def test_pool_workers_die_with_a_killed_build(sim_src, tmp_path):
+    """SIGKILL the build while a pool worker writes its episode: the worker dies with it and
+    finishes no shard afterwards."""
+    recipe, root = recipe_file(tmp_path), tmp_path / "out"
+    shards = tmp_path / ".out.staging" / "shards"
+    proc = subprocess.Popen([sys.executable, "-m", "imac_data.build", "--repo", "local/x", "--recipe", str(recipe),
+                             "--source", str(sim_src), "--root", str(root), "--no-progress", "--workers", "2"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 600  # a spawned worker imports torch, Open3D, ... first: slow on a loaded machine
+    while time.time() < deadline:  # both episodes started, one still being written (by the pool worker)
+        writing, done = list(shards.glob(".episode_*.tmp")), list(shards.glob("episode_*"))
+        if writing and len(writing) + len(done) == 2:
+            break
+        time.sleep(0.05)
+    children = _alive_children(proc.pid)
+    proc.kill()
+    proc.wait()
+    assert children and writing, "the build started no pool worker"
+    deadline = time.time() + 10
+    while time.time() < deadline and any(_running(c) for c in children):
+        time.sleep(0.1)
+    assert not any(_running(c) for c in children), "a pool worker outlived the build"
+    time.sleep(1.0)
+    assert list(shards.glob("episode_*")) == done, "an orphan finished a shard after the build was killed"

@@ -239,36 +239,22 @@ def check_rig(ctx: _Context) -> list[str]:
                                                    f"cameras {sorted(have)}"]
 
 
-def _rigid_problems(T: np.ndarray) -> str | None:
-    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
-    R = T[:, :3, :3]
-    if np.abs(T[:, 3] - [0, 0, 0, 1]).max() > 1e-6:
-        return "last row is not [0, 0, 0, 1]"
-    ortho = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max()
-    if ortho > RIGID_TOL:
-        return f"rotation is not orthonormal (|R R^T - I| = {ortho:.2g})"
-    det = np.linalg.det(R)
-    if np.abs(det - 1).max() > RIGID_TOL:
-        return f"rotation has det {det[np.argmax(np.abs(det - 1))]:.4f} (a reflection or a scale)"
-    return None
-
-
 def check_calibration(ctx: _Context) -> list[str]:
+    from imac_data.cameras import camera_from_dict, rigid_problem
+
     problems = []
     for name, c in ctx.info.get("imac", {}).get("cameras", {}).items():
-        K = np.asarray(c["K"], dtype=np.float64)
-        if not (K[0, 0] > 0 and K[1, 1] > 0):
-            problems.append(f"camera {name!r}: focal lengths fx={K[0, 0]}, fy={K[1, 1]} must be > 0")
-        if not (-0.5 <= K[0, 2] <= c["width"] - 0.5 and -0.5 <= K[1, 2] <= c["height"] - 0.5):
-            problems.append(f"camera {name!r}: principal point ({K[0, 2]}, {K[1, 2]}) outside its "
-                            f"{c['width']}x{c['height']} image")
-        pose = c.get("T_world_cam", c.get("T_link_cam"))
-        why = _rigid_problems(pose)
+        try:  # the calibration checks of the build's input (fx, fy, principal point, rigid pose)
+            camera_from_dict(name, c, f"imac.cameras.{name}")
+        except InputError as e:
+            problems.append(str(e))
+            continue
+        why = rigid_problem(c.get("T_world_cam", c.get("T_link_cam")), RIGID_TOL)  # stricter: written by us
         if why:
             problems.append(f"camera {name!r}: pose {why}")
     for key in [k for k in ctx.features if k.startswith("camera_pose.")]:
         _, poses = ctx.data_column(key)
-        why = _rigid_problems(poses if ctx.full else poses[:: max(1, len(poses) // 64)])
+        why = rigid_problem(poses if ctx.full else poses[:: max(1, len(poses) // 64)], RIGID_TOL)
         if why:
             problems.append(f"{key}: {why}")
     return problems
