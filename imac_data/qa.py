@@ -6,6 +6,7 @@ with the calibration and draws its outline over the recorded images; where the
 episode carries a ground-truth robot mask (simulated episodes: per-pixel geom
 segmentation + labels), it also reports the per-frame mask IoU.
 
+    python -m imac_data.qa refine SOURCE --calibration CALIB.json --out REFINED.json   (imac_data.refine)
     python -m imac_data.qa overlay EPISODE.hdf5 --calibration CALIB.json --out DIR
         [--robot aloha] [--source state|action] [--format mp4|png]
         [--frames START:STOP:STEP] [--cameras cam_high,cam_left_wrist] [--overwrite]
@@ -332,7 +333,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--frames", default=None, help="frame selection START:STOP:STEP (python slice), or one index")
     p.add_argument("--cameras", default=None, help="comma-separated camera names (default: all in the episode)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
+    from imac_data import refine  # the refine subcommand lives in its own module
+
+    refine.add_arguments(sub.add_parser("refine", help="refine camera poses by aligning the rendered robot "
+                                        "with the robot's pixels (README: Fixing a calibration)"))
     args = parser.parse_args(argv)
+    if args.command == "refine":
+        return refine.run(args)
     try:
         cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
         robot = args.robot
