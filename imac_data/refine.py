@@ -1,7 +1,7 @@
 """``qa refine``: fix a calibration from the recordings themselves.
 
     python -m imac_data.qa refine SOURCE --recipe R.yaml --calibration calib.json --out refined.json
-        [--robot-pixels auto|sim|colour|MASK_DIR] [--cameras cam_high,...] [--frames 8]
+        [--robot-pixels auto|sim|edges|MASK_DIR] [--cameras cam_high,...] [--frames 8]
         [--method gradient|nelder-mead|powell] [--refine-focal] [--near METRES]
         [--report DIR] [--overwrite]
 
@@ -23,9 +23,10 @@ Robot pixels (``--robot-pixels``):
 * ``sim``: the simulator's ground truth, recorded in the episodes (geom segmentation);
 * a directory of masks from any segmenter: ``DIR/<episode file stem>/<camera>/<frame:06d>.png``,
   nonzero = robot; only frames with a mask are used;
-* ``colour``: the built-in cue, a colour model of the robot learnt from the current overlay
-  (:func:`imac_data.calibrate.colour_probability`), re-learnt after each round;
-* ``auto`` (default): ``sim`` when the episodes carry a segmentation, else ``colour``.
+* ``edges``: the built-in cue, no learned model: image edges near the current overlay
+  (:func:`imac_data.calibrate.image_edges`); the rendered outline is pulled onto them, in
+  three rounds with a search margin shrinking from 8% of the image;
+* ``auto`` (default): ``sim`` when the episodes carry a segmentation, else ``edges``.
 
 SOURCE is a directory of raw ALOHA/AgileX HDF5 episodes or one episode file; the frame
 reading sits behind :class:`HDF5Frames`, the one thing a LeRobot source has to replace.
@@ -52,8 +53,8 @@ import h5py
 import numpy as np
 import torch
 
-from imac_data.calibrate import (CameraFit, RefineConfig, colour_probability, pose_change, refine_camera,
-                                 select_frames, silhouette_agreement)
+from imac_data.calibrate import (CameraFit, RefineConfig, image_edges, pose_change, refine_camera, select_frames,
+                                 silhouette_agreement)
 from imac_data.cameras import Camera, load_calibration, save_calibration
 from imac_data.errors import InputError
 
@@ -147,7 +148,7 @@ class _CameraProblem:
     refs: list[tuple[str, int]]  # (episode, frame) of the chosen frames
     q: np.ndarray  # (N, D)
     images: np.ndarray  # (N, H, W, 3)
-    target: np.ndarray | None  # (N, H, W) robot probability (None until the colour cue makes it)
+    target: np.ndarray | None  # (N, H, W) robot probability or image edges (None until the edge cue makes them)
 
 
 def _default_near(frames: HDF5Frames) -> float:
@@ -183,9 +184,9 @@ def _gather(frames: HDF5Frames, cam_name: str, camera: Camera, renderer, pixels:
                 m = frames.robot_masks(ep, cam_name, idx, links)
                 if m is None:
                     raise InputError(f"{ep}: no ground-truth segmentation for camera {cam_name!r}; "
-                                     "choose --robot-pixels colour or a mask directory")
+                                     "choose --robot-pixels edges or a mask directory")
                 cov = m.mean(axis=(1, 2))
-            else:  # colour: where the current calibration renders the robot
+            else:  # edges: where the current calibration renders the robot
                 cov = renderer.render(torch.as_tensor(q[idx]), {cam_name: camera},
                                       resolution=(60, 80))[cam_name].mask.float().mean(dim=(1, 2)).numpy()
         q_all.append(q[idx])
@@ -210,15 +211,16 @@ def _gather(frames: HDF5Frames, cam_name: str, camera: Camera, renderer, pixels:
                           np.concatenate(target).astype(np.float32) if target else None)
 
 
-def _draw(images: np.ndarray, rendered: np.ndarray, target: np.ndarray, title: str) -> np.ndarray:
-    """A grid of the frames (at most 8, two rows), outlines of the robot pixels and of the render."""
+def _draw(images: np.ndarray, rendered: np.ndarray, target: np.ndarray, title: str, edges: bool) -> np.ndarray:
+    """A grid of the frames (at most 8, two rows), outlines of the robot pixels (or the image
+    edges the cue found) and of the render."""
     from imac_data.qa import outline
 
     tiles = []
     for img, r, g in zip(images[:8], rendered[:8], target[:8]):
         t = max(1, round(img.shape[0] / 240))
         out = img.copy()
-        out[outline(g >= 0.5, t)] = TARGET_RGB
+        out[g if edges else outline(g >= 0.5, t)] = TARGET_RGB
         out[outline(r, t)] = OUTLINE_RGB
         tiles.append(out)
     while len(tiles) % 4 and len(tiles) > 4:
@@ -233,17 +235,18 @@ def _draw(images: np.ndarray, rendered: np.ndarray, target: np.ndarray, title: s
     return grid
 
 
-def _colour_target(images, renderer, camera: Camera, q, margin_px: int) -> np.ndarray:
+def _edge_target(images, renderer, camera: Camera, q, margin_px: int) -> np.ndarray:
     rendered = renderer.render(torch.as_tensor(q), {camera.name: camera},
                                resolution=images.shape[1:3])[camera.name].mask.numpy()
-    return colour_probability(images, rendered, margin_px=margin_px)
+    return image_edges(images, rendered, margin_px=margin_px)
 
 
 def refine_calibration(source: str | Path, calibration: str | Path, out: str | Path, *, robot="aloha",
                        recipe: str | Path | None = None, robot_pixels: str = "auto",
                        cameras: Sequence[str] | None = None, frames: int = 8, min_separation: float = 0.1,
                        config: RefineConfig | None = None, near: float | None = None,
-                       report: str | Path | None = None, overwrite: bool = False, colour_rounds: int = 3,
+                       report: str | Path | None = None, overwrite: bool = False, edge_rounds: int = 3,
+                       edge_margin: float = 0.08,
                        candidate_budget: int = 400, log=None) -> dict:
     """Refine the calibration ``calibration`` from the episodes in ``source``; write ``out`` and the
     report directory; return the report dict. All inputs are checked before any work."""
@@ -298,11 +301,11 @@ def refine_calibration(source: str | Path, calibration: str | Path, out: str | P
                          f"expects {robot.dof}")
     mask_dir = None
     if robot_pixels == "auto":
-        robot_pixels = "sim" if src.has_segmentation else "colour"
-    if robot_pixels not in ("sim", "colour"):
+        robot_pixels = "sim" if src.has_segmentation else "edges"
+    if robot_pixels not in ("sim", "edges"):
         mask_dir = Path(robot_pixels)
         if not mask_dir.is_dir():
-            raise InputError(f"--robot-pixels {robot_pixels}: not 'auto', 'sim', 'colour' or a mask directory")
+            raise InputError(f"--robot-pixels {robot_pixels}: not 'auto', 'sim', 'edges' or a mask directory")
         pixels = "masks"
     else:
         pixels = robot_pixels
@@ -322,30 +325,36 @@ def refine_calibration(source: str | Path, calibration: str | Path, out: str | P
         cam0 = rig[c] if (rig[c].height, rig[c].width) == tuple(size) else rig[c].rescaled(size[1], size[0])
         prob = _gather(src, c, cam0, renderer, pixels, mask_dir, frames, min_separation, candidate_budget)
         log(f"[refine] {c}: frames {[f'{Path(e).stem}:{t}' for e, t in prob.refs]}")
-        if pixels == "colour":
-            margin = max(2, round(0.03 * max(size)))
+        if pixels == "edges":
+            margin = max(2, round(edge_margin * max(size)))
             cam, fits = cam0, []
-            for k in range(colour_rounds):
-                prob.target = _colour_target(prob.images, renderer, cam, prob.q, margin)
-                fit = refine_camera(renderer, cam, prob.q, prob.target, config, log=log)
-                fits.append(fit)
-                cam = fit.camera
+            for k in range(edge_rounds):  # the search margin shrinks as the overlay improves
+                prob.target = _edge_target(prob.images, renderer, cam, prob.q, margin)
+                fits.append(refine_camera(renderer, cam, prob.q, prob.target, config, edges=True, log=log))
+                cam = fits[-1].camera
                 margin = max(2, margin // 2)
-            prob.target = _colour_target(prob.images, renderer, cam, prob.q, margin)
-            fit = CameraFit(camera=cam, initial=cam0, update=sum(f.update for f in fits), renders=sum(f.renders for f in fits),
-                            wall_s=sum(f.wall_s for f in fits), cpu_s=sum(f.cpu_s for f in fits),
-                            history=[h for f in fits for h in f.history])
+            fit = CameraFit(camera=cam, initial=cam0, update=sum(f.update for f in fits),
+                            renders=sum(f.renders for f in fits), wall_s=sum(f.wall_s for f in fits),
+                            cpu_s=sum(f.cpu_s for f in fits), history=[h for f in fits for h in f.history])
         else:
             fit = refine_camera(renderer, cam0, prob.q, prob.target, config, log=log)
         q = torch.as_tensor(prob.q)
         before = renderer.render(q, {c: cam0})[c].mask.numpy()
         after = renderer.render(q, {c: fit.camera})[c].mask.numpy()
-        agree0, agree1 = silhouette_agreement(before, prob.target), silhouette_agreement(after, prob.target)
+        edges = pixels == "edges"
+        agree0 = silhouette_agreement(before, prob.target, edges=edges)
+        agree1 = silhouette_agreement(after, prob.target, edges=edges)
         out_cam = fit.camera if (fit.camera.height, fit.camera.width) == (calib[c].height, calib[c].width) \
             else fit.camera.rescaled(calib[c].width, calib[c].height)
+        score = "boundary_px" if edges else "iou"
+        kept = not (agree1[score] <= agree0[score] if edges else agree1[score] >= agree0[score])
+        if kept:  # never hand back a worse calibration
+            log(f"[refine] {c}: refinement did not improve the overlay ({score} {agree0[score]:.4f} -> "
+                f"{agree1[score]:.4f}); keeping the input calibration for this camera")
+            out_cam, after, agree1 = calib[c], before, agree0
         refined[c] = out_cam
         result["cameras"][c] = {
-            "mounted_on": calib[c].link, "frames": [[e, t] for e, t in prob.refs],
+            "mounted_on": calib[c].link, "frames": [[e, t] for e, t in prob.refs], "kept_input": kept,
             "iou_before": agree0["iou"], "iou_after": agree1["iou"],
             "iou_per_frame_before": agree0["iou_per_frame"], "iou_per_frame_after": agree1["iou_per_frame"],
             "boundary_px_before": agree0["boundary_px"], "boundary_px_after": agree1["boundary_px"],
@@ -353,8 +362,9 @@ def refine_calibration(source: str | Path, calibration: str | Path, out: str | P
             "focal_change_pct": 100.0 * (out_cam.K[0, 0] / calib[c].K[0, 0] - 1.0),
             "renders": fit.renders, "wall_s": fit.wall_s, "cpu_s": fit.cpu_s,
         }
-        overlays[c] = (_draw(prob.images, before, prob.target, f"{c} before: IoU {agree0['iou']:.4f}"),
-                       _draw(prob.images, after, prob.target, f"{c} after: IoU {agree1['iou']:.4f}"))
+        overlays[c] = tuple(_draw(prob.images, m, prob.target, f"{c} {when}: " + (
+            f"outline {a['boundary_px']:.2f} px from the edges" if edges else f"IoU {a['iou']:.4f}"), edges)
+            for when, m, a in (("before", before, agree0), ("after", after, agree1)))
     result["wall_s"] = time.perf_counter() - t0
     result["cpu_s"] = time.process_time() - c0
     result["load_avg"] = list(os.getloadavg())
@@ -395,13 +405,16 @@ def format_report(result: dict) -> str:
              f"{result['wall_s']:.0f} s)",
              f"{'camera':<18} {'IoU before':>10} {'after':>7} {'bdry px':>8} {'after':>6}  "
              f"{'x mm':>7} {'y mm':>7} {'z mm':>7} {'rx deg':>7} {'ry deg':>7} {'rz deg':>7}"]
+    def iou(x):
+        return "-" if x is None else f"{x:.4f}"
+
     for c, e in result["cameras"].items():
         p = e["pose_change"]
-        lines.append(f"{c:<18} {e['iou_before']:>10.4f} {e['iou_after']:>7.4f} {e['boundary_px_before']:>8.2f} "
+        lines.append(f"{c:<18} {iou(e['iou_before']):>10} {iou(e['iou_after']):>7} {e['boundary_px_before']:>8.2f} "
                      f"{e['boundary_px_after']:>6.2f}  " + " ".join(f"{p[k]:>7.2f}" for k in
                                                                 ("x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg")))
-    lines.append("pose change in each camera's own axes (x right, y down, z forward); boundary px = mean distance "
-                 "between the rendered and the observed silhouette outlines")
+    lines.append("pose change in each camera's own axes (x right, y down, z forward); bdry px = mean distance "
+                 "between the rendered and the observed outlines (edges cue: to the nearest image edge)")
     return "\n".join(lines)
 
 
@@ -412,8 +425,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--recipe", default=None, help="take the robot (URDF, joint map) from this build recipe")
     p.add_argument("--robot", default="aloha", help="robot by name when no --recipe is given")
     p.add_argument("--robot-pixels", default="auto",
-                   help="where the robot's pixels come from: auto (default), sim, colour, or a mask directory "
-                        "DIR/<episode stem>/<camera>/<frame:06d>.png")
+                   help="where the robot's pixels come from: auto (default: sim if recorded, else edges), sim, "
+                        "edges, or a mask directory DIR/<episode stem>/<camera>/<frame:06d>.png")
     p.add_argument("--cameras", default=None, help="comma-separated cameras (default: every calibrated one)")
     p.add_argument("--frames", type=int, default=8, help="frames per camera (default 8)")
     p.add_argument("--min-separation", type=float, default=0.1,
