@@ -497,7 +497,7 @@ def _soft_iou(ab: float, aa: float, bb: float) -> float:
 
 def _exact_energy(v: _View, lv: _Level, cfg: RefineConfig) -> tuple[float, float, float]:
     """The objective at a rendered pose (what the soft objective equals at ``xi = 0``)."""
-    a = _blur(_crop(v.mask, lv)).reshape(-1)
+    a = _crop(_blur(v.mask), lv).reshape(-1)  # the silhouette just outside the image blurs in
     iou = _soft_iou(float(np.dot(a, lv.soft)), float(np.dot(a, a)), lv.soft_sq)
     n, yy, xx = np.nonzero(_contour(v, lv))
     if len(n):
@@ -529,7 +529,7 @@ class _SoftSilhouette:
         band = v.mask & ~core
         grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(reach + 2) + 1,) * 2)
         active = _crop(np.stack([cv2.dilate(b.astype(np.uint8), grow) for b in band]) > 0, lv).reshape(-1)
-        core_soft = _blur(_crop(core, lv)).reshape(-1)
+        core_soft = _crop(_blur(core), lv).reshape(-1)
         cam = _level_camera(camera, lv)
         self.K = torch.as_tensor(cam.K, dtype=torch.float64)
         Kinv = np.linalg.inv(cam.K)
@@ -544,6 +544,7 @@ class _SoftSilhouette:
         contour = _contour(v, lv)
         self.n_edge, self.X_edge = lift(contour)
         n, y, x = np.nonzero(contour)
+        self.uv_edge = torch.from_numpy(np.stack([x - lv.m, y - lv.m], 1).astype(np.float32))
         self.own_field = torch.zeros(len(n)) if lv.edges else torch.from_numpy(v.field[n, y, x])
         g = lv.soft
         slots = np.flatnonzero(active)
@@ -586,6 +587,13 @@ class _SoftSilhouette:
                 e = e + cfg.edge_weight * _robust(r, cfg).mean(dtype=torch.float64)
         return e
 
+    def rms_motion(self, p: torch.Tensor) -> torch.Tensor:
+        """Root-mean-square image motion (level px) of the boundary pixels under update ``p``."""
+        if not len(self.X_edge):
+            return torch.zeros((), dtype=torch.float64)
+        d = self.project(self.X_edge, p) - self.uv_edge
+        return ((d * d).sum(dim=1).mean(dtype=torch.float64) + 1e-12).sqrt()
+
     def max_motion(self, p: torch.Tensor) -> float:
         """The largest image motion (level px) the update causes on the boundary pixels."""
         if not len(self.X_edge):
@@ -597,47 +605,57 @@ class _SoftSilhouette:
 
 def _gradient_level(renderer, camera: Camera, q: torch.Tensor, lv: _Level, cfg: RefineConfig, step_px: float,
                     fit: CameraFit, log: Callable[[str], None] | None) -> Camera:
+    """Iterate: exact render -> soft objective around it -> L-BFGS inside the trust region ->
+    the exact render judges the step (halved until it helps; the plain gradient direction as a
+    last resort, since far along an L-BFGS direction the landscape can hide a bump)."""
     n_par = 7 if cfg.refine_focal else 6
     v = _render(renderer, camera, q, lv, cfg)
     fit.renders += 1
+    mask = torch.zeros(7, dtype=torch.float64)
+    mask[:n_par] = 1.0
     for it in range(cfg.max_iterations):
         soft = _SoftSilhouette(v, camera, lv, cfg, step_px)
         p = torch.zeros(7, dtype=torch.float64, requires_grad=True)
-        mask = torch.zeros(7, dtype=torch.float64)
-        mask[:n_par] = 1.0
         opt = torch.optim.LBFGS([p], lr=1.0, max_iter=cfg.lbfgs_iterations, line_search_fn="strong_wolfe",
                                 tolerance_grad=1e-10, tolerance_change=1e-12)
 
         def closure():
             opt.zero_grad()
-            e = soft.energy(p * mask)
+            x = p * mask
+            # the trust region as a penalty, so L-BFGS searches where the soft model holds
+            e = soft.energy(x) + 10.0 * torch.relu(soft.rms_motion(x) - step_px) ** 2
             e.backward()
             return e
 
         opt.step(closure)
         step = (p.detach() * mask).clone()
-        if not torch.isfinite(step).all():
-            step = torch.zeros(7, dtype=torch.float64)
-        motion = soft.max_motion(step)
-        if motion > step_px:
-            step *= step_px / motion
-            motion = step_px
-        taken = False
-        for _ in range(4):  # the exact render decides; halve the step until it helps
-            cand = apply_update(camera, step.numpy())
-            cv_ = _render(renderer, cand, q, lv, cfg)
-            fit.renders += 1
-            if cv_.energy <= v.energy:
-                camera, v, taken = cand, cv_, True
-                fit.update = fit.update + step.numpy()
+        gp = torch.zeros(7, dtype=torch.float64, requires_grad=True)
+        soft.energy(gp * mask).backward()
+        directions = [step, -(gp.grad * mask)]
+        taken, motion = False, 0.0
+        for d in directions:
+            if not torch.isfinite(d).all() or not d.abs().max() > 0:
+                continue
+            m = soft.max_motion(d)
+            limit = step_px if d is step else 0.5 * step_px
+            if m > limit:
+                d, m = d * (limit / m), limit
+            for _ in range(4):  # the exact render decides; halve the step until it helps
+                cand = apply_update(camera, d.numpy())
+                cv_ = _render(renderer, cand, q, lv, cfg)
+                fit.renders += 1
+                if cv_.energy <= v.energy:
+                    camera, v, taken, motion = cand, cv_, True, m
+                    fit.update = fit.update + d.numpy()
+                    break
+                d, m = d * 0.5, m * 0.5
+            if taken:
                 break
-            step *= 0.5
-            motion *= 0.5
         fit.history.append({"level": lv.scale, "iteration": it, "energy": v.energy, "iou": v.iou,
-                            "edge_px": v.edge, "motion_px": motion if taken else 0.0, "taken": taken})
+                            "edge_px": v.edge, "motion_px": motion, "taken": taken})
         if log:
             log(f"  level {lv.scale:g} it {it}: E={v.energy:.5f} IoU={v.iou:.4f} edge={v.edge:.3f} "
-                f"step={motion if taken else 0:.3f}px")
+                f"step={motion:.3f}px")
         if not taken or motion < cfg.tolerance_px:
             break
     return camera
