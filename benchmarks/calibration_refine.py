@@ -1,7 +1,7 @@
 """Calibration from the robot itself (``qa refine``): accuracy against the known truth, and time.
 
     python -m benchmarks.calibration_refine [--quick] [--seeds 3] [--methods gradient,nelder-mead]
-        [--cues sim,edges] [--ablation] [--json PATH]
+        [--cues sim,edges] [--ablation] [--cameras ...] [--json PATH]
 
 Simulated transfer-cube episodes at 480x640 (two episodes, scripted policy, MuJoCo's geom
 segmentation), recorded once into ``$XDG_CACHE_HOME/imac/bench/``. The simulated rig's
@@ -105,7 +105,7 @@ def reprojection_px(renderer, truth, est, q: np.ndarray) -> float:
 
 
 def _one(src: Path, truth: dict, start: dict, seed: int, pixels: str, config: RefineConfig, robot,
-         tmp: Path) -> dict:
+         tmp: Path, cameras=None) -> dict:
     from imac_data.refine import refine_calibration
     from imac_data.render import make_renderer
     from imac_data.refine import HDF5Frames, _default_near
@@ -113,7 +113,8 @@ def _one(src: Path, truth: dict, start: dict, seed: int, pixels: str, config: Re
     bad = tmp / f"start-{seed}.json"
     save_calibration(bad, start)
     out = tmp / f"refined-{seed}-{pixels}-{config.method}-{abs(hash(str(config.to_dict())))}.json"
-    res = refine_calibration(src, bad, out, robot=robot, robot_pixels=pixels, config=config, overwrite=True)
+    res = refine_calibration(src, bad, out, robot=robot, robot_pixels=pixels, config=config, overwrite=True,
+                             cameras=cameras)
     refined = load_calibration(out)
     renderer = make_renderer(robot, near=_default_near(HDF5Frames(src)))
     row = {"seed": seed, "robot_pixels": pixels, "method": config.method, "config": config.to_dict(),
@@ -159,7 +160,7 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def run(*, quick: bool = False, seeds: int = 3, methods=("gradient", "nelder-mead"), cues=("sim", "edges"),
-        ablation: bool = False, progress: bool = True) -> dict:
+        ablation: bool = False, cameras=None, progress: bool = True) -> dict:
     from imac_data.aloha import robot_config
     from imac_data.robot import RobotModel
 
@@ -185,7 +186,8 @@ def run(*, quick: bool = False, seeds: int = 3, methods=("gradient", "nelder-mea
             for pixels in cues:
                 for method in (methods if pixels == "sim" else ("gradient",)):
                     say(f"[calibration_refine] seed {seed}, robot pixels {pixels}, {method}")
-                    rows.append(_one(src, truth, start, seed, pixels, RefineConfig(method=method), robot, tmp))
+                    rows.append(_one(src, truth, start, seed, pixels, RefineConfig(method=method), robot, tmp,
+                                     cameras))
                     _print_row(rows[-1], say)
         if ablation:
             start = perturb(truth, 0)
@@ -193,7 +195,7 @@ def run(*, quick: bool = False, seeds: int = 3, methods=("gradient", "nelder-mea
                 if not over:
                     continue
                 say(f"[calibration_refine] ablation: {name}")
-                row = _one(src, truth, start, 0, "sim", RefineConfig(**over), robot, tmp)
+                row = _one(src, truth, start, 0, "sim", RefineConfig(**over), robot, tmp, cameras)
                 row["variant"] = name
                 rows.append(row)
                 _print_row(row, say)
@@ -251,10 +253,12 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--methods", default="gradient,nelder-mead", help="optimisers to run with sim masks")
     p.add_argument("--cues", default="sim,edges", help="robot-pixel sources: sim, edges")
     p.add_argument("--ablation", action="store_true", help="also the objective variants (one seed)")
+    p.add_argument("--cameras", default=None, help="comma-separated cameras (default: all three)")
     p.add_argument("--json", default=str(RESULTS / "calibration_refine.json"), help="where to write the JSON")
     args = p.parse_args(argv)
     result = run(quick=args.quick, seeds=args.seeds, methods=tuple(m for m in args.methods.split(",") if m),
-                 cues=tuple(c for c in args.cues.split(",") if c), ablation=args.ablation)
+                 cues=tuple(c for c in args.cues.split(",") if c), ablation=args.ablation,
+                 cameras=[c for c in args.cameras.split(",") if c] if args.cameras else None)
     print(format_table(result))
     path = Path(args.json)
     path.parent.mkdir(parents=True, exist_ok=True)

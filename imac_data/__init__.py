@@ -17,7 +17,8 @@ Modules, one concept each:
 * ``video_streams`` add video streams to a LeRobot dataset
 * ``augment``     the control streams of an episode; augmenting existing datasets
 * ``recipes``, ``build`` the build's recipes and CLI
-* ``qa``          calibration overlay
+* ``qa``          calibration overlay; ``qa refine`` (``refine``) fixes a calibration
+* ``calibrate``   camera poses from the robot's silhouette (the algorithm of ``qa refine``)
 """
 
 import os

@@ -181,11 +181,13 @@ def _gather(frames: HDF5Frames, cam_name: str, camera: Camera, renderer, pixels:
         else:
             idx = _candidates(len(q), per_episode)
             if pixels == "sim":
-                m = frames.robot_masks(ep, cam_name, idx, links)
-                if m is None:
-                    raise InputError(f"{ep}: no ground-truth segmentation for camera {cam_name!r}; "
-                                     "choose --robot-pixels edges or a mask directory")
-                cov = m.mean(axis=(1, 2))
+                cov = []
+                for i in range(0, len(idx), 16):  # bounded memory, whatever the episode length
+                    m = frames.robot_masks(ep, cam_name, idx[i:i + 16], links)
+                    if m is None:
+                        raise InputError(f"{ep}: no ground-truth segmentation for camera {cam_name!r}; "
+                                         "choose --robot-pixels edges or a mask directory")
+                    cov += m.mean(axis=(1, 2)).tolist()
             else:  # edges: where the current calibration renders the robot
                 cov = renderer.render(torch.as_tensor(q[idx]), {cam_name: camera},
                                       resolution=(60, 80))[cam_name].mask.float().mean(dim=(1, 2)).numpy()

@@ -221,3 +221,13 @@ def test_edge_cue_needs_an_overlay_that_shows_the_robot(sim_src, tmp_path, capsy
                   "--out", str(tmp_path / "r.json"), "--cameras", "cam_high", "--robot-pixels", "edges"])
     assert rc == 2
     assert "no robot visible in camera 'cam_high'" in capsys.readouterr().err
+
+
+def test_refine_config_is_validated_and_round_trips():
+    cfg = RefineConfig(method="nelder-mead", levels=[0.5, 1.0], refine_focal=True)
+    assert RefineConfig(**json.loads(json.dumps(cfg.to_dict()))) == cfg
+    for bad, field in (({"method": "adam"}, "method"), ({"levels": (1.0, 0.5)}, "levels"),
+                       ({"robust": "l1"}, "robust"), ({"iou_weight": 0.0, "edge_weight": 0.0}, "edge_weight"),
+                       ({"max_iterations": 0}, "max_iterations"), ({"pad": 2.0}, "pad")):
+        with pytest.raises(InputError, match=f"RefineConfig.{field}"):
+            RefineConfig(**bad)
