@@ -106,9 +106,9 @@ def reprojection_px(renderer, truth, est, q: np.ndarray) -> float:
 
 def _one(src: Path, truth: dict, start: dict, seed: int, pixels: str, config: RefineConfig, robot,
          tmp: Path, cameras=None) -> dict:
-    from imac_data.refine import refine_calibration
+    from imac_data.calibrate import silhouette_agreement
+    from imac_data.refine import HDF5Frames, _default_near, refine_calibration
     from imac_data.render import make_renderer
-    from imac_data.refine import HDF5Frames, _default_near
 
     bad = tmp / f"start-{seed}.json"
     save_calibration(bad, start)
@@ -116,20 +116,23 @@ def _one(src: Path, truth: dict, start: dict, seed: int, pixels: str, config: Re
     res = refine_calibration(src, bad, out, robot=robot, robot_pixels=pixels, config=config, overwrite=True,
                              cameras=cameras)
     refined = load_calibration(out)
-    renderer = make_renderer(robot, near=_default_near(HDF5Frames(src)))
+    frames = HDF5Frames(src)
+    renderer = make_renderer(robot, near=_default_near(frames))
     row = {"seed": seed, "robot_pixels": pixels, "method": config.method, "config": config.to_dict(),
-           "wall_s": res["wall_s"], "cpu_s": res["cpu_s"], "cameras": {}}
+           "wall_s": res["wall_s"], "cpu_s": res["cpu_s"], "load_avg": res["load_avg"], "cameras": {}}
     for c, e in res["cameras"].items():
-        frames = HDF5Frames(src)
         q = np.stack([frames.joints(ep)[t] for ep, t in e["frames"]])
-        err0, err1 = pose_change(truth[c], start[c]), pose_change(truth[c], refined[c])
+        # IoU against the simulator's robot masks, whatever the refinement used
+        sim = np.concatenate([frames.robot_masks(ep, c, [t], renderer.link_names) for ep, t in e["frames"]])
+        iou = {when: silhouette_agreement(renderer.render(torch.as_tensor(q), {c: cam})[c].mask.numpy(), sim)["iou"]
+               for when, cam in (("before", start[c]), ("after", refined[c]))}
         row["cameras"][c] = {
-            "start_error": err0, "error": err1,
-            "iou_before": e["iou_before"], "iou_after": e["iou_after"],
+            "start_error": pose_change(truth[c], start[c]), "error": pose_change(truth[c], refined[c]),
+            "iou_before": iou["before"], "iou_after": iou["after"],
             "boundary_px_before": e["boundary_px_before"], "boundary_px_after": e["boundary_px_after"],
             "reprojection_px_before": reprojection_px(renderer, truth[c], start[c], q),
             "reprojection_px_after": reprojection_px(renderer, truth[c], refined[c], q),
-            "renders": e["renders"], "wall_s": e["wall_s"], "cpu_s": e["cpu_s"],
+            "kept_input": e["kept_input"], "renders": e["renders"], "wall_s": e["wall_s"], "cpu_s": e["cpu_s"],
         }
     return row
 
@@ -160,7 +163,7 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def run(*, quick: bool = False, seeds: int = 3, methods=("gradient", "nelder-mead"), cues=("sim", "edges"),
-        ablation: bool = False, cameras=None, progress: bool = True) -> dict:
+        ablation: bool = False, cameras=None, progress: bool = True, partial: Path | None = None) -> dict:
     from imac_data.aloha import robot_config
     from imac_data.robot import RobotModel
 
@@ -189,6 +192,8 @@ def run(*, quick: bool = False, seeds: int = 3, methods=("gradient", "nelder-mea
                     rows.append(_one(src, truth, start, seed, pixels, RefineConfig(method=method), robot, tmp,
                                      cameras))
                     _print_row(rows[-1], say)
+                    if partial:  # a long run keeps what it has measured
+                        partial.write_text(json.dumps({"partial": True, "runs": rows}, indent=2))
         if ablation:
             start = perturb(truth, 0)
             for name, over in ABLATION.items():
@@ -199,6 +204,8 @@ def run(*, quick: bool = False, seeds: int = 3, methods=("gradient", "nelder-mea
                 row["variant"] = name
                 rows.append(row)
                 _print_row(row, say)
+                if partial:
+                    partial.write_text(json.dumps({"partial": True, "runs": rows}, indent=2))
     result = {
         "benchmark": "calibration_refine", "quick": quick, "resolution": [h, w], "episodes": n_ep,
         "perturbation": {"head": "2-5 cm, 2-5 deg (uniform), random directions", "wrist": "1 cm, 3 deg"},
@@ -258,11 +265,13 @@ def main(argv: list[str] | None = None) -> dict:
     args = p.parse_args(argv)
     result = run(quick=args.quick, seeds=args.seeds, methods=tuple(m for m in args.methods.split(",") if m),
                  cues=tuple(c for c in args.cues.split(",") if c), ablation=args.ablation,
-                 cameras=[c for c in args.cameras.split(",") if c] if args.cameras else None)
+                 cameras=[c for c in args.cameras.split(",") if c] if args.cameras else None,
+                 partial=Path(args.json).with_suffix(".partial.json"))
     print(format_table(result))
     path = Path(args.json)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2))
+    Path(args.json).with_suffix(".partial.json").unlink(missing_ok=True)
     print(f"wrote {path}")
     return result
 
