@@ -3,7 +3,7 @@
 PY := .venv/bin/python
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test bench da3 clean
+.PHONY: setup demo test bench experiment da3 clean
 
 setup:
 	@bash scripts/setup.sh
@@ -17,7 +17,12 @@ test: setup
 bench: setup
 	$(PY) -m benchmarks.run
 
-# Optional: Depth Anything 3 as a depth source (weights are not downloaded here).
+# The small-scale comparison of docs/experiment (about 60-90 minutes on an idle 2-core machine; resumable:
+# every stage is cached under runs/experiment).
+experiment: setup
+	$(PY) -m imac_model.experiment --work runs/experiment --docs docs/experiment
+
+# Depth Anything 3's code (no weights): scripts/setup.sh installs it; this re-runs that install.
 da3: setup
 	$(PY) -c "from imac_data.depth_sources import DA3_INSTALL; print(DA3_INSTALL)" | sed 's|^pip|$(PY) -m pip|' | sh
 

@@ -25,7 +25,7 @@ machine load):
   ``contact_ratio_vs_reference``, the conservative one) and with scipy's default
   balanced trees, which degrade badly on a flat table with an object on it (robot
   points far above the table query ~100 us each; see
-  ``imac_data.contact._kdtree_forest``);
+  ``imac_data.nearest._kdtree_forest``);
 * CUDA (if present): ours with everything on the GPU (exact brute force per tile).
 
 Accuracy: for every future frame, the smallest scene->gripper distance over the cube's
@@ -55,7 +55,8 @@ import numpy as np
 import torch
 
 from imac_data.aloha import camera_calibration, load_mujoco_model, robot_config
-from imac_data.contact import ContactBuilder, chunk_plan, contact_chunk, scene_cloud
+from imac_data.contact import chunk_plan, contact_chunk, scene_cloud
+from imac_data.rig import Rig
 from imac_data.robot import RobotModel
 from imac_data.simulate import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
 
@@ -93,7 +94,7 @@ class Reference:
     per frame both ways: distances of the robot samples to the scene and of the scene
     points to the finger samples. ``tuned``: sliding-midpoint trees instead of scipy's
     default balanced ones (the default degrades badly on a flat table with an object on
-    it, see ``imac_data.contact._kdtree_forest``), to show the gain is not only that."""
+    it, see ``imac_data.nearest._kdtree_forest``), to show the gain is not only that."""
 
     def __init__(self, robot: RobotModel, seed: int = 0, tuned: bool = False):
         self.robot = robot
@@ -186,16 +187,18 @@ def run(quick: bool = False, cores: int | None = 2, max_steps: int | None = None
     model, ep = sim["model"], sim["ep"]
     cams = camera_calibration(model, 320, 240)
     robot = RobotModel(robot_config())
-    builder = ContactBuilder(robot, cams, workers=workers)
-    names = builder.names
+    rig = Rig(robot, cams)
+    names = rig.names
     depth = torch.stack([torch.as_tensor(ep.depth_mm[n].astype(np.float32) / 1000.0) for n in names], 1)
     seg = np.stack([ep.segmentation[n] for n in names], 1)
     q = torch.as_tensor(ep.qpos, dtype=torch.float32)
     T = len(q)
     t0 = time.perf_counter()
-    inp = builder.robot_inputs(q)
+    views = rig.robot_views(q)
+    inp = {"mask": views.mask, "depth": views.depth, "T_world_cam": views.T_world_cam,
+           "gripper_points": views.gripper_points}
     render_ms = 1e3 * (time.perf_counter() - t0) / T
-    K = builder.K
+    K = rig.intrinsics()
     oracle = Oracle(model, sim["qfull"], seg, segmentation_labels(model))
     reference = Reference(robot, seed)
     tuned = Reference(robot, seed, tuned=True)

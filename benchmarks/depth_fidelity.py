@@ -36,8 +36,9 @@ import numpy as np
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from imac_data.depth import DepthCodec, add_depth_streams, depth_stream_key  # noqa: E402
-from imac_data.video_streams import VideoEncoding, encode_video, read_video_frames  # noqa: E402
+from imac_data.dataset.depth_streams import add_depth_streams  # noqa: E402
+from imac_data.dataset.videos import VideoEncoding, encode_video, read_video_frames  # noqa: E402
+from imac_data.depth import DepthCodec, depth_stream_key  # noqa: E402
 
 NEAR, FAR = 0.1, 1.2
 CAMS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
@@ -85,14 +86,15 @@ def record(workdir: Path, episodes: int, width: int, height: int, max_steps: int
     from imac_data.aloha_hdf5 import episode_paths
     from imac_data.cameras import load_calibration
     from imac_data.ingest import IngestOptions, ingest_episodes
+    from imac_data.rig import Rig
     from imac_data.robot import RobotModel
     from imac_data.simulate import SimConfig, record_dataset
 
     src, base = workdir / "src", workdir / "base"
     record_dataset(SimConfig(num_episodes=episodes, width=width, height=height, max_steps=max_steps), src,
                    progress=False)
-    ingest_episodes(episode_paths(src), calibration=load_calibration(src / "calibration.json"),
-                    robot=RobotModel(aloha.robot_config()), repo_id="local/depth_fidelity", root=base,
+    rig = Rig(RobotModel(aloha.robot_config()), load_calibration(src / "calibration.json"))
+    ingest_episodes(episode_paths(src), rig=rig, repo_id="local/depth_fidelity", root=base,
                     options=IngestOptions(fps=25, task="transfer", state_names=aloha.STATE_NAMES), progress=False)
     return src, base
 

@@ -1,44 +1,36 @@
 """The whole benchmark in one command: ``python -m benchmarks.run`` (``make bench``).
 
-    python -m benchmarks.run [--quick] [--episodes N] [--max-steps S] [--out DIR] [--keep DIR]
+    python -m benchmarks.run [--quick] [--episodes N] [--long-frames N] [--out DIR] [--keep DIR]
 
-One fixed simulated workload (scripted ``transfer_cube`` episodes from
-:mod:`imac_data.simulate`, noise 0.3, seeds 0.., the same episodes recorded at each
-resolution; ``--episodes`` x ``--max-steps`` 50 Hz steps, i.e. ``max_steps / 2``
-frames at 25 fps per episode), three views. One *frame* = all three views and all
-added streams (motion, depth, contact r2s + s2g per view) plus the base dataset.
+Workload: scripted ``transfer_cube`` episodes recorded by :mod:`imac_data.simulate` (noise
+0.3, seeds 0..), whole scripts (about 125 frames at 25 fps), three views, recorded depth,
+at 240x320 and 480x640. One *frame* = 3 views x (base RGB + depth + motion + contact r2s +
+contact s2g) plus the tabular columns.
 
-1. **Whole build** (``imac_data.build.build``, exactly what ``python -m
-   imac_data.build`` runs: ingest + FK + render + depth + contact + video encode +
-   write per episode shard, then aggregate, dataset card, validation) timed end to
-   end at each resolution with 1 and 2 workers, each build in a fresh subprocess
-   (``--child-build``) so its peak memory is its own: the coordinator's
-   ``RUSAGE_SELF`` and the largest pool worker's ``RUSAGE_CHILDREN`` ``ru_maxrss``
-   (with 1 worker the work runs in the coordinator). Also the build of 1 episode
-   (1 worker) at the small size, for the fixed cost per build vs the cost per episode.
-   Output bytes per frame per stream group, from the built datasets.
-2. **Stages**, the functions the build calls, timed one by one in this process on the
-   same episodes (1 process, torch's default threads): read (HDF5 + camera poses +
-   depth), ingest (LeRobot base dataset: RGB encode, parquet, stats), FK (commanded
-   configurations, link poses, camera poses, gripper samples), render (state and
-   command, all views), depth (resize + colour codec), contact
-   (``imac_data.contact.episode_contact``), video encode (``encode_video`` of the 9
-   control and 3 depth streams, lossless RGB H.264 as the build writes them), write
-   (``augment_dataset`` minus its depth and video encoding). ``other`` = the 1-worker
-   build minus the sum of the stages (aggregation, dataset card, validation, LeRobot
-   metadata loads). Cost versus views: render and contact on 1, 2, 3 views.
-3. **Side by side**, same process: our renderer vs MuJoCo's own OpenGL renderer and the
-   mask IoU (``benchmarks/render_vs_mujoco.py``); our contact builder vs a
-   straightforward trimesh-sampling + scipy KD-tree implementation, and its error
-   against MuJoCo's ``mj_geomDistance`` (``benchmarks/contact_speed.py``); our depth
-   stream vs LeRobot's default encoder through ``LeRobotDataset``
-   (``benchmarks/depth_fidelity.py``, without its candidate table).
+1. **Whole builds**: ``imac_data.build.build`` (what ``python -m imac_data.build`` runs),
+   each in a fresh subprocess, end to end, at each size with 1 and 2 local workers, and
+   with ``--executor ray`` and 2 workers. Frames/s; CPU seconds per frame (the build
+   process and its pool workers by ``getrusage``; for Ray the workers' own CPU from the
+   build's timings, which leave out Ray's own processes); peak RSS per worker (each worker's
+   ``VmHWM``, from the build's timings); the load average at start and end.
+2. **Stages**: the build's own stage timings (the side file every build writes to its
+   staging directory, here passed out with ``--timings``), never a second copy of the
+   pipeline: wall and CPU seconds per stage of the 1-worker build, and what stands between
+   the result and 30 frames/s.
+3. **Episode length**: one 1000-frame episode at 480x640 and its first 100 frames,
+   each built by one worker (synthetic: a recorded episode played forward and backward,
+   ``imac_data.aloha_hdf5.tile_episode``; recorded depth): peak RSS and frames/s.
+4. **Side by side**, same process: our renderer vs MuJoCo's own OpenGL renderer and the
+   mask IoU (``benchmarks/render_vs_mujoco.py``); our contact streams vs a straightforward
+   trimesh-sampling + scipy KD-tree implementation, and their error against MuJoCo's
+   ``mj_geomDistance`` (``benchmarks/contact_speed.py``); our depth stream vs LeRobot's
+   default encoder through ``LeRobotDataset`` (``benchmarks/depth_fidelity.py``).
 
-Writes ``latest.json`` (flat headline keys first, then the details) and ``latest.md``
-into ``--out`` (default ``benchmarks/results/``). ``--quick`` is the CI smoke run
-(``tests/test_benchmarks.py``): tiny resolutions, few frames, one build per worker
-count; its figures only show that the code runs. Timings are wall clock on a machine
-that may be shared: ``load_avg`` records the load at start and end (and per section).
+Writes ``latest.json`` (flat headline keys first, then the details) and ``latest.md`` into
+``--out`` (default ``benchmarks/results/``). ``--quick`` is the CI smoke run
+(``tests/test_benchmarks.py``): tiny resolutions, few frames, one build per kind; its
+figures only show that the code runs. Timings are wall clock on a machine that may be
+shared: the load average is recorded beside every build, and CPU seconds with it.
 """
 
 from __future__ import annotations
@@ -57,8 +49,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -73,28 +64,13 @@ TASK = "transfer_cube"
 # ``not_measured`` when a workload cannot produce one, e.g. --quick never gets a gripper
 # within 5 cm of the cube).
 REQUIRED_NUMBERS = (
-    "fps_total_240", "peak_mem_mb_per_worker", "render_ms_per_view_240", "render_ratio_vs_mujoco",
-    "contact_fps_cpu", "contact_ratio_vs_reference", "depth_err_median_mm", "depth_err_p99_mm",
-    "depth_err_p99_mm_lerobot_default", "mask_iou_head", "mask_iou_wrist_min", "contact_err_max_mm_under_5cm",
+    "fps_total_240", "cpu_ms_per_frame_240", "peak_mem_mb_per_worker", "fps_total_480", "cpu_ms_per_frame_480",
+    "fps_ray_240", "long_episode_peak_mb", "short_episode_peak_mb", "long_episode_fps",
+    "render_ms_per_view_240", "render_ratio_vs_mujoco", "contact_fps_cpu", "contact_ratio_vs_reference",
+    "depth_err_median_mm", "depth_err_p99_mm", "depth_err_p99_mm_lerobot_default", "mask_iou_head",
+    "mask_iou_wrist_min", "contact_err_max_mm_under_5cm",
 )
 REQUIRED_STRINGS = ("machine", "commit")
-
-STAGES = ("setup", "read", "ingest", "fk", "render", "depth", "contact", "video_encode", "write", "aggregate",
-          "validate")
-STAGE_LABELS = {
-    "setup": "setup per worker (robot model, renderer scene, controller, gripper samples)",
-    "read": "decode/read (HDF5, camera poses, depth mm->m)",
-    "ingest": "ingest (LeRobot base dataset: RGB svtav1 encode, parquet, stats)",
-    "fk": "FK (commanded q, link poses, camera poses, gripper samples)",
-    "render": "render (state + command, all views)",
-    "depth": "depth encode (resize + colour codec)",
-    "contact": "contact (both streams, caps, colour)",
-    "video_encode": "video encode (9 control + 3 depth streams, x264rgb qp0)",
-    "write": "write (augment_dataset minus its encoding: parquet, stats, metadata)",
-    "aggregate": "aggregate the episode shards (LeRobot aggregate_datasets)",
-    "validate": "load + validate the result (LeRobotDataset, sample decode)",
-    "other": "other = 1-worker build - stages (process start-up, input checks, card, reloads, moves)",
-}
 STREAM_GROUPS = {
     "rgb (LeRobot encoder)": "observation.images.",
     "depth": "observation.depth.",
@@ -102,6 +78,20 @@ STREAM_GROUPS = {
     "contact_r2s": "control.contact_r2s.",
     "contact_s2g": "control.contact_s2g.",
 }
+STAGE_LABELS = {
+    "setup": "setup per worker (rig from the dataset block: robot, renderer scene, gripper samples)",
+    "read": "read (HDF5 frames of the chunk: RGB, depth)",
+    "fk": "FK (drawn configurations, reference state, camera poses)",
+    "render": "render (drawn configurations; the reference state once per chunk)",
+    "depth": "depth (mm -> m, resize, colour codec)",
+    "contact": "contact (both streams, caps, colours)",
+    "encode": "encode (3 RGB svtav1 + 12 lossless x264rgb streams, LeRobot's frame writer)",
+    "write": "write (dataset metadata: LeRobot's save/finalize, stream commit, caps column, imac block)",
+    "merge": "merge the episode shards (aggregate_datasets, imac block, robot description, card)",
+    "validate": "validate the result (imac_data.dataset.validate, sampled frames)",
+    "other": "other = build wall - stages / workers (start-up, worker spawn and imports, input checks, moves)",
+}
+TARGET_FPS = 30.0
 
 
 @dataclass
@@ -110,11 +100,13 @@ class Workload:
 
     quick: bool = False
     sizes: tuple[tuple[int, int], ...] = ((240, 320), (480, 640))
-    episodes: int = 2
-    max_steps: int = 96  # 50 Hz control steps per episode -> max_steps / 2 frames at 25 fps
+    episodes: int = 4
+    max_steps: int | None = None  # 50 Hz control steps per episode (None: the whole script, ~125 frames)
     workers: tuple[int, ...] = (1, 2)
-    episode_scaling: bool = True  # also build 1 episode (1 worker, small size)
-    view_frames: int = 17  # frames for the cost-vs-views run (2 contact chunks of 8 + frame 0)
+    ray_workers: int = 2
+    long_frames: int = 1000
+    short_frames: int = 100
+    long_size: tuple[int, int] = (480, 640)
     render_episodes: int = 1  # render_vs_mujoco: scripted episodes per task (accuracy)
     render_frames: int = 32  # render_vs_mujoco: timing frames per size
     contact_steps: int | None = None  # contact_speed: 50 Hz steps (None: its default)
@@ -123,26 +115,30 @@ class Workload:
     depth_max_steps: int | None = 120
     seed: int = 0
     noise: float = 0.3
+    sizes_episodes: dict = field(default_factory=dict)  # size tag -> episodes (default: episodes)
 
     @classmethod
     def quick_default(cls) -> Workload:
-        return cls(quick=True, sizes=((48, 64), (96, 128)), episodes=2, max_steps=8, workers=(2,),
-                   episode_scaling=False, view_frames=5, render_frames=4, contact_steps=16,
+        return cls(quick=True, sizes=((48, 64), (96, 128)), episodes=2, max_steps=12, workers=(1,), ray_workers=0,
+                   long_frames=24, short_frames=8, long_size=(48, 64), render_frames=4, contact_steps=16,
                    contact_reference_frames=1, depth_max_steps=8)
 
     @property
     def small(self) -> tuple[int, int]:
         return self.sizes[0]
 
-    def builds(self) -> list[tuple[tuple[int, int], int, int]]:
-        """(size, workers, episodes) of every whole build, in run order."""
+    def episodes_at(self, size) -> int:
+        return int(self.sizes_episodes.get(tag(size), self.episodes))
+
+    def builds(self) -> list[tuple[tuple[int, int], int, str]]:
+        """(size, workers, executor) of every whole build, in run order."""
         plan = []
         for size in self.sizes:
             if self.quick and size != self.small:
-                continue  # --quick: one whole build (small size, 2 workers: the pool path)
-            plan += [(size, w, self.episodes) for w in self.workers]
-        if self.episode_scaling and self.episodes > 1:
-            plan.append((self.small, 1, 1))
+                continue
+            plan += [(size, w, "local") for w in self.workers]
+            if size == self.small and self.ray_workers:
+                plan.append((size, self.ray_workers, "ray"))
         return plan
 
 
@@ -197,63 +193,11 @@ def load_avg() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
-class Timer:
-    """Accumulating stopwatch per key."""
-
-    def __init__(self):
-        self.s: dict[str, float] = defaultdict(float)
-
-    @contextlib.contextmanager
-    def __call__(self, key: str):
-        t = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.s[key] += time.perf_counter() - t
-
-
-class PeakRSS:
-    """Peak resident memory of this process while the block runs, sampled every 20 ms
-    (Linux ``/proc/self/statm``); ``peak_mb`` - ``start_mb`` = the block's working set."""
-
-    def __init__(self):
-        self.start_mb = self.peak_mb = None
-
-    @staticmethod
-    def now_mb() -> float | None:
-        try:
-            return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-        except (OSError, ValueError, IndexError):
-            return None
-
-    def __enter__(self):
-        import threading
-
-        self.start_mb = self.peak_mb = self.now_mb()
-        self._stop = threading.Event()
-
-        def sample():
-            while not self._stop.wait(0.02):
-                v = self.now_mb()
-                if v is not None and (self.peak_mb is None or v > self.peak_mb):
-                    self.peak_mb = v
-
-        self._thread = threading.Thread(target=sample, daemon=True)
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self._stop.set()
-        self._thread.join()
-
-    @property
-    def delta_mb(self) -> float | None:
-        return None if self.start_mb is None else self.peak_mb - self.start_mb
-
-
 def log(msg: str) -> None:
     print(f"[bench {time.strftime('%H:%M:%S')} load {os.getloadavg()[0]:.1f}] {msg}", file=sys.stderr, flush=True)
 
+
+# ----------------------------------------------------------------------------- workload
 
 # ----------------------------------------------------------------------------- workload
 
@@ -277,8 +221,9 @@ def record(work: Workload, size, out: Path) -> float:
     from imac_data.simulate import SimConfig, record_dataset
 
     t = time.perf_counter()
-    record_dataset(SimConfig(task=TASK, num_episodes=work.episodes, height=size[0], width=size[1], seed=work.seed,
-                             noise=work.noise, max_steps=work.max_steps), out, progress=False, overwrite=True)
+    record_dataset(SimConfig(task=TASK, num_episodes=work.episodes_at(size), height=size[0], width=size[1],
+                             seed=work.seed, noise=work.noise, max_steps=work.max_steps), out, progress=False,
+                   overwrite=True)
     return time.perf_counter() - t
 
 
@@ -303,35 +248,55 @@ def tree_bytes(root: Path) -> dict:
 # ----------------------------------------------------------------------------- 1. whole builds
 
 
+# ----------------------------------------------------------------------------- 1. whole builds
+
+
+def _usage_s() -> float:
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def child_build(spec_path: str) -> int:
-    """Subprocess side of a whole build: ``build()`` timed end to end, then peak RSS."""
+    """Subprocess side of a whole build: ``build()`` timed end to end, its CPU, its timings."""
     spec = json.loads(Path(spec_path).read_text())
-    from imac_data.build import BuildRequest, build, quiet_libraries
+    from imac_data.build import BuildRequest, build
+    from imac_data.cli import quiet_libraries
     from imac_data.recipes import load_recipe
+    from imac_data.workers import peak_rss_mb
 
     quiet_libraries()
     root = Path(spec["root"])
+    timings = Path(spec["result"]).with_suffix(".timings.json")
     req = BuildRequest(repo_id=spec["repo"], recipe=load_recipe(spec["recipe"]), root=root,
-                       source_path=Path(spec["source"]), episodes=spec["episodes"], overwrite=True, progress=False)
-    t = time.perf_counter()
-    dataset = build(req, workers=spec["workers"])
-    seconds = time.perf_counter() - t
+                       source_path=Path(spec["source"]), episodes=spec["episodes"], overwrite=True, progress=False,
+                       timings=timings)
+    load_start = load_avg()
+    cpu0, t = _usage_s(), time.perf_counter()
+    dataset = build(req, executor=spec["executor"], workers=spec["workers"])
+    seconds, cpu = time.perf_counter() - t, _usage_s() - cpu0
+    if spec["executor"] == "ray":
+        import ray
+
+        ray.shutdown()
+    report = json.loads(timings.read_text())
+    shards = report["episodes"]
+    worker_cpu = sum(e["shard_cpu_s"] for e in shards) if spec["executor"] == "ray" else 0.0
     result = {
-        "build_s": seconds,
-        "frames": int(dataset.meta.total_frames),
-        "episodes": int(dataset.meta.total_episodes),
-        "rss_self_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "rss_children_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
-        "bytes": tree_bytes(root),
+        "build_s": seconds, "cpu_s": cpu + worker_cpu, "frames": int(dataset.meta.total_frames),
+        "episodes": int(dataset.meta.total_episodes), "load_avg_start": load_start, "load_avg_end": load_avg(),
+        "rss_coordinator_mb": peak_rss_mb(),
+        "peak_rss_mb_per_worker": max(e["peak_rss_mb"] for e in shards),
+        "threads": report["threads"], "timings": report, "bytes": tree_bytes(root),
     }
     Path(spec["result"]).write_text(json.dumps(result))
     return 0
 
 
-def whole_build(work: Workload, size, workers: int, episodes: int, recipe: Path, source: Path, tmp: Path) -> dict:
-    name = f"{tag(size)}_w{workers}_e{episodes}"
+def whole_build(size, workers: int, executor: str, episodes: int, recipe: Path, source: Path, tmp: Path,
+                name: str | None = None) -> dict:
+    name = name or f"{tag(size)}_{executor}_w{workers}_e{episodes}"
     spec = {"repo": f"local/bench_{tag(size)}", "recipe": str(recipe), "source": str(source),
-            "root": str(tmp / f"out_{name}"), "episodes": episodes, "workers": workers,
+            "root": str(tmp / f"out_{name}"), "episodes": episodes, "workers": workers, "executor": executor,
             "result": str(tmp / f"build_{name}.json")}
     spec_path = tmp / f"build_{name}.spec.json"
     spec_path.write_text(json.dumps(spec))
@@ -343,199 +308,70 @@ def whole_build(work: Workload, size, workers: int, episodes: int, recipe: Path,
         raise RuntimeError(f"build {name} failed (exit {proc.returncode}):\n{proc.stderr[-4000:]}")
     r = json.loads(Path(spec["result"]).read_text())
     shutil.rmtree(spec["root"], ignore_errors=True)
-    per_worker = r["rss_children_mb"] if workers > 1 and episodes > 1 else r["rss_self_mb"]
-    return {"size": list(size), "workers": workers, "episodes": r["episodes"], "frames": r["frames"],
-            "build_s": r["build_s"], "fps": r["frames"] / r["build_s"], "cli_wall_s": wall,
-            "peak_mem_mb_per_worker": per_worker, "peak_mem_mb_coordinator": r["rss_self_mb"],
+    return {"size": list(size), "workers": workers, "executor": executor, "threads": r["threads"],
+            "episodes": r["episodes"], "frames": r["frames"], "build_s": r["build_s"], "fps": r["frames"] / r["build_s"],
+            "cpu_s": r["cpu_s"], "cpu_ms_per_frame": 1e3 * r["cpu_s"] / r["frames"], "cli_wall_s": wall,
+            "peak_mem_mb_per_worker": r["peak_rss_mb_per_worker"], "peak_mem_mb_coordinator": r["rss_coordinator_mb"],
             "bytes": r["bytes"], "bytes_per_frame": {k: v / r["frames"] for k, v in r["bytes"].items()},
-            "load_avg_end": load_avg()}
+            "load_avg_start": r["load_avg_start"], "load_avg_end": r["load_avg_end"], "timings": r["timings"]}
 
 
 # ----------------------------------------------------------------------------- 2. stages
 
 
-class Pipeline:
-    """What a build worker holds (built once per size, like ``build._process_state``)."""
-
-    def __init__(self, recipe_path: Path, source: Path):
-        from imac_data.aloha import load_mujoco_model
-        from imac_data.build import robot_of
-        from imac_data.cameras import load_calibration
-        from imac_data.contact import GripperSurface
-        from imac_data.motion import aloha_controller
-        from imac_data.recipes import load_recipe
-        from imac_data.render import make_renderer
-
-        t = time.perf_counter()  # imports excluded (a worker pays them once, before its first episode)
-        self.recipe = load_recipe(recipe_path)
-        self.settings = self.recipe.augment
-        self.robot = robot_of(self.recipe)
-        self.renderer = make_renderer(self.robot)
-        self.controller = aloha_controller(load_mujoco_model(self.recipe.source.sim.task))
-        self.gripper = GripperSurface(self.robot)
-        self.source = source
-        self.calibration = load_calibration(source / "calibration.json")
-        self.setup_s = time.perf_counter() - t
-        import lerobot.datasets.aggregate  # noqa: F401  (imports outside the timed stages)
-        import lerobot.datasets.compute_stats  # noqa: F401
-        import lerobot.datasets.lerobot_dataset  # noqa: F401
-
-    def ingest_options(self, fps: float):
-        from imac_data.aloha import STATE_NAMES
-        from imac_data.ingest import IngestOptions
-
-        d = self.recipe.source.episode_defaults
-        return IngestOptions(fps=fps, task=self.recipe.task, source=d.source, policy_name=d.policy_name,
-                             checkpoint=d.checkpoint, robot_type=self.robot.name, state_names=STATE_NAMES)
+def stage_table(b: dict) -> dict:
+    """Per stage of one build, from its own timings: wall and CPU ms per frame, share of the
+    build's CPU; ``other`` = what the stages do not cover."""
+    t = b["timings"]
+    frames = b["frames"]
+    wall, cpu = t["stages"]["wall_s"], t["stages"]["cpu_s"]
+    rows = {k: {"wall_ms_per_frame": 1e3 * wall[k] / frames, "cpu_ms_per_frame": 1e3 * cpu.get(k, 0.0) / frames}
+            for k in wall}
+    staged_cpu = sum(cpu.values())
+    rows["other"] = {"wall_ms_per_frame": max(1e3 * b["build_s"] / frames - sum(wall.values()) * 1e3 / frames
+                                              / b["workers"], 0.0),
+                     "cpu_ms_per_frame": max(1e3 * (b["cpu_s"] - staged_cpu) / frames, 0.0)}
+    total = sum(r["cpu_ms_per_frame"] for r in rows.values())
+    for r in rows.values():
+        r["cpu_share"] = r["cpu_ms_per_frame"] / total if total else None
+    return {"size": b["size"], "workers": b["workers"], "threads": b["threads"], "frames": frames, "rows": rows,
+            "cpu_ms_per_frame": total, "fps": b["fps"]}
 
 
-def episode_stages(pipe: Pipeline, path: Path, tmp: Path, timer: Timer, *, cameras=VIEWS, frames: int | None = None,
-                   full: bool = True, shard: Path | None = None) -> int:
-    """One episode through the build's stage functions (as ``build_shard`` /
-    ``augment.episode_streams`` / ``augment.augment_dataset`` call them), each timed.
-    ``full=False``: FK, render and contact only (the cost-vs-views runs). The one-episode
-    dataset (base + streams) is left at ``shard`` (default: deleted). Returns T."""
-    import numpy as np
-    import torch
-
-    from imac_data.aloha_hdf5 import read_episode
-    from imac_data.augment import MOTION, R2S, S2G, EpisodeStreams, augment_dataset
-    from imac_data.contact import episode_contact
-    from imac_data.depth import DepthCodec, depth_stream_key, resize_depth
-    from imac_data.depth_sources import RecordedDepth, episode_views
-    from imac_data.ingest import ingest_episodes
-    from imac_data.motion import frame_configurations
-    from imac_data.video_streams import VideoEncoding, encode_video
-
-    s, robot, renderer = pipe.settings, pipe.robot, pipe.renderer
-    H, W = s.resolution
-    with timer("read"):
-        raw = read_episode(path)
-        views = episode_views(raw, pipe.calibration, robot, name=str(path))
-        source = RecordedDepth()
-        depth = source.depth(views)
-    fps = raw.fps or pipe.recipe.fps or 25
-    root = shard or tmp / "stage_dataset"
-    if full:
-        with timer("ingest"):
-            ingest_episodes([path], calibration=pipe.calibration, robot=robot, repo_id="local/bench_stage",
-                            root=root, options=pipe.ingest_options(fps), overwrite=True, progress=False)
-    sl = slice(None, frames)
-    state, action = raw.qpos[sl], raw.action[sl]
-    names = [n for n in cameras if n in views.cameras]
-    T = len(state)
-    with timer("fk"):
-        cams = renderer.prepare_cameras({n: views.cameras[n] for n in names}, s.resolution)
-        q_state = torch.as_tensor(state, dtype=torch.float32)
-        q_motion = torch.as_tensor(frame_configurations(state, action, source=s.motion_source,
-                                                        controller=pipe.controller), dtype=torch.float32)
-        links_state = robot.link_poses(q_state)
-        links_motion = robot.link_poses(q_motion)
-        ref_poses = torch.stack([cams[n].pose(links_state, batch_shape=(T,)) for n in names], 1)
-        fut_poses = torch.stack([cams[n].pose(links_motion, batch_shape=(T,)) for n in names], 1)
-        gripper_points = pipe.gripper.points(links_motion)
-    with timer("render"):
-        seen = renderer.render(cameras=cams, link_poses=links_state)
-        drawn = renderer.render(cameras=cams, link_poses=links_motion)
-    codec = DepthCodec.preset(s.depth_codec)
-    with timer("depth"):
-        depth_hw = {n: resize_depth(np.asarray(depth[n][sl], dtype=np.float32), (H, W), name=n) for n in names}
-        colours = {n: codec.encode_uint8(depth_hw[n]) for n in names}
-    K = torch.stack([torch.as_tensor(cams[n].K, dtype=torch.float32) for n in names])
-    with timer("contact"):
-        contact = episode_contact(
-            torch.as_tensor(np.stack([depth_hw[n] for n in names], axis=1)), K, ref_poses,
-            torch.stack([seen[n].mask for n in names], 1), torch.stack([drawn[n].depth for n in names], 1),
-            fut_poses, gripper_points, chunk_size=s.contact_chunk, cap=s.contact_cap,
-            percentile=s.contact_percentile, dilate_px=s.robot_mask_dilate_px)
-    if not full:
-        return T
-    streams = {}
-    for v, n in enumerate(names):
-        streams[f"{MOTION}.{n}"] = drawn[n].rgb.numpy()
-        streams[f"{R2S}.{n}"] = contact.r2s_rgb[:, v].numpy()
-        streams[f"{S2G}.{n}"] = contact.s2g_rgb[:, v].numpy()
-    encoding = VideoEncoding.lossless_rgb()
-    videos = tmp / "stage_videos"
-    videos.mkdir(exist_ok=True)
-    with timer("video_encode"):
-        for key, fr in [*streams.items(), *((depth_stream_key(n), colours[n]) for n in names)]:
-            encode_video(videos / f"{key}.mp4", fr, fps=int(round(fps)), encoding=encoding)
-    shutil.rmtree(videos)
-    with timer("augment_dataset"):
-        augment_dataset(root, [EpisodeStreams(frames=streams, depth=depth_hw,
-                                              caps=contact.caps.numpy().astype(np.float32))],
-                        dict(views.cameras), s, source.describe(), pipe.controller)
-    if shard is None:
-        shutil.rmtree(root, ignore_errors=True)
-    return T
+def gap_to_target(table: dict, cores: int, target: float = TARGET_FPS) -> dict:
+    """What stands between a build and ``target`` frames/s on ``cores`` cores: the CPU
+    budget per frame and each stage's CPU against it."""
+    budget = 1e3 * cores / target
+    rows = sorted(table["rows"].items(), key=lambda kv: -kv[1]["cpu_ms_per_frame"])
+    return {"target_fps": target, "cores": cores, "budget_cpu_ms_per_frame": budget,
+            "cpu_ms_per_frame": table["cpu_ms_per_frame"], "over_budget_x": table["cpu_ms_per_frame"] / budget,
+            "largest": [(k, v["cpu_ms_per_frame"]) for k, v in rows[:4]]}
 
 
-def stage_times(work: Workload, size, recipe: Path, source: Path, tmp: Path) -> dict:
-    from imac_data.aloha_hdf5 import episode_paths
+# ----------------------------------------------------------------------------- 3. episode length
 
-    from lerobot.datasets.aggregate import aggregate_datasets
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from imac_data.build import validate
+def long_episodes(work: Workload, source: Path, recipe: Path, tmp: Path) -> dict:
+    """One worker builds a ``long_frames`` and a ``short_frames`` episode (tiles of a recorded one)."""
+    from imac_data.aloha_hdf5 import tile_episode
 
-    pipe = Pipeline(recipe, source)
-    paths = episode_paths(source)
-    episode_stages(pipe, paths[0], tmp, Timer(), frames=9, full=False)  # warm-up: allocations, caches
-    timer, frames, memory = Timer(), 0, []
-    timer.s["setup"] = pipe.setup_s
-    # distinct paths per size: LeRobot caches video decoders by file path within a process
-    shards = [tmp / f"stage_shard_{tag(size)}_{i:03d}" for i in range(len(paths))]
-    t0 = time.perf_counter()
-    for p, shard in zip(paths, shards):
-        with PeakRSS() as rss:
-            T = episode_stages(pipe, p, tmp, timer, shard=shard)
-        frames += T
-        memory.append({"frames": T, "working_set_mb": rss.delta_mb, "peak_rss_mb": rss.peak_mb})
-    repo = "local/bench_stage"
-    final = tmp / f"stage_aggregated_{tag(size)}"
-    with timer("aggregate"):
-        aggregate_datasets([repo] * len(shards), repo, roots=shards, aggr_root=final)
-    with timer("validate"):
-        validate(LeRobotDataset(repo, root=final))
-    wall = time.perf_counter() - t0
-    for d in (*shards, final):
+    rows = {}
+    for n in (work.short_frames, work.long_frames):
+        d = tmp / f"tiled_{n}"
+        d.mkdir(exist_ok=True)
+        shutil.copy(source / "calibration.json", d / "calibration.json")
+        tile_episode(source / "episode_0.hdf5", d / "episode_0.hdf5", n)
+        b = whole_build(work.long_size, 1, "local", 1, recipe, d, tmp, name=f"tiled_{n}")
+        rows[str(n)] = {k: b[k] for k in ("frames", "build_s", "fps", "cpu_ms_per_frame", "peak_mem_mb_per_worker",
+                                          "load_avg_start", "load_avg_end")}
+        rows[str(n)]["stages"] = stage_table(b)
         shutil.rmtree(d, ignore_errors=True)
-    s = dict(timer.s)
-    s["write"] = max(s.pop("augment_dataset") - s["depth"] - s["video_encode"], 0.0)
-    total = sum(s[k] for k in STAGES)
-    V = len(VIEWS)
-    ws = [m["working_set_mb"] / m["frames"] for m in memory if m["working_set_mb"] is not None]
-    return {
-        "size": list(size), "frames": frames, "episodes": len(paths), "wall_s": wall,
-        "memory_per_episode": memory,
-        "working_set_mb_per_frame": max(ws) if ws else None,
-        "seconds": {k: s[k] for k in STAGES},
-        "ms_per_frame": {k: 1e3 * s[k] / frames for k in STAGES},
-        "fps": {k: frames / s[k] if s[k] > 0 else None for k in STAGES},
-        "total_ms_per_frame": 1e3 * total / frames,
-        "render_ms_per_view": 1e3 * s["render"] / (frames * V * 2),  # 2 passes: state + command
-        "load_avg_end": load_avg(),
-    }
+    s, l = rows[str(work.short_frames)], rows[str(work.long_frames)]
+    return {"size": list(work.long_size), "rows": rows,
+            "peak_ratio_long_vs_short": l["peak_mem_mb_per_worker"] / s["peak_mem_mb_per_worker"]}
 
 
-def view_scaling(work: Workload, recipe: Path, source: Path, tmp: Path) -> dict:
-    """Render and contact time per frame with 1, 2, 3 views (first episode, first frames)."""
-    from imac_data.aloha_hdf5 import episode_paths
-
-    pipe = Pipeline(recipe, source)
-    path = episode_paths(source)[0]
-    episode_stages(pipe, path, tmp, Timer(), frames=work.view_frames, full=False)  # warm-up
-    rows = []
-    for v in range(1, len(VIEWS) + 1):
-        timer = Timer()
-        T = episode_stages(pipe, path, tmp, timer, cameras=VIEWS[:v], frames=work.view_frames, full=False)
-        rows.append({"views": v, "frames": T, **{f"{k}_ms_per_frame": 1e3 * timer.s[k] / T
-                                                  for k in ("fk", "render", "depth", "contact")}})
-    return {"size": list(work.small), "rows": rows}
-
-
-# ----------------------------------------------------------------------------- 3. side by side
+# ----------------------------------------------------------------------------- 4. side by side
 
 
 def _ratio(a, b):
@@ -659,14 +495,16 @@ def depth_comparison(work: Workload) -> dict:
 # ----------------------------------------------------------------------------- run
 
 
-def run(work: Workload, tmp: Path) -> dict:
-    import torch
+# ----------------------------------------------------------------------------- run
 
+
+def run(work: Workload, tmp: Path) -> dict:
     started = _dt.datetime.now(_dt.timezone.utc)
     t_start = time.perf_counter()
     head, dirty = commit()
     res = {"load_avg_start": load_avg()}
     sections: dict[str, dict] = {}
+    errors: dict[str, str] = {}
 
     def section(name):
         sections[name] = {"load_avg_start": load_avg(), "t0": time.perf_counter()}
@@ -677,8 +515,6 @@ def run(work: Workload, tmp: Path) -> dict:
         s["seconds"] = time.perf_counter() - s.pop("t0")
         s["load_avg_end"] = load_avg()
         log(f"{name}: {s['seconds']:.0f} s")
-
-    errors: dict[str, str] = {}
 
     def attempt(what: str, fn, default=None):
         """A failing part is recorded (``errors``, exit status 1) and the run goes on."""
@@ -693,33 +529,30 @@ def run(work: Workload, tmp: Path) -> dict:
 
     section("record")
     recipes, sources, record_s = {}, {}, {}
-    for size in work.sizes:
-        recipes[size] = write_recipe(tmp / f"recipe_{tag(size)}.yaml", size, work.episodes, work.seed, work.noise)
+    for size in dict.fromkeys([*work.sizes, work.long_size]):
+        recipes[size] = write_recipe(tmp / f"recipe_{tag(size)}.yaml", size, work.episodes_at(size), work.seed,
+                                     work.noise)
         sources[size] = tmp / f"src_{tag(size)}"
         record_s[tag(size)] = record(work, size, sources[size])
     done("record")
 
     section("builds")
     builds = []
-    for size, workers, episodes in work.builds():
-        log(f"  build {tag(size)}, {episodes} episode(s), {workers} worker(s)")
-        b = attempt(f"build {tag(size)} w{workers} e{episodes}",
-                    lambda: whole_build(work, size, workers, episodes, recipes[size], sources[size], tmp))
+    for size, workers, executor in work.builds():
+        log(f"  build {tag(size)}, {work.episodes_at(size)} episodes, {workers} worker(s), {executor}")
+        b = attempt(f"build {tag(size)} {executor} w{workers}",
+                    lambda: whole_build(size, workers, executor, work.episodes_at(size), recipes[size], sources[size],
+                                        tmp))
         if b is not None:
             builds.append(b)
-            log(f"    {b['frames']} frames in {b['build_s']:.1f} s = {b['fps']:.2f} fps, "
-                f"peak {b['peak_mem_mb_per_worker']:.0f} MB per worker")
+            log(f"    {b['frames']} frames in {b['build_s']:.1f} s = {b['fps']:.2f} fps, {b['cpu_ms_per_frame']:.0f} "
+                f"CPU ms/frame, peak {b['peak_mem_mb_per_worker']:.0f} MB per worker, load {b['load_avg_end'][0]}")
     done("builds")
 
-    section("stages")
-    stages = {}
-    for size in work.sizes:
-        st = attempt(f"stages {tag(size)}", lambda: stage_times(work, size, recipes[size], sources[size], tmp))
-        if st is not None:
-            stages[tag(size)] = st
-            log(f"  {tag(size)}: {st['total_ms_per_frame']:.0f} ms/frame over the stages")
-    views = attempt("views", lambda: view_scaling(work, recipes[work.small], sources[work.small], tmp))
-    done("stages")
+    section("episode_length")
+    length = attempt("episode_length", lambda: long_episodes(work, sources[work.long_size], recipes[work.long_size],
+                                                             tmp), {})
+    done("episode_length")
 
     section("render_vs_mujoco")
     render = attempt("render_vs_mujoco", lambda: render_comparison(work, sources), {})
@@ -731,17 +564,32 @@ def run(work: Workload, tmp: Path) -> dict:
     depth = attempt("depth_fidelity", lambda: depth_comparison(work), {})
     done("depth_fidelity")
 
-    def build_of(size, workers, episodes=work.episodes):
+    def build_of(size, workers, executor="local"):
         for b in builds:
-            if tuple(b["size"]) == tuple(size) and b["workers"] == workers and b["episodes"] == episodes:
+            if tuple(b["size"]) == tuple(size) and b["workers"] == workers and b["executor"] == executor:
                 return b
         return None
 
+    def best(size):
+        local = [b for b in builds if tuple(b["size"]) == tuple(size) and b["executor"] == "local"]
+        return max(local, key=lambda b: b["fps"]) if local else None
+
     small, large = work.sizes[0], work.sizes[-1]
-    headline_build = build_of(small, max(work.workers))
+    stages = {tag(size): stage_table(build_of(size, 1)) for size in work.sizes if build_of(size, 1)}
+    gap = {k: gap_to_target(v, os.cpu_count() or 1) for k, v in stages.items()}
+    b_small, b_large, b_ray = best(small), best(large), build_of(small, work.ray_workers, "ray")
+    rows = (length or {}).get("rows", {})
     flat = {
-        "fps_total_240": (headline_build or {}).get("fps"),
-        "peak_mem_mb_per_worker": (headline_build or {}).get("peak_mem_mb_per_worker"),
+        "fps_total_240": (b_small or {}).get("fps"),
+        "cpu_ms_per_frame_240": (b_small or {}).get("cpu_ms_per_frame"),
+        "peak_mem_mb_per_worker": (b_small or {}).get("peak_mem_mb_per_worker"),
+        "fps_total_480": (b_large or {}).get("fps") if not work.quick else (b_small or {}).get("fps"),
+        "cpu_ms_per_frame_480": (b_large or {}).get("cpu_ms_per_frame") if not work.quick
+        else (b_small or {}).get("cpu_ms_per_frame"),
+        "fps_ray_240": (b_ray or {}).get("fps"),
+        "long_episode_peak_mb": rows.get(str(work.long_frames), {}).get("peak_mem_mb_per_worker"),
+        "short_episode_peak_mb": rows.get(str(work.short_frames), {}).get("peak_mem_mb_per_worker"),
+        "long_episode_fps": rows.get(str(work.long_frames), {}).get("fps"),
         "render_ms_per_view_240": render.get("render_ms_per_view_240"),
         "render_ratio_vs_mujoco": render.get("render_ratio_vs_mujoco"),
         "contact_fps_cpu": contact.get("contact_fps_cpu"),
@@ -754,26 +602,16 @@ def run(work: Workload, tmp: Path) -> dict:
         "mask_iou_wrist_min": render.get("mask_iou_wrist_min"),
         "contact_err_max_mm_under_5cm": contact.get("contact_err_max_mm_under_5cm"),
     }
-    # secondary flat figures
     extra = {}
-    for size in work.sizes:
-        for w in work.workers:
-            b = build_of(size, w)
-            if b is not None:
-                extra[f"fps_total_{size[0]}_w{w}"] = b["fps"]
-                extra[f"peak_mem_mb_per_worker_{size[0]}_w{w}"] = b["peak_mem_mb_per_worker"]
-                extra[f"bytes_per_frame_{size[0]}"] = b["bytes_per_frame"]["total"]
-        st = stages.get(tag(size))
-        if st is not None:
-            extra[f"stages_ms_per_frame_{size[0]}"] = st["total_ms_per_frame"]
-            extra[f"render_ms_per_view_pipeline_{size[0]}"] = st["render_ms_per_view"]
+    for b in builds:
+        extra[f"fps_{b['size'][0]}_{b['executor']}_w{b['workers']}"] = b["fps"]
+        extra[f"cpu_ms_per_frame_{b['size'][0]}_{b['executor']}_w{b['workers']}"] = b["cpu_ms_per_frame"]
+        extra[f"peak_mem_mb_per_worker_{b['size'][0]}_{b['executor']}_w{b['workers']}"] = b["peak_mem_mb_per_worker"]
     for k in ("render_ms_per_view_480", "render_ratio_vs_mujoco_480", "render_ratio_vs_mujoco_all_passes"):
         extra[k] = render.get(k)
     for k in ("contact_ms_per_frame_cpu", "reference_ms_per_frame_cpu", "reference_err_max_mm_under_5cm",
               "contact_exact_ms_per_frame_cpu", "reference_default_trees_ms_per_frame_cpu"):
         extra[k] = contact.get(k)
-    # contact_speed.py reports its ratio as reference / ours (a speed-up); the headline key
-    # is ours / reference in time, like render_ratio_vs_mujoco (< 1 = ours faster)
     extra["contact_speedup_vs_reference"] = _ratio(contact.get("reference_ms_per_frame_cpu"),
                                                    contact.get("contact_ms_per_frame_cpu"))
     for k in ("kb_per_frame", "kb_per_frame_lerobot_default", "depth_err_max_mm", "depth_err_max_mm_lerobot_default",
@@ -788,40 +626,8 @@ def run(work: Workload, tmp: Path) -> dict:
             if errors:
                 why += f" (failed parts: {', '.join(errors)})"
             not_measured[k] = why
-            flat[k] = None
-
-    # scaling
-    b1 = build_of(small, 1, 1)
-    bE = build_of(small, 1)
-    scaling = {"views": views}
-    if b1 is not None and bE is not None and bE["episodes"] > 1:
-        per_ep = (bE["build_s"] - b1["build_s"]) / (bE["episodes"] - 1)
-        scaling["episodes"] = {"size": list(small), "workers": 1, "build_s": {1: b1["build_s"],
-                                                                             bE["episodes"]: bE["build_s"]},
-                               "frames_per_episode": bE["frames"] / bE["episodes"],
-                               "per_episode_s": per_ep, "fixed_s": b1["build_s"] - per_ep}
-    if len(work.sizes) > 1 and tag(small) in stages and tag(large) in stages:
-        a, b = stages[tag(small)], stages[tag(large)]
-        scaling["resolution"] = {
-            "pixels_ratio": large[0] * large[1] / (small[0] * small[1]),
-            "stage_ratio": {k: (b["ms_per_frame"][k] / a["ms_per_frame"][k]) if a["ms_per_frame"][k] else None
-                            for k in STAGES},
-            "total_ratio": b["total_ms_per_frame"] / a["total_ms_per_frame"],
-        }
-    # where the time goes: stages vs the 1-worker build of the same episodes
-    breakdown = {}
-    for size in work.sizes:
-        b = build_of(size, 1)
-        st = stages.get(tag(size))
-        if st is None:
-            continue
-        ms = dict(st["ms_per_frame"])
-        if b is not None:
-            ms["other"] = max(1e3 * b["build_s"] / b["frames"] - st["total_ms_per_frame"], 0.0)
-        total = sum(ms.values())
-        breakdown[tag(size)] = {"ms_per_frame": ms, "share": {k: v / total for k, v in ms.items()},
-                                "reference": "1-worker build" if b is not None else "sum of stages"}
-
+    for b in builds:
+        b.pop("timings", None)  # summarised in "stages"
     res.update({
         **flat,
         "machine": machine(),
@@ -835,17 +641,14 @@ def run(work: Workload, tmp: Path) -> dict:
         "date": started.isoformat(timespec="seconds"),
         "seconds": time.perf_counter() - t_start,
         "workload": {**{k: v for k, v in work.__dict__.items()}, "task": TASK, "views": list(VIEWS),
-                     "frames_per_episode": (builds[0]["frames"] / builds[0]["episodes"] if builds
-                                            else work.max_steps // 2),
-                     "key_sizes": {"_240": tag(small), "_480": tag(large)},
-                     "record_s": record_s},
+                     "frames_per_episode": (builds[0]["frames"] / builds[0]["episodes"] if builds else None),
+                     "key_sizes": {"_240": tag(small), "_480": tag(large)}, "record_s": record_s},
         "versions": versions(),
-        "torch_threads": torch.get_num_threads(),
         "extra": extra,
         "builds": builds,
         "stages": stages,
-        "breakdown": breakdown,
-        "scaling": scaling,
+        "gap_to_30fps": gap,
+        "episode_length": length,
         "render_vs_mujoco": render,
         "contact_vs_reference": contact,
         "depth_vs_lerobot_default": depth,
@@ -879,6 +682,7 @@ def _f(v, fmt=".3g", none="-"):
     return format(v, fmt)
 
 
+
 def markdown(r: dict) -> str:
     w = r["workload"]
     small, large = w["key_sizes"]["_240"], w["key_sizes"]["_480"]
@@ -887,21 +691,29 @@ def markdown(r: dict) -> str:
              + (f" (+ uncommitted changes in {', '.join(r['commit_dirty_files'])})" if r["commit_dirty_files"] else "")
              + f"; {r['machine']}; {r['seconds'] / 60:.1f} min in all.")
     la = r["load_avg"]
-    L.append(f"Load average (1/5/15 min) at start {la['start']}, at end {la['end']} on {os.cpu_count()} cores: the "
-             "machine was shared, so timings are noisy (per-section load below).")
+    L.append(f"Load average (1/5/15 min) at start {la['start']}, at end {la['end']} on {os.cpu_count()} cores "
+             "(per build below): where it exceeds the core count the machine was shared and wall-clock figures are "
+             "low; CPU ms per frame are the steadier figure.")
+    fpe = w.get("frames_per_episode")
     L.append(f"Workload: {w['episodes']} scripted `{w['task']}` episodes (noise {w['noise']}, seeds {w['seed']}..), "
-             f"{w['frames_per_episode']:.0f} frames each at 25 fps, 3 views, recorded at {small} and {large}; "
-             "one frame = 3 views x (base RGB + motion + depth + contact r2s + contact s2g).")
-
-    sizes = list(r.get("stages") or {})
+             f"{_f(fpe, '.0f')} frames each at 25 fps, 3 views, recorded depth, at {small} and {large}; one frame = "
+             "3 views x (base RGB + depth + motion + contact r2s + contact s2g).")
     cr = r.get("contact_vs_reference") or {}
 
     def _headline():
         nonlocal L
         L += ["", "## Headline figures", "", "| key | value | what |", "|---|---|---|"]
         what = {
-            "fps_total_240": f"whole build (`build()`), frames/s, {small}, {max(w['workers'])} workers",
-            "peak_mem_mb_per_worker": f"peak RSS of the largest build worker, {small}, {max(w['workers'])} workers",
+            "fps_total_240": f"whole build (`build()`), frames/s, {small}, best local worker setting",
+            "cpu_ms_per_frame_240": "CPU ms per frame of that build (build process + workers)",
+            "peak_mem_mb_per_worker": "peak RSS of the largest worker in that build",
+            "fps_total_480": f"whole build, frames/s, {large}, best local worker setting",
+            "cpu_ms_per_frame_480": "CPU ms per frame of that build",
+            "fps_ray_240": f"whole build with `--executor ray`, {w['ray_workers']} workers, {small}",
+            "long_episode_peak_mb": f"peak RSS of the worker building one {w['long_frames']}-frame episode at "
+                                    f"{w['long_size'][0]}x{w['long_size'][1]}",
+            "short_episode_peak_mb": f"the same for its first {w['short_frames']} frames",
+            "long_episode_fps": f"frames/s of the {w['long_frames']}-frame episode (1 worker)",
             "render_ms_per_view_240": f"our renderer, ms per view ({small if r['quick'] else '240x320'}, batched)",
             "render_ratio_vs_mujoco": "ours / MuJoCo's own GL RGB pass, time per view (lower = ours faster)",
             "contact_fps_cpu": "contact images, future frames/s (3 views, 240x320, CPU)",
@@ -917,50 +729,66 @@ def markdown(r: dict) -> str:
         for k in REQUIRED_NUMBERS:
             note = f" (not measured: {r['not_measured'][k]})" if k in r["not_measured"] else ""
             L.append(f"| `{k}` | {_f(r[k], '.4g')} | {what[k]}{note} |")
-        L.append("\nBoth ratios are ours / theirs in time (< 1 = ours faster). `benchmarks/contact_speed.py` itself "
-                 "reports the inverse (reference / ours) under the same name; here that is "
-                 "`extra.contact_speedup_vs_reference` = "
-                 f"{_f(r['extra'].get('contact_speedup_vs_reference'), '.1f')}x.")
-
 
     def _whole_build():
         nonlocal L
-        L += ["", "## Whole build (`imac_data.build.build`, end to end)", "",
-              "| size | workers | episodes | frames | build s | frames/s | CLI wall s | peak RSS per worker MB | "
-              "coordinator MB | output KB/frame | load at end |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+        L += ["", "## Whole build (`imac_data.build.build`, end to end, fresh process)", "",
+              "| size | executor | workers x threads | episodes | frames | build s | frames/s | CPU ms/frame | "
+              "peak RSS per worker MB | coordinator MB | output KB/frame | load start -> end |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for b in r["builds"]:
-            L.append(f"| {tag(b['size'])} | {b['workers']} | {b['episodes']} | {b['frames']} | {b['build_s']:.1f} | "
-                     f"{b['fps']:.2f} | {b['cli_wall_s']:.1f} | {b['peak_mem_mb_per_worker']:.0f} | "
-                     f"{b['peak_mem_mb_coordinator']:.0f} | {b['bytes_per_frame']['total'] / 1024:.1f} | "
-                     f"{b['load_avg_end'][0]} |")
-        L.append("\n(build s: `build()` alone; CLI wall: the subprocess incl. interpreter start and imports. "
-                 "With 1 worker the episodes run in the coordinator, so its RSS is the worker's.)")
-
+            L.append(f"| {tag(b['size'])} | {b['executor']} | {b['workers']} x {b['threads']} | {b['episodes']} | "
+                     f"{b['frames']} | {b['build_s']:.1f} | {b['fps']:.2f} | {b['cpu_ms_per_frame']:.0f} | "
+                     f"{b['peak_mem_mb_per_worker']:.0f} | {b['peak_mem_mb_coordinator']:.0f} | "
+                     f"{b['bytes_per_frame']['total'] / 1024:.1f} | {b['load_avg_start'][0]} -> {b['load_avg_end'][0]} |")
+        L.append("\n(build s: `build()` alone; CPU: the build process and its pool workers (`getrusage`), for Ray its "
+                 "workers' own CPU from the build's timings; peak RSS per worker: each worker's peak (`VmHWM`) at the "
+                 "end of its episodes, as the build records it; with 1 worker the build process is the worker.)")
+        for size in {tag(b["size"]) for b in r["builds"]}:
+            ws = {b["workers"]: b for b in r["builds"] if tag(b["size"]) == size and b["executor"] == "local"}
+            if 1 in ws and 2 in ws:
+                L.append(f"\n* {size}: 2 workers / 1 worker = {ws[2]['fps'] / ws[1]['fps']:.2f}x frames/s, "
+                         f"{ws[2]['cpu_ms_per_frame'] / ws[1]['cpu_ms_per_frame']:.2f}x CPU per frame.")
 
     def _stages():
         nonlocal L
-        L += ["", "## Time per stage (ms per frame; one process, the build's stage functions on the same episodes)", ""]
-        hdr = "| stage | " + " | ".join(f"{s} ms/frame | {s} fps | {s} share" for s in sizes) + " |"
+        sizes = list(r.get("stages") or {})
+        L += ["", "## Time per stage (the 1-worker builds' own stage timings)", ""]
+        hdr = "| stage | " + " | ".join(f"{s} wall ms/frame | {s} CPU ms/frame | {s} CPU share" for s in sizes) + " |"
         L += [hdr, "|---|" + "---|" * (3 * len(sizes))]
-        for k in (*STAGES, "other"):
+        keys = []
+        for s in sizes:
+            keys += [k for k in r["stages"][s]["rows"] if k not in keys]
+        order = [k for k in STAGE_LABELS if k in keys] + [k for k in keys if k not in STAGE_LABELS]
+        for k in order:
             cells = []
             for s in sizes:
-                bd = r["breakdown"][s]
-                ms = bd["ms_per_frame"].get(k)
-                share = _f(100 * bd["share"].get(k, 0), ".0f") + " %" if ms is not None else "-"
-                cells += [_f(ms, ".1f"), _f(1e3 / ms if ms else None, ".1f"), share]
-            L.append(f"| {STAGE_LABELS[k]} | " + " | ".join(cells) + " |")
-        tot = []
-        for s in sizes:
-            bd = r["breakdown"][s]
-            t = sum(bd["ms_per_frame"].values())
-            tot += [f"{t:.0f}", f"{1e3 / t:.2f}", "100 %"]
-        L.append("| **total (= 1-worker build per frame)** | " + " | ".join(tot) + " |")
-        L.append("\nPer frame of this workload: fixed costs (setup, aggregate, validate, other) are spread over its "
-                 f"{w['episodes']} x {w['frames_per_episode']:.0f} frames, so they weigh less on longer episodes.")
-        L.append("\nRender per view and pass (state + command, pipeline batches): "
-                 + ", ".join(f"{s} {r['stages'][s]['render_ms_per_view']:.1f} ms" for s in sizes) + ".")
+                row = r["stages"][s]["rows"].get(k)
+                cells += ["-", "-", "-"] if row is None else [
+                    _f(row["wall_ms_per_frame"], ".1f"), _f(row["cpu_ms_per_frame"], ".1f"),
+                    _f(100 * (row["cpu_share"] or 0), ".0f") + " %"]
+            L.append(f"| {STAGE_LABELS.get(k, k)} | " + " | ".join(cells) + " |")
+        L.append("| **total CPU per frame** | " + " | ".join(
+            f" | {r['stages'][s]['cpu_ms_per_frame']:.0f} | 100 %" for s in sizes) + " |")
+        for s, g in (r.get("gap_to_30fps") or {}).items():
+            L.append(f"\n**{s}, what stands between this and {g['target_fps']:.0f} frames/s:** on {g['cores']} cores "
+                     f"that is a CPU budget of {g['budget_cpu_ms_per_frame']:.0f} ms per frame; the build uses "
+                     f"{g['cpu_ms_per_frame']:.0f} ({g['over_budget_x']:.1f}x). Largest: "
+                     + ", ".join(f"{k} {v:.0f} ms" for k, v in g["largest"]) + ".")
 
+    def _length():
+        nonlocal L
+        e = r.get("episode_length") or {}
+        if not e:
+            return
+        L += ["", f"## Episode length ({e['size'][0]}x{e['size'][1]}, one worker, one episode)", "",
+              "| frames | build s | frames/s | CPU ms/frame | peak RSS MB | load start -> end |",
+              "|---|---|---|---|---|---|"]
+        for n, row in e["rows"].items():
+            L.append(f"| {n} | {row['build_s']:.1f} | {row['fps']:.2f} | {row['cpu_ms_per_frame']:.0f} | "
+                     f"{row['peak_mem_mb_per_worker']:.0f} | {row['load_avg_start'][0]} -> {row['load_avg_end'][0]} |")
+        L.append(f"\nPeak RSS, long / short episode: {e['peak_ratio_long_vs_short']:.3f} (synthetic episodes: a "
+                 "recorded one played forward and backward, `aloha_hdf5.tile_episode`).")
 
     def _output_bytes():
         nonlocal L
@@ -969,58 +797,13 @@ def markdown(r: dict) -> str:
               "|---|" + "---|" * (len(STREAM_GROUPS) + 2)]
         seen = set()
         for b in r["builds"]:
-            if tag(b["size"]) in seen or b["episodes"] != w["episodes"]:
+            if tag(b["size"]) in seen:
                 continue
             seen.add(tag(b["size"]))
             bp = b["bytes_per_frame"]
             L.append(f"| {tag(b['size'])} | " + " | ".join(f"{bp[g] / 1024:.1f} KB" for g in STREAM_GROUPS)
                      + f" | {bp['tabular'] / 1024:.1f} KB | {bp['total'] / 1024:.1f} KB |")
-
-
-    def _scaling():
-        nonlocal L
-        sc = r["scaling"]
-        L += ["", "## How cost grows", ""]
-        if "episodes" in sc:
-            e = sc["episodes"]
-            L.append(f"* **Episodes** ({tag(e['size'])}, 1 worker): build = {e['fixed_s']:.1f} s fixed + "
-                     f"{e['per_episode_s']:.1f} s per episode of {e['frames_per_episode']:.0f} frames "
-                     f"({1e3 * e['per_episode_s'] / e['frames_per_episode']:.0f} ms/frame); builds of "
-                     + ", ".join(f"{n} episode(s) {s:.1f} s" for n, s in e["build_s"].items()) + ".")
-        if "resolution" in sc:
-            res = sc["resolution"]
-            L.append(f"* **Resolution** {small} -> {large} ({res['pixels_ratio']:.0f}x pixels): stages "
-                     f"{res['total_ratio']:.1f}x per frame; per stage "
-                     + ", ".join(f"{k} {v:.1f}x" for k, v in res["stage_ratio"].items() if v is not None) + ".")
-        mem = [f"{s} {r['stages'][s]['working_set_mb_per_frame']:.1f} MB" for s in sizes
-               if r["stages"][s].get("working_set_mb_per_frame") is not None]
-        if mem:
-            L.append("* **Memory** grows with episode *length*, not with the number of episodes (a worker holds one "
-                     "episode's frames, renders and distance maps at a time): working set per frame of the episode "
-                     + ", ".join(mem) + "; peak RSS per worker in the builds above = that x frames per episode + the "
-                     "process's base (imports, robot, renderer).")
-        ws = {b["workers"]: b for b in r["builds"] if tag(b["size"]) == small and b["episodes"] == w["episodes"]}
-        if len(ws) > 1:
-            lo, hi = min(ws), max(ws)
-            L.append(f"* **Workers** ({small}): {lo} -> {hi} workers = {ws[hi]['fps'] / ws[lo]['fps']:.2f}x frames/s "
-                     f"({ws[lo]['fps']:.2f} -> {ws[hi]['fps']:.2f}).")
-        v = sc["views"]
-        L += ["", f"Views ({tag(v['size'])}, first {v['rows'][0]['frames']} frames of episode 0, ms per frame):", "",
-              "| views | FK | render | depth | contact |", "|---|---|---|---|---|"]
-        for row in v["rows"]:
-            L.append(f"| {row['views']} | {row['fk_ms_per_frame']:.1f} | {row['render_ms_per_frame']:.1f} | "
-                     f"{row['depth_ms_per_frame']:.1f} | {row['contact_ms_per_frame']:.1f} |")
-
-
-    def _where():
-        nonlocal L
-        L += ["", "## Where the time goes", ""]
-        for s in sizes:
-            bd = r["breakdown"][s]
-            top = sorted(bd["share"].items(), key=lambda kv: -kv[1])[:4]
-            L.append(f"* {s}: " + ", ".join(f"{k} {100 * v:.0f} %" for k, v in top)
-                     + f" of {sum(bd['ms_per_frame'].values()):.0f} ms/frame ({bd['reference']}).")
-
+        L.append("\n(tabular includes the robot description under `meta/imac/robot/`, about 1.5 MB per dataset.)")
 
     def _side_by_side():
         nonlocal L
@@ -1087,6 +870,7 @@ def markdown(r: dict) -> str:
                      f"p99 error ratio: {d['depth_err_p99_mm'] / d['depth_err_p99_mm_lerobot_default']:.4f}.")
 
 
+
     def _sections():
         nonlocal L
         L += ["", "## Sections", "", "| section | s | load at start | load at end |", "|---|---|---|---|"]
@@ -1099,7 +883,7 @@ def markdown(r: dict) -> str:
             L += ["", "## Failed parts (the run's exit status is 1)", ""]
             L += [f"* {k}: {v}" for k, v in r["errors"].items()]
 
-    for part in (_headline, _whole_build, _stages, _output_bytes, _scaling, _where, _side_by_side, _errors, _sections):
+    for part in (_headline, _whole_build, _stages, _length, _output_bytes, _side_by_side, _errors, _sections):
         n = len(L)
         try:
             part()
@@ -1112,11 +896,12 @@ def markdown(r: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="CI smoke run: tiny sizes, few frames (figures not meaningful)")
-    p.add_argument("--episodes", type=int, help="episodes in the workload (default 2)")
-    p.add_argument("--max-steps", type=int, help="50 Hz steps per episode (frames = steps / 2; default 96)")
+    p.add_argument("--episodes", type=int, help="episodes in the workload (default 4)")
+    p.add_argument("--max-steps", type=int, help="50 Hz steps per episode (default: the whole script)")
+    p.add_argument("--long-frames", type=int, help="frames of the long episode (default 1000)")
+    p.add_argument("--no-ray", action="store_true", help="skip the Ray build")
     p.add_argument("--render-frames", type=int, help="render_vs_mujoco timing frames per size (default 32)")
     p.add_argument("--contact-reference-frames", type=int, help="frames the slow contact reference runs on (default 8)")
-    p.add_argument("--no-episode-scaling", action="store_true", help="skip the extra 1-episode build")
     p.add_argument("--out", type=Path, default=RESULTS, help="where latest.json / latest.md go (default %(default)s)")
     p.add_argument("--keep", type=Path, help="work in this directory and keep it (default: a temporary one)")
     p.add_argument("--from-json", type=Path, help="only re-render latest.md (into --out) from this latest.json")
@@ -1130,15 +915,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     work = Workload.quick_default() if a.quick else Workload()
     for flag, attr in (("episodes", "episodes"), ("max_steps", "max_steps"), ("render_frames", "render_frames"),
-                       ("contact_reference_frames", "contact_reference_frames")):
+                       ("contact_reference_frames", "contact_reference_frames"), ("long_frames", "long_frames")):
         if getattr(a, flag) is not None:
             setattr(work, attr, getattr(a, flag))
-    if a.no_episode_scaling:
-        work.episode_scaling = False
-    if work.episodes < 1 or work.max_steps < 2:
+    if a.no_ray:
+        work.ray_workers = 0
+    if work.episodes < 1 or (work.max_steps is not None and work.max_steps < 2):
         p.error("--episodes must be >= 1 and --max-steps >= 2")
 
-    from imac_data.build import quiet_libraries
+    from imac_data.cli import quiet_libraries
 
     quiet_libraries()
     tmp = a.keep or Path(tempfile.mkdtemp(prefix="imac_bench_"))

@@ -2,22 +2,29 @@
 
 Modules, one concept each:
 
-* ``cameras``     pinhole cameras, calibration files, projection (torch)
-* ``robot``       URDF robot model, joint maps, batched forward kinematics
+* ``rig``         robot + cameras + controller (+ renderer, gripper surface), from a recipe or a dataset
+* ``cameras``     pinhole cameras, calibration files, projection, pixel rays (torch)
+* ``robot``       URDF robot model, joint maps with affine entries, batched forward kinematics
+* ``urdf_summary`` a URDF's joints, limits, mimics, visuals; a recipe robot: block
+* ``robot_files`` the robot description (URDF + meshes) packaged into a dataset
 * ``mjcf_to_urdf`` export a MuJoCo model's robot to URDF
 * ``aloha``       the simulated ALOHA rig of gym-aloha
 * ``simulate``    scripted-policy recorder writing ALOHA HDF5 episodes
-* ``aloha_hdf5``  the raw HDF5 episode format (read, validate, write)
-* ``ingest``      raw episodes -> base LeRobot dataset
+* ``aloha_hdf5``  the raw HDF5 episode format (read chunk by chunk, validate, write)
 * ``motion``      the controller map phi: which configuration a motion image shows
 * ``render``      the robot renderer (RGB, mask, z-depth, link id per view)
-* ``depth``       the depth colour codec and depth streams
+* ``depth``       the depth colour codec
 * ``depth_sources`` recorded depth, Depth Anything 3
+* ``nearest``     exact nearest distances, certified distances over pixel tiles
 * ``contact``     contact images (robot-to-scene, scene-to-gripper)
-* ``video_streams`` add video streams to a LeRobot dataset
-* ``augment``     the control streams of an episode; augmenting existing datasets
-* ``recipes``, ``build`` the build's recipes and CLI
-* ``qa``          calibration overlay; ``qa refine`` (``refine``) fixes a calibration
+* ``pipeline``    the streamed episode pipeline and its stage timings
+* ``ingest``      raw episodes -> base LeRobot dataset
+* ``dataset``     every on-disk edit of a LeRobot dataset (streams, columns, imac block, merge, validate)
+* ``recipes``, ``build``, ``workers`` the build's recipes, CLI, worker pinning
+* ``safety``      the user's inputs are never written: overlap checks between output and inputs
+* ``augment``     adding the streams to an existing dataset
+* ``validate``    ``python -m imac_data.validate``
+* ``qa``          calibration overlay; ``preview``: an mp4 mosaic of a built episode; ``qa refine`` (``refine``) fixes a calibration
 * ``calibrate``   camera poses from the robot's silhouette (the algorithm of ``qa refine``)
 """
 

@@ -188,13 +188,15 @@ def _camera_names(f: h5py.File, path: Path) -> list[str]:
     return cams
 
 
-def _decode_jpeg_stack(data: np.ndarray, lengths: np.ndarray, path: Path, key: str) -> np.ndarray:
+def _decode_jpeg_stack(data: np.ndarray, lengths: np.ndarray, path: Path, key: str, first: int = 0) -> np.ndarray:
     frames = []
     for t, n in enumerate(lengths):
         img = cv2.imdecode(data[t, : int(n)], cv2.IMREAD_COLOR)
         if img is None:
-            raise InputError(f"{path}: '{key}' frame {t} is not a decodable JPEG")
+            raise InputError(f"{path}: '{key}' frame {first + t} is not a decodable JPEG")
         frames.append(img)
+    if not frames:
+        return np.zeros((0, 0, 0, 3), np.uint8)
     return np.stack(frames)
 
 
@@ -210,6 +212,8 @@ def probe_episode(path: str | Path) -> dict:
         qpos = _joint_array(f, path, "observations/qpos")
         action = _joint_array(f, path, "action")
         T, D = qpos.shape
+        if T == 0:
+            raise InputError(f"{path}: the episode has no frames ('observations/qpos' is {qpos.shape})")
         if action.shape != (T, D):
             raise InputError(
                 f"{path}: length/width mismatch: 'observations/qpos' is {qpos.shape}, 'action' is {action.shape}"
@@ -242,70 +246,186 @@ def probe_episode(path: str | Path) -> dict:
                     raise InputError(f"{path}: '{key}' has no matching RGB camera in {cams}")
                 if f[key].shape[0] != T:
                     raise InputError(f"{path}: '{key}' has {f[key].shape[0]} frames, 'observations/qpos' has {T}")
+                if f[key].ndim != 3 or f[key].dtype != np.uint16:
+                    raise InputError(f"{path}: '{key}' must be (T, H, W) uint16 millimetres, got "
+                                     f"{f[key].shape} {f[key].dtype}")
         return {"num_frames": T, "dof": D, "cameras": cams, "compressed": compressed, "has_depth": has_depth}
+
+
+class EpisodeReader:
+    """One episode opened for reading piece by piece: the joint vectors at once (``T x D``
+    floats), images and depth by frame range, so memory follows the range, not the episode::
+
+        with EpisodeReader(path) as ep:
+            rgb = ep.images("cam_high", 0, 9)       # (9, H, W, 3) uint8 RGB
+            mm = ep.depth_mm("cam_high", 0, 9)      # (9, h, w) uint16 millimetres, or None
+
+    Opening validates the structure (:func:`probe_episode`); each range is checked as it
+    is read (dtypes, decodable JPEGs) with an :class:`InputError` naming the file and key.
+    """
+
+    def __init__(self, path: str | Path, *, cameras: list[str] | None = None):
+        self.path = Path(path)
+        probe = probe_episode(self.path)
+        self._file = h5py.File(self.path, "r")
+        try:
+            f = self._file
+            all_cams = _camera_names(f, self.path)
+            cams = list(all_cams if cameras is None else cameras)
+            missing = [c for c in cams if c not in all_cams]
+            if missing:
+                raise InputError(f"{self.path}: camera(s) {missing} not in '/observations/images' (has {all_cams})")
+            self._all_cams, self.cameras = all_cams, sorted(cams)
+            self.compressed = probe["compressed"]
+            self.qpos = _joint_array(f, self.path, "observations/qpos")
+            self.action = _joint_array(f, self.path, "action")
+            self.qvel = _joint_array(f, self.path, "observations/qvel") if "observations/qvel" in f else None
+            attrs = f.attrs
+            success = attrs.get("success")
+            self.info = EpisodeInfo(task=_str_attr(attrs.get("task")), source=_str_attr(attrs.get("source")),
+                                    policy_name=_str_attr(attrs.get("policy_name")),
+                                    checkpoint=_str_attr(attrs.get("checkpoint")),
+                                    success=None if success is None else bool(success))
+            self.fps = float(attrs["fps"]) if "fps" in attrs else None
+            self._lengths = f["compress_len"][()] if self.compressed else None
+            self.image_hw = {c: self._image_hw(c) for c in self.cameras}
+        except BaseException:
+            self._file.close()
+            raise
+
+    def __enter__(self) -> EpisodeReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._file.close()
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.qpos.shape[0])
+
+    @property
+    def depth_cameras(self) -> list[str]:
+        group = self._file.get("observations/images_depth")
+        return sorted(c for c in group.keys() if c in self.cameras) if group is not None else []
+
+    def _image_hw(self, cam: str) -> tuple[int, int]:
+        if not self.compressed:
+            return tuple(int(v) for v in self._file[f"observations/images/{cam}"].shape[1:3])
+        return tuple(int(v) for v in self.images(cam, 0, 1).shape[1:3])
+
+    def images(self, cam: str, start: int, stop: int) -> np.ndarray:
+        """RGB frames ``start:stop`` of camera ``cam``, ``(n, H, W, 3)`` uint8."""
+        key = f"observations/images/{cam}"
+        if cam not in self._all_cams:
+            raise InputError(f"{self.path}: no camera {cam!r} (has {self._all_cams})")
+        data = self._file[key][start:stop]
+        if self.compressed:
+            lengths = self._lengths[self._all_cams.index(cam)][start:stop]
+            frames = _decode_jpeg_stack(data, lengths, self.path, key, first=start)
+            if hasattr(self, "image_hw") and frames.shape[1:3] != self.image_hw[cam]:
+                raise InputError(f"{self.path}: '{key}' frames change size at {start}:{stop} "
+                                 f"({frames.shape[1:3]} vs {self.image_hw[cam]})")
+            return frames
+        return data
+
+    def depth_mm(self, cam: str, start: int, stop: int) -> np.ndarray | None:
+        """Recorded depth frames ``start:stop`` of ``cam`` (``(n, h, w)`` uint16 millimetres),
+        or None when the episode has none for that camera."""
+        key = f"observations/images_depth/{cam}"
+        if key not in self._file:
+            return None
+        d = self._file[key]
+        if d.ndim != 3 or d.dtype != np.uint16:
+            raise InputError(f"{self.path}: '{key}' must be (T, H, W) uint16 millimetres, got {d.shape} {d.dtype}")
+        return d[start:stop]
+
+    def segmentation(self, cam: str, start: int, stop: int) -> np.ndarray | None:
+        key = f"observations/segmentation/{cam}"
+        return self._file[key][start:stop] if key in self._file else None
+
+    def segmentation_labels(self) -> dict[int, tuple[str, str]]:
+        raw = json.loads(self._file.attrs.get("segmentation_labels", "{}"))
+        return {int(k): tuple(v) for k, v in raw.items()}
 
 
 def read_episode(path: str | Path, *, cameras: list[str] | None = None, load_depth: bool = True,
                  load_segmentation: bool = False) -> RawEpisode:
-    """Load and validate one episode (all frames in memory)."""
-    path = Path(path)
-    probe_episode(path)
-    with h5py.File(path, "r") as f:
-        all_cams = _camera_names(f, path)
-        if cameras is None:
-            cameras = all_cams
-        missing = [c for c in cameras if c not in all_cams]
-        if missing:
-            raise InputError(f"{path}: camera(s) {missing} not in '/observations/images' (has {all_cams})")
-        compressed = bool(f.attrs.get("compress", False))
-        images = {}
-        for cam in cameras:
-            key = f"observations/images/{cam}"
-            if compressed:
-                lengths = f["compress_len"][all_cams.index(cam)]
-                images[cam] = _decode_jpeg_stack(f[key][()], lengths, path, key)
-            else:
-                images[cam] = f[key][()]
+    """Load and validate one episode, all frames in memory (short episodes, tests, tools;
+    the build reads chunk by chunk with :class:`EpisodeReader`)."""
+    with EpisodeReader(path, cameras=cameras) as ep:
+        T = ep.num_frames
+        images = {cam: ep.images(cam, 0, T) for cam in ep.cameras}
         depth = {}
-        if load_depth and "observations/images_depth" in f:
-            for cam in cameras:
-                key = f"observations/images_depth/{cam}"
-                if key in f:
-                    d = f[key][()]
-                    if d.ndim != 3 or d.dtype != np.uint16:
-                        raise InputError(f"{path}: '{key}' must be (T, H, W) uint16 millimetres, got {d.shape} {d.dtype}")
+        if load_depth:
+            for cam in ep.cameras:
+                d = ep.depth_mm(cam, 0, T)
+                if d is not None:
                     depth[cam] = d
         seg, labels = {}, {}
-        if load_segmentation and "observations/segmentation" in f:
-            for cam in cameras:
-                key = f"observations/segmentation/{cam}"
-                if key in f:
-                    seg[cam] = f[key][()]
-            raw = json.loads(f.attrs.get("segmentation_labels", "{}"))
-            labels = {int(k): tuple(v) for k, v in raw.items()}
-        attrs = f.attrs
-        success = attrs.get("success")
-        info = EpisodeInfo(
-            task=_str_attr(attrs.get("task")),
-            source=_str_attr(attrs.get("source")),
-            policy_name=_str_attr(attrs.get("policy_name")),
-            checkpoint=_str_attr(attrs.get("checkpoint")),
-            success=None if success is None else bool(success),
-        )
-        return RawEpisode(
-            qpos=_joint_array(f, path, "observations/qpos"),
-            action=_joint_array(f, path, "action"),
-            qvel=_joint_array(f, path, "observations/qvel") if "observations/qvel" in f else None,
-            images=images,
-            depth_mm=depth,
-            segmentation=seg,
-            segmentation_labels=labels,
-            info=info,
-            fps=float(attrs["fps"]) if "fps" in attrs else None,
-        )
+        if load_segmentation:
+            for cam in ep.cameras:
+                s = ep.segmentation(cam, 0, T)
+                if s is not None:
+                    seg[cam] = s
+            labels = ep.segmentation_labels()
+        return RawEpisode(qpos=ep.qpos, action=ep.action, qvel=ep.qvel, images=images, depth_mm=depth,
+                          segmentation=seg, segmentation_labels=labels, info=ep.info, fps=ep.fps)
 
 
 def _str_attr(value) -> str | None:
     if value is None:
         return None
     return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def tile_episode(src: str | Path, dst: str | Path, num_frames: int, *, chunk: int = 32) -> Path:
+    """A long episode made from a recorded one, for memory and throughput benchmarks:
+    ``num_frames`` frames of ``src`` played forward, backward, forward, ... (every frame,
+    joint vector, action and depth map is a recorded one; the motion stays continuous).
+    Written chunk by chunk (uncompressed RGB), so it needs no more memory than ``chunk``
+    frames, whatever ``num_frames``; atomic (temp file renamed into place)."""
+    src, dst = Path(src), Path(dst)
+    if num_frames < 1:
+        raise InputError(f"tile_episode: num_frames must be >= 1, got {num_frames}")
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    try:
+        with EpisodeReader(src) as ep, h5py.File(tmp, "w") as f:
+            T = ep.num_frames
+            period = max(2 * T - 2, 1)
+            order = np.arange(num_frames) % period
+            order = np.where(order < T, order, period - order)  # 0..T-1, T-2..1, 0..T-1, ...
+            f.attrs["sim"] = True
+            f.attrs["compress"] = False
+            if ep.fps is not None:
+                f.attrs["fps"] = ep.fps
+            for key in ("task", "source", "policy_name", "checkpoint"):
+                if getattr(ep.info, key) is not None:
+                    f.attrs[key] = getattr(ep.info, key)
+            obs = f.create_group("observations")
+            obs.create_dataset("qpos", data=ep.qpos[order])
+            if ep.qvel is not None:
+                obs.create_dataset("qvel", data=ep.qvel[order])
+            f.create_dataset("action", data=ep.action[order])
+            images, depth = obs.create_group("images"), None
+            for cam in ep.cameras:
+                h, w = ep.image_hw[cam]
+                out = images.create_dataset(cam, shape=(num_frames, h, w, 3), dtype=np.uint8, chunks=(1, h, w, 3))
+                d = ep.depth_mm(cam, 0, 1)
+                dout = None
+                if d is not None:
+                    depth = depth or obs.create_group("images_depth")
+                    dout = depth.create_dataset(cam, shape=(num_frames, *d.shape[1:]), dtype=np.uint16,
+                                                chunks=(1, *d.shape[1:]), compression="gzip", compression_opts=1)
+                for lo in range(0, num_frames, chunk):
+                    idx = order[lo:lo + chunk]
+                    a, b = int(idx.min()), int(idx.max()) + 1  # read the span once, pick the frames
+                    out[lo:lo + len(idx)] = ep.images(cam, a, b)[idx - a]
+                    if dout is not None:
+                        dout[lo:lo + len(idx)] = ep.depth_mm(cam, a, b)[idx - a]
+        tmp.replace(dst)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return dst

@@ -20,6 +20,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from imac_data.cli import EXIT_BAD_INPUT, cache_home, default_root, quiet_libraries
 from imac_data.errors import InputError
 from imac_data.recipes import Recipe, find_recipe, load_recipe, missing_inputs
 from imac_data.safety import refuse_overlap
@@ -34,41 +35,10 @@ class BuildRequest:
     episodes: int | None = None  # overrides recipe.source.episodes
     overwrite: bool = False
     progress: bool = True
-
-
-def default_root(repo_id: str) -> Path:
-    from lerobot.utils.constants import HF_LEROBOT_HOME
-
-    return Path(HF_LEROBOT_HOME) / repo_id
-
-
-def cache_home() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "imac"
+    timings: Path | None = None  # also write the build's stage timings here (JSON)
 
 
 # --------------------------------------------------------------------------- stages
-
-
-def robot_of(recipe: Recipe):
-    from imac_data.robot import GripperMap, RobotConfig, RobotModel
-
-    r = recipe.robot
-    if r.platform == "aloha_sim":
-        from imac_data import aloha
-
-        return RobotModel(aloha.robot_config())
-    urdf = recipe.resolve_path(r.urdf)
-    if not urdf.is_file():
-        raise InputError(f"{recipe.file}: robot.urdf: file not found: {urdf}")
-    joint_map = tuple(
-        entry if isinstance(entry, str) else GripperMap(i, entry.gripper, scale=entry.scale, offset=entry.offset)
-        for i, entry in enumerate(r.joint_map)
-    )
-    config = RobotConfig(
-        name=recipe.name, urdf_path=urdf, joint_map=joint_map, gripper_links=r.gripper_links,
-        package_dirs={k: recipe.resolve_path(v) for k, v in r.package_dirs.items()},
-    )
-    return RobotModel(config)
 
 
 def source_episodes(req: BuildRequest) -> tuple[list[Path], Path]:
@@ -120,37 +90,40 @@ class ShardJob:
     """The unit of work: one source episode -> one complete one-episode dataset (base
     features + control streams) at ``shard_dir``. Local processes and Ray tasks run the
     same :func:`build_shard`; a shard directory appears atomically, so a killed build
-    resumes with the shards that are missing."""
+    resumes with the shards that are missing. The rig travels as its ``info.json`` block
+    plus the packaged robot description in the staging directory: every worker renders
+    exactly the robot the dataset will carry. ``threads``: the worker's share of the cores.
+    Its stage timings go to ``timings_file`` (staging, never the dataset)."""
 
     index: int
     episode: Path
     shard_dir: Path
     repo_id: str
-    recipe: Recipe
-    calibration_path: Path
+    settings: object  # AugmentSettings
+    rig_block: dict
+    description_dir: Path
     options: object  # IngestOptions
+    timings_file: Path
+    threads: int = 1
 
 
 _PROCESS_CACHE: dict = {}
 
 
-def _process_state(recipe: Recipe):
-    """Robot model, renderer and controller, built once per worker process (the Open3D
-    scene cannot be pickled, so each process builds its own)."""
-    key = (recipe.name, recipe.file, repr(recipe.robot))
+def worker_rig(block: dict, description_dir: Path, timer=None):
+    """The rig of a job, built once per worker process (the Open3D scene cannot be pickled,
+    so each process builds its own renderer); the first build is timed as ``setup``."""
+    from imac_data.rig import Rig
+
+    key = (str(description_dir), json.dumps(block, sort_keys=True))
     if key not in _PROCESS_CACHE:
-        from imac_data.motion import Controller, aloha_controller
-        from imac_data.render import make_renderer
+        import contextlib
 
-        robot = robot_of(recipe)
-        if recipe.robot.platform == "aloha_sim":
-            from imac_data.aloha import load_mujoco_model
-
-            controller = aloha_controller(load_mujoco_model(recipe.source.sim.task))
-        else:
-            controller = Controller()
+        with timer("setup") if timer is not None else contextlib.nullcontext():
+            rig = Rig.from_block(block, description_dir)
+            rig.renderer, rig.gripper  # noqa: B018 - built here, counted as setup
         _PROCESS_CACHE.clear()
-        _PROCESS_CACHE[key] = (robot, make_renderer(robot), controller)
+        _PROCESS_CACHE[key] = rig
     return _PROCESS_CACHE[key]
 
 
@@ -158,59 +131,61 @@ def build_shard(job: ShardJob) -> Path:
     """Build one episode's shard dataset (idempotent: a finished shard is kept)."""
     import shutil
 
-    from imac_data.aloha_hdf5 import read_episode
-    from imac_data.augment import augment_dataset, episode_streams
-    from imac_data.cameras import load_calibration
-    from imac_data.depth_sources import RecordedDepth, episode_views
-    from imac_data.ingest import ingest_episodes
+    from imac_data.pipeline import StageTimer, write_episode_dataset, write_timings
+    from imac_data.workers import pin_threads
 
     if (job.shard_dir / "meta" / "info.json").is_file():
         return job.shard_dir
-    robot, renderer, controller = _process_state(job.recipe)
-    calibration = load_calibration(job.calibration_path)
+    pin_threads(job.threads)
+    timer = StageTimer()
+    wall, cpu = time.perf_counter(), time.process_time()
+    rig = worker_rig(job.rig_block, job.description_dir, timer)
     tmp = job.shard_dir.with_name(f".{job.shard_dir.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        ingest_episodes([job.episode], calibration=calibration, robot=robot, repo_id=job.repo_id, root=tmp,
-                        options=job.options, overwrite=True, progress=False)
-        raw = read_episode(job.episode)
-        views = episode_views(raw, calibration, robot, name=str(job.episode))
-        source = RecordedDepth()
-        streams = episode_streams(raw.qpos, raw.action, source.depth(views), dict(views.cameras), robot, renderer,
-                                  job.recipe.augment, controller)
-        augment_dataset(tmp, [streams], dict(views.cameras), job.recipe.augment, source.describe(), controller)
+        write_episode_dataset(job.episode, tmp, job.repo_id, rig, job.settings, job.options, timer=timer,
+                              threads=job.threads, with_description=False)
         tmp.rename(job.shard_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    from imac_data.workers import peak_rss_mb
+
+    write_timings(job.timings_file, timer, episode=str(job.episode), threads=job.threads, pid=os.getpid(),
+                  shard_wall_s=time.perf_counter() - wall, shard_cpu_s=time.process_time() - cpu,
+                  peak_rss_mb=peak_rss_mb())
     return job.shard_dir
 
 
 def _init_worker(threads: int) -> None:
-    import torch
+    from imac_data.workers import pin_threads
 
-    torch.set_num_threads(threads)
+    pin_threads(threads)
     quiet_libraries()
 
 
 def run_jobs(jobs: list[ShardJob], *, executor: str, workers: int, ray_address: str | None,
              progress: bool) -> None:
     """Run the shard jobs that are not done yet: in this process (1 worker), a local
-    process pool, or Ray tasks."""
+    process pool, or Ray tasks; each worker's thread pools pinned to ``job.threads``."""
     from tqdm.auto import tqdm
 
+    from imac_data.workers import thread_env
+
     todo = [j for j in jobs if not (j.shard_dir / "meta" / "info.json").is_file()]
-    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="augment episodes", unit="ep",
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="build episodes", unit="ep",
                disable=not progress)
     try:
         if not todo:
             return
+        threads = todo[0].threads
         if executor == "ray":
             import ray
 
             if not ray.is_initialized():
                 ray.init(address=ray_address, num_cpus=None if ray_address else workers,
-                         include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+                         include_dashboard=False, log_to_driver=False, logging_level="ERROR",
+                         runtime_env={"env_vars": thread_env(threads)})
             task = ray.remote(num_cpus=1)(_ray_shard)
             pending = [task.remote(j) for j in todo]
             while pending:
@@ -222,17 +197,63 @@ def run_jobs(jobs: list[ShardJob], *, executor: str, workers: int, ray_address: 
                 build_shard(job)
                 bar.update(1)
         else:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            threads = max(1, (os.cpu_count() or 1) // workers)
-            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                     initializer=_init_worker, initargs=(threads,)) as pool:
-                for future in as_completed([pool.submit(build_shard, j) for j in todo]):
-                    future.result()
-                    bar.update(1)
+            _run_local_pool(todo, workers, threads, bar)
     finally:
         bar.close()
+
+
+def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> None:
+    """``workers`` workers pull episodes from one queue: this process is one of them (its
+    libraries are loaded already: a spawned worker first spends about 8 CPU-seconds on
+    imports), the others are spawned pool processes. The episodes' bytes do not depend on
+    who builds them."""
+    import multiprocessing as mp
+    import queue
+    import threading
+    from concurrent.futures import ProcessPoolExecutor
+
+    from imac_data.workers import thread_env
+
+    jobs: queue.Queue = queue.Queue()
+    for job in todo:
+        jobs.put(job)
+    errors: list[BaseException] = []
+    lock = threading.Lock()
+
+    def worker(run) -> None:
+        while not errors:
+            try:
+                job = jobs.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                run(job)
+            except BaseException as e:  # noqa: BLE001 - re-raised in the caller's thread
+                errors.append(e)
+                return
+            with lock:
+                bar.update(1)
+
+    saved = {k: os.environ.get(k) for k in thread_env(threads)}
+    os.environ.update(thread_env(threads))  # pool workers size their pools at import
+    try:
+        with ProcessPoolExecutor(max_workers=workers - 1, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                                 initargs=(threads,)) as pool:
+            remote = [threading.Thread(target=worker, args=(lambda j: pool.submit(build_shard, j).result(),))
+                      for _ in range(workers - 1)]
+            for t in remote:
+                t.start()
+            worker(build_shard)  # this process builds episodes too
+            for t in remote:
+                t.join()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    if errors:
+        raise errors[0]
 
 
 def _ray_shard(job: ShardJob) -> str:
@@ -247,7 +268,7 @@ def build_key(recipe: Recipe, paths: list[Path], calibration_path: Path, repo_id
 
     h = hashlib.sha256()
     h.update(json.dumps([repo_id, __version__, repr(recipe)], default=str).encode())
-    for src in sorted(Path(__file__).parent.glob("*.py")):  # the code that made the shards
+    for src in sorted(Path(__file__).parent.rglob("*.py")):  # the code that made the shards
         h.update(src.read_bytes())
     for p in [*paths, calibration_path]:
         st = p.stat()
@@ -258,14 +279,22 @@ def build_key(recipe: Recipe, paths: list[Path], calibration_path: Path, repo_id
 def build(req: BuildRequest, *, executor: str = "local", workers: int | None = None,
           ray_address: str | None = None):
     """Run the whole build; returns the loaded LeRobotDataset at ``req.root``."""
+    import resource
     import shutil
 
-    from lerobot.datasets.aggregate import aggregate_datasets
+    from imac_data.pipeline import StageTimer
+    from imac_data.workers import default_workers, threads_per_worker
+
+    t_start, usage_start = time.perf_counter(), _cpu_seconds(resource)
+
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from imac_data.cameras import load_calibration
+    from imac_data.dataset.merge import merge_datasets
+    from imac_data.dataset.validate import validate_dataset
     from imac_data.dataset_card import write_card
-    from imac_data.ingest import IngestOptions, check_episodes, staging_dir, update_imac_info
+    from imac_data.ingest import IngestOptions, check_episodes, staging_dir
+    from imac_data.rig import Rig
+    from imac_data.robot_files import write_description
 
     recipe = req.recipe
     if req.root.exists() and not req.overwrite:
@@ -276,19 +305,19 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     if problems:
         raise InputError(f"recipe {recipe.file} needs inputs that are not there:\n  - " + "\n  - ".join(problems))
     refuse_overlap(req.root, _input_paths(req))  # before anything is recorded or written
-    robot = robot_of(recipe)
+    robot = Rig.robot_from_recipe(recipe)  # a bad URDF or joint map fails before any recording
     paths, calibration_path = source_episodes(req)
     refuse_overlap(req.root, {"source episodes": paths[0].parent, "calibration": calibration_path})
-    calibration = load_calibration(calibration_path)
-    check_episodes(paths, calibration, robot)
-    _check_stream_resolution(recipe, calibration)
+    rig = Rig.from_recipe(recipe, calibration_path, robot=robot)
+    check_episodes(paths, rig.cameras, robot)
+    _check_stream_resolution(recipe, rig.cameras)
     fps = recipe.fps or _fps_of(paths[0]) or None
     if fps is None:
         raise InputError(f"{recipe.file}: fps: the episodes do not record their rate; set fps in the recipe")
     defaults = recipe.source.episode_defaults
     options = IngestOptions(
         fps=fps, task=recipe.task, source=defaults.source, policy_name=defaults.policy_name,
-        checkpoint=defaults.checkpoint, robot_type=robot.name, state_names=_state_names(recipe, robot),
+        checkpoint=defaults.checkpoint, robot_type=robot.name, state_names=rig.state_names,
     )
 
     # Staging: shards/ (one dataset per episode, kept across a killed run when the
@@ -300,24 +329,37 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
         shutil.rmtree(staging)
     (staging / "shards").mkdir(parents=True, exist_ok=True)
     key_file.write_text(key)
-    jobs = [ShardJob(i, p, staging / "shards" / f"episode_{i:06d}", req.repo_id, recipe, calibration_path, options)
+    description = staging / "robot"
+    write_description(robot, description)
+    block = rig.to_info()
+    workers = workers or default_workers(len(paths))
+    threads = threads_per_worker(min(workers, len(paths)))
+    jobs = [ShardJob(i, p, staging / "shards" / f"episode_{i:06d}", req.repo_id, recipe.augment, block, description,
+                     options, staging / "timings" / f"episode_{i:06d}.json", threads)
             for i, p in enumerate(paths)]
-    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    t_jobs = time.perf_counter()
     run_jobs(jobs, executor=executor, workers=workers, ray_address=ray_address, progress=req.progress)
+    t_jobs = time.perf_counter() - t_jobs
 
+    timer = StageTimer()  # the build's own stages, in this process
     final = staging / "dataset"
     shutil.rmtree(final, ignore_errors=True)
-    shards = [j.shard_dir for j in jobs]
-    aggregate_datasets([req.repo_id] * len(shards), req.repo_id, roots=shards, aggr_root=final)
-    _order_stats(final)
-    # aggregate_datasets rebuilds info.json without our block: restore it from a shard
-    imac = json.loads((shards[0] / "meta" / "info.json").read_text())["imac"]
-    imac["build"] = {"recipe": recipe.name, "command": f"python -m imac_data.build --repo {req.repo_id}",
-                     "episodes": len(jobs)}
-    update_imac_info(final, imac)
-    write_card(final, req.repo_id, recipe)
-    dataset = LeRobotDataset(req.repo_id, root=final)
-    validate(dataset)
+    with timer("merge"):
+        merge_datasets([j.shard_dir for j in jobs], final, req.repo_id, description_dir=description,
+                       imac_extra={"build": {"recipe": recipe.name, "episodes": len(jobs),
+                                             "command": f"python -m imac_data.build --repo {req.repo_id}"}})
+        write_card(final, req.repo_id, recipe)
+    with timer("validate"):  # first and last frame of every episode, every stream
+        validate_dataset(final, sample=2).raise_if_invalid()
+    report = _timings_report(jobs, timer, workers=workers, threads=threads, executor=executor,
+                             episodes_wall_s=t_jobs, wall_s=time.perf_counter() - t_start,
+                             cpu_s=_cpu_seconds(resource) - usage_start)
+    (staging / "timings.json").write_text(json.dumps(report, indent=1))
+    if req.timings is not None:
+        req.timings.parent.mkdir(parents=True, exist_ok=True)
+        req.timings.write_text(json.dumps(report, indent=1))
+    if req.progress:
+        print(_timings_table(report), file=sys.stderr)
 
     # into place: the old output (--overwrite) is removed only once the new one is complete
     old = req.root.with_name(f".{req.root.name}.old")
@@ -330,6 +372,41 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     return LeRobotDataset(req.repo_id, root=req.root)
 
 
+def _cpu_seconds(resource) -> float:
+    """CPU seconds of this process and its finished child processes (pool workers)."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def _timings_report(jobs, timer, **summary) -> dict:
+    """Stage timings of a build: per episode (the workers' side files) and their sum, plus
+    the build's own stages; written to ``timings.json`` in staging (never the dataset)."""
+    from imac_data.pipeline import StageTimer
+
+    total = StageTimer()
+    episodes = []
+    for job in jobs:
+        if job.timings_file.is_file():  # a resumed build has no timings for shards it did not redo
+            d = json.loads(job.timings_file.read_text())
+            episodes.append(d)
+            total.add(d)
+    total.add(timer)
+    return {**summary, "frames": total.frames, "episodes_timed": len(episodes),
+            "stages": total.to_dict(), "episodes": episodes}
+
+
+def _timings_table(report: dict) -> str:
+    from imac_data.pipeline import StageTimer
+
+    t = StageTimer()
+    t.add(report["stages"])
+    frames = max(report["frames"], 1)
+    head = (f"[build] {report['frames']} frames, {report['workers']} worker(s) x {report['threads']} thread(s) "
+            f"({report['executor']}): {report['wall_s']:.1f} s wall ({frames / report['wall_s']:.2f} frames/s), "
+            f"{report['cpu_s']:.1f} s CPU here and in pool workers ({report['cpu_s'] / frames * 1e3:.0f} ms/frame)")
+    return head + "\n" + t.table("[build] stage")
+
+
 def _input_paths(req: BuildRequest) -> dict[str, Path | None]:
     """The user's files a build reads (never written or deleted: :mod:`imac_data.safety`)."""
     recipe = req.recipe
@@ -339,17 +416,6 @@ def _input_paths(req: BuildRequest) -> dict[str, Path | None]:
         "recipe": Path(recipe.file) if recipe.file else None,
         "robot URDF": recipe.resolve_path(recipe.robot.urdf),
     }
-
-
-def _order_stats(root: Path) -> None:
-    """LeRobot's ``aggregate_stats`` collects feature names in a set, so the key order of
-    ``stats.json`` follows Python's per-process string hashing; write it in the
-    features' order so that equal builds are byte-identical."""
-    info = json.loads((root / "meta" / "info.json").read_text())
-    path = root / "meta" / "stats.json"
-    stats = json.loads(path.read_text())
-    order = [k for k in info["features"] if k in stats] + sorted(k for k in stats if k not in info["features"])
-    path.write_text(json.dumps({k: stats[k] for k in order}, indent=4))
 
 
 def _check_stream_resolution(recipe: Recipe, calibration) -> None:
@@ -370,42 +436,7 @@ def _fps_of(path: Path) -> float | None:
         return float(f.attrs["fps"]) if "fps" in f.attrs else None
 
 
-def _state_names(recipe: Recipe, robot) -> tuple[str, ...] | None:
-    if recipe.robot.platform == "aloha_sim":
-        from imac_data.aloha import STATE_NAMES
-
-        return STATE_NAMES
-    return None
-
-
-def validate(dataset, sample: int = 4) -> None:
-    """Load a sample of frames (first, last, between) through LeRobot's own loader and
-    check that every stream decodes at the recorded size and the frame counts agree."""
-    import numpy as np
-
-    n = len(dataset)
-    if n != dataset.meta.total_frames or n != sum(dataset.meta.episodes["length"]):
-        raise RuntimeError(f"dataset has {n} frames, metadata says {dataset.meta.total_frames}")
-    for i in np.linspace(0, n - 1, min(sample, n)).astype(int):
-        item = dataset[int(i)]
-        for key in dataset.meta.video_keys:
-            h, w, _ = dataset.meta.features[key]["shape"]
-            if key not in item or tuple(item[key].shape) != (3, h, w):
-                raise RuntimeError(f"frame {i}: video stream {key} did not decode to (3, {h}, {w})")
-
-
 # --------------------------------------------------------------------------- CLI
-
-
-def quiet_libraries() -> None:
-    """Keep the console to our progress bars: SVT-AV1 banners, libav muxer notes and
-    the datasets library's per-file bars say nothing a user acts on."""
-    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1: errors only
-    import av
-    import datasets
-
-    av.logging.set_level(av.logging.ERROR)
-    datasets.disable_progress_bars()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -419,7 +450,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--source", type=Path, help="directory of raw episodes (overrides the recipe's source.path)")
     p.add_argument("--episodes", type=int, help="use the first N episodes (overrides the recipe)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output dataset")
-    p.add_argument("--workers", type=int, help="parallel episode workers (default: one per CPU core)")
+    p.add_argument("--workers", type=int,
+                   help="parallel episode workers, each pinned to its share of the cores (default: one per core, "
+                        "at most one per episode)")
     p.add_argument("--executor", choices=("local", "ray"), default="local",
                    help="local process pool (default) or Ray tasks")
     p.add_argument("--ray-address", help="Ray cluster address (default: start a local Ray)")
@@ -427,6 +460,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="upload the result with LeRobot's push_to_hub (needs `huggingface-cli login`)")
     p.add_argument("--private", action="store_true", help="with --push-to-hub: a private dataset repo")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--timings", type=Path, help="write the build's stage timings (JSON) here as well")
     args = p.parse_args(argv)
 
     quiet_libraries()
@@ -443,14 +477,14 @@ def main(argv: list[str] | None = None) -> int:
         req = BuildRequest(
             repo_id=args.repo, recipe=recipe, root=args.root or default_root(args.repo),
             source_path=args.source, episodes=args.episodes, overwrite=args.overwrite,
-            progress=not args.no_progress,
+            progress=not args.no_progress, timings=args.timings,
         )
         if args.workers is not None and args.workers <= 0:
             raise InputError(f"--workers must be positive, got {args.workers}")
         dataset = build(req, executor=args.executor, workers=args.workers, ray_address=args.ray_address)
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     dt = time.perf_counter() - t0
     if args.push_to_hub:
         from imac_data.dataset_card import push_to_hub

@@ -37,6 +37,22 @@ def opengl_to_opencv(T_world_cam_gl: np.ndarray) -> np.ndarray:
     return np.asarray(T_world_cam_gl, dtype=np.float64) @ _GL_TO_CV
 
 
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera pose (OpenCV axes) at ``eye`` looking at ``target``, with ``up`` pointing up in the
+    image; all in one parent frame (the world for a fixed camera, the link for a mounted one)."""
+    eye = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye
+    x = np.cross(z, np.asarray(up, dtype=np.float64))
+    if not (np.linalg.norm(z) > 0 and np.linalg.norm(x) > 1e-9 * np.linalg.norm(z)):
+        raise InputError(f"look_at: eye {eye.tolist()} and target {list(target)} must differ, and the viewing "
+                         f"direction must not be parallel to up {list(up)}")
+    z /= np.linalg.norm(z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, eye
+    return T
+
+
 def intrinsics_from_fovy(fovy_deg: float, width: int, height: int) -> np.ndarray:
     """K of an ideal pinhole with vertical field of view ``fovy_deg`` and square pixels
     (MuJoCo's camera model); the principal point is the image centre."""
@@ -171,6 +187,20 @@ def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> tor
     return torch.stack([u, v], dim=-1)
 
 
+def pixel_rays(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Camera-frame rays ``K^-1 [u, v, 1]`` through every pixel centre (integer ``u, v``),
+    shape ``(*B, H*W, 3)`` for ``K (*B, 3, 3)``, row-major pixels, z component exactly 1,
+    so ``depth * ray`` is the pixel's point at planar z-depth ``depth``. The one place
+    pixels become rays: :func:`backproject`, the contact streams' scene and robot points.
+    """
+    v, u = torch.meshgrid(torch.arange(height, device=K.device, dtype=K.dtype),
+                          torch.arange(width, device=K.device, dtype=K.dtype), indexing="ij")
+    pix = torch.stack([u, v, torch.ones_like(u)], dim=-1).reshape(-1, 3)
+    rays = pix @ torch.linalg.inv(K).transpose(-1, -2)
+    rays[..., 2] = 1.0
+    return rays
+
+
 def backproject(depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor) -> torch.Tensor:
     """Lift a z-depth map ``(*B, H, W)`` to world points ``(*B, H, W, 3)``.
 
@@ -178,10 +208,7 @@ def backproject(depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor)
     scaled by that value; callers mask them with ``depth > 0``.
     """
     H, W = depth.shape[-2:]
-    uv = pixel_grid(H, W, device=depth.device, dtype=depth.dtype)
-    K_inv = torch.linalg.inv(K)
-    rays = torch.cat([uv, torch.ones_like(uv[..., :1])], dim=-1)  # (H, W, 3)
-    rays = rays @ K_inv[..., None, :, :].transpose(-1, -2)  # (*B, H, W, 3), z component == 1
+    rays = pixel_rays(K.to(depth.dtype), H, W).reshape(*K.shape[:-2], H, W, 3)  # (*B, H, W, 3)
     p_cam = rays * depth[..., None]
     R = T_world_cam[..., None, :3, :3]
     t = T_world_cam[..., None, None, :3, 3]
@@ -200,6 +227,22 @@ def save_calibration(path: str | Path, cameras: Mapping[str, Camera]) -> None:
     Path(path).write_text(json.dumps(payload, indent=2))
 
 
+def camera_from_dict(name: str, entry, where: str = "camera") -> Camera:
+    """A :class:`Camera` from its :meth:`Camera.to_dict` form (calibration files, ``info.json``)."""
+    if not isinstance(entry, dict):
+        raise InputError(f"{where}: expected a mapping")
+    missing = [k for k in ("K", "width", "height") if k not in entry]
+    if missing:
+        raise InputError(f"{where}: missing key(s) {missing}")
+    try:
+        return Camera(name=name, K=entry["K"], width=int(entry["width"]), height=int(entry["height"]),
+                      T_world_cam=entry.get("T_world_cam"), link=entry.get("link"), T_link_cam=entry.get("T_link_cam"))
+    except InputError as e:
+        raise InputError(f"{where}: {e}") from None
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{where}: {e}") from None
+
+
 def load_calibration(path: str | Path) -> dict[str, Camera]:
     """Read a calibration JSON written by :func:`save_calibration` (or by hand in that schema)."""
     path = Path(path)
@@ -211,26 +254,8 @@ def load_calibration(path: str | Path) -> dict[str, Camera]:
         raise InputError(f"{path}: not valid JSON ({e})") from None
     if not isinstance(payload, dict) or not isinstance(payload.get("cameras"), dict):
         raise InputError(f"{path}: expected a top-level 'cameras' mapping")
-    cameras = {}
-    for name, entry in payload["cameras"].items():
-        where = f"{path}: cameras.{name}"
-        if not isinstance(entry, dict):
-            raise InputError(f"{where}: expected a mapping")
-        missing = [k for k in ("K", "width", "height") if k not in entry]
-        if missing:
-            raise InputError(f"{where}: missing key(s) {missing}")
-        try:
-            cameras[name] = Camera(
-                name=name,
-                K=entry["K"],
-                width=int(entry["width"]),
-                height=int(entry["height"]),
-                T_world_cam=entry.get("T_world_cam"),
-                link=entry.get("link"),
-                T_link_cam=entry.get("T_link_cam"),
-            )
-        except InputError as e:
-            raise InputError(f"{where}: {e}") from None
+    cameras = {name: camera_from_dict(name, entry, f"{path}: cameras.{name}")
+               for name, entry in payload["cameras"].items()}
     if not cameras:
         raise InputError(f"{path}: no cameras")
     return cameras

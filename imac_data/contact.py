@@ -49,24 +49,11 @@ distances count towards chunk 0's caps. Every frame stores the caps of its chunk
 
 Nearest distances and the tolerance
 -----------------------------------
-:class:`NearestNeighbours` / :func:`nearest_distances`: exact Euclidean nearest
-distances, either a scipy ``cKDTree`` forest (CPU; ``workers=-1``,
-``distance_upper_bound``; one tree per dominant thin layer such as the table, see
-:func:`_kdtree_forest`) or chunked exact ``torch.cdist`` + min (CPU or CUDA; no matmul
-expansion, so no cancellation and no TF32). With a bound (a fixed cap), queries farther
-than it from the target's bounding box (and, for the torch path, targets farther than
-it from the queries' box) are culled first: they would come back as +inf anyway.
-
-Exact queries for every pixel cost ~150k KD-tree queries per future frame (3 views
-at 240x320), far from the frame rate we want on two CPU cores, and most of them are
-far from any contact, where the distance field is smooth. The images are therefore
-painted with a **certified tolerance** (``tolerance=(abs, rel)``, default 1 mm / 3 %):
-every painted distance d' satisfies ``d <= d' <= d + max(abs, rel * d)`` for the exact
-d (1-Lipschitz bound over pixel tiles, :func:`_certified_distances`); contact regions
-(d < 3 cm) come out within 1 mm, depth edges exact, and typical errors are far below
-the bound (on our simulated grasps: mean 0.02 mm, p99 0.3 mm, >= 98.5 % of the colour
-pixels identical to the exact images). ``tolerance=None`` paints exact per-pixel
-distances (1.5-3x slower on the CPU).
+Exact nearest distances (KD-tree forest or chunked brute force) and the certified
+tolerance over pixel tiles that makes painting every pixel affordable live in
+:mod:`imac_data.nearest`: every painted distance d' satisfies
+``d <= d' <= d + max(abs, rel * d)`` for the exact d (default 1 mm / 3 %);
+``tolerance=None`` paints exact per-pixel distances.
 
 CPU execution: no per-point Python loops anywhere; per chunk the scene index is built
 once. The tensor work runs single-threaded in torch (``cpu_threads=1``: torch's OpenMP
@@ -88,7 +75,17 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from imac_data.cameras import pixel_rays
 from imac_data.errors import InputError
+from imac_data.nearest import (
+    DEFAULT_TOLERANCE,
+    NearestNeighbours,
+    TilePyramid,
+    _points,
+    certified_distances,
+    nearest_distances,
+    resolve_tolerance,
+)
 
 __all__ = [
     "JET_LUT",
@@ -106,15 +103,12 @@ __all__ = [
     "EpisodeContact",
     "iter_episode_contact",
     "episode_contact",
-    "ContactBuilder",
+    "DEFAULT_TOLERANCE",
 ]
 
 DEFAULT_PERCENTILE = 99.0
 DEFAULT_DILATE_PX = 2
 DEFAULT_FILL_PX = 2
-# Certified tolerance of the painted distances: exact <= painted <= exact + max(abs, rel * exact).
-DEFAULT_TOLERANCE = (0.001, 0.03)
-TILE_SIZES = (8, 4, 2)  # pixel tiles of the certified pyramid, coarse to fine
 DEFAULT_GRIPPER_SPACING = 0.002  # metres between gripper surface samples
 MIN_CAP = 1e-3  # metres; a percentile cap is never smaller (all-zero distances)
 EMPTY_CAP = 1.0  # metres; the cap of a stream with no finite distance in the chunk
@@ -172,191 +166,6 @@ def colorize(distance: torch.Tensor, cap) -> torch.Tensor:
     return _lut(d.device).index_select(0, level.reshape(-1)).reshape(*d.shape, 3)
 
 
-# ----------------------------------------------------------------------------- nearest distances
-
-
-def _points(x, name: str, device=None) -> torch.Tensor:
-    t = torch.as_tensor(x, device=device)
-    if t.ndim != 2 or t.shape[-1] != 3:
-        raise InputError(f"{name}: expected points of shape (N, 3), got {tuple(t.shape)}")
-    if not t.is_floating_point():
-        t = t.to(torch.float32)
-    if t.numel() and not torch.isfinite(t).all():
-        raise InputError(f"{name}: contains NaN or inf coordinates")
-    return t
-
-
-def _box_distance(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-    """Euclidean distance of each point to the axis-aligned box [lo, hi] (0 inside)."""
-    gap = torch.maximum(lo - points, points - hi).clamp(min=0)
-    return gap.norm(dim=-1)
-
-
-# A cKDTree tracks each node's rectangle as the root bounding box cut by the splits
-# above it, so on a cloud that is mostly one thin layer (a table, in the world frame
-# z = const) plus a few points off it (objects, a few cm up), every leaf rectangle
-# inherits the layer's full off-layer extent and a query from afar (a robot link 30 cm
-# up) must open every leaf within sqrt(2 h dz) of its foot point: 10 us instead of
-# 0.5 us per query on our simulated scenes (Open3D's / OpenCV's nanoflann-style trees
-# behave the same). We therefore build a small forest: each dominant thin layer along a
-# coordinate axis gets its own tree, the remainder another. Results stay exact.
-_LAYER_MIN_POINTS = 4096
-_LAYER_BIN = 0.001  # metres; a layer is the densest bin and its two neighbours
-_LAYER_MIN_FRACTION = 0.25
-_LAYER_MAX_SPLITS = 3
-
-
-def _kdtree_forest(data: np.ndarray, leafsize: int) -> list:
-    """``[(cKDTree, indices of its points in data)]`` partitioning ``data``."""
-    from scipy.spatial import cKDTree
-
-    def tree(x):
-        # Sliding-midpoint tree without compaction: several times faster to build than
-        # the balanced default and faster to query on these clouds.
-        return cKDTree(x, leafsize=leafsize, balanced_tree=False, compact_nodes=False)
-
-    trees, rest, index = [], data, np.arange(len(data))
-    for _ in range(_LAYER_MAX_SPLITS):
-        if len(rest) < _LAYER_MIN_POINTS:
-            break
-        best = None
-        for axis in range(3):
-            c = rest[:, axis]
-            lo = float(c.min())
-            if float(c.max()) - lo <= 3 * _LAYER_BIN:
-                continue  # the whole remainder is thin along this axis already
-            bins = np.floor((c - lo) / _LAYER_BIN).astype(np.int64)
-            counts = np.bincount(bins)
-            k = int(counts.argmax())
-            inside = (bins >= k - 1) & (bins <= k + 1)
-            n = int(inside.sum())
-            if n < len(rest) and (best is None or n > best[0]):
-                best = (n, inside)
-        if best is None or best[0] < _LAYER_MIN_FRACTION * len(rest):
-            break
-        trees.append((tree(rest[best[1]]), index[best[1]]))
-        rest, index = rest[~best[1]], index[~best[1]]
-    if len(rest):
-        trees.append((tree(rest), index))
-    return trees
-
-
-class NearestNeighbours:
-    """Exact nearest-neighbour queries against a fixed target cloud (built once, queried
-    many times: the reference scene of a chunk).
-
-    ``method``: ``"kdtree"`` (scipy cKDTree forest, CPU, float64), ``"torch"`` (chunked
-    exact ``torch.cdist`` + min on the target's device, CPU or CUDA), or ``"auto"`` (CUDA
-    -> torch; CPU -> kdtree, except brute force for tiny targets). ``workers``: threads of
-    the KD-tree queries (-1 = all cores). ``chunk_pairs``: query-target pairs per torch
-    block (memory bound: 4 bytes each).
-    """
-
-    def __init__(self, target, *, method: str = "auto", workers: int = -1, chunk_pairs: int | None = None,
-                 leafsize: int = 16):
-        self.target = _points(target, "nearest-distance target")
-        if method not in ("auto", "kdtree", "torch"):
-            raise InputError(f"nearest-distance method must be 'auto', 'kdtree' or 'torch', got {method!r}")
-        M = self.target.shape[0]
-        if method == "auto":
-            method = "torch" if (self.target.is_cuda or M <= 64) else "kdtree"
-        self.method = method
-        self.workers = workers
-        self.chunk_pairs = chunk_pairs or (1 << 26 if self.target.is_cuda else 1 << 22)
-        self._trees: list = []
-        if M:
-            self.lo = self.target.amin(0)
-            self.hi = self.target.amax(0)
-            if method == "kdtree":
-                self._target64 = self.target.detach().to("cpu", torch.float64).numpy()
-                self._trees = _kdtree_forest(self._target64, leafsize)
-
-    def __len__(self) -> int:
-        return int(self.target.shape[0])
-
-    def distances(self, query, *, max_distance: float | None = None) -> torch.Tensor:
-        """Nearest distance ``(N,)`` float32 (device of ``query``) of each query point to the
-        target. ``+inf`` where the target is empty, and, when ``max_distance`` is given,
-        where the nearest distance exceeds it (those queries are culled, not computed)."""
-        return self.query(query, max_distance=max_distance)[0]
-
-    def query(self, query, *, max_distance: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(distance (N,), nearest target point (N, 3))``, float32 on the query's device;
-        where the distance is +inf (see :meth:`distances`) the point is NaN."""
-        q = _points(query, "nearest-distance query")
-        N = q.shape[0]
-        dist = torch.full((N,), math.inf, dtype=torch.float32, device=q.device)
-        near = torch.full((N, 3), math.nan, dtype=torch.float32, device=q.device)
-        if N == 0 or len(self) == 0:
-            return dist, near
-        if max_distance is not None:
-            max_distance = float(max_distance)
-            if not (max_distance >= 0 and math.isfinite(max_distance)):
-                raise InputError(f"max_distance must be finite and >= 0, got {max_distance}")
-            keep = _box_distance(q.to(self.lo), self.lo, self.hi) <= max_distance
-            idx = torch.nonzero(keep)[:, 0]
-            if len(idx) == 0:
-                return dist, near
-            if len(idx) < N:
-                d, p = self.query(q[idx], max_distance=max_distance)
-                dist[idx], near[idx] = d.to(q.device), p.to(q.device)
-                return dist, near
-        if self.method == "kdtree":
-            d, i = self._query_tree(q, max_distance)
-        else:
-            d, i = self._query_torch(q, max_distance)
-        d = d.to(device=q.device, dtype=torch.float32)
-        if max_distance is not None:
-            d = torch.where(d <= max_distance, d, torch.full_like(d, math.inf))
-        found = torch.isfinite(d)
-        i = torch.where(found, i.to(q.device), torch.zeros_like(i, device=q.device))
-        p = self.target.to(q.device, torch.float32)[i]
-        return d, torch.where(found[:, None], p, torch.full_like(p, math.nan))
-
-    def _query_tree(self, q: torch.Tensor, max_distance: float | None) -> tuple[torch.Tensor, torch.Tensor]:
-        qn = q.detach().to("cpu", torch.float64).numpy()
-        bound = np.inf if max_distance is None else float(np.nextafter(max_distance, np.inf))
-        d = i = None
-        for tree, index in self._trees:  # exact: the min over a partition of the target
-            if d is not None:
-                bound = min(bound, float(np.nextafter(d.max(), np.inf)))
-            dt, it = tree.query(qn, k=1, distance_upper_bound=bound, workers=self.workers)
-            it = index[np.minimum(it, len(index) - 1)]
-            if d is None:
-                d, i = dt, it
-            else:
-                better = dt < d
-                d, i = np.where(better, dt, d), np.where(better, it, i)
-        return torch.from_numpy(d), torch.from_numpy(i)
-
-    def _query_torch(self, q: torch.Tensor, max_distance: float | None) -> tuple[torch.Tensor, torch.Tensor]:
-        t = self.target
-        q = q.to(device=t.device, dtype=torch.promote_types(q.dtype, t.dtype))
-        t = t.to(q.dtype)
-        index = None
-        if max_distance is not None:  # targets farther than the bound from every query cannot win
-            index = torch.nonzero(_box_distance(t, q.amin(0), q.amax(0)) <= max_distance)[:, 0]
-            t = t[index]
-            if len(t) == 0:
-                return (torch.full((q.shape[0],), math.inf, device=q.device),
-                        torch.zeros(q.shape[0], dtype=torch.long, device=q.device))
-        rows = max(1, self.chunk_pairs // max(1, len(t)))
-        dist = torch.empty(q.shape[0], dtype=q.dtype, device=q.device)
-        arg = torch.empty(q.shape[0], dtype=torch.long, device=q.device)
-        for start in range(0, q.shape[0], rows):  # blocks of queries, not points
-            block = torch.cdist(q[start:start + rows], t, compute_mode="donot_use_mm_for_euclid_dist")
-            dist[start:start + rows], arg[start:start + rows] = block.min(dim=1)
-        return dist, (arg if index is None else index[arg])
-
-
-def nearest_distances(query, target, *, max_distance: float | None = None, method: str = "auto",
-                      workers: int = -1) -> torch.Tensor:
-    """Exact distance ``(N,)`` from each query point ``(N, 3)`` to its nearest target point
-    ``(M, 3)``; ``+inf`` for an empty target or beyond ``max_distance`` (see
-    :meth:`NearestNeighbours.distances`)."""
-    return NearestNeighbours(target, method=method, workers=workers).distances(query, max_distance=max_distance)
-
-
 # ----------------------------------------------------------------------------- scene cloud
 
 
@@ -373,17 +182,6 @@ def dilate_mask(mask: torch.Tensor, radius: int) -> torch.Tensor:
     x = mask.reshape(-1, 1, *shape[-2:]).to(torch.float16 if mask.is_cuda else torch.float32)
     x = torch.nn.functional.max_pool2d(x, 2 * radius + 1, stride=1, padding=radius)
     return x.reshape(shape) > 0
-
-
-def _pixel_rays(K: torch.Tensor, H: int, W: int) -> torch.Tensor:
-    """``(V, H*W, 3)`` camera-frame rays ``K^-1 [u, v, 1]`` (z = 1), pixel centres at integers
-    (the convention of :func:`imac_data.cameras.backproject`)."""
-    v, u = torch.meshgrid(torch.arange(H, device=K.device, dtype=K.dtype),
-                          torch.arange(W, device=K.device, dtype=K.dtype), indexing="ij")
-    pix = torch.stack([u, v, torch.ones_like(u)], dim=-1).reshape(-1, 3)
-    rays = pix @ torch.linalg.inv(K).transpose(-1, -2)  # (V, HW, 3)
-    rays[..., 2] = 1.0
-    return rays
 
 
 def _lift(depth_flat: torch.Tensor, rays: torch.Tensor, T: torch.Tensor, image: torch.Tensor, view: torch.Tensor,
@@ -462,7 +260,7 @@ def scene_cloud(depth, K, T_world_cam, robot_mask, *, dilate_px: int = DEFAULT_D
     valid = torch.isfinite(depth) & (depth > 0) & ~removed
     flat = torch.nonzero(valid.reshape(-1))[:, 0]
     view, pix = flat // (H * W), flat % (H * W)
-    rays = _pixel_rays(K, H, W)
+    rays = pixel_rays(K, H, W)
     points = _lift(depth.reshape(-1)[flat], rays, T, view, view, pix)
     return SceneCloud(points=points, flat=flat, valid=valid, mask=~removed, robot_mask=removed)
 
@@ -541,158 +339,6 @@ def _voxel_thin(points: np.ndarray, size: float) -> np.ndarray:
     keys = np.floor(points / size).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
     return points[np.sort(first)]
-
-
-# ----------------------------------------------------------------------------- certified tiles
-#
-# Exact per-pixel queries cost about 1-2 us each on the CPU and a chunk has ~60k robot
-# and ~90k scene pixels per step, but distances are smooth: the distance d to a fixed
-# set is 1-Lipschitz. For a pixel tile we query one representative r exactly and get
-# d(r) and its nearest target point n_r. For every member p of the tile,
-#     L = max(d(r) - |p - r|, 0) <= d(p) <= U = |p - n_r|
-# (Lipschitz below; above: n_r is a target point). We paint U, the distance from p to
-# an actual target point, which is exact to first order in |p - r| (so typical errors
-# are tiny: 0.02 mm mean, 0.3 mm p99 on our scenes at the default tolerance) and off
-# by at most U - L, a per-point *certified* bound: a member is accepted when
-# U - L <= max(abs, rel * L) <= max(abs, rel * d(p)).
-# The pyramid tries 8x8-pixel tiles, then 4x4 and 2x2 for the members not yet
-# accepted, and queries the rest exactly: contact regions (small distance, small
-# tolerance) and depth edges stay exact, smooth far regions cost a query per tile.
-
-
-_TILE_TABLES: dict = {}
-
-
-def _tile_tables(H: int, W: int, s: int, device) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """Per pixel of an ``H x W`` image: its ``s x s`` tile (row-major) and its squared
-    doubled distance to the tile centre (integers); and the number of tiles per image."""
-    key = (H, W, s, str(device))
-    entry = _TILE_TABLES.get(key)  # (thread-safe: no check-then-read)
-    if entry is None:
-        th, tw = -(-H // s), -(-W // s)
-        y = torch.arange(H, device=device)[:, None].expand(H, W)
-        x = torch.arange(W, device=device)[None, :].expand(H, W)
-        ty, tx = y // s, x // s
-        tile = (ty * tw + tx).reshape(-1)
-        centre = ((2 * (y - ty * s) - (s - 1)) ** 2 + (2 * (x - tx * s) - (s - 1)) ** 2).reshape(-1)
-        if len(_TILE_TABLES) > 64:
-            _TILE_TABLES.clear()
-        entry = _TILE_TABLES[key] = (tile, centre.to(torch.int64), th * tw)
-    return entry
-
-
-def _tile_representatives(group: torch.Tensor, pix: torch.Tensor, num_groups: int, H: int, W: int,
-                          s: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Tiles of ``s x s`` pixels over ``num_groups`` images of ``H x W`` (``pix``: flat pixel
-    index of each point in its image ``group``): ``(dense tile id of each point (N,),
-    representative (index of the point nearest the tile centre, ties: lowest index; -1 for
-    an empty tile) per dense tile (T,))``."""
-    N = group.shape[0]
-    tile_of, centre_of, per_image = _tile_tables(H, W, s, group.device)
-    tile = group * per_image + tile_of[pix]
-    key = centre_of[pix] * (N + 1) + torch.arange(N, device=group.device)
-    big = torch.iinfo(torch.int64).max
-    best = torch.full((num_groups * per_image,), big, dtype=torch.int64, device=group.device)
-    best.scatter_reduce_(0, tile, key, "amin")
-    return tile, torch.where(best == big, torch.full_like(best, -1), best % (N + 1))
-
-
-class _TilePyramid:
-    """Pixel tiles of a point set (at most one point per pixel of ``num_groups`` images
-    ``H x W``; ``group``/``pix``: each point's image and flat pixel index). Levels are
-    built on demand on the points still unresolved; level 0 (all points) is cached with
-    each point's distance to its representative, since the s2g scene points serve every
-    step of a chunk."""
-
-    def __init__(self, points, group, pix, num_groups: int, H: int, W: int, sizes: Sequence[int] = TILE_SIZES):
-        self.points, self.group, self.pix = points, group, pix
-        self.num_groups, self.H, self.W, self.sizes = num_groups, H, W, tuple(sizes)
-        self._level0 = None
-
-    def level(self, i: int, subset: torch.Tensor | None):
-        """Tiles of level ``i`` over ``subset`` (point indices; None = all): ``(tile of each
-        subset point, representative per tile (index into all points, -1 = empty tile),
-        each subset point's distance to its representative, the subset points)``."""
-        if subset is None and i == 0 and self._level0 is not None:
-            return self._level0
-        if subset is None:
-            tile, rep = _tile_representatives(self.group, self.pix, self.num_groups, self.H, self.W, self.sizes[i])
-            members = self.points
-        else:
-            tile, rep = _tile_representatives(self.group[subset], self.pix[subset], self.num_groups, self.H, self.W,
-                                              self.sizes[i])
-            rep = torch.where(rep >= 0, subset[rep.clamp(min=0)], rep)
-            members = self.points[subset]
-        gap = (members - self.points[rep[tile]]).norm(dim=-1)
-        out = (tile, rep, gap, members)
-        if subset is None and i == 0:
-            self._level0 = out
-        return out
-
-
-def _certified_distances(pyramid: _TilePyramid, query, tolerance: tuple[float, float],
-                         max_distance: float | None) -> torch.Tensor:
-    """Distances ``(N,)`` of the pyramid's points to a target, each within the certified
-    ``tolerance`` (abs m, rel) of the exact one: ``exact <= out <= exact + max(abs, rel *
-    exact)``. ``query(points, bound)`` returns the exact ``(distance, nearest target point)``
-    of :meth:`NearestNeighbours.query` (+inf / NaN beyond ``bound``). With
-    ``max_distance``, every point farther than it is +inf (certified as well)."""
-    tol_abs, tol_rel = tolerance
-    points = pyramid.points
-    N, dev = points.shape[0], points.device
-    out = torch.full((N,), math.nan, dtype=torch.float32, device=dev)
-    if N == 0:
-        return out
-    todo = None  # indices of the unresolved points; None = all
-    for i in range(len(pyramid.sizes)):
-        tile, rep, gap, members = pyramid.level(i, todo)
-        at = torch.nonzero(rep >= 0)[:, 0]
-        # One row per tile: d(r) and the nearest target point n_r of its representative r.
-        table = torch.empty((rep.shape[0], 4), dtype=torch.float32, device=dev)
-        # A representative farther than cap + (the largest member gap of this level)
-        # proves all its members beyond the cap.
-        bound = None if max_distance is None else max_distance + float(gap.max())
-        d_rep, n_rep = query(points[rep[at]], bound)
-        table[at, 0] = d_rep.to(dev)
-        table[at, 1:] = n_rep.to(dev)
-        m = table[tile]
-        d = m[:, 0]
-        lower = (d - gap).clamp(min=0)  # Lipschitz
-        upper = (members - m[:, 1:]).norm(dim=-1)  # distance to an actual target point
-        far = torch.isinf(d)
-        ok = far | (upper - lower <= torch.clamp(tol_rel * lower, min=tol_abs))
-        value = torch.where(far, d, upper)
-        keep, rest = torch.nonzero(ok)[:, 0], torch.nonzero(~ok)[:, 0]
-        if todo is None:
-            out.index_put_((keep,), value.index_select(0, keep))
-            todo = rest
-        else:
-            out.index_put_((todo.index_select(0, keep),), value.index_select(0, keep))
-            todo = todo.index_select(0, rest)
-        if todo.numel() == 0:
-            break
-    if todo is not None and todo.numel():
-        out[todo] = query(points[todo], max_distance)[0].to(dev)
-    if max_distance is not None:
-        out = torch.where(out <= max_distance, out, torch.full_like(out, math.inf))
-    return out
-
-
-def _resolve_tolerance(tolerance) -> tuple[float, float] | None:
-    if tolerance is None:
-        return None
-    if isinstance(tolerance, (int, float, np.floating, np.integer)) and not isinstance(tolerance, bool):
-        tol = (float(tolerance), 0.0)
-    else:
-        try:
-            tol = tuple(float(t) for t in tolerance)
-        except (TypeError, ValueError):
-            raise InputError(f"tolerance must be None, metres, or (metres, relative), got {tolerance!r}") from None
-        if len(tol) != 2:
-            raise InputError(f"tolerance must be None, metres, or (metres, relative), got {tolerance!r}")
-    if not all(math.isfinite(t) and t >= 0 for t in tol):
-        raise InputError(f"tolerance values must be finite and >= 0, got {tolerance!r}")
-    return None if tol == (0.0, 0.0) else tol
 
 
 # ----------------------------------------------------------------------------- chunks
@@ -844,7 +490,8 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
                   gripper_points=None, *, gripper_mask=None, cap=None, percentile: float = DEFAULT_PERCENTILE,
                   dilate_px: int = DEFAULT_DILATE_PX, fill_px: int = DEFAULT_FILL_PX,
                   tolerance=DEFAULT_TOLERANCE, method: str = "auto", workers: int = -1,
-                  allow_empty_scene: bool = False, device=None, cpu_threads: int | None = 1) -> ContactChunk:
+                  allow_empty_scene: bool = False, device=None, cpu_threads: int | None = 1,
+                  parallel: int | None = None) -> ContactChunk:
     """Both contact streams for the S steps of one chunk.
 
     Reference (frame t, all V views): ``ref_depth (V, H, W)`` metres, ``K (V, 3, 3)``,
@@ -862,7 +509,7 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     ``fill_px``: hole filling of s2g inside the scene mask (:func:`_fill_sources`).
     ``tolerance``: ``(metres, relative)``: every painted (not hole-filled) distance d'
     satisfies ``exact <= d' <= exact + max(metres, relative * exact)`` (certified pixel
-    tiles, :func:`_certified_distances`); ``None`` or 0 = exact per pixel (several times
+    tiles, :func:`certified_distances`); ``None`` or 0 = exact per pixel (several times
     slower on the CPU).
     ``method``/``workers``: :class:`NearestNeighbours`. ``device``: where to compute
     (default: the device of ``ref_depth``). ``cpu_threads``: torch intra-op threads for
@@ -871,8 +518,9 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     elements, where torch's OpenMP pool gains little on an idle machine and, when the
     cores are shared (CI, data-loader workers), its spinning threads made a chunk 3-10x
     slower in our measurements. Instead, with ``cpu_threads`` set, the independent pieces
-    (r2s; s2g of each step; each stream's cap and colours) run concurrently on up to one
-    Python thread per available core; the KD-tree queries use ``workers`` threads.
+    (r2s; s2g of each step; each stream's cap and colours) run concurrently on up to
+    ``parallel`` Python threads (default: one per available core); the KD-tree queries use
+    ``workers`` threads. Neither changes the result.
 
     An empty scene cloud (all reference depth invalid or covered by the robot) raises
     :class:`InputError`, unless ``allow_empty_scene``: then r2s is +inf on every robot
@@ -885,7 +533,7 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     with _torch_threads(cpu_threads if device.type == "cpu" else None):
         return _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam,
                               gripper_points, gripper_mask, cap, percentile, dilate_px, fill_px, tolerance, method,
-                              workers, allow_empty_scene, device, cpu_threads)
+                              workers, allow_empty_scene, device, cpu_threads, parallel)
 
 
 @contextlib.contextmanager
@@ -903,9 +551,9 @@ def _torch_threads(n: int | None):
 
 def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam, gripper_points,
                    gripper_mask, cap, percentile, dilate_px, fill_px, tolerance, method, workers, allow_empty_scene,
-                   device, threads) -> ContactChunk:
+                   device, threads, parallel=None) -> ContactChunk:
     fixed = _resolve_cap(cap)
-    tol = _resolve_tolerance(tolerance)
+    tol = resolve_tolerance(tolerance)
     if not (0.0 <= float(percentile) <= 100.0):
         raise InputError(f"cap percentile must be in [0, 100], got {percentile}")
     if int(fill_px) < 0:
@@ -928,14 +576,14 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
     robot = torch.isfinite(rd) & (rd > 0)  # (S, V, H, W)
     rflat = torch.nonzero(robot.reshape(-1))[:, 0]  # index into (S, V, H, W)
     step, view, pix = rflat // (V * HW), (rflat // HW) % V, rflat % HW
-    rays = _pixel_rays(Kt, H, W)
+    rays = pixel_rays(Kt, H, W)
     r_points = _lift(rd.reshape(-1)[rflat], rays, T.reshape(S * V, 4, 4), rflat // HW, view, pix)
 
     r_cap, g_cap = fixed if fixed is not None else (None, None)
     g_flag = None if gm is None else gm.reshape(-1)[rflat]
     s_pyramid = None
     if tol is not None and len(scene.points):
-        s_pyramid = _TilePyramid(scene.points, scene.flat // HW, scene.flat % HW, V, H, W)
+        s_pyramid = TilePyramid(scene.points, scene.flat // HW, scene.flat % HW, V, H, W)
         s_pyramid.level(0, None)  # cached before the steps share it
     s_vals = torch.empty((S, len(scene.points)), dtype=torch.float32, device=device)
 
@@ -956,8 +604,8 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
         if tol is None:
             r_vals[a:b] = nn.distances(r_points[a:b], max_distance=r_cap).to(device)
         else:
-            pyramid = _TilePyramid(r_points[a:b], (step[a:b] - s0) * V + view[a:b], pix[a:b], (s1 - s0) * V, H, W)
-            r_vals[a:b] = _certified_distances(pyramid, lambda p, bd: nn.query(p, max_distance=bd), tol, r_cap)
+            pyramid = TilePyramid(r_points[a:b], (step[a:b] - s0) * V + view[a:b], pix[a:b], (s1 - s0) * V, H, W)
+            r_vals[a:b] = certified_distances(pyramid, lambda p, bd: nn.query(p, max_distance=bd), tol, r_cap)
 
     def finish_r2s() -> tuple:
         cap_r = r_cap if r_cap is not None else _stream_cap(r_vals, percentile)
@@ -977,7 +625,7 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
         if s_pyramid is None:
             s_vals[s] = gnn.distances(scene.points, max_distance=g_cap).to(device)
         else:
-            s_vals[s] = _certified_distances(s_pyramid, lambda p, b: gnn.query(p, max_distance=b), tol, g_cap)
+            s_vals[s] = certified_distances(s_pyramid, lambda p, b: gnn.query(p, max_distance=b), tol, g_cap)
 
     def finish_s2g() -> tuple:
         cap_s = g_cap if g_cap is not None else _stream_cap(s_vals, percentile)
@@ -991,7 +639,7 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
             rgb[:, dst] = rgb[:, src]
         return maps.reshape(S, V, H, W), rgb.reshape(S, V, H, W, 3), cap_s
 
-    n_threads = _cpu_count() if device.type == "cpu" and threads is not None else 1
+    n_threads = (parallel or _cpu_count()) if device.type == "cpu" and threads is not None else 1
     if n_threads > 1:
         # On the CPU, the independent pieces (the scene index; r2s of groups of steps; s2g
         # of each step; then each stream's cap and colours) run on a few Python threads
@@ -1126,88 +774,3 @@ def episode_contact(depth, K, ref_T_world_cam, robot_mask, robot_depth, T_world_
         parts["reference"].append(torch.full((n,), ref, dtype=torch.long))
         parts["step"].append(torch.tensor(frames, dtype=torch.long) - ref)
     return EpisodeContact(**{k: torch.cat(v) for k, v in parts.items()})
-
-
-# ----------------------------------------------------------------------------- robot-driven builder
-
-
-class ContactBuilder:
-    """Contact images driven by joint vectors: renders the robot (mask, depth, link ids)
-    with a :class:`~imac_data.render.Renderer`, poses the gripper samples by FK and calls
-    :func:`contact_chunk` / :func:`episode_contact`.
-
-    ``cameras``: name -> :class:`~imac_data.cameras.Camera`, in the view order of the depth
-    tensors (DESIGN.md: head, left wrist, right wrist). ``options`` are defaults for
-    :func:`contact_chunk` (cap, percentile, dilate_px, fill_px, method, ...).
-    ``gripper_pixels=True`` also adds the back-projected gripper pixels to the gripper cloud.
-    """
-
-    def __init__(self, robot, cameras, *, renderer=None, resolution: tuple[int, int] | None = None,
-                 gripper_spacing: float = DEFAULT_GRIPPER_SPACING, gripper_pixels: bool = False, **options):
-        from imac_data.render import make_renderer
-
-        self.robot = robot
-        self.renderer = renderer if renderer is not None else make_renderer(robot)
-        self.cameras = self.renderer.prepare_cameras(cameras, resolution)
-        self.names = list(self.cameras)
-        self.gripper = GripperSurface(robot, spacing=gripper_spacing)
-        self.gripper_pixels = gripper_pixels
-        self.options = options
-        self.K = torch.stack([torch.as_tensor(c.K, dtype=torch.float32) for c in self.cameras.values()])
-
-    def robot_inputs(self, q) -> dict[str, torch.Tensor]:
-        """Render joint vectors ``q (N, D)``: ``mask``, ``depth``, ``gripper_mask`` ``(N, V, H, W)``,
-        ``T_world_cam (N, V, 4, 4)``, ``gripper_points (N, M, 3)``."""
-        q = torch.as_tensor(q, dtype=torch.float32)
-        if q.ndim != 2:
-            raise InputError(f"joint vectors must be (N, D), got shape {tuple(q.shape)}")
-        poses = self.robot.link_poses(q)
-        views = self.renderer.render(cameras=self.cameras, link_poses=poses)
-        out = {
-            "mask": torch.stack([views[n].mask for n in self.names], 1),
-            "depth": torch.stack([views[n].depth for n in self.names], 1),
-            "gripper_mask": torch.stack([self.renderer.links_mask(views[n].link_id, self.gripper.links)
-                                         for n in self.names], 1),
-            "T_world_cam": torch.stack([self.cameras[n].pose(poses, batch_shape=(q.shape[0],))
-                                        for n in self.names], 1),
-            "gripper_points": self.gripper.points(poses),
-        }
-        return out
-
-    def _check_depth(self, depth: torch.Tensor, lead: int):
-        H, W = next(iter(self.cameras.values())).height, next(iter(self.cameras.values())).width
-        shape = (len(self.names), H, W)
-        if depth.ndim != lead + 3 or tuple(depth.shape[lead:]) != shape:
-            raise InputError(f"depth must be {'(T, ' if lead else '('}V, H, W) with (V, H, W) = {shape} for "
-                             f"cameras {self.names}, got {tuple(depth.shape)}")
-
-    def chunk(self, ref_depth, q_ref, q_future, **options) -> ContactChunk:
-        """One chunk: reference depth ``(V, H, W)`` at state ``q_ref (D,)``, future joint
-        vectors ``q_future (S, D)`` (e.g. commanded)."""
-        ref_depth = torch.as_tensor(ref_depth, dtype=torch.float32)
-        self._check_depth(ref_depth, 0)
-        q_future = torch.as_tensor(q_future, dtype=torch.float32)
-        ref = self.robot_inputs(torch.as_tensor(q_ref, dtype=torch.float32)[None])
-        fut = self.robot_inputs(q_future)
-        opts = {**self.options, **options}
-        return contact_chunk(ref_depth.to(opts.get("device") or ref_depth.device), self.K, ref["T_world_cam"][0],
-                             ref["mask"][0], fut["depth"], fut["T_world_cam"], fut["gripper_points"],
-                             gripper_mask=fut["gripper_mask"] if self.gripper_pixels else None, **opts)
-
-    def episode(self, depth, q_state, q_command=None, *, chunk_size: int, **options) -> EpisodeContact:
-        """A whole episode: ``depth (T, V, H, W)``, observed states ``q_state (T, D)`` (reference
-        robot masks and camera poses), configurations to draw ``q_command (T, D)`` (default
-        the states). Frame/chunk rule: :func:`chunk_plan`."""
-        depth = torch.as_tensor(depth, dtype=torch.float32)
-        self._check_depth(depth, 1)
-        q_state = torch.as_tensor(q_state, dtype=torch.float32)
-        if q_state.shape[0] != depth.shape[0]:
-            raise InputError(f"q_state has {q_state.shape[0]} frames, depth has {depth.shape[0]}")
-        obs = self.robot_inputs(q_state)
-        fut = obs if q_command is None else self.robot_inputs(torch.as_tensor(q_command, dtype=torch.float32))
-        if fut["depth"].shape[0] != depth.shape[0]:
-            raise InputError(f"q_command has {fut['depth'].shape[0]} frames, depth has {depth.shape[0]}")
-        opts = {**self.options, **options}
-        return episode_contact(depth, self.K, obs["T_world_cam"], obs["mask"], fut["depth"], fut["T_world_cam"],
-                               fut["gripper_points"], chunk_size=chunk_size,
-                               gripper_mask=fut["gripper_mask"] if self.gripper_pixels else None, **opts)

@@ -201,9 +201,10 @@ def _walk_to_rgb(bk: _Backend, s, r):
     return xp.stack(channels, axis=-1)
 
 
-def _rgb_to_walk(bk: _Backend, planes):
+def _rgb_to_walk(bk: _Backend, planes, with_distance: bool = False):
     """Colour planes [r, g, b] inside the cube -> (k, t): segment index (float) and
-    fraction along it of the nearest point on the walk (ties: the earlier segment).
+    fraction along it of the nearest point on the walk (ties: the earlier segment);
+    with ``with_distance`` also the squared distance to that point.
 
     A running minimum over the 7 segments: elementwise ops only, which beats
     stacking the distances and an argmin on both backends.
@@ -220,7 +221,7 @@ def _rgb_to_walk(bk: _Backend, planes):
         best = xp.where(closer, dist2, best)
         k = xp.where(closer, float(j), k)
         t = xp.where(closer, dev[_T_IDX[j]], t)
-    return k, t
+    return (k, t, best) if with_distance else (k, t)
 
 
 def _colour_planes(bk: _Backend, rgb, name: str, channel_axis: int) -> list:
@@ -253,6 +254,15 @@ def path_position(rgb, *, channel_axis: int = -1, name: str = "colours"):
     bk = _backend(rgb)
     k, t = _rgb_to_walk(bk, _colour_planes(bk, rgb, name, channel_axis))
     return k + t
+
+
+def walk_distance(rgb, *, channel_axis: int = -1, name: str = "colours"):
+    """Euclidean distance of each colour to the codec's walk through the RGB cube, in
+    [0, 1] colour units (0 for an encoded depth colour; a lossless stream stays within
+    about 1/255, rounding). What a check uses to tell depth frames from other images."""
+    bk = _backend(rgb)
+    _, _, d2 = _rgb_to_walk(bk, _colour_planes(bk, rgb, name, channel_axis), with_distance=True)
+    return bk.xp.sqrt(d2)
 
 
 # --------------------------------------------------------------------------------- codec
@@ -488,14 +498,13 @@ def depth_from_millimetres(depth_mm, *, name: str = "depth"):
 
 
 # ------------------------------------------------------------------ stored depth stream
-# The depth of camera ``cam`` is stored as the video feature ``observation.depth.{cam}``:
-# the frames are ``DepthCodec.encode_uint8`` colours, written with our own encoder
-# settings (``imac_data.video_streams``); codec, encoder settings and per-camera
+# The depth of camera ``cam`` is stored as the video feature ``observation.depth.{cam}``
+# (written by ``imac_data.dataset.depth_streams``); codec, encoder settings and per-camera
 # intrinsics are recorded in ``meta/info.json["imac"]["depth"]``.
 
 DEPTH_KEY_PREFIX = "observation.depth."
 
-__all__ += ["DEPTH_KEY_PREFIX", "add_depth_streams", "depth_codec_of", "depth_stream_key", "resize_depth"]
+__all__ += ["DEPTH_KEY_PREFIX", "depth_codec_of", "depth_stream_key", "resize_depth", "walk_distance"]
 
 
 def depth_stream_key(camera: str) -> str:
@@ -503,17 +512,20 @@ def depth_stream_key(camera: str) -> str:
     return DEPTH_KEY_PREFIX + camera
 
 
-def resize_depth(depth, size: tuple[int, int], *, name: str = "depth") -> np.ndarray:
-    """Nearest-neighbour resize of depth ``(..., H, W)`` to ``size = (h, w)`` (numpy).
+def resize_depth(depth, size: tuple[int, int], *, name: str = "depth"):
+    """Nearest-neighbour resize of depth ``(..., H, W)`` to ``size = (h, w)``; numpy in,
+    numpy out; torch in, torch out (same device, any leading batch shape).
 
     Each output pixel takes the source pixel that contains its centre (pixel edges
     scale, the convention of :func:`imac_data.cameras.rescale_intrinsics`), so depths
     are never averaged across an edge (no flying pixels) and invalid pixels (0 / NaN)
     are never mixed into valid ones: a value is either copied or not used.
     """
-    depth = np.asarray(depth)
+    torch_in = _is_torch(depth)
+    if not torch_in:
+        depth = np.asarray(depth)
     if depth.ndim < 2:
-        raise InputError(f"{name}: depth must be at least 2-D (..., H, W); got shape {depth.shape}")
+        raise InputError(f"{name}: depth must be at least 2-D (..., H, W); got shape {tuple(depth.shape)}")
     try:
         h, w = (int(v) for v in size)
     except (TypeError, ValueError):
@@ -525,6 +537,10 @@ def resize_depth(depth, size: tuple[int, int], *, name: str = "depth") -> np.nda
         return depth
     ys = np.minimum(((np.arange(h) + 0.5) * (H / h)).astype(np.int64), H - 1)
     xs = np.minimum(((np.arange(w) + 0.5) * (W / w)).astype(np.int64), W - 1)
+    if torch_in:
+        torch = sys.modules["torch"]
+        ys_t, xs_t = torch.as_tensor(ys, device=depth.device), torch.as_tensor(xs, device=depth.device)
+        return depth.index_select(-2, ys_t).index_select(-1, xs_t)
     return depth[..., ys[:, None], xs[None, :]]
 
 
@@ -549,119 +565,3 @@ def _as_numpy_depth(depth, name: str) -> np.ndarray:
     if depth.dtype.kind != "f":
         raise _integer_depth_error(name, depth)
     return depth
-
-
-def add_depth_streams(root, episodes, *, cameras=None, codec: DepthCodec | None = None, encoding=None,
-                      size=None, source: Mapping[str, Any] | None = None, chunk_frames: int = 32,
-                      progress: bool = False) -> dict[str, dict]:
-    """Store metric depth as the video features ``observation.depth.{cam}`` of the
-    LeRobot dataset at ``root`` (see :mod:`imac_data.video_streams`).
-
-    ``episodes`` yields, in episode order, ``{cam: depth}`` with ``depth`` float
-    metres ``(T, H, W)`` (numpy or torch; 0 / NaN / inf = invalid, negative =
-    :class:`InputError`), ``T`` = the episode's length. Depth must be registered to
-    the camera image (same field of view, any resolution of the same aspect ratio).
-    ``cameras`` defaults to the dataset's calibrated cameras
-    (``info["imac"]["cameras"]``). ``size``: stored ``(h, w)`` for all cameras or
-    ``{cam: (h, w)}`` (default: the input's); depth is resized with
-    :func:`resize_depth` and the intrinsics recorded for the stream are the
-    calibration's rescaled with :func:`~imac_data.cameras.rescale_intrinsics`.
-    ``codec`` defaults to the ``manipulation`` preset, ``encoding`` to
-    :meth:`VideoEncoding.lossless_rgb` (bit-exact colours, chosen by measurement:
-    ``benchmarks/depth_fidelity.py``). ``source`` describes where the depth came
-    from (e.g. ``DepthSource.describe()``) and is recorded.
-
-    Records in ``info["imac"]["depth"]``: ``codec`` (``codec.to_dict()``),
-    ``encoding`` and ``encoder_versions``, ``source``, and per camera ``streams[cam]``
-    = ``{key, height, width, K}``; each feature's ``info`` block also carries
-    ``imac.depth_codec`` and ``imac.encoding`` (they survive ``aggregate_datasets``,
-    which drops ``info["imac"]``). Returns the feature dicts written.
-    """
-    import json
-    from pathlib import Path
-
-    from imac_data.cameras import rescale_intrinsics
-    from imac_data.video_streams import VideoEncoding, add_video_streams, encoder_versions
-
-    root = Path(root)
-    info_path = root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise InputError(f"{root} is not a LeRobot dataset: {info_path} is missing")
-    info = json.loads(info_path.read_text())
-    calib = info.get("imac", {}).get("cameras", {})
-    if cameras is None:
-        cameras = sorted(calib)
-        if not cameras:
-            raise InputError(f"{root}: no calibrated cameras in info.json imac.cameras; pass cameras=[...]")
-    cameras = list(cameras)
-    if not cameras or len(set(cameras)) != len(cameras):
-        raise InputError(f"add_depth_streams: cameras must be distinct names, got {cameras}")
-    codec = DepthCodec.preset() if codec is None else codec
-    if not isinstance(codec, DepthCodec):
-        raise InputError(f"add_depth_streams: codec must be a DepthCodec, got {type(codec).__name__}")
-    encoding = VideoEncoding.lossless_rgb() if encoding is None else encoding
-    existing = info.get("imac", {}).get("depth")
-    if existing and existing.get("codec") != codec.to_dict():
-        raise InputError(f"{root}: already has depth streams with codec {existing.get('codec')}; "
-                         "all depth streams of a dataset must share one codec")
-    if isinstance(chunk_frames, bool) or not isinstance(chunk_frames, int) or chunk_frames < 1:
-        raise InputError(f"add_depth_streams: chunk_frames must be a positive integer, got {chunk_frames!r}")
-    if size is None or isinstance(size, Mapping):
-        sizes = dict(size or {})
-        unknown = sorted(set(sizes) - set(cameras))
-        if unknown:
-            raise InputError(f"add_depth_streams: size given for unknown camera(s) {unknown}")
-    else:
-        sizes = {cam: size for cam in cameras}
-    for cam, hw in sizes.items():
-        if (not isinstance(hw, (tuple, list)) or len(hw) != 2
-                or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in hw)):
-            raise InputError(f"add_depth_streams: size for {cam!r} must be (height, width) > 0, got {hw!r}")
-    keys = {cam: depth_stream_key(cam) for cam in cameras}
-
-    def frames(ep: int, cam: str, depth):
-        name = f"episode {ep} camera {cam!r}"
-        depth = _as_numpy_depth(depth, name)
-        in_hw = depth.shape[1:]
-        if cam in calib:
-            ch, cw = calib[cam]["height"], calib[cam]["width"]
-            if abs(in_hw[0] / in_hw[1] - ch / cw) > 0.01 * ch / cw:
-                raise InputError(f"{name}: depth is {in_hw[0]}x{in_hw[1]} but the camera is calibrated at "
-                                 f"{ch}x{cw} (another aspect ratio); depth must be registered to the camera image")
-        out_hw = tuple(int(v) for v in sizes.get(cam, in_hw))
-        for start in range(0, depth.shape[0], chunk_frames):
-            d = resize_depth(depth[start:start + chunk_frames], out_hw, name=name)
-            yield codec.encode_uint8(d, name=name)
-
-    def per_episode():
-        for ep, item in enumerate(episodes):
-            if not isinstance(item, Mapping):
-                raise InputError(f"episode {ep}: expected {{camera: depth}}, got {type(item).__name__}")
-            if set(item) != set(cameras):
-                raise InputError(f"episode {ep}: depth for cameras {sorted(item)}, expected {sorted(cameras)}")
-            yield {keys[cam]: frames(ep, cam, item[cam]) for cam in cameras}
-
-    def imac_block(features: dict[str, dict]) -> dict:
-        streams = dict(existing.get("streams", {})) if existing else {}
-        for cam in cameras:
-            h, w = features[keys[cam]]["shape"][:2]
-            entry: dict[str, Any] = {"key": keys[cam], "height": h, "width": w, "K": None}
-            if cam in calib:
-                K = rescale_intrinsics(np.asarray(calib[cam]["K"]), (calib[cam]["height"], calib[cam]["width"]),
-                                       (h, w))
-                entry["K"] = K.tolist()
-            streams[cam] = entry
-        return {"depth": {
-            "codec": codec.to_dict(),
-            "encoding": encoding.to_dict(),
-            "encoder_versions": encoder_versions(),
-            "source": dict(source) if source is not None else {"kind": "unspecified"},
-            "streams": streams,
-            "decode": "DepthCodec.from_dict(codec).decode(frame, channel_axis=-3) on LeRobot's float (3, H, W) "
-                      "colours -> metres, 0 = invalid",
-        }}
-
-    extra = {"imac.content": "depth", "imac.depth_codec": codec.to_dict()}
-    return add_video_streams(root, per_episode(), keys=[keys[c] for c in cameras], encodings=encoding,
-                             info_extra={keys[c]: extra for c in cameras}, imac_info=imac_block,
-                             progress=progress)

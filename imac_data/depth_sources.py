@@ -125,6 +125,8 @@ class RecordedDepth:
     no mixing across edges); it must be registered to the colour camera.
     """
 
+    needs_images = False  # only the recorded depth is read
+
     def __init__(self, cameras: Sequence[str] | None = None):
         self.cameras = list(cameras) if cameras is not None else None
 

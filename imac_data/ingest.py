@@ -1,4 +1,4 @@
-"""Raw HDF5 episodes -> a base LeRobot dataset (v3.0 format, LeRobot's own writer).
+"""Raw HDF5 episodes -> a base LeRobot dataset (v3.0 format), streamed.
 
 What lands in the dataset per frame: ``observation.state``, ``action``,
 ``observation.velocity`` (when recorded), ``observation.images.{cam}`` (video),
@@ -6,7 +6,14 @@ What lands in the dataset per frame: ``observation.state``, ``action``,
 cameras posed by forward kinematics of the measured state) and the task string.
 Per episode, in ``meta/episodes``: ``imac/source``, ``imac/policy_name``,
 ``imac/checkpoint``, ``imac/success``. In ``meta/info.json`` under ``imac``:
-the robot description (name, content hash), the calibration and the builder version.
+the rig (robot, calibration, controller; :mod:`imac_data.dataset.info`), and the robot
+description itself under ``meta/imac/robot/``.
+
+The writer is LeRobot's own (parquet, metadata, stats, video layout) with our video
+encoder in its streaming slot (:mod:`imac_data.dataset.episodes`): frames are read and
+encoded a chunk at a time, with LeRobot's settings, never held for a whole episode, and no
+PNG is written. The same :class:`BaseWriter` writes the base features of the build's
+shards, where the control streams are added in the same pass (:mod:`imac_data.pipeline`).
 
 Everything is checked before anything is written, the dataset is built in a
 staging directory next to the destination and renamed into place only when it
@@ -15,8 +22,6 @@ is complete; on any error the staging directory is removed.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -24,13 +29,12 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 import torch
 from tqdm.auto import tqdm
 
-from imac_data import __version__
-from imac_data.aloha_hdf5 import SOURCES, probe_episode, read_episode
+from imac_data.aloha_hdf5 import SOURCES, probe_episode
 from imac_data.cameras import Camera
+from imac_data.dataset.columns import add_episode_columns
 from imac_data.errors import InputError
 from imac_data.robot import RobotModel
 
@@ -127,125 +131,108 @@ def _features(probe_images: dict[str, tuple[int, int]], dof: int, names: Sequenc
     return features
 
 
-def robot_description(robot: RobotModel) -> dict:
-    text = Path(robot.config.urdf_path).read_bytes()
-    return {"name": robot.config.name, "urdf_sha256": hashlib.sha256(text).hexdigest()}
+class BaseWriter:
+    """The base features of a new dataset at ``root``, episode by episode, frames as they
+    come (LeRobot's writer with our streaming encoder, :class:`~imac_data.dataset.episodes.EpisodeWriter`).
+
+    ``add(frames)`` takes a chunk of one episode: ``state``, ``action``, ``qvel`` (or None)
+    ``(n, D)``, ``images`` ``{cam: (n, H, W, 3)}``, ``poses`` ``{cam: (n, 4, 4)}``.
+    ``finish(rig)`` adds the episode columns, the robot description and the ``imac`` block.
+    """
+
+    def __init__(self, root: Path, repo_id: str, *, rig, image_hw: dict[str, tuple[int, int]], dof: int,
+                 with_velocity: bool, options: IngestOptions, threads: int | None = None):
+        from imac_data.dataset.episodes import EpisodeWriter
+
+        self.root, self.options, self.cameras = Path(root), options, sorted(image_hw)
+        features = _features({c: image_hw[c] for c in self.cameras}, dof, options.state_names, with_velocity)
+        self.writer = EpisodeWriter(self.root, repo_id, fps=int(round(options.fps)), features=features,
+                                    robot_type=options.robot_type, threads=threads)
+        self.with_velocity = with_velocity
+        self.rows: list[dict] = []
+
+    def begin_episode(self, length: int, info) -> None:
+        self.writer.begin_episode(length, task=info.task or self.options.task)
+        o = self.options
+        self.rows.append({"imac/source": info.source or o.source, "imac/policy_name": info.policy_name or o.policy_name,
+                          "imac/checkpoint": info.checkpoint or o.checkpoint, "imac/success": info.success})
+
+    def add(self, state, action, qvel, images, poses) -> None:
+        rows = {"observation.state": np.asarray(state, np.float64).astype(np.float32),
+                "action": np.asarray(action, np.float64).astype(np.float32)}
+        if self.with_velocity:
+            rows["observation.velocity"] = np.asarray(qvel, np.float64).astype(np.float32)
+        for cam in self.cameras:
+            rows[f"observation.images.{cam}"] = images[cam]
+        for cam in self.cameras:
+            rows[f"camera_pose.{cam}"] = poses[cam].reshape(len(state), 16).astype(np.float32)
+        self.writer.add_frames(rows)
+
+    def end_episode(self) -> None:
+        self.writer.end_episode()
+
+    def finish(self, rig, *, with_description: bool = True) -> None:
+        from imac_data.dataset.info import base_block, update_imac_info
+        from imac_data.robot_files import DESCRIPTION_DIR, write_description
+
+        self.writer.finish()
+        add_episode_columns(self.root, self.rows, {k: pa.bool_() if k == "imac/success" else pa.string()
+                                                   for k in EPISODE_COLUMNS})
+        if with_description:
+            write_description(rig.robot, self.root / DESCRIPTION_DIR)
+        update_imac_info(self.root, base_block(rig))
+
+    def abort(self) -> None:
+        self.writer.abort()
 
 
-def ingest_episodes(paths: Sequence[str | Path], *, calibration: dict[str, Camera], robot: RobotModel,
-                    repo_id: str, root: str | Path, options: IngestOptions, overwrite: bool = False,
-                    progress: bool = True):
-    """Write ``paths`` (ALOHA HDF5 episodes) as a LeRobot dataset at ``root``. Returns the
+def ingest_episodes(paths: Sequence[str | Path], *, rig, repo_id: str, root: str | Path, options: IngestOptions,
+                    overwrite: bool = False, progress: bool = True, chunk_frames: int = 32):
+    """Write ``paths`` (ALOHA HDF5 episodes) as a LeRobot dataset at ``root``, with the
+    rig (:class:`~imac_data.rig.Rig`) in ``info["imac"]`` and its robot description under
+    ``meta/imac/robot/``, reading and encoding ``chunk_frames`` frames at a time. Returns the
     loaded :class:`LeRobotDataset`."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from imac_data.aloha_hdf5 import EpisodeReader
 
     paths = [Path(p) for p in paths]
     root = Path(root)
     if root.exists() and not overwrite:
         raise InputError(f"output {root} already exists (pass overwrite=True / --overwrite to replace it)")
-    probe = check_episodes(paths, calibration, robot)
+    probe = check_episodes(paths, rig.cameras, rig.robot)
     if options.state_names is not None and len(options.state_names) != probe["dof"]:
         raise InputError(f"state_names has {len(options.state_names)} names for a {probe['dof']}-D joint vector")
-
-    first = read_episode(paths[0], load_depth=False)
-    image_hw = {cam: first.images[cam].shape[1:3] for cam in first.cameras}
-    calibration = {
-        name: cam if (cam.height, cam.width) == image_hw[name] else cam.rescaled(image_hw[name][1], image_hw[name][0])
-        for name, cam in calibration.items()
-    }
-    features = _features(image_hw, probe["dof"], options.state_names, first.qvel is not None)
+    with EpisodeReader(paths[0]) as first:
+        image_hw, with_velocity = dict(first.image_hw), first.qvel is not None
+    rig = rig.with_image_sizes(image_hw)
 
     staging = staging_dir(root)
     if staging.exists():
         shutil.rmtree(staging)
     staging.parent.mkdir(parents=True, exist_ok=True)
-    dataset = None
+    writer = None
     try:
-        # LeRobot's standard writer (PNG frames, encoded per episode). Its streaming_encoding
-        # option is faster but drops the last frame of an episode in 0.4.4.
-        dataset = LeRobotDataset.create(
-            repo_id=repo_id, fps=int(round(options.fps)), features=features, root=staging,
-            robot_type=options.robot_type, use_videos=True, vcodec=options.vcodec,
-        )
-        episode_rows = []
+        writer = BaseWriter(staging, repo_id, rig=rig, image_hw=image_hw, dof=probe["dof"],
+                            with_velocity=with_velocity, options=options)
         for path in tqdm(paths, desc="ingest episodes", unit="ep", disable=not progress):
-            episode = first if path == paths[0] else read_episode(path, load_depth=False)
-            if episode.cameras != first.cameras or any(
-                episode.images[c].shape[1:3] != image_hw[c] for c in first.cameras
-            ):
-                raise InputError(f"{path}: image sizes differ from {paths[0]}")
-            poses = camera_poses(calibration, robot, episode.qpos)
-            info = episode.info
-            task = info.task or options.task
-            for t in range(episode.num_frames):
-                frame = {
-                    "observation.state": episode.qpos[t].astype(np.float32),
-                    "action": episode.action[t].astype(np.float32),
-                    "task": task,
-                }
-                if episode.qvel is not None:
-                    frame["observation.velocity"] = episode.qvel[t].astype(np.float32)
-                for cam in first.cameras:
-                    frame[f"observation.images.{cam}"] = episode.images[cam][t]
-                    frame[f"camera_pose.{cam}"] = poses[cam][t].reshape(16).astype(np.float32)
-                dataset.add_frame(frame)
-            dataset.save_episode()
-            episode_rows.append({
-                "imac/source": info.source or options.source,
-                "imac/policy_name": info.policy_name or options.policy_name,
-                "imac/checkpoint": info.checkpoint or options.checkpoint,
-                "imac/success": info.success,
-            })
-            del episode
-        dataset.finalize()
-        add_episode_columns(staging, episode_rows)
-        update_imac_info(staging, {
-            "builder_version": __version__,
-            "robot": robot_description(robot),
-            "cameras": {name: cam.to_dict() for name, cam in calibration.items()},
-            "camera_pose_convention": "camera-to-world, OpenCV axes, row-major 4x4",
-        })
+            with EpisodeReader(path) as ep:
+                if ep.image_hw != image_hw:
+                    raise InputError(f"{path}: image sizes {ep.image_hw} differ from {paths[0]}'s {image_hw}")
+                writer.begin_episode(ep.num_frames, ep.info)
+                for lo in range(0, ep.num_frames, chunk_frames):
+                    hi = min(lo + chunk_frames, ep.num_frames)
+                    poses = camera_poses(rig.cameras, rig.robot, ep.qpos[lo:hi])
+                    writer.add(ep.qpos[lo:hi], ep.action[lo:hi], None if ep.qvel is None else ep.qvel[lo:hi],
+                               {c: ep.images(c, lo, hi) for c in writer.cameras}, poses)
+                writer.end_episode()
+        writer.finish(rig)
         if root.exists():
             shutil.rmtree(root)
         staging.rename(root)
     except BaseException:
-        if dataset is not None:
-            _abandon(dataset)
+        if writer is not None:
+            writer.abort()
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return LeRobotDataset(repo_id, root=root)
-
-
-def _abandon(dataset) -> None:
-    """Stop LeRobot's background writers (video encoder threads, parquet writers) so
-    nothing writes into the staging directory after we delete it."""
-    encoder = getattr(dataset, "_streaming_encoder", None)
-    if encoder is not None:
-        try:
-            encoder.cancel_episode()
-        finally:
-            encoder.close()
-    dataset._close_writer()
-    dataset.meta._close_writer()
-
-
-def add_episode_columns(root: Path, rows: list[dict]) -> None:
-    """Append per-episode columns to LeRobot's ``meta/episodes`` parquet files."""
-    for file in sorted((root / "meta" / "episodes").rglob("*.parquet")):
-        table = pq.read_table(file)
-        index = table.column("episode_index").to_pylist()
-        for key in EPISODE_COLUMNS:
-            values = [rows[i][key] for i in index]
-            typ = pa.bool_() if key == "imac/success" else pa.string()
-            if key in table.column_names:
-                table = table.drop(key)
-            table = table.append_column(key, pa.array(values, type=typ))
-        pq.write_table(table, file)
-
-
-def update_imac_info(root: Path, block: dict) -> None:
-    """Merge ``block`` into the ``imac`` key of ``meta/info.json``."""
-    info_path = root / "meta" / "info.json"
-    info = json.loads(info_path.read_text())
-    info.setdefault("imac", {}).update(block)
-    info_path.write_text(json.dumps(info, indent=4))

@@ -62,6 +62,20 @@ class GripperActionMap:
     def to_dict(self) -> dict:
         return {"index": self.index, "scale": self.scale, "offset": self.offset, "low": self.low, "high": self.high}
 
+    @classmethod
+    def from_dict(cls, d, where: str = "gripper action map") -> GripperActionMap:
+        if not isinstance(d, dict) or "index" not in d:
+            raise InputError(f"{where}: expected a mapping with an 'index', got {d!r}")
+        unknown = sorted(set(d) - {"index", "scale", "offset", "low", "high"})
+        if unknown:
+            raise InputError(f"{where}: unknown key(s) {unknown}")
+        try:
+            return cls(index=int(d["index"]), scale=float(d.get("scale", 1.0)), offset=float(d.get("offset", 0.0)),
+                       low=None if d.get("low") is None else float(d["low"]),
+                       high=None if d.get("high") is None else float(d["high"]))
+        except (TypeError, ValueError) as e:
+            raise InputError(f"{where}: {e}") from None
+
 
 @dataclass(frozen=True)
 class Controller:
@@ -94,6 +108,41 @@ class Controller:
         return {"mode": self.mode, "grippers": [g.to_dict() for g in self.grippers],
                 "absolute_indices": list(self.absolute_indices), "delta_grippers": self.delta_grippers,
                 "clip_low": _json_floats(self.clip_low), "clip_high": _json_floats(self.clip_high)}
+
+    @classmethod
+    def from_dict(cls, d, where: str = "controller") -> Controller:
+        """The inverse of :meth:`to_dict` (a recipe's ``robot.controller``, or ``info.json``);
+        a ``None`` clip bound means no limit."""
+        if not isinstance(d, dict):
+            raise InputError(f"{where}: expected a mapping, got {d!r}")
+        known = {"mode", "grippers", "absolute_indices", "delta_grippers", "clip_low", "clip_high"}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise InputError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(known)}")
+
+        def bounds(name, missing):
+            v = d.get(name)
+            if v is None:
+                return None
+            if not isinstance(v, (list, tuple)):
+                raise InputError(f"{where}.{name}: expected a list of numbers (null = no limit), got {v!r}")
+            try:
+                return tuple(missing if x is None else float(x) for x in v)
+            except (TypeError, ValueError):
+                raise InputError(f"{where}.{name}: expected numbers or null, got {v!r}") from None
+
+        grippers = d.get("grippers") or ()
+        if not isinstance(grippers, (list, tuple)):
+            raise InputError(f"{where}.grippers: expected a list, got {grippers!r}")
+        try:
+            absolute = tuple(int(i) for i in d.get("absolute_indices") or ())
+        except (TypeError, ValueError):
+            raise InputError(f"{where}.absolute_indices: expected integers, got {d.get('absolute_indices')!r}") from None
+        return cls(mode=d.get("mode", "absolute"),
+                   grippers=tuple(GripperActionMap.from_dict(g, f"{where}.grippers[{i}]")
+                                  for i, g in enumerate(grippers)),
+                   absolute_indices=absolute, delta_grippers=bool(d.get("delta_grippers", False)),
+                   clip_low=bounds("clip_low", -math.inf), clip_high=bounds("clip_high", math.inf))
 
     def _absolute_mask(self, dof: int) -> np.ndarray:
         mask = np.zeros(dof, dtype=bool)

@@ -10,6 +10,7 @@ segmentation + labels), it also reports the per-frame mask IoU.
     python -m imac_data.qa overlay EPISODE.hdf5 --calibration CALIB.json --out DIR
         [--robot aloha] [--source state|action] [--format mp4|png]
         [--frames START:STOP:STEP] [--cameras cam_high,cam_left_wrist] [--overwrite]
+    python -m imac_data.qa preview ROOT --episode N [--out FILE.mp4]   (imac_data/preview.py)
 
 Writes into ``DIR`` (created atomically: a temporary sibling renamed into place
 only when everything succeeded, so a failure leaves nothing behind):
@@ -59,8 +60,9 @@ def _aloha_robot():
     return RobotModel(robot_config())
 
 
-# Robot descriptions the CLI knows by name (a --urdf/--robot-config hook comes later).
+# Robot descriptions the CLI knows by name (their rig: imac_data.rig.Rig.from_platform).
 ROBOTS: dict[str, Callable] = {"aloha": _aloha_robot}
+_PLATFORMS = {"aloha": "aloha_sim"}
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -175,7 +177,7 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
     """
     from imac_data.aloha_hdf5 import read_episode
     from imac_data.cameras import load_calibration
-    from imac_data.motion import SOURCES, aloha_controller, frame_configurations
+    from imac_data.motion import SOURCES, frame_configurations
     from imac_data.render import make_renderer
     from imac_data.robot import RobotModel
 
@@ -216,10 +218,10 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
         cam = calib[c]
         rig[c] = cam if (cam.height, cam.width) == (h, w) else cam.rescaled(w, h)
     rig = renderer.prepare_cameras(rig)  # mounted links must exist
-    if controller is None and source == "action" and robot_name == "aloha":
-        from imac_data.aloha import load_mujoco_model
+    if controller is None and source == "action" and robot_name in _PLATFORMS:
+        from imac_data.rig import Rig
 
-        controller = aloha_controller(load_mujoco_model("transfer_cube"))  # the arms are the same in every task
+        controller = Rig.from_platform(_PLATFORMS[robot_name], rig, robot=robot).controller
     kwargs = {} if controller is None else {"controller": controller}
     q_all = frame_configurations(ep.qpos, ep.action, source=source, **kwargs)
     robot.joint_positions(torch.as_tensor(q_all))  # wrong length / non-finite -> InputError now
@@ -333,23 +335,33 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--frames", default=None, help="frame selection START:STOP:STEP (python slice), or one index")
     p.add_argument("--cameras", default=None, help="comma-separated camera names (default: all in the episode)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
-    from imac_data import refine  # the refine subcommand lives in its own module
+    from imac_data import preview, refine  # preview and refine live in their own modules
 
+    preview.add_command(sub)
     refine.add_arguments(sub.add_parser("refine", help="refine camera poses by aligning the rendered robot "
                                         "with the robot's pixels (README: Fixing a calibration)"))
     args = parser.parse_args(argv)
     if args.command == "refine":
         return refine.run(args)
+    if args.command == "preview":
+        try:
+            print(preview.run_command(args))
+        except InputError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        return 0
     try:
         cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
-        robot = args.robot
+        robot, controller = args.robot, None
         if args.recipe:
-            from imac_data.build import robot_of
             from imac_data.recipes import load_recipe
+            from imac_data.rig import Rig
 
-            robot = robot_of(load_recipe(args.recipe))
+            rig = Rig.from_recipe(load_recipe(args.recipe), args.calibration)
+            robot, controller = rig.robot, rig.controller
         summary = overlay(args.episode, args.calibration, args.out, robot=robot, source=args.source,
-                          fmt=args.fmt, frames=args.frames, cameras=cams, overwrite=args.overwrite)
+                          fmt=args.fmt, frames=args.frames, cameras=cams, overwrite=args.overwrite,
+                          controller=controller)
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

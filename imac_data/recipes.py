@@ -14,9 +14,16 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
     robot:
       platform: aloha_sim            # built-in rig (URDF derived at run time), or:
       urdf: path/to/robot.urdf       #   your own URDF with
-      joint_map: [joint_a, ..., {gripper: finger_joint, scale: 0.04, offset: 0.0}, ...]
+      joint_map: [joint_a, ..., {joint: finger_joint, scale: 0.04, offset: 0.0}, ...]
+                                     # per index: a URDF joint, or {joint, scale, offset} when the
+                                     # recorded unit is not the URDF's: q_urdf = offset + scale * value
+                                     # (the older {gripper: finger_joint, ...} form still reads)
       gripper_links: [left_finger_link, ...]
       package_dirs: {my_robot_description: path/to/pkg}
+      controller:                    # how actions become configurations (imac_data.motion.Controller)
+        mode: absolute               # joint-position targets, or delta
+        grippers: [{index: 6, scale: 1.0, offset: 0.0, low: null, high: null}]
+        absolute_indices: []         # delta mode: indices that are absolute targets anyway
     cameras:
       calibration: path/to/calibration.json   # not needed for aloha_sim
     source:
@@ -54,19 +61,64 @@ SOURCE_TYPES = ("aloha_sim", "aloha_hdf5")
 
 
 @dataclass(frozen=True)
+class JointSpec:
+    """A joint-vector entry with an affine map: ``q_urdf = offset + scale * value``."""
+
+    joint: str
+    scale: float = 1.0
+    offset: float = 0.0
+
+
+@dataclass(frozen=True)
 class GripperEntry:
+    """The older spelling of :class:`JointSpec` (only grippers could carry a map)."""
+
     gripper: str  # finger joint driven by this entry
     scale: float
     offset: float = 0.0
 
 
 @dataclass(frozen=True)
+class GripperActionSpec:
+    index: int
+    scale: float = 1.0
+    offset: float = 0.0
+    low: float | None = None
+    high: float | None = None
+
+
+@dataclass(frozen=True)
+class ControllerSection:
+    """``robot.controller``: :class:`imac_data.motion.Controller` as a recipe writes it."""
+
+    mode: str = "absolute"
+    grippers: tuple[GripperActionSpec, ...] = ()
+    absolute_indices: tuple[int, ...] = ()
+    delta_grippers: bool = False
+    clip_low: tuple[float | None, ...] | None = None
+    clip_high: tuple[float | None, ...] | None = None
+
+
+@dataclass(frozen=True)
 class RobotSection:
     platform: str | None = None
     urdf: str | None = None
-    joint_map: tuple[str | GripperEntry, ...] | None = None
+    joint_map: tuple[str | JointSpec | GripperEntry, ...] | None = None
     gripper_links: tuple[str, ...] = ()
     package_dirs: dict[str, str] = field(default_factory=dict)
+    controller: ControllerSection | None = None
+
+    def joint_map_entries(self) -> list:
+        """The joint map in :meth:`imac_data.robot.RobotConfig.parse_joint_map`'s input form."""
+        out = []
+        for e in self.joint_map or ():
+            if isinstance(e, JointSpec):
+                out.append({"joint": e.joint, "scale": e.scale, "offset": e.offset})
+            elif isinstance(e, GripperEntry):
+                out.append({"joint": e.gripper, "scale": e.scale, "offset": e.offset})
+            else:
+                out.append(e)
+        return out
 
 
 @dataclass(frozen=True)
@@ -232,6 +284,20 @@ def _validate(recipe: Recipe) -> None:
         raise InputError(f"{f}: robot.platform: unknown platform {r.platform!r}; known: {PLATFORMS}")
     if r.urdf is not None and not r.joint_map:
         raise InputError(f"{f}: robot.joint_map: required with robot.urdf (one entry per joint-vector index)")
+    if r.platform is not None:
+        extra = [k for k in ("urdf", "joint_map", "controller") if getattr(r, k) is not None]
+        extra += [k for k in ("gripper_links", "package_dirs") if getattr(r, k)]
+        if extra:
+            raise InputError(f"{f}: robot: platform {r.platform!r} brings its own robot and controller; "
+                             f"remove {extra} (or drop 'platform' and describe your robot)")
+    if r.controller is not None:
+        from imac_data.motion import Controller
+
+        try:
+            Controller.from_dict(dataclasses.asdict(r.controller), where="robot.controller").validate(
+                len(r.joint_map or ()))
+        except InputError as e:
+            raise InputError(f"{f}: {e}") from None
     if s.type not in SOURCE_TYPES:
         raise InputError(f"{f}: source.type: unknown source type {s.type!r}; known: {SOURCE_TYPES}")
     if s.type == "aloha_hdf5" and s.path is None:

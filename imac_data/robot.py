@@ -2,13 +2,21 @@
 
 A :class:`RobotConfig` says which URDF to use and how each index of the
 dataset's ``observation.state`` / ``action`` vector maps to a URDF joint
-(DESIGN.md section 2): arm indices name a joint directly, gripper indices go
-through an explicit affine :class:`GripperMap` to a finger joint, and URDF
+(DESIGN.md section 2): each index names a URDF joint, through an explicit affine
+map where the recorded unit is not the URDF's (:class:`JointEntry`: a gripper's
+normalised opening to a finger slide, degrees to radians, ...), and URDF
 ``<mimic>`` joints (the second finger) follow their leader.
 
 :class:`RobotModel` loads the URDF once (yourdfpy for the visual geometry,
 pytorch-kinematics for FK) and then works on torch tensors of any batch shape
 ``(*B, D)``, on CPU or CUDA, in float32 or float64. World = the URDF root frame.
+
+URDFs are read as the spec says where pytorch-kinematics does not (:func:`kinematic_urdf`):
+a movable joint without ``<axis>`` turns about x; a ``floating`` joint off the root link is
+held fixed at its origin; ``planar`` joints and other floating joints are refused by name.
+A material defined inside one link's visual may be referred to by name from any other.
+``python -m imac_data.robot joints ROBOT.urdf`` lists what a recipe needs
+(:mod:`imac_data.urdf_summary`).
 """
 
 from __future__ import annotations
@@ -35,33 +43,51 @@ _DEFAULT_RGBA = (0.5, 0.5, 0.5, 1.0)  # MuJoCo's default geom colour, for visual
 
 
 @dataclass(frozen=True)
-class GripperMap:
-    """Dataset gripper value -> finger joint position: ``offset + scale * value``."""
+class JointEntry:
+    """One entry of the dataset joint vector -> its URDF joint: ``q_urdf = offset + scale * value``.
+
+    Any entry may carry an affine map: a gripper's normalised opening to a finger slide in
+    metres, a joint recorded in degrees (``scale = pi / 180``), a -100..100 range, ...
+    """
 
     index: int  # index in the dataset joint vector
-    joint: str  # URDF finger joint it drives
-    scale: float
+    joint: str  # URDF joint it drives
+    scale: float = 1.0
     offset: float = 0.0
 
     def __post_init__(self):
         if not (math.isfinite(self.scale) and math.isfinite(self.offset)) or self.scale == 0:
-            raise InputError(f"gripper map of index {self.index} ({self.joint!r}): scale must be finite and "
+            raise InputError(f"joint map of index {self.index} ({self.joint!r}): scale must be finite and "
                              f"non-zero and offset finite, got scale={self.scale}, offset={self.offset}")
+
+    @property
+    def is_identity(self) -> bool:
+        return self.scale == 1.0 and self.offset == 0.0
+
+    def to_dict(self) -> str | dict:
+        """The recipe / ``info.json`` form: the joint name, or ``{joint, scale, offset}``."""
+        if self.is_identity:
+            return self.joint
+        return {"joint": self.joint, "scale": self.scale, "offset": self.offset}
+
+
+# The name of the affine entry when only grippers could carry one (kept for callers).
+GripperMap = JointEntry
 
 
 @dataclass(frozen=True)
 class RobotConfig:
     """Which URDF, and how the dataset's joint vector drives it.
 
-    ``joint_map[i]`` is the URDF joint name of dataset index ``i``, or a
-    :class:`GripperMap` (whose ``index`` must be ``i``). URDF joints that are
-    neither mapped nor mimic followers stay at 0. ``package_dirs`` maps a
+    ``joint_map[i]`` is the URDF joint name of dataset index ``i`` (identity map), or a
+    :class:`JointEntry` (whose ``index`` must be ``i``) with its affine map. URDF joints
+    that are neither mapped nor mimic followers stay at 0. ``package_dirs`` maps a
     package name to the directory that ``package://<name>/`` stands for.
     """
 
     name: str
     urdf_path: Path
-    joint_map: tuple[str | GripperMap, ...]
+    joint_map: tuple[str | JointEntry, ...]
     gripper_links: tuple[str, ...] = ()
     package_dirs: tuple[tuple[str, Path], ...] = ()
 
@@ -78,15 +104,15 @@ class RobotConfig:
             raise InputError(f"robot {self.name!r}: joint_map is empty")
         seen = set()
         for i, entry in enumerate(self.joint_map):
-            if isinstance(entry, GripperMap):
+            if isinstance(entry, JointEntry):
                 if entry.index != i:
-                    raise InputError(f"robot {self.name!r}: joint_map[{i}] is a GripperMap with index "
+                    raise InputError(f"robot {self.name!r}: joint_map[{i}] is a JointEntry with index "
                                      f"{entry.index}")
                 joint = entry.joint
             elif isinstance(entry, str) and entry:
                 joint = entry
             else:
-                raise InputError(f"robot {self.name!r}: joint_map[{i}] must be a joint name or a GripperMap, "
+                raise InputError(f"robot {self.name!r}: joint_map[{i}] must be a joint name or a JointEntry, "
                                  f"got {entry!r}")
             if joint in seen:
                 raise InputError(f"robot {self.name!r}: joint {joint!r} is mapped twice in joint_map")
@@ -98,7 +124,49 @@ class RobotConfig:
 
     def joint_name(self, i: int) -> str:
         entry = self.joint_map[i]
-        return entry.joint if isinstance(entry, GripperMap) else entry
+        return entry.joint if isinstance(entry, JointEntry) else entry
+
+    def joint_entry(self, i: int) -> JointEntry:
+        """Entry ``i`` with its affine map (identity for a plain joint name)."""
+        entry = self.joint_map[i]
+        return entry if isinstance(entry, JointEntry) else JointEntry(i, entry)
+
+    def joint_map_dict(self) -> list:
+        """The joint map as recorded in recipes and ``info.json``: a joint name per identity
+        entry, ``{joint, scale, offset}`` per affine one."""
+        return [self.joint_entry(i).to_dict() for i in range(self.dof)]
+
+    @staticmethod
+    def parse_joint_map(entries, where: str = "joint_map") -> tuple[str | JointEntry, ...]:
+        """The inverse of :meth:`joint_map_dict` (also accepts the old gripper form
+        ``{gripper: joint, scale, offset}``); :class:`InputError` names the entry."""
+        if not isinstance(entries, (list, tuple)) or not entries:
+            raise InputError(f"{where}: expected a non-empty list of joint names or {{joint, scale, offset}}")
+        out: list[str | JointEntry] = []
+        for i, e in enumerate(entries):
+            if isinstance(e, JointEntry):
+                out.append(e if e.index == i else JointEntry(i, e.joint, e.scale, e.offset))
+                continue
+            if isinstance(e, str) and e:
+                out.append(e)
+                continue
+            if not isinstance(e, Mapping):
+                raise InputError(f"{where}[{i}]: expected a joint name or {{joint, scale, offset}}, got {e!r}")
+            e = dict(e)
+            name_key = "joint" if "joint" in e else "gripper" if "gripper" in e else None
+            unknown = sorted(set(e) - {name_key, "scale", "offset"})
+            if name_key is None or unknown or ("joint" in e and "gripper" in e):
+                raise InputError(f"{where}[{i}]: expected {{joint: NAME, scale: S, offset: O}}, got {e!r}")
+            try:
+                scale, offset = float(e.get("scale", 1.0)), float(e.get("offset", 0.0))
+            except (TypeError, ValueError):
+                raise InputError(f"{where}[{i}]: scale and offset must be numbers, got {e!r}") from None
+            try:
+                entry = JointEntry(i, str(e[name_key]), scale, offset)
+            except InputError as err:
+                raise InputError(f"{where}[{i}]: {err}") from None
+            out.append(entry.joint if entry.is_identity else entry)
+        return tuple(out)
 
     def validate(self, urdf: yourdfpy.URDF) -> None:
         """Check the config against a parsed URDF; InputError names what is missing."""
@@ -149,9 +217,21 @@ def resolve_filename(fname: str, urdf_path: Path, package_dirs: Mapping[str, Pat
 def _material_rgba(visual: yourdfpy.Visual, materials: Mapping[str, yourdfpy.Material]) -> np.ndarray:
     mat = visual.material
     if mat is not None and mat.color is None and mat.name in materials:
-        mat = materials[mat.name]  # a reference to a robot-level named material
+        mat = materials[mat.name]  # a reference by name to a material defined elsewhere
     rgba = mat.color.rgba if (mat is not None and mat.color is not None) else _DEFAULT_RGBA
     return np.asarray(rgba, dtype=np.float32)
+
+
+def named_materials(urdf: yourdfpy.URDF) -> dict[str, yourdfpy.Material]:
+    """Every named material with a colour: the robot-level ones, then those defined inside a
+    link's visual (urdfdom makes those global too, so another link may refer to them by
+    name; exported Panda and UR URDFs do). The first definition of a name wins, as in urdfdom."""
+    out: dict[str, yourdfpy.Material] = {}
+    inline = (v.material for link in urdf.robot.links for v in link.visuals)
+    for mat in (*urdf.robot.materials, *inline):
+        if mat is not None and mat.name and mat.color is not None:
+            out.setdefault(mat.name, mat)
+    return out
 
 
 def _geometry_mesh(geom: yourdfpy.Geometry, visual_name: str, urdf_path: Path,
@@ -176,7 +256,7 @@ def _geometry_mesh(geom: yourdfpy.Geometry, visual_name: str, urdf_path: Path,
 
 def load_visual_meshes(urdf: yourdfpy.URDF, urdf_path: Path,
                        package_dirs: Mapping[str, Path]) -> list[VisualMesh]:
-    materials = {m.name: m for m in urdf.robot.materials if m.name}
+    materials = named_materials(urdf)
     out = []
     for link in urdf.robot.links:
         for k, visual in enumerate(link.visuals):
@@ -207,6 +287,12 @@ class RobotModel:
             urdf = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False)
         except Exception as e:  # yourdfpy raises assorted errors on malformed XML
             raise InputError(f"robot {config.name!r}: cannot parse URDF {path}: {e}") from e
+        self._kinematic_urdf, self.held_fixed = kinematic_urdf(self.urdf_text, path)
+        for i in range(config.dof):
+            if config.joint_name(i) in self.held_fixed:
+                raise InputError(f"robot {config.name!r}: joint {config.joint_name(i)!r} (dataset index {i}) is "
+                                 f"the floating root joint of {path}, held fixed at its origin; it cannot be "
+                                 f"driven by the joint vector")
         config.validate(urdf)
         self.visual_meshes = load_visual_meshes(urdf, path, dict(config.package_dirs))
 
@@ -214,7 +300,6 @@ class RobotModel:
         # joints, so we compute every chain joint ourselves. Each chain joint is
         # an affine function of one dataset entry: q_chain[j] = a[j] * q[src[j]] + b[j]
         # (elementwise, not a matmul, so TF32 on GPUs cannot round it).
-        self._kinematic_urdf = _strip_geometry(self.urdf_text)
         chain = pk.build_chain_from_urdf(self._kinematic_urdf)
         self.joint_names: list[str] = chain.get_joint_parameter_names()
         self.link_names: list[str] = [chain.idx_to_frame[i] for i in range(len(chain.idx_to_frame))]
@@ -339,14 +424,14 @@ def _chain_joint_affine(joint_names: list[str], config: RobotConfig, mimic: Mapp
                         ) -> tuple[list[int], list[float], list[float]]:
     """For each chain joint j: (src[j], a[j], b[j]) with q_chain[j] = a[j] * q[src[j]] + b[j].
 
-    Arm joints copy their dataset entry, gripper joints apply their GripperMap,
+    Mapped joints apply their entry's affine map (identity for a plain name),
     mimic followers compose their leader's map with the mimic's; joints that
     nothing drives get a = b = 0 (held at 0).
     """
     direct = {}
-    for i, entry in enumerate(config.joint_map):
-        gripper = isinstance(entry, GripperMap)
-        direct[config.joint_name(i)] = (i, entry.scale, entry.offset) if gripper else (i, 1.0, 0.0)
+    for i in range(config.dof):
+        entry = config.joint_entry(i)
+        direct[entry.joint] = (i, entry.scale, entry.offset)
 
     def resolve(name: str, seen: tuple[str, ...] = ()) -> tuple[int, float, float]:
         if name in direct:
@@ -364,17 +449,79 @@ def _chain_joint_affine(joint_names: list[str], config: RobotConfig, mimic: Mapp
     return list(src), list(a), list(b)
 
 
-def _strip_geometry(urdf_text: str) -> str:
-    """The URDF without visual/collision/inertial elements: pytorch-kinematics only needs
-    the tree, and its bundled parser warns on valid attributes such as ``<visual name=...>``."""
-    root = ET.fromstring(urdf_text.encode())
-    for link in root.iter("link"):
+# Joint types the kinematics supports; a `floating` joint off the root link is held fixed.
+MOVABLE_JOINT_TYPES = ("revolute", "continuous", "prismatic")
+_KINEMATIC_JOINT_CHILDREN = ("origin", "parent", "child", "axis", "limit")
+
+
+def kinematic_urdf(urdf_text: str, urdf_path: Path | str = "<urdf>") -> tuple[str, tuple[str, ...]]:
+    """The URDF as pytorch-kinematics should read it, and the floating joints held fixed.
+
+    * Only the tree is kept (links without children, joints with origin/parent/child/axis/limit):
+      pytorch-kinematics needs nothing else, and its bundled parser warns on valid attributes
+      such as ``<visual name=...>`` and on common extensions such as ``<contact>``.
+    * A movable joint without ``<axis>`` (or without its ``xyz``) gets the URDF spec's default
+      ``1 0 0``; pytorch-kinematics would silently use z.
+    * A ``floating`` joint whose parent is a root link (a mobile base, a robot placed in a
+      world) is held fixed at its origin: the dataset vector cannot drive six free DoF.
+    * ``planar`` joints, floating joints elsewhere and unknown types raise :class:`InputError`
+      naming the file and joint (pytorch-kinematics would raise a bare ``KeyError``).
+    """
+    try:
+        root = ET.fromstring(urdf_text.encode())
+    except ET.ParseError as e:
+        raise InputError(f"cannot parse URDF {urdf_path}: {e}") from e
+    joints = root.findall("joint")  # direct children only: <transmission> also has <joint> tags
+    children = {j.find("child").get("link") for j in joints if j.find("child") is not None}
+    roots = {link.get("name") for link in root.findall("link")} - children
+    held_fixed = []
+    for joint in joints:
+        name, kind = joint.get("name"), joint.get("type")
+        parent = joint.find("parent")
+        if kind == "floating" and parent is not None and parent.get("link") in roots:
+            joint.set("type", "fixed")
+            held_fixed.append(name)
+        elif kind in ("floating", "planar"):
+            where = "" if kind == "planar" else " that does not hang off the root link"
+            raise InputError(f"URDF {urdf_path}: joint {name!r} is a {kind!r} joint{where}, which the robot "
+                             f"model does not support (only {', '.join(MOVABLE_JOINT_TYPES)}, fixed, and a "
+                             f"floating joint off the root link, held fixed); make it fixed, or split it into "
+                             f"prismatic/revolute joints with dummy links")
+        elif kind not in (*MOVABLE_JOINT_TYPES, "fixed"):
+            raise InputError(f"URDF {urdf_path}: joint {name!r} has unknown type {kind!r}")
+        if kind in MOVABLE_JOINT_TYPES:
+            axis = joint.find("axis")
+            if axis is None:
+                axis = ET.SubElement(joint, "axis")
+            xyz = axis.get("xyz", "1 0 0")  # the URDF spec's default axis
+            try:
+                norm = math.sqrt(sum(float(v) ** 2 for v in xyz.split()))
+            except ValueError:
+                norm = float("nan")
+            if len(xyz.split()) != 3 or not norm > 0:
+                raise InputError(f"URDF {urdf_path}: joint {name!r} has axis xyz={xyz!r}; it needs three "
+                                 f"numbers, not all zero")
+            axis.set("xyz", xyz)
+        for child in list(joint):
+            if child.tag not in _KINEMATIC_JOINT_CHILDREN:
+                joint.remove(child)
+    for child in list(root):
+        if child.tag not in ("link", "joint"):
+            root.remove(child)
+    for link in root.findall("link"):
         for child in list(link):
-            if child.tag in ("visual", "collision", "inertial"):
-                link.remove(child)
-    return ET.tostring(root, encoding="unicode")
+            link.remove(child)
+    return ET.tostring(root, encoding="unicode"), tuple(held_fixed)
 
 
 def _as_float_tensor(x) -> torch.Tensor:
     t = torch.as_tensor(x)
     return t if t.is_floating_point() else t.to(torch.get_default_dtype())
+
+
+if __name__ == "__main__":  # python -m imac_data.robot joints ROBOT.urdf
+    import sys
+
+    from imac_data.urdf_summary import main
+
+    sys.exit(main())

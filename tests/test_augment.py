@@ -13,6 +13,7 @@ from imac_data.cameras import load_calibration
 from imac_data.depth import depth_codec_of
 from imac_data.ingest import IngestOptions, ingest_episodes
 from imac_data.recipes import RECIPES_DIR
+from imac_data.rig import Rig
 from imac_data.robot import RobotModel
 from imac_data.simulate import SimConfig, record_dataset
 
@@ -29,8 +30,8 @@ def base(sim_src, tmp_path):
     """A fresh base dataset (ingest only) of the recorded episodes."""
     src, tmp = sim_src, tmp_path
     root = tmp / "base"
-    ingest_episodes(sorted(src.glob("episode_*.hdf5")), calibration=load_calibration(src / "calibration.json"),
-                    robot=RobotModel(aloha.robot_config()), repo_id="local/base", root=root,
+    ingest_episodes(sorted(src.glob("episode_*.hdf5")),
+                    rig=Rig(RobotModel(aloha.robot_config()), load_calibration(src / "calibration.json")), repo_id="local/base", root=root,
                     options=IngestOptions(fps=25, task="t", state_names=aloha.STATE_NAMES), progress=False)
     recipe = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
     recipe["augment"] = {"height": 64, "width": 80, "contact_chunk": 4}

@@ -17,7 +17,6 @@ from imac_data.aloha import camera_calibration, load_mujoco_model, robot_config
 from imac_data.contact import (
     DEFAULT_TOLERANCE,
     JET_LUT,
-    ContactBuilder,
     GripperSurface,
     NearestNeighbours,
     chunk_plan,
@@ -29,6 +28,7 @@ from imac_data.contact import (
     scene_cloud,
 )
 from imac_data.errors import InputError
+from imac_data.rig import Rig
 from imac_data.robot import RobotModel
 from imac_data.simulate import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
 
@@ -365,14 +365,16 @@ def grasp(robot):
         ep = simulate_episode("transfer_cube", seed=0, frame_stride=2, max_steps=120, renderer=cap)
     finally:
         cap.close()
-    cams = camera_calibration(model, 320, 240)
-    builder = ContactBuilder(robot, cams)
-    names = builder.names
+    rig = Rig(robot, camera_calibration(model, 320, 240))
+    names = rig.names
     depth = torch.stack([torch.as_tensor(ep.depth_mm[n].astype(np.float32) / 1000.0) for n in names], 1)
     seg = np.stack([ep.segmentation[n] for n in names], 1)
     q = torch.as_tensor(ep.qpos, dtype=torch.float32)
-    return dict(model=model, builder=builder, depth=depth, seg=seg, q=q, qfull=np.array(cap.qpos),
-                inputs=builder.robot_inputs(q), labels=segmentation_labels(model))
+    views = rig.robot_views(q)
+    inputs = {"mask": views.mask, "depth": views.depth, "T_world_cam": views.T_world_cam,
+              "gripper_points": views.gripper_points}
+    return dict(model=model, rig=rig, K=rig.intrinsics(), depth=depth, seg=seg, q=q, qfull=np.array(cap.qpos),
+                inputs=inputs, labels=segmentation_labels(model))
 
 
 def _mj_distance(model, data, g1, g2):
@@ -397,7 +399,7 @@ def test_scene_to_gripper_tracks_mujoco_distances(grasp):
     adr = model.jnt_qposadr[model.body_jntadr[model.geom_bodyid[box]]]
     fingers = [g for g in range(model.ngeom) if "finger" in model.geom(g).name]
     assert len(fingers) == 4
-    K = grasp["builder"].K
+    K = grasp["K"]
     T_frames = len(grasp["q"])
     errors, leaks, skipped = [], [], 0
     for ref, frames in chunk_plan(T_frames, 8):
@@ -433,7 +435,7 @@ def test_scene_to_gripper_tracks_mujoco_distances(grasp):
 def test_tolerance_is_certified_on_recorded_frames(grasp):
     """Certified tolerance vs exact per-pixel distances on real inputs: every painted value
     within [exact, exact + max(abs, rel * exact)], colours almost all identical."""
-    inp, K = grasp["inputs"], grasp["builder"].K
+    inp, K = grasp["inputs"], grasp["K"]
     ref, frames = 24, list(range(25, 33))  # approach and grasp
     args = (grasp["depth"][ref], K, inp["T_world_cam"][ref], inp["mask"][ref], inp["depth"][frames],
             inp["T_world_cam"][frames], inp["gripper_points"][frames])
@@ -458,7 +460,7 @@ def test_torch_path_matches_kdtree_path(grasp):
     KD-tree path (head camera only, to keep CPU brute force short): equal when exact; with
     the tolerance both are certified, and they differ only where the representative's
     nearest point is a tie."""
-    inp, K = grasp["inputs"], grasp["builder"].K
+    inp, K = grasp["inputs"], grasp["K"]
     ref, frames, v = 40, [41, 44], slice(0, 1)
     args = (grasp["depth"][ref][v], K[v], inp["T_world_cam"][ref][v], inp["mask"][ref][v], inp["depth"][frames][:, v],
             inp["T_world_cam"][frames][:, v], inp["gripper_points"][frames])
@@ -477,14 +479,18 @@ def test_torch_path_matches_kdtree_path(grasp):
             assert (x[m] >= e[m] - 2e-6).all() and (x[m] <= e[m] + torch.clamp(tol[1] * e[m], min=tol[0]) + 2e-6).all()
 
 
-def test_builder_episode_matches_chunks(grasp):
-    b = grasp["builder"]
+def test_rig_contact_matches_the_episode_wiring(grasp):
+    """Rig.contact (what a world model calls on its own depth) = the episode functions fed
+    the same renders (what the dataset build calls)."""
+    rig, inp = grasp["rig"], grasp["inputs"]
     n = 6
-    ep = b.episode(grasp["depth"][:n], grasp["q"][:n], chunk_size=3)
+    ep = episode_contact(grasp["depth"][:n], grasp["K"], inp["T_world_cam"][:n], inp["mask"][:n], inp["depth"][:n],
+                         inp["T_world_cam"][:n], inp["gripper_points"][:n], chunk_size=3)
     assert ep.r2s_rgb.shape == (n, 3, 240, 320, 3) and ep.caps.shape == (n, 2)
-    c = b.chunk(grasp["depth"][3], grasp["q"][3], grasp["q"][4:6])
+    c = rig.contact(grasp["depth"][3], grasp["q"][3], grasp["q"][4:6])
     assert ep.reference[4:].tolist() == [3, 3]
     torch.testing.assert_close(ep.r2s[4:6], c.r2s, equal_nan=True)
     torch.testing.assert_close(ep.s2g[4:6], c.s2g, equal_nan=True)
-    with pytest.raises(InputError, match="depth must be"):
-        b.chunk(grasp["depth"][3][:2], grasp["q"][3], grasp["q"][4:6])
+    assert torch.equal(ep.s2g_rgb[4:6], c.s2g_rgb) and torch.equal(ep.caps[4], c.caps)
+    with pytest.raises(InputError, match="reference depth must be"):
+        rig.contact(grasp["depth"][3][:2], grasp["q"][3], grasp["q"][4:6])

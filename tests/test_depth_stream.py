@@ -20,9 +20,10 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from imac_data import aloha
 from imac_data.aloha_hdf5 import episode_paths, read_episode
 from imac_data.cameras import load_calibration, rescale_intrinsics
+from imac_data.dataset.depth_streams import add_depth_streams
+from imac_data.dataset.videos import VideoEncoding
 from imac_data.depth import (
     DepthCodec,
-    add_depth_streams,
     depth_codec_of,
     depth_stream_key,
     resize_depth,
@@ -30,9 +31,9 @@ from imac_data.depth import (
 from imac_data.depth_sources import RecordedDepth, episode_views
 from imac_data.errors import InputError
 from imac_data.ingest import IngestOptions, ingest_episodes
+from imac_data.rig import Rig
 from imac_data.robot import RobotModel
 from imac_data.simulate import SimConfig, record_dataset
-from imac_data.video_streams import VideoEncoding
 
 CAMS = ["cam_high", "cam_left_wrist", "cam_right_wrist"]
 CODEC = DepthCodec.preset("manipulation")
@@ -50,7 +51,7 @@ def sim(tmp_path_factory, robot):
     src = out / "src"
     record_dataset(SimConfig(num_episodes=2, width=80, height=64, max_steps=24), src, progress=False)
     root = out / "base"
-    ingest_episodes(episode_paths(src), calibration=load_calibration(src / "calibration.json"), robot=robot,
+    ingest_episodes(episode_paths(src), rig=Rig(robot, load_calibration(src / "calibration.json")),
                     repo_id="local/depth", root=root,
                     options=IngestOptions(fps=25, task="t", state_names=aloha.STATE_NAMES), progress=False)
     raws = [read_episode(p) for p in episode_paths(src)]

@@ -14,6 +14,7 @@ from imac_data.aloha_hdf5 import read_episode, write_episode
 from imac_data.cameras import load_calibration, save_calibration
 from imac_data.errors import InputError
 from imac_data.ingest import IngestOptions, ingest_episodes, staging_dir
+from imac_data.rig import Rig
 from imac_data.robot import RobotModel
 from imac_data.simulate import SimConfig, record_dataset
 
@@ -45,7 +46,7 @@ def options(**kw):
 def ingest(src, robot, root, **kw):
     paths = sorted(src.glob("episode_*.hdf5"))
     calib = load_calibration(src / "calibration.json")
-    return ingest_episodes(paths, calibration=calib, robot=robot, repo_id="local/test", root=root,
+    return ingest_episodes(paths, rig=Rig(robot, calib), repo_id="local/test", root=root,
                            options=kw.pop("opts", options()), progress=False, **kw)
 
 
@@ -160,19 +161,18 @@ def test_existing_output_is_not_replaced_without_overwrite(source, robot, tmp_pa
 
 
 def test_failure_midway_leaves_nothing(source, robot, tmp_path, monkeypatch):
-    """An error after LeRobot has started writing (here: while reading episode 2) removes the staging dir."""
-    import imac_data.ingest as ingest_module
+    """An error after LeRobot has started writing (here: while reading episode 2's frames)
+    removes the staging dir."""
+    from imac_data.aloha_hdf5 import EpisodeReader
 
-    calls = {"n": 0}
-    real = ingest_module.read_episode
+    real = EpisodeReader.images
 
-    def failing(path, **kw):
-        calls["n"] += 1
-        if calls["n"] == 2:
-            raise InputError(f"{path}: simulated read failure")
-        return real(path, **kw)
+    def failing(self, cam, start, stop):
+        if self.path.name == "episode_1.hdf5":
+            raise InputError(f"{self.path}: simulated read failure")
+        return real(self, cam, start, stop)
 
-    monkeypatch.setattr(ingest_module, "read_episode", failing)
+    monkeypatch.setattr(EpisodeReader, "images", failing)
     with pytest.raises(InputError, match="simulated read failure"):
         ingest(source, robot, tmp_path / "ds")
     assert_nothing_written(tmp_path / "ds")

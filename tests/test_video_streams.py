@@ -1,4 +1,4 @@
-"""Adding a video stream to an existing LeRobot v3.0 dataset (imac_data.video_streams).
+"""Adding a video stream to an existing LeRobot v3.0 dataset (imac_data.dataset.streams).
 
 The oracle is the frames themselves: the lossless settings must come back bit-exact
 through LeRobot's own loader (torchcodec) and through PyAV, and LeRobot's own files
@@ -16,15 +16,11 @@ import pytest
 from lerobot.datasets.compute_stats import sample_indices
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data import video_streams
+from imac_data.dataset import streams as video_streams
+from imac_data.dataset.files import staged_dataset
+from imac_data.dataset.streams import add_video_stream, add_video_streams
+from imac_data.dataset.videos import VideoEncoding, read_video_frames
 from imac_data.errors import InputError
-from imac_data.video_streams import (
-    VideoEncoding,
-    add_video_stream,
-    add_video_streams,
-    read_video_frames,
-    staged_dataset,
-)
 
 LENGTHS = (5, 7, 4)
 FPS = 10
@@ -255,7 +251,7 @@ def test_staged_dataset_swaps_in_on_success_and_discards_on_error(root):
 
 def test_encoding_settings_are_validated_and_round_trip():
     enc = VideoEncoding.lossless_rgb()
-    assert enc.encoder_options() == {"g": "10", "qp": "0", "preset": "medium"}
+    assert enc.encoder_options() == {"g": "10", "qp": "0", "preset": "medium", "threads": "2"}
     assert VideoEncoding.from_dict(json.loads(json.dumps(enc.to_dict()))) == enc
     lr = VideoEncoding.lerobot_default()
     assert lr.encoder_options() == {"g": "2", "crf": "30", "preset": "12"}

@@ -1,0 +1,80 @@
+"""Merge built datasets of one rig into one dataset, keeping the ``imac`` block.
+
+LeRobot's ``aggregate_datasets`` does the merge (data, videos, episodes, stats). Around it:
+
+* the inputs must come from the same rig and settings: their ``imac`` blocks must be equal
+  (except ``build``), otherwise the merged dataset would claim one robot, calibration and
+  codec for streams made with another;
+* LeRobot 0.4.4's ``aggregate_stats`` orders ``stats.json`` by per-process string hashing:
+  it is rewritten in feature order (:func:`~imac_data.dataset.info.order_stats`), so equal
+  inputs give byte-identical outputs;
+* ``aggregate_datasets`` rebuilds ``info.json`` without our ``imac`` block: it is put back,
+  and the robot description (``meta/imac/robot/``) is copied over.
+
+The merge is staged: it is written to a temporary sibling of ``out`` and renamed into place
+when complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info
+from imac_data.errors import InputError
+
+__all__ = ["merge_datasets", "check_same_rig"]
+
+
+def check_same_rig(roots: Sequence[Path]) -> dict:
+    """The common ``imac`` block of ``roots`` (``build`` excluded); :class:`InputError`
+    naming the first dataset and key that differ."""
+    blocks = []
+    for root in roots:
+        block = imac_block(read_info(root), f"{root}/meta/info.json")
+        block.pop("build", None)
+        blocks.append(block)
+    first = blocks[0]
+    for root, block in zip(roots[1:], blocks[1:]):
+        for key in sorted(set(first) | set(block)):
+            if json.dumps(first.get(key), sort_keys=True) != json.dumps(block.get(key), sort_keys=True):
+                raise InputError(f"cannot merge {root} with {roots[0]}: their imac.{key} differ (datasets of "
+                                 "different rigs or settings)")
+    return first
+
+
+def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *,
+                   imac_extra: Mapping | None = None, description_dir: str | Path | None = None) -> Path:
+    """Merge the datasets ``roots`` (in order) into a new dataset at ``out`` (must not
+    exist). ``imac_extra`` is merged into the restored ``imac`` block; the robot
+    description is copied from ``description_dir`` (default: the first input's)."""
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    from imac_data.robot_files import DESCRIPTION_DIR, check_description
+
+    roots = [Path(r) for r in roots]
+    out = Path(out)
+    if not roots:
+        raise InputError("merge_datasets: no datasets given")
+    if out.exists():
+        raise InputError(f"merge_datasets: output {out} exists")
+    block = check_same_rig(roots)
+    source = Path(description_dir) if description_dir is not None else roots[0] / DESCRIPTION_DIR
+    if "robot" in block:
+        check_description(source, block["robot"]["description"], where=f"robot description {source}")
+    tmp = out.with_name(f".{out.name}.merging")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        aggregate_datasets([repo_id] * len(roots), repo_id, roots=roots, aggr_root=tmp)
+        order_stats(tmp)
+        update_imac_info(tmp, {**block, **dict(imac_extra or {})})
+        if "robot" in block:
+            shutil.copytree(source, tmp / DESCRIPTION_DIR)
+        os.rename(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out

@@ -1,0 +1,105 @@
+"""Build workers: how many, and each one's thread pools pinned to its share of the cores.
+
+Memory: a worker holds one chunk of one episode at a time (:mod:`imac_data.pipeline`);
+what else it holds is its libraries (about 0.8 GB), the rig (0.2 GB) and the video
+encoders' buffers (about 0.3 GB at 240x320, 0.8 GB at 480x640 for the 15 streams).
+
+A worker builds whole episodes (:func:`imac_data.build.build_shard`). Its heavy parts all
+run thread pools of their own: torch's OpenMP pool, OpenCV's, Embree's ray casting (the
+renderer), the contact streams' Python threads and SciPy KD-tree queries, the SVT-AV1 and
+x264 encoders. Left alone, each pool sizes itself to the whole machine, so two workers on
+two cores run four-plus busy threads per core and a second worker made the build slower
+(measured: 5.8 -> 5.0 frames/s). :func:`pin_threads` caps every pool at the worker's share.
+
+None of these pools changes a result: the renderer, the contact streams and SVT-AV1 give
+the same bytes with any thread count, and x264 (whose output does depend on its thread
+count) runs with a fixed one (:meth:`~imac_data.dataset.videos.VideoEncoding.lossless_rgb`).
+So a build's bytes do not depend on ``--workers``, the executor or the machine's cores
+(``tests/test_build.py``: Ray with 2 workers = local with 1).
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["cpu_cores", "default_workers", "threads_per_worker", "pin_threads", "thread_env", "peak_rss_mb"]
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+# glibc gives each thread that allocates its own malloc arena and keeps freed memory in it;
+# with the pipeline's encoder and contact threads that alone added about 0.4 GB to a
+# 480x640 worker (measured: 3.16 -> 2.78 GB peak with 2 threads). Two arenas cost no
+# measurable time.
+_MALLOC_ARENAS = 2
+_M_ARENA_MAX = -8  # mallopt parameter (glibc malloc.h)
+
+
+def cpu_cores() -> int:
+    """Cores this process may run on (its affinity mask, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def default_workers(episodes: int, cores: int | None = None) -> int:
+    """``--workers`` when none is given: one worker per core, at most one per episode.
+
+    Why (measured on a 2-core machine, ``benchmarks/run.py``, whole builds of the demo
+    workload): with every worker's pools pinned to its share, one single-threaded worker
+    per core gives the most frames/s per CPU-second; threads inside one process scale
+    worse (the pipeline's serial parts: reading, metadata, the GIL between numpy calls)
+    than whole episodes side by side. More workers than cores only add memory.
+    """
+    cores = cores or cpu_cores()
+    return max(1, min(int(episodes), cores))
+
+
+def threads_per_worker(workers: int, cores: int | None = None) -> int:
+    return max(1, (cores or cpu_cores()) // max(1, int(workers)))
+
+
+def thread_env(threads: int) -> dict[str, str]:
+    """Environment for a new worker process: libraries that size their pools when loaded,
+    and glibc's malloc arenas."""
+    return {**{var: str(threads) for var in _THREAD_VARS}, "MALLOC_ARENA_MAX": str(_MALLOC_ARENAS)}
+
+
+def pin_threads(threads: int) -> None:
+    """Cap this process's thread pools at ``threads`` (torch, OpenCV; the renderer, contact
+    queries and encoders take theirs from the rig / pipeline settings)."""
+    import cv2
+    import torch
+
+    threads = max(1, int(threads))
+    for var, value in thread_env(threads).items():
+        os.environ[var] = value  # for anything loaded later (and child processes)
+    torch.set_num_threads(threads)
+    cv2.setNumThreads(threads)
+    _limit_malloc_arenas()
+
+
+def _limit_malloc_arenas() -> None:
+    """At most :data:`_MALLOC_ARENAS` glibc malloc arenas from now on (no-op elsewhere)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallopt(_M_ARENA_MAX, _MALLOC_ARENAS)
+    except (OSError, AttributeError):
+        pass
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory in MB: ``VmHWM`` (Linux; starts afresh at
+    ``exec``). ``getrusage``'s ``ru_maxrss`` is no substitute for a worker started from a
+    big parent: Linux carries the parent's peak over ``fork`` + ``exec``."""
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

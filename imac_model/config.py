@@ -1,0 +1,417 @@
+"""Typed configuration of the world model and its training, validated at the boundary.
+
+A run is described by one :class:`RunConfig` (YAML or JSON; every section optional)::
+
+    data:         {dataset: local/sim10, view_height: 48, held_out_episodes: [8, 9]}
+    backbone:     {kind: small, small: {dim: 192, depth: 6}}      # or kind: wan
+    conditioning: {mode: motion+contact}                           # none | motion | motion+contact | action-vector
+    flow:         {train_shift: 1.0, sample_steps: 20}
+    train:        {batch_size: 4, max_steps: 2000, output_dir: runs/sim10}
+    rollout:      {chunks: 4, warmup_epochs: 1, stage_one_epochs: 0}     # training-time rollout (R = 4)
+
+Parsing is strict: an unknown key, a wrong type or a bad value raises
+:class:`~imac_data.errors.InputError` naming the file and the dotted field. Every
+checkpoint stores the resolved :class:`ModelSpec` (the run's model sections plus the
+facts taken from the dataset: views, view size, chunk length, action dimension), so a
+model is rebuilt from its checkpoint alone, and ``RunConfig`` round-trips through
+:meth:`RunConfig.to_dict` / :func:`load_run_config`.
+
+Defaults follow the paper; the public iMaC release's choices are options, named where
+they differ (DESIGN section 8): ``conditioning.control_init: copy_patch_embedding``,
+``conditioning.control_on_reference: true``, ``flow.train_shift: 5``,
+``flow.reference_noise: 0.1``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import yaml
+
+from imac_data.errors import InputError
+
+MODES = ("none", "motion", "motion+contact", "action-vector")
+CONTROL_STREAMS = ("motion", "contact_s2g", "contact_r2s")  # the order of paper eq. 2: P_m, P_s2g, P_r2s
+
+
+def streams_of_mode(mode: str) -> tuple[str, ...]:
+    """The control streams a conditioning mode injects (paper eq. 2)."""
+    return {"none": (), "motion": ("motion",), "motion+contact": CONTROL_STREAMS, "action-vector": ()}[mode]
+
+
+# --------------------------------------------------------------------------- sections
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    dataset: str = ""  # LeRobot repo id, e.g. local/sim10
+    root: str | None = None  # dataset directory; default $HF_LEROBOT_HOME/<dataset>
+    view_height: int = 48  # per-view height at the model's resolution
+    view_width: int | None = None  # None: keep the cameras' aspect ratio, rounded to the backbone's multiple
+    chunk: int | None = None  # future frames per chunk; None = the dataset's contact chunk (must equal it)
+    views: tuple[str, ...] | None = None  # camera order; None = DESIGN order (head, left wrist, right wrist)
+    held_out_episodes: tuple[int, ...] = ()  # never trained on; the held-out loss is computed on them
+    cache: Literal["memory", "none"] = "memory"  # keep decoded, resized chunks (uint8) in RAM
+    cache_dir: str | None = None  # also persist that cache here (reused by later runs on the same data)
+    num_workers: int = 0  # DataLoader workers that decode videos
+    video_backend: str | None = None  # LeRobot's decoder (None: its default, torchcodec)
+
+    def __post_init__(self) -> None:
+        _positive(self, "view_height")
+        if self.view_width is not None:
+            _positive(self, "view_width")
+        if self.chunk is not None:
+            _positive(self, "chunk")
+        if self.num_workers < 0:
+            raise InputError(f"data.num_workers: must be >= 0 (got {self.num_workers})")
+        if self.views is not None and len(set(self.views)) != len(self.views):
+            raise InputError(f"data.views: duplicate camera names in {list(self.views)}")
+        if any(e < 0 for e in self.held_out_episodes):
+            raise InputError(f"data.held_out_episodes: episode indices are >= 0 (got {list(self.held_out_episodes)})")
+
+
+@dataclass(frozen=True)
+class SmallDiTConfig:
+    """The CPU-sized video DiT: pixel-unshuffle latent, factorised space/time attention."""
+
+    unshuffle: int = 4  # latent = pixel-unshuffle of the [-1, 1] frames: 3 * unshuffle^2 channels
+    patch: int = 2  # spatial patch on the latent (temporal patch 1, as Wan2.2)
+    dim: int = 192
+    depth: int = 6
+    heads: int = 6
+    mlp_ratio: float = 4.0
+    context_dim: int = 256  # width of cross-attention context tokens (action-vector mode only)
+
+    def __post_init__(self) -> None:
+        for name in ("unshuffle", "patch", "dim", "depth", "heads", "context_dim"):
+            _positive(self, name, "backbone.small")
+        if self.dim % self.heads or (self.dim // self.heads) % 2:
+            raise InputError(f"backbone.small.dim: {self.dim} must split into {self.heads} heads of even width")
+        if self.mlp_ratio <= 0:
+            raise InputError(f"backbone.small.mlp_ratio: must be > 0 (got {self.mlp_ratio})")
+
+
+@dataclass(frozen=True)
+class WanConfig:
+    """Wan2.2-TI2V through diffusers (``WanTransformer3DModel`` + ``AutoencoderKLWan``)."""
+
+    pretrained: str | None = None  # local directory or hub id with transformer/ and vae/ subfolders
+    transformer: dict[str, typing.Any] = field(default_factory=dict)  # config (overrides) of the transformer
+    vae: dict[str, typing.Any] = field(default_factory=dict)  # config (overrides) of the VAE
+    num_layers: int | None = None  # keep only the first N transformer blocks (benchmarks, small runs)
+    context_tokens: int = 16  # learned null text context (no T5 here): tokens of width text_dim
+    gradient_checkpointing: bool = False
+    train_vae: bool = False  # the VAE stays frozen unless asked
+
+    def __post_init__(self) -> None:
+        if self.num_layers is not None:
+            _positive(self, "num_layers", "backbone.wan")
+        _positive(self, "context_tokens", "backbone.wan")
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    kind: Literal["small", "wan"] = "small"
+    small: SmallDiTConfig = field(default_factory=SmallDiTConfig)
+    wan: WanConfig = field(default_factory=WanConfig)
+
+
+@dataclass(frozen=True)
+class ConditioningConfig:
+    mode: Literal["none", "motion", "motion+contact", "action-vector"] = "motion+contact"
+    # paper: every control patchify layer zero-initialised; release: motion copies patch_embedding
+    control_init: Literal["zeros", "copy_patch_embedding"] = "zeros"
+    # paper: controls only on the noised future tokens; release: on the reference tokens too
+    control_on_reference: bool = False
+    action_hidden: int = 256  # action-vector baseline: MLP width
+    action_layers: int = 3  # action-vector baseline: MLP depth (the release: 3 layers, SiLU)
+
+    def __post_init__(self) -> None:
+        _positive(self, "action_hidden", "conditioning")
+        _positive(self, "action_layers", "conditioning")
+
+    @property
+    def streams(self) -> tuple[str, ...]:
+        return streams_of_mode(self.mode)
+
+
+@dataclass(frozen=True)
+class FlowConfig:
+    """Flow matching in the paper's time: tau = 0 noise, tau = 1 data."""
+
+    train_shift: float = 1.0  # timestep shift of the training tau (1 = tau ~ U(0, 1), the paper; release: 5)
+    sample_shift: float = 1.0  # timestep shift of the sampler's schedule
+    sample_steps: int = 20  # Euler steps
+    reference_noise: float = 0.0  # std of Gaussian noise on the clean reference latent in training (release: 0.1)
+    # what the network outputs: the velocity (Wan's training; the paper), or the clean data, converted to the
+    # velocity v = (x1_hat - x_tau) / (1 - tau) before the same loss (Li & He 2025, "Back to Basics": pixel-space
+    # models with large patches cannot output full-rank noise through a narrow token; the small DiT's default)
+    prediction: Literal["velocity", "data"] = "velocity"
+    data_prediction_min_gap: float = 0.05  # the 1 - tau floor of that conversion
+
+    def __post_init__(self) -> None:
+        if self.train_shift <= 0 or self.sample_shift <= 0:
+            raise InputError("flow.train_shift / flow.sample_shift: must be > 0")
+        _positive(self, "sample_steps", "flow")
+        if self.reference_noise < 0:
+            raise InputError(f"flow.reference_noise: must be >= 0 (got {self.reference_noise})")
+        if not 0 < self.data_prediction_min_gap < 1:
+            raise InputError(f"flow.data_prediction_min_gap: must be in (0, 1) (got {self.data_prediction_min_gap})")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    output_dir: str = "runs/imac"
+    seed: int = 0
+    batch_size: int = 4  # global batch (split over processes under `accelerate launch`)
+    lr: float = 3e-4
+    weight_decay: float = 0.0
+    warmup_steps: int = 50
+    grad_clip: float = 1.0
+    max_steps: int = 1000
+    max_minutes: float | None = None  # also stop (with a checkpoint) after this much training wall time
+    max_cpu_minutes: float | None = None  # ... or this much CPU time of the process (a budget on a shared machine)
+    ema_decay: float = 0.999  # 0 disables EMA
+    log_every: int = 10
+    eval_every: int = 100  # held-out flow loss every N steps (and at the start and end)
+    eval_batches: int = 4
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 2
+    mixed_precision: Literal["auto", "no", "bf16"] = "auto"  # auto: bf16 on a CUDA device that has it
+    tracker: Literal["tensorboard", "wandb"] | None = None  # besides the CSV/JSONL log
+    cpu_threads: int | None = None  # torch intra-op threads (None: torch's default; 1 is fastest on a busy CPU)
+
+    def __post_init__(self) -> None:
+        for name in ("batch_size", "max_steps", "log_every", "eval_every", "eval_batches", "checkpoint_every",
+                     "keep_checkpoints"):
+            _positive(self, name, "train")
+        if self.lr <= 0:
+            raise InputError(f"train.lr: must be > 0 (got {self.lr})")
+        if not 0 <= self.ema_decay < 1:
+            raise InputError(f"train.ema_decay: must be in [0, 1) (got {self.ema_decay})")
+        if self.warmup_steps < 0 or self.grad_clip < 0 or self.weight_decay < 0:
+            raise InputError("train.warmup_steps / grad_clip / weight_decay: must be >= 0")
+        if self.cpu_threads is not None:
+            _positive(self, "cpu_threads", "train")
+        for name in ("max_minutes", "max_cpu_minutes"):
+            if getattr(self, name) is not None and getattr(self, name) <= 0:
+                raise InputError(f"train.{name}: must be > 0 (got {getattr(self, name)})")
+
+
+@dataclass(frozen=True)
+class RolloutConfig:
+    """Training-time rollout (paper section 3.4) and the online rebuild of controls
+    (:mod:`imac_model.rollout`, :mod:`imac_model.online_controls`).
+
+    An epoch is one pass over the run's training items: chunks, or clips of ``chunks``
+    consecutive chunks when ``chunks > 1``."""
+
+    chunks: int = 1  # R: chunks per training clip; 1 = no rollout (every chunk from its recorded reference)
+    warmup_epochs: float = 0.0  # the first epochs keep every chunk's recorded (clean) reference and stored controls
+    stage_one_epochs: float = 0.0  # motion+contact: the first epochs inject the motion stream alone (stage one)
+    resolution: Literal["model", "dataset"] = "model"  # where contact/motion images are rebuilt (online_controls)
+    max_walk_distance: float = 0.1  # a predicted depth colour farther than this from the codec's walk is invalid
+    reference_state: Literal["recorded", "commanded"] = "recorded"  # chunk r > 1's robot state: the dataset's,
+    # or the previous chunk's last commanded configuration (what a closed loop knows)
+    device: Literal["auto", "cpu", "cuda"] = "auto"  # the contact computation (auto: the model's device)
+
+    def __post_init__(self) -> None:
+        _positive(self, "chunks", "rollout")
+        for name in ("warmup_epochs", "stage_one_epochs"):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"rollout.{name}: must be >= 0 (got {getattr(self, name)})")
+        if not 0 < self.max_walk_distance <= 1:
+            raise InputError(f"rollout.max_walk_distance: must be in (0, 1] RGB units (got {self.max_walk_distance})")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    data: DataConfig = field(default_factory=DataConfig)
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    conditioning: ConditioningConfig = field(default_factory=ConditioningConfig)
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    rollout: RolloutConfig = field(default_factory=RolloutConfig)
+
+    def __post_init__(self) -> None:
+        if self.rollout.stage_one_epochs > 0 and self.conditioning.mode != "motion+contact":
+            raise InputError(f"rollout.stage_one_epochs: stage one (motion only, then contact added) needs "
+                             f"conditioning.mode motion+contact (got {self.conditioning.mode!r})")
+
+    def to_dict(self) -> dict:
+        return to_dict(self)
+
+    def replace(self, **dotted) -> RunConfig:
+        """A copy with ``{"train.max_steps": 10, ...}`` changed (validated again)."""
+        data = self.to_dict()
+        for key, value in dotted.items():
+            node = data
+            *parents, leaf = key.split(".")
+            for i, p in enumerate(parents):
+                if not isinstance(node.get(p), dict):
+                    raise InputError(f"{'.'.join(parents[:i + 1])}: unknown section (in override {key!r})")
+                node = node[p]
+            node[leaf] = value
+        return parse(RunConfig, data, "")
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """Everything needed to rebuild a world model without its dataset: the model sections
+    of the run plus the facts resolved from the dataset. Saved with every checkpoint."""
+
+    backbone: BackboneConfig
+    conditioning: ConditioningConfig
+    flow: FlowConfig
+    views: tuple[str, ...]  # camera names, mosaic order
+    view_height: int
+    view_width: int
+    chunk: int  # H future frames; a chunk holds 1 + H frames
+    action_dim: int
+    fps: float
+    dataset: str = ""  # the repo id it was trained on (informative)
+    action_mean: tuple[float, ...] = ()  # the dataset's action statistics (action-vector input normalisation)
+    action_std: tuple[float, ...] = ()
+
+    @property
+    def mosaic_hw(self) -> tuple[int, int]:
+        """The six-panel mosaic: an RGB row over a colour-depth row, views side by side."""
+        return 2 * self.view_height, len(self.views) * self.view_width
+
+    def to_dict(self) -> dict:
+        return to_dict(self)
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def _positive(obj, name: str, section: str = "data") -> None:
+    value = getattr(obj, name)
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise InputError(f"{section}.{name}: must be a positive integer (got {value!r})")
+
+
+def parse(cls, value, where: str = ""):
+    """Build dataclass ``cls`` from a mapping, strictly (unknown keys are errors)."""
+    if not isinstance(value, dict):
+        raise InputError(f"{where or 'config'}: expected a mapping, got {type(value).__name__}")
+    hints = typing.get_type_hints(cls)
+    known = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(value) - set(known))
+    if unknown:
+        raise InputError(f"{where or 'config'}: unknown field(s) {unknown}; allowed: {known}")
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        sub = f"{where}.{f.name}" if where else f.name
+        if f.name not in value:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise InputError(f"{where or 'config'}: missing required field '{f.name}'")
+            continue
+        kwargs[f.name] = _coerce(hints[f.name], value[f.name], sub)
+    try:
+        return cls(**kwargs)
+    except InputError as e:
+        raise InputError(f"{where + ': ' if where and not str(e).startswith(where) else ''}{e}") from None
+
+
+def _coerce(hint, value, where: str):
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        options = [a for a in args if a is not type(None)]
+        last = None
+        for arg in options:
+            try:
+                return _coerce(arg, value, where)
+            except InputError as e:
+                last = e
+        raise last if len(options) == 1 else InputError(f"{where}: invalid value {value!r}")
+    if origin is Literal:
+        if value not in args:
+            raise InputError(f"{where}: must be one of {list(args)} (got {value!r})")
+        return value
+    if dataclasses.is_dataclass(hint):
+        return parse(hint, value, where)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise InputError(f"{where}: expected a list, got {type(value).__name__}")
+        return tuple(_coerce(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise InputError(f"{where}: expected a mapping, got {type(value).__name__}")
+        return {str(k): v for k, v in value.items()}
+    if hint is typing.Any:
+        return value
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise InputError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if hint is str:
+        if not isinstance(value, str):
+            raise InputError(f"{where}: expected a string, got {value!r}")
+        return value
+    raise InputError(f"{where}: unsupported value {value!r}")  # pragma: no cover
+
+
+def to_dict(obj) -> dict:
+    """Plain JSON/YAML data (tuples become lists) that :func:`parse` reads back."""
+
+    def plain(v):
+        if dataclasses.is_dataclass(v):
+            return {f.name: plain(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, (list, tuple)):
+            return [plain(x) for x in v]
+        if isinstance(v, dict):
+            return {k: plain(x) for k, x in v.items()}
+        return v
+
+    return plain(obj)
+
+
+def _read(path: Path) -> dict:
+    if not path.is_file():
+        raise InputError(f"config file not found: {path}")
+    try:
+        text = path.read_text()
+        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+    except (OSError, ValueError, yaml.YAMLError) as e:
+        raise InputError(f"{path}: cannot read the config: {e}") from None
+    return data if data is not None else {}
+
+
+def load_run_config(path: str | Path | None = None, overrides: dict | None = None) -> RunConfig:
+    """A :class:`RunConfig` from a YAML/JSON file (or the defaults), with ``overrides``
+    (``{"train.max_steps": 10}``) applied; errors name the file and the field."""
+    data: dict = _read(Path(path)) if path is not None else {}
+    try:
+        config = parse(RunConfig, data, "")
+    except InputError as e:
+        raise InputError(f"{path}: {e}" if path else str(e)) from None
+    return config.replace(**overrides) if overrides else config
+
+
+def save_config(obj, path: str | Path) -> None:
+    """Write a config dataclass as YAML (``.yaml``) or JSON (anything else)."""
+    path = Path(path)
+    data = to_dict(obj)
+    path.write_text(yaml.safe_dump(data, sort_keys=False) if path.suffix in (".yaml", ".yml")
+                    else json.dumps(data, indent=2))
+
+
+def load_model_spec(path: str | Path) -> ModelSpec:
+    return parse(ModelSpec, _read(Path(path)), "")

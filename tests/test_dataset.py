@@ -1,0 +1,153 @@
+"""The dataset package: exact image stats (oracle: LeRobot's own functions), LeRobot's
+encoder reproduced byte for byte, merging keeps the imac block and refuses two rigs, and
+validation (``python -m imac_data.validate``) finds each kind of damage and names it."""
+
+import hashlib
+import json
+import shutil
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import yaml
+from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
+
+from imac_data.build import main as build_main
+from imac_data.dataset.merge import merge_datasets
+from imac_data.dataset.validate import validate_dataset
+from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter
+from imac_data.errors import InputError
+from imac_data.recipes import RECIPES_DIR
+from imac_data.robot_files import DESCRIPTION_DIR
+from imac_data.simulate import SimConfig, record_dataset
+from imac_data.validate import main as validate_main
+
+
+@pytest.mark.parametrize("T, H, W", [(37, 48, 64), (130, 120, 160), (5, 300, 400)])
+def test_image_stats_equal_lerobots_in_constant_memory(T, H, W):
+    rng = np.random.default_rng(T)
+    frames = rng.integers(0, 256, (T, H, W, 3), dtype=np.uint8)
+    frames[..., 1] //= 3  # channels with different ranges
+    stats = ImageStats(T)
+    for start in range(0, T, 8):
+        stats.update(frames[start:start + 8])
+    samples = np.stack([auto_downsample_height_width(frames[i].transpose(2, 0, 1)) for i in sample_indices(T)])
+    ref = get_feature_stats(samples.astype(np.float64), axis=(0, 2, 3), keepdims=True)
+    ours = stats.stats()
+    assert list(ours) == list(ref)
+    for k in ref:
+        np.testing.assert_array_equal(ours[k], ref[k], err_msg=k)
+    with pytest.raises(InputError, match="frames seen"):
+        ImageStats(T + 1).stats()
+
+
+def test_lerobot_style_writer_is_lerobots_encoder(tmp_path):
+    """Our streaming writer with LeRobot's settings writes the bytes LeRobot's own PNG path
+    (encode_video_frames) writes, with no PNGs."""
+    from PIL import Image
+    from lerobot.datasets.video_utils import encode_video_frames
+
+    rng = np.random.default_rng(0)
+    frames = np.clip(rng.normal(128, 40, (9, 48, 64, 3)), 0, 255).astype(np.uint8)
+    (tmp_path / "png").mkdir()
+    for i, f in enumerate(frames):
+        Image.fromarray(f).save(tmp_path / "png" / f"frame-{i:06d}.png")
+    encode_video_frames(tmp_path / "png", tmp_path / "lerobot.mp4", 10, vcodec="libsvtav1", overwrite=True)
+    writer = VideoWriter(tmp_path / "ours.mp4", VideoEncoding.lerobot_default().with_threads(1), 10, 48, 64,
+                         style="lerobot")
+    writer.write(frames[:4])
+    writer.write(frames[4:])
+    writer.close()
+    digest = [hashlib.sha256((tmp_path / n).read_bytes()).hexdigest() for n in ("lerobot.mp4", "ours.mp4")]
+    assert digest[0] == digest[1]
+
+
+# ----------------------------------------------------------------------------- built datasets
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """A one-episode dataset (tiny), built by the build CLI, and a copy of it."""
+    tmp = tmp_path_factory.mktemp("dataset_pkg")
+    src = tmp / "src"
+    record_dataset(SimConfig(num_episodes=1, width=80, height=64, max_steps=14), src, progress=False)
+    data = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
+    data["augment"] = {"height": 32, "width": 40, "contact_chunk": 4}
+    recipe = tmp / "recipe.yaml"
+    recipe.write_text(yaml.safe_dump(data))
+    root = tmp / "ds0"
+    assert build_main(["--repo", "local/pkg", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
+                       "--no-progress", "--workers", "1", "--episodes", "1"]) == 0
+    shutil.copytree(root, tmp / "ds1")
+    return [root, tmp / "ds1"]
+
+
+def test_built_dataset_is_valid_every_frame(built, capsys):
+    report = validate_dataset(built[0], full=True)
+    assert report.ok, report.format()
+    assert set(report.results) == {"metadata", "frame_counts", "imac_block", "rig", "calibration", "caps",
+                                   "decode", "depth"}
+    assert validate_main([str(built[0])]) == 0
+    assert "OK" in capsys.readouterr().out
+
+
+def test_merge_keeps_the_imac_block_and_refuses_two_rigs(built, tmp_path):
+    out = tmp_path / "merged"
+    merge_datasets(built, out, "local/pkg", imac_extra={"build": {"episodes": 2}})
+    info = json.loads((out / "meta" / "info.json").read_text())
+    first = json.loads((built[0] / "meta" / "info.json").read_text())["imac"]
+    assert info["total_episodes"] == 2 and info["imac"]["schema_version"] == 1
+    assert {k: v for k, v in info["imac"].items() if k != "build"} == {k: v for k, v in first.items() if k != "build"}
+    assert info["imac"]["build"] == {"episodes": 2}
+    assert list(json.loads((out / "meta" / "stats.json").read_text())) == \
+        [k for k in info["features"] if k in json.loads((out / "meta" / "stats.json").read_text())]
+    assert validate_dataset(out).ok
+    other = tmp_path / "other"
+    shutil.copytree(built[1], other)
+    path = other / "meta" / "info.json"
+    changed = json.loads(path.read_text())
+    changed["imac"]["cameras"]["cam_high"]["K"][0][0] += 1.0
+    path.write_text(json.dumps(changed, indent=4))
+    with pytest.raises(InputError, match=r"imac\.cameras differ"):
+        merge_datasets([built[0], other], tmp_path / "never", "local/pkg")
+    assert not (tmp_path / "never").exists()
+
+
+def _damage(root, what):
+    info_path = root / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    if what == "schema":
+        info["imac"]["schema_version"] = 99
+    elif what == "calibration":
+        info["imac"]["cameras"]["cam_high"]["T_world_cam"][0] = [-x for x in info["imac"]["cameras"]["cam_high"]
+                                                                  ["T_world_cam"][0][:3]] + [0.0]
+    elif what == "mesh":
+        mesh = sorted((root / DESCRIPTION_DIR / "meshes").iterdir())[0]
+        mesh.write_bytes(mesh.read_bytes()[:-4])
+    elif what == "caps":
+        f = next((root / "data").rglob("*.parquet"))
+        t = pq.read_table(f)
+        caps = t.column("control.contact_cap").to_pylist()
+        caps[3] = [float("nan"), 0.1]
+        i = t.column_names.index("control.contact_cap")
+        pq.write_table(t.set_column(i, "control.contact_cap", pa.array(caps, type=pa.list_(pa.float32()))), f)
+    elif what == "video":
+        mp4 = next((root / "videos" / "control.motion.cam_left_wrist").rglob("*.mp4"))
+        mp4.write_bytes(mp4.read_bytes()[: len(mp4.read_bytes()) // 2])
+    elif what == "depth":  # an RGB video where the depth should be
+        shutil.copy(next((root / "videos" / "control.motion.cam_high").rglob("*.mp4")),
+                    next((root / "videos" / "observation.depth.cam_high").rglob("*.mp4")))
+    info_path.write_text(json.dumps(info, indent=4))
+
+
+@pytest.mark.parametrize("what, check", [("schema", "imac_block"), ("calibration", "calibration"), ("mesh", "rig"),
+                                         ("caps", "caps"), ("video", "frame_counts"), ("depth", "depth")])
+def test_validation_names_the_damage(built, tmp_path, what, check, capsys):
+    root = tmp_path / "ds"
+    shutil.copytree(built[0], root)
+    _damage(root, what)
+    report = validate_dataset(root, full=True)
+    assert not report.ok and report.results.get(check), report.format()
+    assert validate_main([str(root), "--full"]) == 2
+    assert "INVALID" in capsys.readouterr().out

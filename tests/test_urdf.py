@@ -1,0 +1,211 @@
+"""URDF robustness: the spec's default axis (analytic FK), floating/planar joints,
+materials by name across links, and ``python -m imac_data.robot joints``."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from imac_data.errors import InputError
+from imac_data.recipes import parse_recipe
+from imac_data.robot import RobotConfig, RobotModel
+from imac_data.urdf_summary import main as urdf_main
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _write(tmp_path: Path, body: str, name: str = "robot.urdf") -> Path:
+    path = tmp_path / name
+    path.write_text(f'<?xml version="1.0"?>\n<robot name="r">\n{body}\n</robot>\n')
+    return path
+
+
+def _box(rgba: str | None = None, material: str | None = None) -> str:
+    mat = ""
+    if material is not None:
+        color = f'<color rgba="{rgba}"/>' if rgba else ""
+        mat = f'<material name="{material}">{color}</material>'
+    return f'<visual><geometry><box size="0.1 0.1 0.1"/></geometry>{mat}</visual>'
+
+
+# An arm whose movable joints have no <axis> (the spec: x), and one with an <axis> lacking xyz.
+NO_AXIS = """
+<link name="base">{box}</link>
+<link name="upper">{box}</link>
+<link name="tip"/>
+<link name="slider">{box}</link>
+<link name="wheel"/>
+<joint name="shoulder" type="revolute">
+  <parent link="base"/><child link="upper"/><origin xyz="0 0 0.5"/>
+  <limit lower="-3" upper="3" effort="1" velocity="1"/>
+</joint>
+<joint name="tip_mount" type="fixed"><parent link="upper"/><child link="tip"/><origin xyz="0 1 0"/></joint>
+<joint name="rail" type="prismatic">
+  <parent link="base"/><child link="slider"/><limit lower="0" upper="1" effort="1" velocity="1"/>
+</joint>
+<joint name="spin" type="continuous"><parent link="upper"/><child link="wheel"/><axis/></joint>
+""".format(box=_box())
+
+
+def test_joint_without_axis_uses_the_spec_default_x(tmp_path):
+    urdf = _write(tmp_path, NO_AXIS)
+    robot = RobotModel(RobotConfig("r", urdf, ("shoulder", "rail", "spin")))
+    theta = torch.tensor([0.0, 0.3, -1.2, math.pi / 2], dtype=torch.float64)
+    d = torch.tensor([0.0, 0.25, 0.5, 1.0], dtype=torch.float64)
+    phi = torch.tensor([0.7, -0.4, 2.0, 0.1], dtype=torch.float64)
+    poses = robot.link_poses(torch.stack([theta, d, phi], dim=-1))
+    c, s = np.cos(theta.numpy()), np.sin(theta.numpy())
+    # Analytic: R_x(theta) about the shoulder at z = 0.5; the tip at (0, 1, 0) in the upper frame.
+    Rx = np.zeros((4, 3, 3))
+    Rx[:, 0, 0] = 1
+    Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = c, -s, s, c
+    np.testing.assert_allclose(poses["upper"][:, :3, :3].numpy(), Rx, atol=1e-12)
+    np.testing.assert_allclose(poses["tip"][:, :3, 3].numpy(), np.stack([0 * c, c, 0.5 + s], -1), atol=1e-12)
+    # The rail slides along x.
+    np.testing.assert_allclose(poses["slider"][:, :3, 3].numpy(), np.stack([d, 0 * d, 0 * d], -1), atol=1e-12)
+    # <axis/> without xyz: also x, so the wheel turns about the upper link's x axis.
+    cp, sp = np.cos(phi.numpy()), np.sin(phi.numpy())
+    Rxp = np.zeros((4, 3, 3))
+    Rxp[:, 0, 0] = 1
+    Rxp[:, 1, 1], Rxp[:, 1, 2], Rxp[:, 2, 1], Rxp[:, 2, 2] = cp, -sp, sp, cp
+    np.testing.assert_allclose(poses["wheel"][:, :3, :3].numpy(), Rx @ Rxp, atol=1e-12)
+
+
+def test_zero_axis_is_refused(tmp_path):
+    urdf = _write(tmp_path, NO_AXIS.replace('<axis/>', '<axis xyz="0 0 0"/>'))
+    with pytest.raises(InputError, match=r"robot\.urdf: joint 'spin' has axis xyz='0 0 0'"):
+        RobotModel(RobotConfig("r", urdf, ("shoulder",)))
+
+
+# ----------------------------------------------------------------------------- joint types
+
+FLOATING_ROOT = """
+<link name="world"/>
+<link name="base">{box}</link>
+<link name="arm">{box}</link>
+<joint name="place" type="floating"><parent link="world"/><child link="base"/>
+  <origin xyz="1 2 3" rpy="0 0 1.5707963267948966"/></joint>
+<joint name="j1" type="revolute"><parent link="base"/><child link="arm"/><axis xyz="0 0 1"/>
+  <origin xyz="0.5 0 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+""".format(box=_box())
+
+
+def test_floating_root_is_held_fixed_at_its_origin(tmp_path):
+    urdf = _write(tmp_path, FLOATING_ROOT)
+    robot = RobotModel(RobotConfig("r", urdf, ("j1",)))
+    assert robot.held_fixed == ("place",) and robot.joint_names == ["j1"]
+    poses = robot.link_poses(torch.tensor([0.3], dtype=torch.float64))
+    base = poses["base"].numpy()
+    np.testing.assert_allclose(base[:3, 3], [1, 2, 3], atol=1e-12)
+    np.testing.assert_allclose(base[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    # j1 sits 0.5 m along the base's x, which the rotation turns into world y.
+    np.testing.assert_allclose(poses["arm"].numpy()[:3, 3], [1, 2.5, 3], atol=1e-12)
+    with pytest.raises(InputError, match=r"'place' \(dataset index 1\) is the floating root joint of .*robot\.urdf"):
+        RobotModel(RobotConfig("r", urdf, ("j1", "place")))
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda t: t.replace('name="j1" type="revolute"', 'name="j1" type="planar"'),
+     r"robot\.urdf: joint 'j1' is a 'planar' joint"),
+    (lambda t: t.replace('name="j1" type="revolute"', 'name="j1" type="floating"'),
+     r"robot\.urdf: joint 'j1' is a 'floating' joint that does not hang off the root link"),
+    (lambda t: t.replace('name="j1" type="revolute"', 'name="j1" type="spherical"'),
+     r"robot\.urdf: joint 'j1' has unknown type 'spherical'"),
+])
+def test_unsupported_joint_types_name_file_and_joint(tmp_path, edit, message):
+    urdf = _write(tmp_path, edit(FLOATING_ROOT))
+    with pytest.raises(InputError, match=message):
+        RobotModel(RobotConfig("r", urdf, ("j1",)))
+    assert urdf_main(["joints", str(urdf)]) == 2
+
+
+# ----------------------------------------------------------------------------- materials
+
+
+def test_materials_resolve_by_name_across_links(tmp_path):
+    body = f"""
+<material name="red"><color rgba="1 0 0 1"/></material>
+<link name="a">{_box("0 0 1 1", "blue")}</link>
+<link name="b">{_box(material="blue")}</link>
+<link name="c">{_box(material="red")}</link>
+<link name="d">{_box("0 1 0 1", "red")}</link>
+<link name="e">{_box(material="nowhere")}</link>
+<joint name="ab" type="fixed"><parent link="a"/><child link="b"/></joint>
+<joint name="ac" type="revolute"><parent link="a"/><child link="c"/><axis xyz="0 0 1"/>
+  <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+<joint name="ad" type="fixed"><parent link="a"/><child link="d"/></joint>
+<joint name="ae" type="fixed"><parent link="a"/><child link="e"/></joint>
+"""
+    robot = RobotModel(RobotConfig("r", _write(tmp_path, body), ("ac",)))
+    rgba = {m.link: m.rgba.tolist() for m in robot.visual_meshes}
+    assert rgba["a"] == [0, 0, 1, 1]  # inline definition
+    assert rgba["b"] == [0, 0, 1, 1]  # by name, defined inside link a's visual
+    assert rgba["c"] == [1, 0, 0, 1]  # by name, robot-level
+    assert rgba["d"] == [0, 1, 0, 1]  # an inline colour applies to its own visual
+    assert rgba["e"] == [0.5, 0.5, 0.5, 1]  # undefined name: the default grey
+
+
+# ----------------------------------------------------------------------------- joints CLI
+
+
+def _panda():
+    pybullet_data = pytest.importorskip("pybullet_data")  # a dependency: never skipped in CI
+    d = Path(pybullet_data.getDataPath()) / "franka_panda"
+    return d / "panda.urdf", d / "meshes"
+
+
+def test_joints_cli_lists_joints_and_prints_a_working_recipe_block(tmp_path, capsys):
+    urdf, meshes = _panda()
+    assert urdf_main(["joints", str(urdf), "--package-dir", f"meshes={meshes}"]) == 0
+    out = capsys.readouterr().out
+    cut = out.index("# Recipe `robot:` block")
+    listing, block = out[:cut], out[cut:]
+    rows = {line.split()[0]: line.split() for line in listing.splitlines() if line.startswith("  panda_")}
+    assert [n for n in rows if "joint" in n] == [f"panda_joint{i}" for i in range(1, 8)] + [
+        "panda_finger_joint1", "panda_finger_joint2"]
+    assert rows["panda_joint4"][1:5] == ["revolute", "-3.1416", "0", "rad"]
+    assert rows["panda_finger_joint1"][1:5] == ["prismatic", "0", "0.04", "m"]
+    assert "mimic: = 0 + 1 * panda_finger_joint1" in " ".join(rows["panda_finger_joint2"])
+    assert "links with visuals (11):" in listing and "MISSING" not in listing
+    assert "panda_hand: 1 visual(s): package://meshes/visual/hand.obj" in listing
+    # The block is a recipe robot: section that builds the robot as printed.
+    robot_section = yaml.safe_load(block)["robot"]
+    assert robot_section["joint_map"] == [f"panda_joint{i}" for i in range(1, 8)] + ["panda_finger_joint1"]
+    assert robot_section["gripper_links"] == ["panda_leftfinger", "panda_rightfinger"]
+    recipe = parse_recipe({"name": "panda", "task": "t", "robot": robot_section,
+                           "cameras": {"calibration": "calib.json"},
+                           "source": {"type": "aloha_hdf5", "path": str(tmp_path)}}, str(tmp_path / "r.yaml"))
+    r = recipe.robot
+    robot = RobotModel(RobotConfig("panda", r.urdf, r.joint_map, r.gripper_links, r.package_dirs))
+    assert robot.joint_names == [f"panda_joint{i}" for i in range(1, 8)] + [
+        "panda_finger_joint1", "panda_finger_joint2"]
+    # Without the package directory every mesh is reported missing, with the option to fix it.
+    assert urdf_main(["joints", str(urdf)]) == 0
+    assert "give --package-dir meshes=PATH" in capsys.readouterr().out
+
+
+def test_joints_cli_as_a_module(tmp_path):
+    urdf = _write(tmp_path, FLOATING_ROOT)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    res = subprocess.run([sys.executable, "-m", "imac_data.robot", "joints", str(urdf)], capture_output=True,
+                         text=True, env=env, cwd=REPO, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "floating root joint(s) held fixed at their origin: place" in res.stdout
+    assert "    - j1  # revolute [-3, 3] rad" in res.stdout
+
+
+def test_joints_cli_errors(tmp_path, capsys):
+    assert urdf_main(["joints", str(tmp_path / "none.urdf")]) == 2
+    assert "none.urdf does not exist" in capsys.readouterr().err
+    bad = tmp_path / "bad.urdf"
+    bad.write_text("<robot name='r'><link name='a'>")
+    assert urdf_main(["joints", str(bad)]) == 2
+    assert "cannot parse URDF" in capsys.readouterr().err
