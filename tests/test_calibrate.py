@@ -24,8 +24,8 @@ import torch
 
 from imac_data import aloha
 from imac_data.aloha_hdf5 import RawEpisode, read_episode, write_episode
-from imac_data.calibrate import (RefineConfig, _exact_energy, _make_level, _render, _SoftSilhouette, apply_update,
-                                 pose_change, select_frames)
+from imac_data.calibrate import RefineConfig, apply_update, pose_change, select_frames
+from imac_data.calibrate.objective import SoftSilhouette, exact_energy, make_level, render_level
 from imac_data.cameras import load_calibration, save_calibration
 from imac_data.errors import InputError
 from imac_data.qa import main as qa_main
@@ -35,6 +35,12 @@ from imac_data.simulate import SimConfig, record_dataset
 
 REPO = Path(__file__).resolve().parent.parent
 RECIPE = REPO / "recipes" / "aloha_sim_transfer_cube.yaml"
+
+
+def sim_near() -> str:
+    """MuJoCo's near clip plane (``znear * extent``): the simulator's masks are clipped there."""
+    model = aloha.load_mujoco_model("transfer_cube")
+    return str(model.vis.map.znear * model.stat.extent)
 
 
 @pytest.fixture(scope="module")
@@ -119,11 +125,11 @@ def test_soft_objective_equals_the_exact_one_at_zero(sim_src, robot):
     cam = perturbed(load_calibration(sim_src / "calibration.json"), 0)["cam_high"]
     q = torch.as_tensor(ep.qpos[idx])
     for cfg in (RefineConfig(iou_weight=1.0, edge_weight=0.1), RefineConfig(robust="huber", edge_scale_px=2.0)):
-        lv = _make_level(cam, target.astype(np.float32), 1.0, cfg.pad, False)
-        v = _render(renderer, cam, q, lv, cfg)
-        soft = _SoftSilhouette(v, cam, lv, cfg, cfg.step_px)
+        lv = make_level(cam, target.astype(np.float32), 1.0, cfg.pad, False)
+        v = render_level(renderer, cam, q, lv, cfg)
+        soft = SoftSilhouette(v, cam, lv, cfg, cfg.step_px)
         assert float(soft.energy(torch.zeros(7, dtype=torch.float64))) == pytest.approx(v.energy, rel=1e-4)
-        assert v.energy == pytest.approx(_exact_energy(v, lv, cfg)[0])
+        assert v.energy == pytest.approx(exact_energy(v, lv, cfg)[0])
         assert 0 < v.iou < 1
 
 
@@ -141,7 +147,7 @@ def test_refine_returns_to_the_truth_with_sim_masks(sim_src, tmp_path, capsys):
     before = digest(bad)
     out = tmp_path / "refined.json"
     rc = qa_main(["refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(bad), "--out", str(out),
-                  "--cameras", "cam_high,cam_right_wrist", "--robot-pixels", "sim"])
+                  "--cameras", "cam_high,cam_right_wrist", "--robot-pixels", "sim", "--near", sim_near()])
     printed = capsys.readouterr().out
     assert rc == 0, printed
     assert digest(bad) == before
