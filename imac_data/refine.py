@@ -1,14 +1,16 @@
 """``qa refine``: fix a calibration from the recordings themselves.
 
-    python -m imac_data.qa refine SOURCE --recipe R.yaml [--calibration calib.json] --out refined.json
+    python -m imac_data.qa refine SOURCE [--recipe R.yaml] [--calibration calib.json] --out refined.json
         [--robot-pixels auto|sim|edges|MASK_DIR] [--cameras cam_high,...] [--frames 8]
         [--method gradient|nelder-mead|powell] [--refine-focal] [--near METRES]
         [--report DIR] [--overwrite]
 
-The rig (robot, cameras, controller, renderer) comes from the recipe and the calibration
-(:meth:`imac_data.rig.Rig.from_recipe`; ``--calibration`` defaults to the recipe's
-``cameras.calibration``). SOURCE is a directory of raw ALOHA/AgileX HDF5 episodes or one
-episode file, read through :class:`imac_data.calibrate.EpisodeFrames`. Per camera, frames
+SOURCE is a directory of raw ALOHA/AgileX HDF5 episodes, one episode file, or a LeRobot
+dataset (:func:`imac_data.calibrate.open_frames`). The rig (robot, cameras, controller,
+renderer) comes from the recipe and the calibration (:meth:`imac_data.rig.Rig.from_recipe`;
+``--calibration`` defaults to the recipe's ``cameras.calibration``), or for a dataset built
+by imac without ``--recipe``, from the dataset itself (:meth:`imac_data.rig.Rig.from_dataset`;
+``--calibration`` then replaces its cameras). Per camera, frames
 are chosen, the robot's pixels taken from the chosen source
 (:class:`imac_data.calibrate.RobotPixels`) and the pose refined
 (:mod:`imac_data.calibrate`). It writes
@@ -41,8 +43,8 @@ from pathlib import Path
 
 import torch
 
-from imac_data.calibrate import (EpisodeFrames, RefineConfig, RobotPixels, choose_frames, refine_camera,
-                                 refine_camera_edges, silhouette_agreement)
+from imac_data.calibrate import (DatasetFrames, RefineConfig, RobotPixels, choose_frames, open_frames,
+                                 refine_camera, refine_camera_edges, silhouette_agreement)
 from imac_data.calibrate.report import camera_entry, draw_overlay, format_report, write_outputs
 from imac_data.errors import InputError
 
@@ -63,51 +65,69 @@ def _check_outputs(out: Path, report: Path, inputs: dict, overwrite: bool) -> No
         raise InputError(f"--out {out} is a directory; give a file name such as refined.json")
 
 
-def refine_calibration(source: str | Path, out: str | Path, *, recipe, calibration: str | Path | None = None,
+def _rig(src, recipe, calibration: Path | None):
+    """The rig and the calibration file it was made from (``None``: the dataset's own)."""
+    from imac_data.recipes import load_recipe
+    from imac_data.rig import Rig
+
+    if recipe is None:
+        if not isinstance(src, DatasetFrames):
+            raise InputError("--recipe is required for raw episodes (the robot and its cameras); only a dataset "
+                             "built by imac carries its rig")
+        rig = Rig.from_dataset(src.source)
+        if calibration is not None:
+            from imac_data.cameras import load_calibration
+
+            rig = Rig(rig.robot, load_calibration(calibration), rig.controller, rig.state_names,
+                      rig.gripper_spacing)
+        return rig, calibration
+    recipe = load_recipe(recipe) if isinstance(recipe, (str, Path)) else recipe
+    if calibration is None:
+        calibration = recipe.resolve_path(recipe.cameras.calibration)
+        if calibration is None:
+            raise InputError(f"{recipe.file or 'recipe'}: no calibration given (--calibration, or the recipe's "
+                             "cameras.calibration)")
+    return Rig.from_recipe(recipe, calibration), Path(calibration)  # mounted cameras' links checked
+
+
+def refine_calibration(source: str | Path, out: str | Path, *, recipe=None, calibration: str | Path | None = None,
                        robot_pixels: str = "auto", cameras: Sequence[str] | None = None, frames: int = 8,
                        min_separation: float = 0.1, config: RefineConfig | None = None, near: float = 0.0,
                        report: str | Path | None = None, overwrite: bool = False, edge_rounds: int = 3,
                        edge_margin: float = 0.08, candidate_budget: int = 400, log=None) -> dict:
-    """Refine the calibration of the rig that ``recipe`` (a path or a loaded recipe) and
-    ``calibration`` describe from the episodes in ``source``; write ``out`` and the report
-    directory; return the report dict. Every input is checked before any work."""
-    from imac_data.recipes import load_recipe
-    from imac_data.rig import Rig
-
+    """Refine the calibration of a rig from the frames in ``source``; write ``out`` and the
+    report directory; return the report dict. The rig: ``recipe`` (a path or a loaded recipe)
+    with ``calibration`` (default: the recipe's), or a built dataset's own. Every input is
+    checked before any work."""
     log = log or (lambda msg: None)
     config = config or RefineConfig()
     source, out = Path(source), Path(out)
     report = Path(report) if report is not None else out.with_name(out.stem + ".report")
+    calibration = Path(calibration) if calibration is not None else None
     if frames < 3:
         raise InputError(f"--frames must be at least 3 (got {frames}): one or two views hardly constrain a pose")
     if not (math.isfinite(near) and near >= 0):
         raise InputError(f"--near must be >= 0 metres, got {near}")
     recipe_path = Path(recipe) if isinstance(recipe, (str, Path)) else getattr(recipe, "file", None)
-    recipe = load_recipe(recipe) if isinstance(recipe, (str, Path)) else recipe
-    if calibration is None:
-        calibration = recipe.resolve_path(recipe.cameras.calibration)
-        if calibration is None:
-            raise InputError(f"{recipe_path or 'recipe'}: no calibration given (--calibration, or the recipe's "
-                             "cameras.calibration)")
-    calibration = Path(calibration)
-    _check_outputs(out, report, {"source episodes": source, "calibration": calibration,
-                                 "recipe": Path(recipe_path) if recipe_path else None}, overwrite)
-    rig = Rig.from_recipe(recipe, calibration)  # mounted cameras' links checked against the URDF
-    src = EpisodeFrames(source)
+    inputs = {"source": source, "calibration": calibration, "recipe": Path(recipe_path) if recipe_path else None}
+    _check_outputs(out, report, inputs, overwrite)
+    src = open_frames(source)
+    rig, calibration = _rig(src, recipe, calibration)
+    if calibration is not None and inputs["calibration"] is None:  # the recipe's calibration is an input too
+        _check_outputs(out, report, {**inputs, "calibration": calibration}, overwrite)
     cams = list(cameras) if cameras else [c for c in src.cameras if c in rig.cameras]
     missing = [c for c in cams if c not in src.cameras]
     if missing:
-        raise InputError(f"{source}: camera(s) {missing} not in the episodes (they have {src.cameras})")
+        raise InputError(f"{source}: camera(s) {missing} not in the source (it has {src.cameras})")
+    where = calibration or f"{source}/meta/info.json"
     uncalibrated = [c for c in cams if c not in rig.cameras]
     if uncalibrated:
-        raise InputError(f"{calibration}: no calibration for camera(s) {uncalibrated} "
-                         f"(calibrated: {sorted(rig.cameras)})")
+        raise InputError(f"{where}: no calibration for camera(s) {uncalibrated} (calibrated: {sorted(rig.cameras)})")
     if not cams:
-        raise InputError(f"no camera is both in the episodes ({src.cameras}) and calibrated ({sorted(rig.cameras)})")
+        raise InputError(f"no camera is both in the source ({src.cameras}) and calibrated ({sorted(rig.cameras)})")
     dof = src.joints(src.episodes[0]).shape[1]
     if dof != rig.dof:
-        raise InputError(f"{src.episodes[0]}: joint vectors have {dof} entries, robot {rig.robot.name!r} "
-                         f"expects {rig.dof}")
+        raise InputError(f"{source}: joint vectors have {dof} entries, robot {rig.robot.name!r} expects {rig.dof}")
     pixels = RobotPixels.parse(robot_pixels, src)
     sized = rig.with_image_sizes({c: src.image_hw(c) for c in cams}).cameras  # calibration at the frames' size
     if near > 0:
@@ -118,7 +138,7 @@ def refine_calibration(source: str | Path, out: str | Path, *, recipe, calibrati
         renderer = rig.renderer
 
     t0, c0 = time.perf_counter(), time.process_time()
-    result = {"source": str(source), "calibration": str(calibration), "out": str(out), "robot": rig.robot.name,
+    result = {"source": str(source), "calibration": str(where), "out": str(out), "robot": rig.robot.name,
               "robot_urdf_sha256": rig.robot.urdf_hash, "robot_pixels": str(pixels), "near_m": near,
               "config": config.to_dict(), "cameras": {}}
     refined, overlays = dict(rig.cameras), {}
@@ -165,14 +185,17 @@ def refine_calibration(source: str | Path, out: str | Path, *, recipe, calibrati
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", help="directory of raw HDF5 episodes, or one episode file")
-    p.add_argument("--recipe", required=True, help="build recipe: the robot (URDF, joint map) and its cameras")
+    p.add_argument("source", help="directory of raw HDF5 episodes, one episode file, or a LeRobot dataset")
+    p.add_argument("--recipe", default=None, help="build recipe: the robot (URDF, joint map) and its cameras "
+                   "(required for raw episodes; a dataset built by imac carries its own)")
     p.add_argument("--calibration", default=None,
-                   help="calibration JSON to refine (never modified; default: the recipe's cameras.calibration)")
+                   help="calibration JSON to refine (never modified; default: the recipe's cameras.calibration, "
+                        "or the dataset's)")
     p.add_argument("--out", required=True, help="refined calibration JSON to write")
     p.add_argument("--robot-pixels", default="auto",
                    help="where the robot's pixels come from: auto (default: sim if recorded, else edges), sim, "
-                        "edges, or a mask directory DIR/<episode stem>/<camera>/<frame:06d>.png")
+                        "edges, or a mask directory DIR/<episode>/<camera>/<frame:06d>.png (<episode>: the "
+                        "episode file's stem, or episode_000000... for a dataset)")
     p.add_argument("--cameras", default=None, help="comma-separated cameras (default: every calibrated one)")
     p.add_argument("--frames", type=int, default=8, help="frames per camera (default 8)")
     p.add_argument("--min-separation", type=float, default=0.1,

@@ -182,6 +182,48 @@ def test_refine_returns_to_the_truth_with_sim_masks(sim_src, tmp_path, capsys):
     assert digest(bad) == before
 
 
+def test_refine_a_lerobot_dataset_with_a_segmenters_masks(sim_src, tmp_path, capsys):
+    """A dataset built with a wrong head calibration: `qa refine DATASET` takes the rig from the
+    dataset itself (no recipe), the robot's pixels from a mask directory (a 'segmenter' whose
+    masks are the simulator's), the frames through LeRobot's decoder, and returns the head
+    camera to the simulator's exact calibration. The dataset is not modified."""
+    from imac_data.ingest import IngestOptions, ingest_episodes
+    from imac_data.qa import ground_truth_robot_mask
+    from imac_data.recipes import load_recipe
+    from imac_data.rig import Rig
+
+    truth = load_calibration(sim_src / "calibration.json")
+    start = perturbed(truth, 2)
+    bad = tmp_path / "bad.json"
+    save_calibration(bad, start)
+    rig = Rig.from_recipe(load_recipe(RECIPE), bad)
+    root = tmp_path / "ds"
+    ingest_episodes([sim_src / "episode_0.hdf5"], rig=rig, repo_id="local/ds", root=root,
+                    options=IngestOptions(fps=25, task="t", state_names=aloha.STATE_NAMES, vcodec="libx264"),
+                    progress=False)
+    ep = read_episode(sim_src / "episode_0.hdf5", cameras=["cam_high"], load_depth=False, load_segmentation=True)
+    folder = tmp_path / "masks" / "episode_000000" / "cam_high"
+    folder.mkdir(parents=True)
+    for t in range(0, ep.num_frames, 4):
+        m = ground_truth_robot_mask(ep.segmentation["cam_high"][t], ep.segmentation_labels, rig.robot.link_names)
+        cv2.imwrite(str(folder / f"{t:06d}.png"), m.astype(np.uint8) * 255)
+    info = digest(root / "meta" / "info.json")
+    out = tmp_path / "refined.json"
+    rc = qa_main(["refine", str(root), "--out", str(out), "--cameras", "cam_high", "--robot-pixels",
+                  str(tmp_path / "masks"), "--near", sim_near()])
+    assert rc == 0, capsys.readouterr().err
+    assert digest(root / "meta" / "info.json") == info
+    refined = load_calibration(out)
+    assert pose_change(truth["cam_high"], start["cam_high"])["t_mm"] >= 20  # it did start far off
+    err = pose_change(truth["cam_high"], refined["cam_high"])
+    assert err["t_mm"] <= 3.0 and err["r_deg"] <= 0.2, err
+    frames = json.loads((tmp_path / "refined.report" / "report.json").read_text())["cameras"]["cam_high"]["frames"]
+    assert len(frames) == 8 and all(t % 4 == 0 for _, t in frames)  # only frames that have a mask
+    # raw episodes need a recipe: only a dataset carries its rig
+    assert qa_main(["refine", str(sim_src), "--out", str(tmp_path / "r2.json")]) == 2
+    assert "--recipe is required" in capsys.readouterr().err
+
+
 def test_refine_refuses_views_without_the_robot(sim_src, tmp_path, capsys):
     """Masks that never show the robot (here: empty masks from a 'segmenter') get a clear message,
     and nothing is written."""

@@ -13,7 +13,7 @@ One module per concept:
 * :mod:`.pose`: the pose update in the camera's own axes, and the pose change per axis;
 * :mod:`.frames`: which frames (robot well in view, configurations far apart), where the
   robot's pixels come from (simulator, a segmenter's masks, the built-in edge cue), and
-  reading them from raw episodes;
+  reading them from raw episodes or a LeRobot dataset;
 * :mod:`.objective`: the distance-field edge term and the soft silhouette IoU, exact and
   differentiable; :func:`silhouette_agreement`, the report's measure;
 * :mod:`.config`, :mod:`.optimise`: :class:`RefineConfig`; coarse to fine, gradient
@@ -26,13 +26,13 @@ Functions here work on arrays and tensors; the command (inputs, the rig, files) 
 """
 
 from imac_data.calibrate.config import METHODS, RefineConfig
-from imac_data.calibrate.frames import (PIXEL_SOURCES, CameraFrames, EpisodeFrames, RobotPixels, choose_frames,
-                                        image_edges, select_frames)
+from imac_data.calibrate.frames import (PIXEL_SOURCES, CameraFrames, DatasetFrames, EpisodeFrames, RobotPixels,
+                                        choose_frames, image_edges, open_frames, select_frames)
 from imac_data.calibrate.objective import distance_field, edge_distance, silhouette_agreement
 from imac_data.calibrate.optimise import CameraFit, refine_camera, refine_camera_edges
 from imac_data.calibrate.pose import AXES, apply_update, pose_change, se3_exp
 
-__all__ = ["METHODS", "RefineConfig", "PIXEL_SOURCES", "CameraFrames", "EpisodeFrames", "RobotPixels",
-           "choose_frames", "image_edges", "select_frames", "distance_field", "edge_distance",
+__all__ = ["METHODS", "RefineConfig", "PIXEL_SOURCES", "CameraFrames", "DatasetFrames", "EpisodeFrames",
+           "RobotPixels", "open_frames", "choose_frames", "image_edges", "select_frames", "distance_field", "edge_distance",
            "silhouette_agreement", "CameraFit", "refine_camera", "refine_camera_edges", "AXES", "apply_update",
            "pose_change", "se3_exp"]

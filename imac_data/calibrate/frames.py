@@ -15,8 +15,10 @@ Robot pixels (``RobotPixels``), a pluggable source:
   nearest edge (:func:`imac_data.calibrate.optimise.refine_camera_edges`).
 
 Frames are read from raw episodes (:class:`EpisodeFrames`, through
-:class:`imac_data.aloha_hdf5.EpisodeReader`, one frame range at a time) and only where
-asked, so memory follows the chosen frames, not the episodes' length.
+:class:`imac_data.aloha_hdf5.EpisodeReader`) or from a LeRobot dataset
+(:class:`DatasetFrames`, through LeRobot's ``LeRobotDataset``; ``<episode>`` in a mask
+directory is then ``episode_000000``, ...), frame by frame and only where asked, so memory
+follows the chosen frames, not the episodes' length. :func:`open_frames` picks the reader.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import torch
 from imac_data.cameras import Camera
 from imac_data.errors import InputError
 
-__all__ = ["PIXEL_SOURCES", "EpisodeFrames", "RobotPixels", "CameraFrames", "select_frames", "choose_frames",
+__all__ = ["PIXEL_SOURCES", "EpisodeFrames", "DatasetFrames", "open_frames", "RobotPixels", "CameraFrames", "select_frames", "choose_frames",
            "image_edges"]
 
 PIXEL_SOURCES = ("sim", "masks", "edges")
@@ -107,6 +109,76 @@ class EpisodeFrames:
                                  "choose --robot-pixels edges or a mask directory")
             seg = np.concatenate([ep.segmentation(camera, int(t), int(t) + 1) for t in frames])
             return ground_truth_robot_mask(seg, ep.segmentation_labels(), links)
+
+
+class DatasetFrames:
+    """The frames of a LeRobot dataset (``ROOT/meta/info.json``), the same interface as
+    :class:`EpisodeFrames`: joint vectors from ``observation.state``, images from the
+    ``observation.images.<camera>`` streams, decoded by LeRobot. A dataset has no simulator
+    segmentation, so its robot pixels are a mask directory or the edge cue."""
+
+    has_segmentation = False
+    _PREFIX = "observation.images."
+
+    def __init__(self, root: str | Path):
+        import json
+
+        self.source = Path(root)
+        path = self.source / "meta" / "info.json"
+        if not path.is_file():
+            raise InputError(f"{root} is not a LeRobot dataset ({path} is missing)")
+        info = json.loads(path.read_text())
+        features = info.get("features", {})
+        keys = [k for k, f in features.items() if k.startswith(self._PREFIX) and f.get("dtype") in ("video", "image")]
+        if not keys:
+            raise InputError(f"{path}: no {self._PREFIX}<camera> image streams")
+        if "observation.state" not in features:
+            raise InputError(f"{path}: no observation.state feature (the joint vectors the images show)")
+        self.cameras = sorted(k[len(self._PREFIX):] for k in keys)
+        self._hw = {k[len(self._PREFIX):]: tuple(int(v) for v in features[k]["shape"][:2]) for k in keys}
+        self.episodes = [str(i) for i in range(int(info.get("total_episodes", 0)))]
+        if not self.episodes:
+            raise InputError(f"{path}: the dataset has no episodes")
+        self._open: tuple[str, object] | None = None  # one episode's LeRobotDataset at a time
+
+    def _dataset(self, episode: str):
+        if self._open is None or self._open[0] != episode:
+            from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+            self._open = (episode, LeRobotDataset(f"local/{self.source.name}", root=self.source,
+                                                  episodes=[int(episode)]))
+        return self._open[1]
+
+    def image_hw(self, camera: str) -> tuple[int, int]:
+        return self._hw[camera]
+
+    def joints(self, episode: str) -> np.ndarray:
+        states = self._dataset(episode).hf_dataset["observation.state"]
+        return torch.stack(list(states)).numpy().astype(np.float64)
+
+    def mask_folder(self, episode: str) -> str:
+        return f"episode_{int(episode):06d}"
+
+    def images(self, episode: str, camera: str, frames: Sequence[int]) -> np.ndarray:
+        ds = self._dataset(episode)
+        out = []
+        for t in frames:  # frame t of the episode is item t of its LeRobotDataset
+            x = ds[int(t)][self._PREFIX + camera].numpy()
+            out.append(np.clip(np.rint(np.moveaxis(x, 0, -1) * 255.0), 0, 255).astype(np.uint8))
+        return np.stack(out)
+
+    def robot_masks(self, episode: str, camera: str, frames: Sequence[int], links: Sequence[str]) -> np.ndarray:
+        raise InputError(f"{self.source}: a LeRobot dataset carries no simulator segmentation; "
+                         "choose --robot-pixels edges or a mask directory")
+
+
+def open_frames(source: str | Path) -> EpisodeFrames | DatasetFrames:
+    """The frames of ``source``: a LeRobot dataset (a directory with ``meta/info.json``), a
+    directory of raw HDF5 episodes, or one episode file."""
+    source = Path(source)
+    if (source / "meta" / "info.json").is_file():
+        return DatasetFrames(source)
+    return EpisodeFrames(source)
 
 
 @dataclass(frozen=True)
