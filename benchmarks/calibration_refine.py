@@ -2,6 +2,7 @@
 
     python -m benchmarks.calibration_refine [--quick] [--seeds 3] [--methods gradient,nelder-mead]
         [--cues sim,edges] [--ablation] [--cameras ...] [--frames 8] [--json PATH]
+    python -m benchmarks.calibration_refine --figure     # docs/calibration_refine.png
 
 Simulated transfer-cube episodes at 480x640 (two episodes, scripted policy, MuJoCo's geom
 segmentation), recorded once into ``$XDG_CACHE_HOME/imac/bench/``. The simulated rig's
@@ -26,6 +27,8 @@ mirrors them; those frames are part of the test.
 
 ``--ablation`` adds the objective variants behind the defaults (IoU term on/off, Huber vs
 Cauchy edge loss), with the gradient optimiser and sim masks, on one seed.
+``--figure`` makes the README's before/after overlay: the ``qa refine`` command line on
+seed 0's perturbation (head and left wrist camera, sim masks), its report's overlays cropped.
 ``--quick`` (CI smoke): 120x160, one seed, one episode, sim masks and the default optimiser.
 Timings depend on the machine's load; the JSON records the load average beside them.
 """
@@ -276,6 +279,49 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def figure(out: Path = Path(__file__).resolve().parent.parent / "docs" / "calibration_refine.png") -> Path:
+    """The README's figure: ``qa refine`` (the CLI) on seed 0's perturbation at 480x640, then
+    the third chosen frame of the head and left wrist overlays, before and after."""
+    import cv2
+
+    from imac_data.qa import main as qa_main
+
+    src = record(480, 640, 2)
+    with tempfile.TemporaryDirectory(prefix="calib-figure-") as tmp:
+        tmp = Path(tmp)
+        start = tmp / "start-0.json"
+        save_calibration(start, perturb(load_calibration(src / "calibration.json"), 0))
+        argv = ["refine", str(src), "--recipe", str(RECIPE), "--calibration", str(start), "--out",
+                str(tmp / "refined.json"), "--cameras", "cam_high,cam_left_wrist", "--robot-pixels", "sim",
+                "--near", f"{sim_near():.3f}"]
+        print("python -m imac_data.qa " + " ".join(argv), file=sys.stderr)
+        if qa_main(argv) != 0:
+            raise SystemExit("qa refine failed")
+        report = tmp / "refined.report"
+        entries = json.loads((report / "report.json").read_text())["cameras"]
+
+        def tile(name: str, rows: slice) -> np.ndarray:
+            grid = cv2.imread(str(report / name))
+            h, w = grid.shape[0] // 2, grid.shape[1] // 4  # two rows of four frames
+            return grid[:h, 2 * w:3 * w][rows].copy()
+
+        def label(img: np.ndarray, text: str) -> np.ndarray:
+            cv2.rectangle(img, (0, 0), (img.shape[1], 22), (0, 0, 0), -1)
+            cv2.putText(img, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+            return img
+
+        rows = []
+        for cam, crop in (("cam_high", slice(50, 250)), ("cam_left_wrist", slice(None))):
+            e = entries[cam]
+            pair = [label(tile(f"{cam}_{when}.png", crop), f"{cam}, {what} (IoU {e[f'iou_{when}']:.3f})")
+                    for when, what in (("before", "start"), ("after", "refined"))]
+            rows.append(np.concatenate([pair[0], np.full((pair[0].shape[0], 4, 3), 255, np.uint8), pair[1]], 1))
+        img = np.concatenate([rows[0], np.full((4, rows[0].shape[1], 3), 255, np.uint8), rows[1]], 0)
+    cv2.imwrite(str(out), img, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    print(f"wrote {out}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="CI smoke: 120x160, one seed, sim masks, default optimiser")
@@ -286,7 +332,11 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--cameras", default=None, help="comma-separated cameras (default: all three)")
     p.add_argument("--frames", type=int, default=8, help="frames per camera (default 8)")
     p.add_argument("--json", default=str(RESULTS / "calibration_refine.json"), help="where to write the JSON")
+    p.add_argument("--figure", action="store_true", help="only make docs/calibration_refine.png")
     args = p.parse_args(argv)
+    if args.figure:
+        figure()
+        return {}
     result = run(quick=args.quick, seeds=args.seeds, methods=tuple(m for m in args.methods.split(",") if m),
                  cues=tuple(c for c in args.cues.split(",") if c), ablation=args.ablation,
                  cameras=[c for c in args.cameras.split(",") if c] if args.cameras else None, frames=args.frames,

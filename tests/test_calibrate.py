@@ -207,6 +207,16 @@ def test_refine_a_lerobot_dataset_with_a_segmenters_masks(sim_src, tmp_path, cap
     for t in range(0, ep.num_frames, 4):
         m = ground_truth_robot_mask(ep.segmentation["cam_high"][t], ep.segmentation_labels, rig.robot.link_names)
         cv2.imwrite(str(folder / f"{t:06d}.png"), m.astype(np.uint8) * 255)
+    # the dataset reader against the raw episode: the same joint vectors, the same frames (lossy video)
+    from imac_data.calibrate import DatasetFrames
+
+    frames = DatasetFrames(root)
+    assert frames.cameras == ["cam_high", "cam_left_wrist", "cam_right_wrist"]
+    assert np.allclose(frames.joints("0"), ep.qpos, atol=1e-6)
+    got = frames.images("0", "cam_high", [10, 90]).astype(np.float32)
+    raw = ep.images["cam_high"][[10, 90]].astype(np.float32)
+    same, swapped = np.abs(got - raw).mean(axis=(1, 2, 3)), np.abs(got - raw[::-1]).mean(axis=(1, 2, 3))
+    assert (same < 3.0).all() and (same < swapped).all(), (same, swapped)
     info = digest(root / "meta" / "info.json")
     out = tmp_path / "refined.json"
     rc = qa_main(["refine", str(root), "--out", str(out), "--cameras", "cam_high", "--robot-pixels",
