@@ -137,7 +137,8 @@ def _one(src: Path, truth: dict, start: dict, seed: int, pixels: str, config: Re
         iou = {when: silhouette_agreement(renderer.render(torch.as_tensor(q), {c: cam})[c].mask.numpy(), sim)["iou"]
                for when, cam in (("before", start[c]), ("after", refined[c]))}
         row["cameras"][c] = {
-            "mounted": truth[c].is_mounted, "start_error": pose_change(truth[c], start[c]), "error": pose_change(truth[c], refined[c]),
+            "mounted": truth[c].is_mounted, "start_error": pose_change(truth[c], start[c]),
+            "error": pose_change(truth[c], refined[c]),
             "iou_before": iou["before"], "iou_after": iou["after"],
             "boundary_px_before": e["boundary_px_before"], "boundary_px_after": e["boundary_px_after"],
             "reprojection_px_before": reprojection_px(renderer, truth[c], start[c], q),

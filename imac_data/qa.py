@@ -6,7 +6,8 @@ with the calibration and draws its outline over the recorded images; where the
 episode carries a ground-truth robot mask (simulated episodes: per-pixel geom
 segmentation + labels), it also reports the per-frame mask IoU.
 
-    python -m imac_data.qa refine SOURCE --calibration CALIB.json --out REFINED.json   (imac_data.refine)
+    python -m imac_data.qa refine SOURCE [--recipe R.yaml] [--calibration CALIB.json] --out REFINED.json
+        (imac_data.refine)
     python -m imac_data.qa overlay EPISODE.hdf5 --calibration CALIB.json --out DIR
         [--robot aloha] [--source state|action] [--format mp4|png]
         [--frames START:STOP:STEP] [--cameras cam_high,cam_left_wrist] [--overwrite]

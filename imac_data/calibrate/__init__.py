@@ -33,6 +33,6 @@ from imac_data.calibrate.optimise import CameraFit, refine_camera, refine_camera
 from imac_data.calibrate.pose import AXES, apply_update, pose_change, se3_exp
 
 __all__ = ["METHODS", "RefineConfig", "PIXEL_SOURCES", "CameraFrames", "DatasetFrames", "EpisodeFrames",
-           "RobotPixels", "open_frames", "choose_frames", "image_edges", "select_frames", "distance_field", "edge_distance",
-           "silhouette_agreement", "CameraFit", "refine_camera", "refine_camera_edges", "AXES", "apply_update",
-           "pose_change", "se3_exp"]
+           "RobotPixels", "open_frames", "choose_frames", "image_edges", "select_frames", "distance_field",
+           "edge_distance", "silhouette_agreement", "CameraFit", "refine_camera", "refine_camera_edges", "AXES",
+           "apply_update", "pose_change", "se3_exp"]

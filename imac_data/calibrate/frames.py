@@ -35,8 +35,8 @@ import torch
 from imac_data.cameras import Camera
 from imac_data.errors import InputError
 
-__all__ = ["PIXEL_SOURCES", "EpisodeFrames", "DatasetFrames", "open_frames", "RobotPixels", "CameraFrames", "select_frames", "choose_frames",
-           "image_edges"]
+__all__ = ["PIXEL_SOURCES", "EpisodeFrames", "DatasetFrames", "open_frames", "RobotPixels", "CameraFrames",
+           "select_frames", "choose_frames", "image_edges"]
 
 PIXEL_SOURCES = ("sim", "masks", "edges")
 _BLOCK = 16  # frames read at once while scanning candidates (bounded memory)

@@ -1,8 +1,9 @@
 """The objective of a camera's refinement: how far the rendered robot lies from the robot's
 pixels, exactly (at a rendered pose) and differentiably (around it).
 
-Over a set of frames (:func:`select_frames`: the robot covers much of the view, joint
-configurations far apart), with ``G`` the robot pixels (a probability map in [0, 1]):
+Over a set of frames (:func:`imac_data.calibrate.frames.select_frames`: the robot covers
+much of the view, joint configurations far apart), with ``G`` the robot pixels (a
+probability map in [0, 1]):
 
 * **distance-field edge term**: at the rendered silhouette's boundary pixels, the distance
   field of ``G``'s silhouette (:func:`distance_field`) must equal the rendered silhouette's
