@@ -211,7 +211,8 @@ def run(*, quick: bool = False, seeds: int = 3, methods=("gradient", "nelder-mea
                                      tmp, cameras, frames))
                     _print_row(rows[-1], say)
                     if partial:  # a long run keeps what it has measured
-                        partial.write_text(json.dumps({"partial": True, "runs": rows}, indent=2))
+                        partial.write_text(json.dumps({"partial": True, "resolution": [h, w],
+                                                       "frames_per_camera": frames, "runs": rows}, indent=2))
         if ablation:
             start = perturb(truth, 0)
             for name, over in ABLATION.items():
@@ -223,7 +224,8 @@ def run(*, quick: bool = False, seeds: int = 3, methods=("gradient", "nelder-mea
                 rows.append(row)
                 _print_row(row, say)
                 if partial:
-                    partial.write_text(json.dumps({"partial": True, "runs": rows}, indent=2))
+                    partial.write_text(json.dumps({"partial": True, "resolution": [h, w],
+                                                   "frames_per_camera": frames, "runs": rows}, indent=2))
     result = {
         "benchmark": "calibration_refine", "quick": quick, "resolution": [h, w], "episodes": n_ep,
         "frames_per_camera": frames, "seeds": seeds,
@@ -254,6 +256,18 @@ def _print_row(row: dict, say) -> None:
         say(f"    {c:<16} err " + " ".join(f"{k}={err[k]:+.2f}" for k in AXES) +
             f" | IoU {e['iou_before']:.3f}->{e['iou_after']:.4f} | reproj {e['reprojection_px_before']:.1f}->"
             f"{e['reprojection_px_after']:.2f} px | {e['cpu_s']:.0f} cpu-s")
+
+
+def table_of(saved: dict) -> dict:
+    """What :func:`format_table` needs, from a saved run (complete, or partial: its runs so far)."""
+    if not saved.get("partial"):
+        return saved
+    runs = saved["runs"]
+    seeds = len({r["seed"] for r in runs})
+    loads = [r["load_avg"] for r in runs]
+    return {"resolution": saved.get("resolution", [480, 640]), "frames_per_camera": saved.get("frames_per_camera", 8),
+            "seeds": seeds, "summary": _summary(runs), "load_avg": {"start": loads[0], "end": loads[-1]},
+            "wall_s": sum(r["wall_s"] for r in runs), "cpu_s": sum(r["cpu_s"] for r in runs)}
 
 
 def format_table(result: dict) -> str:
@@ -334,9 +348,14 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--frames", type=int, default=8, help="frames per camera (default 8)")
     p.add_argument("--json", default=str(RESULTS / "calibration_refine.json"), help="where to write the JSON")
     p.add_argument("--figure", action="store_true", help="only make docs/calibration_refine.png")
+    p.add_argument("--table", default=None, metavar="JSON",
+                   help="only print the table of a run's JSON (also a .partial.json that a long run keeps)")
     args = p.parse_args(argv)
     if args.figure:
         figure()
+        return {}
+    if args.table:
+        print(format_table(table_of(json.loads(Path(args.table).read_text()))))
         return {}
     result = run(quick=args.quick, seeds=args.seeds, methods=tuple(m for m in args.methods.split(",") if m),
                  cues=tuple(c for c in args.cues.split(",") if c), ablation=args.ablation,
