@@ -25,6 +25,7 @@ bench: setup
 	$(PY) -m benchmarks.evaluate_statistics --markdown benchmarks/results/evaluate_statistics.md
 	$(PY) -m benchmarks.evaluate_success
 	$(PY) -m benchmarks.panda_vs_pybullet --json benchmarks/results/panda_vs_pybullet.json
+	$(PY) -m benchmarks.calibration_refine --seeds 1 --methods gradient --cues sim,edges
 
 # The small-scale comparison of docs/experiment (about 60-90 minutes on an idle 2-core machine; resumable:
 # every stage is cached under runs/experiment).

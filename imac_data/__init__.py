@@ -24,7 +24,8 @@ Modules, one concept each:
 * ``safety``      the user's inputs are never written: overlap checks between output and inputs
 * ``augment``     adding the streams to an existing dataset
 * ``validate``    ``python -m imac_data.validate``
-* ``qa``          calibration overlay; ``preview``: an mp4 mosaic of a built episode
+* ``qa``          calibration overlay; ``preview``: an mp4 mosaic of a built episode; ``qa refine`` (``refine``) fixes a calibration
+* ``calibrate``   camera poses from the robot's silhouette (the algorithm of ``qa refine``; a package)
 """
 
 import os

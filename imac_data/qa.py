@@ -6,6 +6,8 @@ with the calibration and draws its outline over the recorded images; where the
 episode carries a ground-truth robot mask (simulated episodes: per-pixel geom
 segmentation + labels), it also reports the per-frame mask IoU.
 
+    python -m imac_data.qa refine SOURCE [--recipe R.yaml] [--calibration CALIB.json] --out REFINED.json
+        (imac_data.refine)
     python -m imac_data.qa overlay EPISODE.hdf5 --calibration CALIB.json --out DIR
         [--robot aloha] [--source state|action] [--format mp4|png]
         [--frames START:STOP:STEP] [--cameras cam_high,cam_left_wrist] [--overwrite]
@@ -334,12 +336,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--frames", default=None, help="frame selection START:STOP:STEP (python slice), or one index")
     p.add_argument("--cameras", default=None, help="comma-separated camera names (default: all in the episode)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
-    from imac_data import preview
+    from imac_data import preview, refine  # preview and refine live in their own modules
 
     preview.add_command(sub)
+    refine.add_arguments(sub.add_parser("refine", help="refine camera poses by aligning the rendered robot "
+                                        "with the robot's pixels (README: Fixing a calibration)"))
     args = parser.parse_args(argv)
     from imac_data.cli import run_command
 
+    if args.command == "refine":
+        return refine.run(args)
     if args.command == "preview":
         return run_command(lambda: print(preview.run_command(args)))
     return run_command(lambda: _overlay_command(args))

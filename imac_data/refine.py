@@ -1,0 +1,239 @@
+"""``qa refine``: fix a calibration from the recordings themselves.
+
+    python -m imac_data.qa refine SOURCE [--recipe R.yaml] [--calibration calib.json] --out refined.json
+        [--robot-pixels auto|sim|edges|MASK_DIR] [--cameras cam_high,...] [--frames 8]
+        [--method gradient|nelder-mead|powell] [--refine-focal] [--near METRES]
+        [--report DIR] [--overwrite]
+
+SOURCE is a directory of raw ALOHA/AgileX HDF5 episodes, one episode file, or a LeRobot
+dataset (:func:`imac_data.calibrate.open_frames`). The rig (robot, cameras, controller,
+renderer) comes from the recipe and the calibration (:meth:`imac_data.rig.Rig.from_recipe`;
+``--calibration`` defaults to the recipe's ``cameras.calibration``), or for a dataset built
+by imac without ``--recipe``, from the dataset itself (:meth:`imac_data.rig.Rig.from_dataset`;
+``--calibration`` then replaces its cameras). Per camera, frames
+are chosen, the robot's pixels taken from the chosen source
+(:class:`imac_data.calibrate.RobotPixels`) and the pose refined
+(:mod:`imac_data.calibrate`). It writes
+
+* ``refined.json``: the whole rig in the README's calibration format (checked by loading it
+  back with :func:`imac_data.cameras.load_calibration`), the refined cameras replaced. It is
+  never the input file: an output that is, contains or lies inside an input (episodes,
+  calibration, recipe) is refused before any work (:func:`imac_data.safety.refuse_overlap`);
+* the report directory (default ``refined.report/`` beside it, :mod:`imac_data.calibrate.report`).
+
+Both appear only complete (temporary names, renamed at the end). A camera whose overlay
+would get worse keeps its input pose.
+
+``--near`` is the renderer's near clip plane in metres, 0 by default (real cameras do not
+clip). Simulator masks are clipped at the simulator's near plane (gym-aloha: ``znear *
+extent`` = 0.166 m), so for simulated episodes pass that value: a gripper closer to its
+wrist camera than that is missing from the masks, and rendering it would bias the wrist
+cameras.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+from imac_data.calibrate import (DatasetFrames, RefineConfig, RobotPixels, choose_frames, open_frames,
+                                 refine_camera, refine_camera_edges, silhouette_agreement)
+from imac_data.calibrate.report import camera_entry, draw_overlay, format_report, write_outputs
+from imac_data.errors import InputError
+
+__all__ = ["refine_calibration", "add_arguments", "run", "main"]
+
+
+def _check_outputs(out: Path, report: Path, inputs: dict, overwrite: bool) -> None:
+    from imac_data.safety import refuse_overlap
+
+    for path, what in ((out, "--out"), (report, "--report")):
+        for name, p in inputs.items():
+            if p is not None and p.exists() and path.resolve() == p.resolve():
+                raise InputError(f"{what} {path} is the {name}: the input is never overwritten; choose another name")
+        refuse_overlap(path, inputs, what=what)
+        if path.exists() and not overwrite:
+            raise InputError(f"{what} {path} exists; pass --overwrite to replace it")
+    if out.is_dir():
+        raise InputError(f"--out {out} is a directory; give a file name such as refined.json")
+
+
+def _rig(src, recipe, calibration: Path | None):
+    """The rig and the calibration file it was made from (``None``: the dataset's own)."""
+    from imac_data.recipes import load_recipe
+    from imac_data.rig import Rig
+
+    if recipe is None:
+        if not isinstance(src, DatasetFrames):
+            raise InputError("--recipe is required for raw episodes (the robot and its cameras); only a dataset "
+                             "built by imac carries its rig")
+        rig = Rig.from_dataset(src.source)
+        if calibration is not None:
+            from imac_data.cameras import load_calibration
+
+            rig = Rig(rig.robot, load_calibration(calibration), rig.controller, rig.state_names,
+                      rig.gripper_spacing)
+        return rig, calibration
+    recipe = load_recipe(recipe) if isinstance(recipe, (str, Path)) else recipe
+    if calibration is None:
+        calibration = recipe.resolve_path(recipe.cameras.calibration)
+        if calibration is None:
+            raise InputError(f"{recipe.file or 'recipe'}: no calibration given (--calibration, or the recipe's "
+                             "cameras.calibration)")
+    return Rig.from_recipe(recipe, calibration), Path(calibration)  # mounted cameras' links checked
+
+
+def refine_calibration(source: str | Path, out: str | Path, *, recipe=None, calibration: str | Path | None = None,
+                       robot_pixels: str = "auto", cameras: Sequence[str] | None = None, frames: int = 8,
+                       min_separation: float = 0.1, config: RefineConfig | None = None, near: float = 0.0,
+                       report: str | Path | None = None, overwrite: bool = False, edge_rounds: int = 3,
+                       edge_margin: float = 0.08, candidate_budget: int = 400, log=None) -> dict:
+    """Refine the calibration of a rig from the frames in ``source``; write ``out`` and the
+    report directory; return the report dict. The rig: ``recipe`` (a path or a loaded recipe)
+    with ``calibration`` (default: the recipe's), or a built dataset's own. Every input is
+    checked before any work."""
+    log = log or (lambda msg: None)
+    config = config or RefineConfig()
+    source, out = Path(source), Path(out)
+    report = Path(report) if report is not None else out.with_name(out.stem + ".report")
+    calibration = Path(calibration) if calibration is not None else None
+    if frames < 3:
+        raise InputError(f"--frames must be at least 3 (got {frames}): one or two views hardly constrain a pose")
+    if not (math.isfinite(near) and near >= 0):
+        raise InputError(f"--near must be >= 0 metres, got {near}")
+    recipe_path = Path(recipe) if isinstance(recipe, (str, Path)) else getattr(recipe, "file", None)
+    inputs = {"source": source, "calibration": calibration, "recipe": Path(recipe_path) if recipe_path else None}
+    _check_outputs(out, report, inputs, overwrite)
+    src = open_frames(source)
+    rig, calibration = _rig(src, recipe, calibration)
+    if calibration is not None and inputs["calibration"] is None:  # the recipe's calibration is an input too
+        _check_outputs(out, report, {**inputs, "calibration": calibration}, overwrite)
+    cams = list(cameras) if cameras else [c for c in src.cameras if c in rig.cameras]
+    missing = [c for c in cams if c not in src.cameras]
+    if missing:
+        raise InputError(f"{source}: camera(s) {missing} not in the source (it has {src.cameras})")
+    where = calibration or f"{source}/meta/info.json"
+    uncalibrated = [c for c in cams if c not in rig.cameras]
+    if uncalibrated:
+        raise InputError(f"{where}: no calibration for camera(s) {uncalibrated} (calibrated: {sorted(rig.cameras)})")
+    if not cams:
+        raise InputError(f"no camera is both in the source ({src.cameras}) and calibrated ({sorted(rig.cameras)})")
+    dof = src.joints(src.episodes[0]).shape[1]
+    if dof != rig.dof:
+        raise InputError(f"{source}: joint vectors have {dof} entries, robot {rig.robot.name!r} expects {rig.dof}")
+    pixels = RobotPixels.parse(robot_pixels, src)
+    sized = rig.with_image_sizes({c: src.image_hw(c) for c in cams}).cameras  # calibration at the frames' size
+    if near > 0:
+        from imac_data.render import make_renderer
+
+        renderer = make_renderer(rig.robot, near=near, nthreads=rig.threads)
+    else:
+        renderer = rig.renderer
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = {"source": str(source), "calibration": str(where), "out": str(out), "robot": rig.robot.name,
+              "robot_urdf_sha256": rig.robot.urdf_hash, "robot_pixels": str(pixels), "near_m": near,
+              "config": config.to_dict(), "cameras": {}}
+    refined, overlays = dict(rig.cameras), {}
+    edges = pixels.kind == "edges"
+    for c in cams:
+        log(f"[refine] {c}: choosing frames")
+        cam0 = sized[c]
+        chosen = choose_frames(src, cam0, renderer, pixels, frames, min_separation=min_separation,
+                               budget=candidate_budget)
+        log(f"[refine] {c}: frames {[f'{Path(e).stem}:{t}' for e, t in chosen.refs]}")
+        if edges:
+            fit, chosen.target = refine_camera_edges(renderer, cam0, chosen.q, chosen.images, config,
+                                                     rounds=edge_rounds, margin=edge_margin, log=log)
+        else:
+            fit = refine_camera(renderer, cam0, chosen.q, chosen.target, config, log=log)
+        q = torch.as_tensor(chosen.q)
+        before = renderer.render(q, {c: cam0})[c].mask.numpy()
+        after = renderer.render(q, {c: fit.camera})[c].mask.numpy()
+        agree0 = silhouette_agreement(before, chosen.target, edges=edges)
+        agree1 = silhouette_agreement(after, chosen.target, edges=edges)
+        original = rig.cameras[c]
+        new = fit.camera.rescaled(original.width, original.height) \
+            if (fit.camera.height, fit.camera.width) != (original.height, original.width) else fit.camera
+        score = "boundary_px" if edges else "iou"
+        kept = not (agree1[score] <= agree0[score] if edges else agree1[score] >= agree0[score])
+        if kept:  # never hand back a worse calibration
+            log(f"[refine] {c}: refinement did not improve the overlay ({score} {agree0[score]:.4f} -> "
+                f"{agree1[score]:.4f}); keeping the input calibration for this camera")
+            new, after, agree1 = original, before, agree0
+        refined[c] = new
+        result["cameras"][c] = camera_entry(original, new, agree0, agree1, refs=chosen.refs, kept=kept, fit=fit)
+        overlays[c] = tuple(draw_overlay(chosen.images, m, chosen.target, f"{c} {when}: " + (
+            f"outline {a['boundary_px']:.2f} px from the edges" if edges else f"IoU {a['iou']:.4f}"), edges=edges)
+            for when, m, a in (("before", before, agree0), ("after", after, agree1)))
+    result["wall_s"] = time.perf_counter() - t0
+    result["cpu_s"] = time.process_time() - c0
+    result["load_avg"] = list(os.getloadavg())
+    result["report"] = str(report)
+    write_outputs(out, report, refined, result, overlays)
+    return result
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("source", help="directory of raw HDF5 episodes, one episode file, or a LeRobot dataset")
+    p.add_argument("--recipe", default=None, help="build recipe: the robot (URDF, joint map) and its cameras "
+                   "(required for raw episodes; a dataset built by imac carries its own)")
+    p.add_argument("--calibration", default=None,
+                   help="calibration JSON to refine (never modified; default: the recipe's cameras.calibration, "
+                        "or the dataset's)")
+    p.add_argument("--out", required=True, help="refined calibration JSON to write")
+    p.add_argument("--robot-pixels", default="auto",
+                   help="where the robot's pixels come from: auto (default: sim if recorded, else edges), sim, "
+                        "edges, or a mask directory DIR/<episode>/<camera>/<frame:06d>.png (<episode>: the "
+                        "episode file's stem, or episode_000000... for a dataset)")
+    p.add_argument("--cameras", default=None, help="comma-separated cameras (default: every calibrated one)")
+    p.add_argument("--frames", type=int, default=8, help="frames per camera (default 8)")
+    p.add_argument("--min-separation", type=float, default=0.1,
+                   help="smallest joint-space distance between chosen frames (default 0.1)")
+    p.add_argument("--method", default=None, help="gradient (default), nelder-mead or powell")
+    p.add_argument("--refine-focal", action="store_true", help="also refine the focal length")
+    p.add_argument("--near", type=float, default=0.0,
+                   help="renderer near clip plane in metres (default 0; simulated episodes: the simulator's)")
+    p.add_argument("--report", default=None, help="report directory (default: <out>.report beside --out)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs (never inputs)")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        over = {}
+        if args.method:
+            over["method"] = args.method
+        if args.refine_focal:
+            over["refine_focal"] = True
+        config = RefineConfig(**over)
+        cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
+        result = refine_calibration(args.source, args.out, recipe=args.recipe, calibration=args.calibration,
+                                    robot_pixels=args.robot_pixels, cameras=cams, frames=args.frames,
+                                    min_separation=args.min_separation, config=config, near=args.near,
+                                    report=args.report, overwrite=args.overwrite,
+                                    log=lambda m: print(m, file=sys.stderr))
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(format_report(result))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m imac_data.refine", description=__doc__.split("\n\n")[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
