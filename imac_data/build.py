@@ -495,9 +495,11 @@ def _input_paths(req: BuildRequest) -> dict[str, Path | None]:
 
 def _check_stream_resolution(recipe: Recipe, calibration) -> None:
     """The added streams keep each camera's aspect ratio (they are rescaled, not cropped)."""
+    from imac_data.cameras import same_aspect
+
     h, w = recipe.augment.resolution
     for cam in calibration.values():
-        if abs(h / w - cam.height / cam.width) > 0.01 * cam.height / cam.width:
+        if not same_aspect((h, w), (cam.height, cam.width)):
             raise InputError(
                 f"{recipe.file}: augment.height/width {h}x{w} has another aspect ratio than camera {cam.name!r} "
                 f"({cam.height}x{cam.width}); pick a size of the same aspect ratio"
