@@ -14,7 +14,7 @@ machine load):
 
 * ours, :func:`imac_data.contact.contact_chunk` with the default certified tolerance
   (every distance within [exact, exact + max(1 mm, 3 %)]), and exact per pixel
-  (``tolerance=None``); everything included: scene cloud, KD-tree forest, both
+  (``tolerance=None``); everything included: scene cloud, KD-tree, both
   streams, percentile caps, hole filling, colour images;
 * the reference (what public code does, DESIGN.md's 720 ms/frame): per future frame,
   pose every robot visual mesh and sample 3000 points on each with trimesh, build a
@@ -24,8 +24,8 @@ machine load):
   compact_nodes=False``; this reproduces DESIGN.md's 720 ms and is the headline
   ``contact_ratio_vs_reference``, the conservative one) and with scipy's default
   balanced trees, which degrade badly on a flat table with an object on it (robot
-  points far above the table query ~100 us each; see
-  ``imac_data.nearest._kdtree_forest``);
+  points far above the table query ~100 us each: each leaf's rectangle inherits the
+  table's full extent);
 * CUDA (if present): ours with everything on the GPU (exact brute force per tile).
 
 Accuracy: for every future frame, the smallest scene->gripper distance over the cube's
@@ -94,7 +94,7 @@ class Reference:
     per frame both ways: distances of the robot samples to the scene and of the scene
     points to the finger samples. ``tuned``: sliding-midpoint trees instead of scipy's
     default balanced ones (the default degrades badly on a flat table with an object on
-    it, see ``imac_data.nearest._kdtree_forest``), to show the gain is not only that."""
+    it), to show the gain is not only that."""
 
     def __init__(self, robot: RobotModel, seed: int = 0, tuned: bool = False):
         self.robot = robot

@@ -52,7 +52,7 @@ distances count towards chunk 0's caps. Every frame stores the caps of its chunk
 
 Nearest distances and the tolerance
 -----------------------------------
-Exact nearest distances (KD-tree forest or chunked brute force) and the certified
+Exact nearest distances (KD-tree or chunked brute force) and the certified
 tolerance over pixel tiles that makes painting every pixel affordable live in
 :mod:`imac_data.nearest`: every painted distance d' satisfies
 ``d <= d' <= d + max(abs, rel * d)`` for the exact d (default 1 mm / 3 %);

@@ -116,16 +116,16 @@ def test_nearest_chunk_boundaries_and_large_n():
     check(q[:4000], t, "torch", max_distance=0.05, chunk_pairs=1000)
 
 
-def test_nearest_forest_on_a_layered_scene_is_exact():
-    """A flat table with a few raised points: the KD-tree forest splits off the layer
-    (the case that makes one cKDTree 20x slower) and stays exact."""
+def test_nearest_on_a_layered_scene_is_exact():
+    """A flat table with a few raised points (a zero-extent axis for most of the tree; the
+    case that makes scipy's balanced cKDTree 20x slower): exact against brute force."""
     rng = np.random.default_rng(3)
     xy = rng.uniform(-0.5, 0.5, (30000, 2))
     table = np.c_[xy, np.zeros(len(xy))]
     box = rng.uniform([0.0, 0.0, 0.0], [0.04, 0.04, 0.04], (300, 3))
     target = np.concatenate([table, box])
     nn = NearestNeighbours(torch.as_tensor(target, dtype=torch.float32), method="kdtree")
-    assert len(nn._trees) >= 2
+    assert nn.method == "kdtree"
     query = rng.uniform([-0.6, -0.6, -0.1], [0.6, 0.6, 0.5], (3000, 3))
     check(query, target, "kdtree")
     check(query, target, "kdtree", max_distance=0.1)
