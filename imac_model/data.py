@@ -54,6 +54,8 @@ def open_metadata(data: DataConfig):
     """LeRobot's metadata of the run's dataset (reads ``meta/`` only)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
+    import imac_data.dataset  # noqa: F401  (linear-time datasets.Features: our metadata is wide)
+
     if not data.dataset:
         raise InputError("data.dataset: name the dataset to train on (e.g. --dataset local/aloha_sim_transfer_cube)")
     try:
@@ -130,6 +132,8 @@ class ChunkDataset(Dataset):
     def __init__(self, repo_id: str, layout: ChunkLayout, *, root=None, episodes: Sequence[int] | None = None,
                  cache: str = "memory", cache_dir=None, video_backend: str | None = None):
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+        import imac_data.dataset  # noqa: F401  (linear-time datasets.Features: our metadata is wide)
 
         self.layout = layout
         H, fps = layout.chunk, layout.fps

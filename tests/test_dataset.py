@@ -152,3 +152,36 @@ def test_validation_names_the_damage(built, tmp_path, what, check, capsys):
     assert not report.ok and report.results.get(check), report.format()
     assert validate_main([str(root), "--full"]) == 2
     assert "INVALID" in capsys.readouterr().out
+
+
+def test_linear_features_constructor_equals_datasets_own(built):
+    """hf_features.install(): the same Features (values and decoding flags) as datasets' own
+    quadratic constructor, on every parquet schema of a built dataset and on old-style lists."""
+    import datasets
+    from datasets.features.features import Features, List, Value
+
+    from imac_data.dataset import hf_features
+
+    if not str(datasets.__version__).startswith("4."):
+        pytest.skip(f"datasets {datasets.__version__}: the patch is not installed there")
+    assert hf_features.installed() and Features.__init__ is hf_features._linear_init
+    original = hf_features.original_init()
+
+    def both(*args, **kwargs):
+        ours = Features(*args, **kwargs)
+        theirs = Features.__new__(Features)
+        original(theirs, *args, **kwargs)
+        return ours, theirs
+
+    schemas = [pq.read_schema(f) for f in sorted(built[0].rglob("*.parquet"))]
+    assert max(len(s.names) for s in schemas) > 300  # the wide episodes table
+    for schema in schemas:
+        given = [dict(Features.from_arrow_schema(schema))]
+        if schema.metadata and b"huggingface" in schema.metadata:
+            given.append(dict(Features.from_dict(json.loads(schema.metadata[b"huggingface"])["info"]["features"])))
+        for features in given:
+            ours, theirs = both(features)
+            assert dict(ours) == dict(theirs) and ours._column_requires_decoding == theirs._column_requires_decoding
+    ours, theirs = both({"a": [Value("int64")], "b": {"c": [[Value("float32")]]}}, d=Value("string"))
+    assert dict(ours) == dict(theirs) and ours._column_requires_decoding == theirs._column_requires_decoding
+    assert ours["a"] == List(Value("int64"))
