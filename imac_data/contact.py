@@ -116,6 +116,7 @@ DEFAULT_FILL_PX = 2
 DEFAULT_GRIPPER_SPACING = 0.002  # metres between gripper surface samples
 MIN_CAP = 1e-3  # metres; a percentile cap is never smaller (all-zero distances)
 EMPTY_CAP = 1.0  # metres; the cap of a stream with no finite distance in the chunk
+_R2S_STEPS = 2  # r2s steps per certified pass (tiles never cross steps, so the grouping is invisible)
 
 
 # ----------------------------------------------------------------------------- colour map
@@ -689,7 +690,8 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
             s2g, s_rgb, cap_s = s_job.result()
     else:
         build_scene_index()
-        robot_to_scene(0, S)
+        for s0 in range(0, S, _R2S_STEPS):  # a few steps at a time: bounded temporaries, same tiles
+            robot_to_scene(s0, min(s0 + _R2S_STEPS, S))
         for s in range(S):
             scene_to_gripper(s)
         r2s, r_rgb, cap_r = finish_r2s()
