@@ -325,7 +325,8 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     if recipe.source.type == "lerobot":
         from imac_data.lerobot_build import build_from_lerobot
 
-        return build_from_lerobot(req, robot)
+        with output_lock(req.root, wait=req.wait):  # it stages next to the output too
+            return build_from_lerobot(req, robot)
     paths, calibration_path = source_episodes(req)
     refuse_overlap(req.root, {"source episodes": paths[0].parent, "calibration": calibration_path})
     rig = Rig.from_recipe(recipe, calibration_path, robot=robot)

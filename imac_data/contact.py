@@ -675,8 +675,8 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
             torch.set_num_threads(threads)  # OpenMP thread counts are per thread
             return fn(*args)
 
-        parts = min(n_threads, S)
-        bounds = [round(i * S / parts) for i in range(parts + 1)]
+        bounds = [*range(0, S, _R2S_STEPS), S]  # r2s a few steps per job, as on one thread
+        parts = len(bounds) - 1
         with ThreadPoolExecutor(max_workers=min(n_threads, S + 1)) as pool:
             index_job = pool.submit(task, build_scene_index)
             jobs = [pool.submit(task, scene_to_gripper, 0)] if S else []

@@ -923,19 +923,21 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from imac_data.cli import run_command
+
     args = _parse_args(argv)
-    try:
-        config = SimConfig(
-            task=args.task, num_episodes=args.episodes, width=args.width, height=args.height,
-            seed=args.seed, noise=args.noise, frame_stride=args.frame_stride, max_steps=args.max_steps,
-            with_depth=not args.no_depth, with_segmentation=args.segmentation, compress=args.compress,
-            shadows=args.shadows, antialias=args.antialias,
-        )
-        t0 = time.perf_counter()
-        paths = record_dataset(config, args.out, progress=not args.quiet, overwrite=args.overwrite)
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return run_command(lambda: _run(args))  # exit 2 bad input, 3 environment (disk full, ...)
+
+
+def _run(args: argparse.Namespace) -> int:
+    config = SimConfig(
+        task=args.task, num_episodes=args.episodes, width=args.width, height=args.height,
+        seed=args.seed, noise=args.noise, frame_stride=args.frame_stride, max_steps=args.max_steps,
+        with_depth=not args.no_depth, with_segmentation=args.segmentation, compress=args.compress,
+        shadows=args.shadows, antialias=args.antialias,
+    )
+    t0 = time.perf_counter()
+    paths = record_dataset(config, args.out, progress=not args.quiet, overwrite=args.overwrite)
     seconds = time.perf_counter() - t0
     from imac_data.aloha_hdf5 import probe_episode
     import h5py

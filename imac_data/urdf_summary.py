@@ -17,7 +17,6 @@ by the finger joints) and says so.
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -234,13 +233,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--package-dir", type=_package_dir, action="append", default=[], metavar="NAME=PATH",
                    help="the directory that package://NAME/ stands for (repeatable)")
     args = parser.parse_args(argv)
-    try:
+
+    def run() -> int:
         summary = summarize_urdf(args.urdf, dict(args.package_dir))
         block = recipe_block(summary, guess_gripper_links(summary))
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    print(format_summary(summary))
-    print()
-    print(block, end="")
-    return 0
+        print(format_summary(summary))
+        print()
+        print(block, end="")
+        return 0
+
+    from imac_data.cli import run_command
+
+    return run_command(run)

@@ -385,3 +385,27 @@ def test_unmapped_cameras_are_left_out(source, sim, tmp_path):
     top = source / "videos" / "observation.images.top" / "chunk-000" / "file-000.mp4"
     assert (tmp_path / "out" / "videos" / "observation.images.cam_high" / "chunk-000" / "file-000.mp4").read_bytes() \
         == top.read_bytes()
+
+
+def test_lerobot_source_build_takes_the_output_lock(source, sim, tmp_path):
+    """A LeRobot-source build stages next to its output like any build, so it takes the
+    output's lock: with another build holding it, refused before anything is staged."""
+    import subprocess
+    import sys
+
+    from imac_data.errors import EnvironmentFault
+
+    recipe = recipe_file(tmp_path, source, sim / "sim" / "calibration.json", depth={"source": "none"})
+    root = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom pathlib import Path\n"
+                               "from imac_data.lock import output_lock\nwith output_lock(Path(sys.argv[1])):\n"
+                               "    print('locked', flush=True)\n    time.sleep(600)", str(root)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(EnvironmentFault, match=f"another build \\(PID {holder.pid}\\)"):
+            build(BuildRequest("local/locked", recipe, root, progress=False))
+        assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == [".out.lock"]
+    finally:
+        holder.kill()
+        holder.wait()
