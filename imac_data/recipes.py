@@ -65,13 +65,13 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
 from imac_data.errors import InputError
+from imac_data.typed_config import parse_dataclass
 from imac_data.workspace import WorkspaceSettings
 
 RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
@@ -258,67 +258,6 @@ class Recipe:
 # --------------------------------------------------------------------------- parsing
 
 
-def _parse(cls, value, where: str):
-    """Build dataclass ``cls`` from a YAML mapping, strictly (unknown keys are errors)."""
-    if not isinstance(value, dict):
-        raise InputError(f"{where}: expected a mapping, got {type(value).__name__}")
-    hints = typing.get_type_hints(cls)
-    known = {f.name for f in dataclasses.fields(cls) if f.name != "file"}
-    unknown = sorted(set(value) - known)
-    if unknown:
-        raise InputError(f"{where}: unknown field(s) {unknown}; allowed: {sorted(known)}")
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in value:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise InputError(f"{where}: missing required field '{f.name}'")
-            continue
-        kwargs[f.name] = _coerce(hints[f.name], value[f.name], f"{where}.{f.name}" if where else f.name)
-    return cls(**kwargs)
-
-
-def _coerce(hint, value, where: str):
-    origin = typing.get_origin(hint)
-    args = typing.get_args(hint)
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for arg in (a for a in args if a is not type(None)):
-            try:
-                return _coerce(arg, value, where)
-            except InputError as e:
-                errors.append(str(e))
-        raise InputError(errors[-1] if len(errors) == 1 else f"{where}: invalid value {value!r}")
-    if dataclasses.is_dataclass(hint):
-        return _parse(hint, value, where)
-    if origin is tuple:
-        if not isinstance(value, list):
-            raise InputError(f"{where}: expected a list, got {type(value).__name__}")
-        return tuple(_coerce(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise InputError(f"{where}: expected a mapping, got {type(value).__name__}")
-        return {str(k): _coerce(args[1], v, f"{where}.{k}") for k, v in value.items()}
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise InputError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InputError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise InputError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if hint is str:
-        if not isinstance(value, str):
-            raise InputError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise InputError(f"{where}: unsupported value {value!r}")  # pragma: no cover
-
-
 def _validate(recipe: Recipe) -> None:
     f = recipe.file or "<recipe>"
     r, s = recipe.robot, recipe.source
@@ -390,7 +329,7 @@ def parse_recipe(data: dict, file: str = "") -> Recipe:
     if not isinstance(data, dict):
         raise InputError(f"{where}: a recipe must be a YAML mapping")
     try:
-        recipe = _parse(Recipe, data, "")
+        recipe = parse_dataclass(Recipe, data, "", skip={"file"})  # file: set below, never read
     except InputError as e:
         raise InputError(f"{where}: {e}") from None
     recipe = dataclasses.replace(recipe, file=file)

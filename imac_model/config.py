@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +34,7 @@ from typing import Literal
 import yaml
 
 from imac_data.errors import InputError
+from imac_data.typed_config import parse_dataclass
 
 MODES = ("none", "motion", "motion+contact", "action-vector")
 CONTROL_STREAMS = ("motion", "contact_s2g", "contact_r2s")  # the order of paper eq. 2: P_m, P_s2g, P_r2s
@@ -298,74 +298,9 @@ def _positive(obj, name: str, section: str = "data") -> None:
 
 
 def parse(cls, value, where: str = ""):
-    """Build dataclass ``cls`` from a mapping, strictly (unknown keys are errors)."""
-    if not isinstance(value, dict):
-        raise InputError(f"{where or 'config'}: expected a mapping, got {type(value).__name__}")
-    hints = typing.get_type_hints(cls)
-    known = [f.name for f in dataclasses.fields(cls)]
-    unknown = sorted(set(value) - set(known))
-    if unknown:
-        raise InputError(f"{where or 'config'}: unknown field(s) {unknown}; allowed: {known}")
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        sub = f"{where}.{f.name}" if where else f.name
-        if f.name not in value:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise InputError(f"{where or 'config'}: missing required field '{f.name}'")
-            continue
-        kwargs[f.name] = _coerce(hints[f.name], value[f.name], sub)
-    try:
-        return cls(**kwargs)
-    except InputError as e:
-        raise InputError(f"{where + ': ' if where and not str(e).startswith(where) else ''}{e}") from None
-
-
-def _coerce(hint, value, where: str):
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        options = [a for a in args if a is not type(None)]
-        last = None
-        for arg in options:
-            try:
-                return _coerce(arg, value, where)
-            except InputError as e:
-                last = e
-        raise last if len(options) == 1 else InputError(f"{where}: invalid value {value!r}")
-    if origin is Literal:
-        if value not in args:
-            raise InputError(f"{where}: must be one of {list(args)} (got {value!r})")
-        return value
-    if dataclasses.is_dataclass(hint):
-        return parse(hint, value, where)
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise InputError(f"{where}: expected a list, got {type(value).__name__}")
-        return tuple(_coerce(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise InputError(f"{where}: expected a mapping, got {type(value).__name__}")
-        return {str(k): v for k, v in value.items()}
-    if hint is typing.Any:
-        return value
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise InputError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InputError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise InputError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if hint is str:
-        if not isinstance(value, str):
-            raise InputError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise InputError(f"{where}: unsupported value {value!r}")  # pragma: no cover
+    """Build dataclass ``cls`` from a mapping, strictly (unknown keys are errors;
+    :func:`imac_data.typed_config.parse_dataclass`)."""
+    return parse_dataclass(cls, value, where, root="config")
 
 
 def to_dict(obj) -> dict:
