@@ -34,7 +34,8 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
+from benchmarks.small_world import CHUNK, DATASET_HW, MODEL_HW, VIEWS, experiment_spec, one_thread, recorded_mosaics
+
 CHUNKS = 4
 
 
@@ -76,26 +77,20 @@ def run(quick: bool = False) -> dict:
     import torch
 
     from imac_data.aloha_hdf5 import read_episode
-    from imac_data.depth import DepthCodec, depth_from_millimetres
+    from imac_data.depth import DepthCodec
     from imac_data.recipes import RECIPES_DIR, load_recipe
     from imac_data.rig import Rig
     from imac_data.simulate import SimConfig, record_dataset
-    from imac_model import mosaic
-    from imac_model.config import ModelSpec, load_run_config
     from imac_model.evaluate.closed_loop import GeneratedDatasetWriter, Start, rollout_episode
     from imac_model.evaluate.policies import ActionQueue, LeRobotPolicy, recorded_actions_policy
     from imac_model.online_controls import OnlineControls
     from imac_model.world_model import WorldModel
 
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    torch.set_num_threads(1)
+    one_thread()
     load_start = os.getloadavg()
-    views = ("cam_high", "cam_left_wrist", "cam_right_wrist")
-    H, hw, model_hw = 8, (96, 128), (48, 64)
+    views, H, hw, model_hw = VIEWS, CHUNK, DATASET_HW, MODEL_HW
     chunks = 2 if quick else CHUNKS
-    run_cfg = load_run_config(REPO / "imac_model" / "configs" / "experiment.yaml")
-    spec = ModelSpec(backbone=run_cfg.backbone, conditioning=run_cfg.conditioning, flow=run_cfg.flow, views=views,
-                     view_height=model_hw[0], view_width=model_hw[1], chunk=H, action_dim=14, fps=25.0)
+    spec = experiment_spec()
     torch.manual_seed(0)
     model = WorldModel(spec).eval()
     for p in model.parameters():
@@ -111,11 +106,7 @@ def run(quick: bool = False) -> dict:
         ep = read_episode(tmp / "sim" / "episode_0.hdf5")
         rig = Rig.from_recipe(load_recipe(RECIPES_DIR / "aloha_sim_transfer_cube.yaml"), tmp / "sim" / "calibration.json")
         online = OnlineControls(rig, codec, views, model_hw, hw)
-        rgb = torch.stack([torch.as_tensor(ep.images[v][:1]).permute(0, 3, 1, 2).float() / 255 for v in views], 1)
-        depth = torch.stack([codec.encode(torch.as_tensor(depth_from_millimetres(ep.depth_mm[v][:1])), channel_axis=-3)
-                             for v in views], 1)
-        reference = mosaic.assemble(mosaic.resize_frames(rgb, model_hw), mosaic.resize_frames(depth, model_hw,
-                                                                                              kind="depth"))[0]
+        reference = recorded_mosaics(ep, codec, [0])[0]
         actions = torch.as_tensor(ep.action, dtype=torch.float32)
         start = Start(episode=0, frame=0, reference=reference, state=torch.as_tensor(ep.qpos[0], dtype=torch.float32),
                       chunks=chunks, seed=0, task="transfer", recorded_actions=actions)

@@ -31,7 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
+from benchmarks.small_world import CHUNK, DATASET_HW, MODEL_HW, VIEWS, experiment_spec, one_thread, recorded_mosaics
+
 B, R = 4, 4
 
 
@@ -49,22 +50,18 @@ def run(quick: bool = False) -> dict:
     import torch
 
     from imac_data.aloha_hdf5 import read_episode
-    from imac_data.depth import DepthCodec, depth_from_millimetres
+    from imac_data.depth import DepthCodec
     from imac_data.recipes import RECIPES_DIR, load_recipe
     from imac_data.rig import Rig
     from imac_data.simulate import SimConfig, record_dataset
-    from imac_model import mosaic
     from imac_model.batch import ChunkBatch
-    from imac_model.config import ModelSpec, load_run_config
     from imac_model.online_controls import OnlineControls
     from imac_model.rollout import rollout_loss
     from imac_model.world_model import WorldModel
 
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    torch.set_num_threads(1)
+    one_thread()
     load_start = os.getloadavg()
-    views = ("cam_high", "cam_left_wrist", "cam_right_wrist")
-    H, hw, model_hw = 8, (96, 128), (48, 64)
+    views, H, hw, model_hw = VIEWS, CHUNK, DATASET_HW, MODEL_HW
     repeats = 1 if quick else 3
     with tempfile.TemporaryDirectory() as tmp:
         sim = Path(tmp) / "sim"
@@ -73,15 +70,10 @@ def run(quick: bool = False) -> dict:
         ep = read_episode(sim / "episode_0.hdf5")
         rig = Rig.from_recipe(load_recipe(RECIPES_DIR / "aloha_sim_transfer_cube.yaml"), sim / "calibration.json")
     codec = DepthCodec.preset("manipulation")
-    run_cfg = load_run_config(REPO / "imac_model" / "configs" / "experiment.yaml")
-    spec = ModelSpec(backbone=run_cfg.backbone, conditioning=run_cfg.conditioning, flow=run_cfg.flow, views=views,
-                     view_height=model_hw[0], view_width=model_hw[1], chunk=H, action_dim=14, fps=25.0)
+    spec = experiment_spec()
 
     def frames(idx, size):  # recorded mosaics (B, n, 3, 2h, 3w) at ``size``
-        rgb = torch.stack([torch.as_tensor(ep.images[v][idx]).permute(0, 3, 1, 2).float() / 255 for v in views], 1)
-        depth = torch.stack([codec.encode(torch.as_tensor(depth_from_millimetres(ep.depth_mm[v][idx])),
-                                          channel_axis=-3) for v in views], 1)
-        return mosaic.assemble(mosaic.resize_frames(rgb, size), mosaic.resize_frames(depth, size, kind="depth"))
+        return recorded_mosaics(ep, codec, idx, size)
 
     starts = [c * H for c in range(B)]  # B chunks, each a clip of R chunks
     result: dict = {"rollout_batch": B, "rollout_chunks": R, "rollout_view_hw": list(model_hw),
