@@ -70,7 +70,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -89,6 +88,7 @@ from imac_data.nearest import (
     nearest_distances,
     resolve_tolerance,
 )
+from imac_data.workers import cpu_cores
 from imac_data.workspace import as_workspace
 
 __all__ = [
@@ -666,7 +666,7 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
             rgb[:, dst] = rgb[:, src]
         return maps.reshape(S, V, H, W), rgb.reshape(S, V, H, W, 3), cap_s
 
-    n_threads = (parallel or _cpu_count()) if device.type == "cpu" and threads is not None else 1
+    n_threads = (parallel or cpu_cores()) if device.type == "cpu" and threads is not None else 1
     if n_threads > 1:
         # On the CPU, the independent pieces (the scene index; r2s of groups of steps; s2g
         # of each step; then each stream's cap and colours) run on a few Python threads
@@ -698,13 +698,6 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
         s2g, s_rgb, cap_s = finish_s2g()
     caps = torch.tensor([cap_r, cap_s], dtype=torch.float32, device=device)
     return ContactChunk(r2s=r2s, s2g=s2g, r2s_rgb=r_rgb, s2g_rgb=s_rgb, caps=caps)
-
-
-def _cpu_count() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 # ----------------------------------------------------------------------------- episodes

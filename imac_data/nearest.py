@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from imac_data.errors import InputError
+from imac_data.workers import cpu_cores
 
 __all__ = ["NearestNeighbours", "nearest_distances", "DEFAULT_TOLERANCE", "TILE_SIZES", "certified_distances",
            "TilePyramid", "resolve_tolerance"]
@@ -73,7 +74,6 @@ def _kdtree_class():
     the GIL): spinning OpenMP pools made the contact streams several times slower on a
     shared 2-core machine, and the thread count then follows ``workers`` per call.
     """
-    import os
     import sys
 
     if "pykdtree.kdtree" not in sys.modules:
@@ -87,15 +87,6 @@ def _kdtree_class():
             else:
                 os.environ["OMP_NUM_THREADS"] = old
     return sys.modules["pykdtree.kdtree"].KDTree
-
-
-def _resolve_workers(workers: int) -> int:
-    if int(workers) > 0:
-        return int(workers)
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 class NearestNeighbours:
@@ -180,7 +171,8 @@ class NearestNeighbours:
         qn = np.ascontiguousarray(q.detach().to("cpu", torch.float64).numpy())
         bound = None if max_distance is None else float(np.nextafter(max_distance, np.inf))
         n = len(qn)
-        threads = min(_resolve_workers(self.workers), max(1, n // _MIN_QUERIES_PER_THREAD))
+        workers = int(self.workers) if int(self.workers) > 0 else cpu_cores()
+        threads = min(workers, max(1, n // _MIN_QUERIES_PER_THREAD))
         if threads <= 1:
             d, i = self._tree.query(qn, k=1, distance_upper_bound=bound)
         else:  # blocks of queries on Python threads (pykdtree releases the GIL)

@@ -6,7 +6,7 @@ encoders' buffers (about 0.3 GB at 240x320, 0.8 GB at 480x640 for the 15 streams
 
 A worker builds whole episodes (:func:`imac_data.build.build_shard`). Its heavy parts all
 run thread pools of their own: torch's OpenMP pool, OpenCV's, Embree's ray casting (the
-renderer), the contact streams' Python threads and SciPy KD-tree queries, the SVT-AV1 and
+renderer), the contact streams' Python threads and their KD-tree queries, the SVT-AV1 and
 x264 encoders. Left alone, each pool sizes itself to the whole machine, so two workers on
 two cores run four-plus busy threads per core and a second worker made the build slower
 (measured: 5.8 -> 5.0 frames/s). :func:`pin_threads` caps every pool at the worker's share.
