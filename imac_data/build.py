@@ -312,6 +312,9 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     from imac_data.ingest import IngestOptions, check_episodes
     from imac_data.lock import output_lock
     from imac_data.rig import Rig
+    from imac_data.workers import limit_malloc_arenas
+
+    limit_malloc_arenas()  # before the rig's threads allocate: this process may be the only worker
 
     recipe = req.recipe
     if executor not in ("local", "ray"):

@@ -26,14 +26,15 @@ from __future__ import annotations
 import os
 
 __all__ = ["cpu_cores", "default_workers", "threads_per_worker", "pin_threads", "thread_env", "peak_rss_mb",
-           "exit_with_parent"]
+           "exit_with_parent", "limit_malloc_arenas"]
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 # glibc gives each thread that allocates its own malloc arena and keeps freed memory in it;
 # with the pipeline's encoder and contact threads that alone added about 0.4 GB to a
-# 480x640 worker (measured: 3.16 -> 2.78 GB peak with 2 threads). Two arenas cost no
-# measurable time.
-_MALLOC_ARENAS = 2
+# 480x640 worker (measured: 3.16 -> 2.78 GB peak with 2 threads, two arenas). One arena,
+# set before the rig's threads first allocate, takes another 50-100 MB off (100- and
+# 400-frame episodes at 480x640) and costs no measurable time.
+_MALLOC_ARENAS = 1
 _M_ARENA_MAX = -8  # mallopt parameter (glibc malloc.h)
 
 
@@ -79,11 +80,12 @@ def pin_threads(threads: int) -> None:
         os.environ[var] = value  # for anything loaded later (and child processes)
     torch.set_num_threads(threads)
     cv2.setNumThreads(threads)
-    _limit_malloc_arenas()
+    limit_malloc_arenas()
 
 
-def _limit_malloc_arenas() -> None:
-    """At most :data:`_MALLOC_ARENAS` glibc malloc arenas from now on (no-op elsewhere)."""
+def limit_malloc_arenas() -> None:
+    """At most :data:`_MALLOC_ARENAS` glibc malloc arenas from now on (no-op elsewhere).
+    Threads that already have an arena keep it: call it before they start."""
     import ctypes
     import ctypes.util
 
