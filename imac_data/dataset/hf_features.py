@@ -11,7 +11,7 @@ twice more).
 
 :func:`install` replaces ``Features.__init__`` with one that does the same work once per
 column: the same values (old-style ``[feature]`` lists become ``List(feature)``) and the
-same decoding flags, so nothing read or written changes (``tests/test_dataset_package.py``
+same decoding flags, so nothing read or written changes (``tests/test_dataset.py``
 compares it with the original on a built dataset's schemas). It is installed when
 :mod:`imac_data.dataset` is imported, only over the implementation it was checked against
 (``datasets`` 4.x); any other version is left alone.
