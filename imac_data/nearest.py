@@ -6,8 +6,9 @@ Nearest distances and the tolerance
 -----------------------------------
 :class:`NearestNeighbours` / :func:`nearest_distances`: exact Euclidean nearest
 distances, either a pykdtree KD-tree (CPU; ``workers`` threads over blocks of queries;
-``distance_upper_bound``) or chunked exact ``torch.cdist`` + min (CPU or CUDA; no matmul
-expansion, so no cancellation and no TF32). With a bound (a fixed cap), queries farther
+``distance_upper_bound``) or brute force over blocks of queries (CPU or CUDA: a float64
+matmul picks each query's nearest target, whose distance is then computed from the
+coordinate differences; float64, so no TF32). With a bound (a fixed cap), queries farther
 than it from the target's bounding box (and, for the torch path, targets farther than
 it from the queries' box) are culled first: they would come back as +inf anyway.
 
@@ -93,11 +94,11 @@ class NearestNeighbours:
     """Exact nearest-neighbour queries against a fixed target cloud (built once, queried
     many times: the reference scene of a chunk).
 
-    ``method``: ``"kdtree"`` (a pykdtree KD-tree, CPU, float64), ``"torch"`` (chunked
-    exact ``torch.cdist`` + min on the target's device, CPU or CUDA), or ``"auto"`` (CUDA
+    ``method``: ``"kdtree"`` (a pykdtree KD-tree, CPU, float64), ``"torch"`` (brute
+    force over blocks of queries on the target's device, CPU or CUDA), or ``"auto"`` (CUDA
     -> torch; CPU -> kdtree, except brute force for tiny targets). ``workers``: threads of
     the KD-tree queries (-1 = all cores; blocks of at least 8192 queries per thread).
-    ``chunk_pairs``: query-target pairs per torch block (memory bound: 4 bytes each).
+    ``chunk_pairs``: query-target pairs per torch block (memory bound: 8 bytes each).
     ``leafsize``: points per KD-tree leaf. pykdtree with 16 answered the contact streams'
     queries (robot points 10-40 cm from the scene, scene points far from the gripper)
     2.3x faster than the scipy ``cKDTree`` forest we used before (0.86 vs 1.98 us per
@@ -185,9 +186,16 @@ class NearestNeighbours:
         return torch.from_numpy(d), torch.from_numpy(i)
 
     def _query_torch(self, q: torch.Tensor, max_distance: float | None) -> tuple[torch.Tensor, torch.Tensor]:
+        # Brute force by blocks of queries. Not torch.cdist: its exact (non-matmul) CUDA
+        # kernel runs one thread block per query-target pair, which for 3-D points took
+        # over a second per contact frame on an H100. Instead each block is one float64
+        # matmul, |q - t|^2 = |q|^2 + |t|^2 - 2 q.t (coordinates centred on the targets, so
+        # the cancellation error stays near 1e-16 m^2 and picks the wrong nearest point only
+        # between targets equally far to ~1e-13 m at 1 mm), and the distance to the chosen
+        # target is then computed from the coordinate differences.
         t = self.target
-        q = q.to(device=t.device, dtype=torch.promote_types(q.dtype, t.dtype))
-        t = t.to(q.dtype)
+        q = q.to(device=t.device, dtype=torch.float64)
+        t = t.to(torch.float64)
         index = None
         if max_distance is not None:  # targets farther than the bound from every query cannot win
             index = torch.nonzero(_box_distance(t, q.amin(0), q.amax(0)) <= max_distance)[:, 0]
@@ -195,12 +203,15 @@ class NearestNeighbours:
             if len(t) == 0:
                 return (torch.full((q.shape[0],), math.inf, device=q.device),
                         torch.zeros(q.shape[0], dtype=torch.long, device=q.device))
+        centre = t.mean(0)
+        t = t - centre
+        t_sq = (t * t).sum(1)[None]
         rows = max(1, self.chunk_pairs // max(1, len(t)))
-        dist = torch.empty(q.shape[0], dtype=q.dtype, device=q.device)
         arg = torch.empty(q.shape[0], dtype=torch.long, device=q.device)
         for start in range(0, q.shape[0], rows):  # blocks of queries, not points
-            block = torch.cdist(q[start:start + rows], t, compute_mode="donot_use_mm_for_euclid_dist")
-            dist[start:start + rows], arg[start:start + rows] = block.min(dim=1)
+            # |t|^2 - 2 q.t: the row's |q|^2 does not change which target is nearest
+            arg[start:start + rows] = torch.addmm(t_sq, q[start:start + rows] - centre, t.T, alpha=-2).argmin(dim=1)
+        dist = (q - centre - t[arg]).norm(dim=1)
         return dist, (arg if index is None else index[arg])
 
 

@@ -72,3 +72,34 @@ def test_quick_benchmark_writes_every_figure(tmp_path):
     for key in REQUIRED_NUMBERS:
         assert f"`{key}`" in md, key
     assert _committed() == before, "the quick run must not touch benchmarks/results/"
+
+
+def test_cuda_paths_export_and_run_check_against_their_oracles(tmp_path):
+    """``benchmarks.cuda_paths`` (the GPU machine's benchmark) end to end on the CPU:
+    export a tiny episode, then run with ``--bruteforce-cpu`` (the CUDA algorithm on the
+    CPU). FK is checked against MuJoCo's body poses; the brute-force contact distances
+    against the KD-tree's, exactly (both are exact algorithms in float64)."""
+    from benchmarks import cuda_paths
+
+    cuda_paths.export(tmp_path, cuda_paths.QUICK_SIZES)
+    r = cuda_paths.run(tmp_path, cpu_threads=1, repeats=1, batches=(1, 3), bruteforce_cpu=True)
+    m = r["fk_vs_mujoco"]
+    assert m["bodies"] == 22 and m["frames"] == 9
+    for key, value in m.items():
+        if key.endswith("_max_translation_error_m"):
+            assert value < 1e-6, (key, value)
+    (row,) = r["contact"].values()
+    prefix = "cuda" if torch_cuda_available() else "bruteforce_cpu"
+    assert row[f"{prefix}_exact_vs_cpu_exact_r2s_max_abs_diff_m"] == 0.0
+    assert row[f"{prefix}_exact_vs_cpu_exact_s2g_max_abs_diff_m"] == 0.0
+    assert row[f"{prefix}_exact_vs_cpu_exact_r2s_kind_mismatches"] == 0
+    assert row[f"{prefix}_exact_vs_cpu_exact_s2g_kind_mismatches"] == 0
+    assert row[f"{prefix}_exact_vs_cpu_exact_rgb_identical_fraction"] == 1.0
+    assert row[f"{prefix}_certified_max_tolerance_violation_m"] < 1e-6  # float32 rounding
+    assert "FK vs MuJoCo" in cuda_paths.report(r)
+
+
+def torch_cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
