@@ -16,6 +16,7 @@ Modules, one concept each:
 * ``depth``       the depth colour codec
 * ``depth_sources`` recorded depth, Depth Anything 3
 * ``nearest``     exact nearest distances, certified distances over pixel tiles
+* ``clouds``      the reference scene cloud and the gripper surface samples that contact compares
 * ``contact``     contact images (robot-to-scene, scene-to-gripper)
 * ``pipeline``    the streamed episode pipeline and its stage timings
 * ``ingest``      raw episodes -> base LeRobot dataset

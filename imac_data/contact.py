@@ -70,7 +70,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -78,6 +78,14 @@ import numpy as np
 import torch
 
 from imac_data.cameras import pixel_rays
+from imac_data.clouds import (  # re-exported: the contact streams' public API
+    DEFAULT_DILATE_PX,
+    GripperSurface,
+    SceneCloud,
+    dilate_mask,
+    lift_pixels,
+    scene_cloud,
+)
 from imac_data.errors import InputError
 from imac_data.nearest import (
     DEFAULT_TOLERANCE,
@@ -111,9 +119,7 @@ __all__ = [
 ]
 
 DEFAULT_PERCENTILE = 99.0
-DEFAULT_DILATE_PX = 2
 DEFAULT_FILL_PX = 2
-DEFAULT_GRIPPER_SPACING = 0.002  # metres between gripper surface samples
 MIN_CAP = 1e-3  # metres; a percentile cap is never smaller (all-zero distances)
 EMPTY_CAP = 1.0  # metres; the cap of a stream with no finite distance in the chunk
 _R2S_STEPS = 2  # r2s steps per certified pass (tiles never cross steps, so the grouping is invisible)
@@ -169,197 +175,6 @@ def colorize(distance: torch.Tensor, cap) -> torch.Tensor:
     level = v.clamp_(0, 255).to(torch.int64)
     level.masked_fill_(torch.isnan(d), 256)
     return _lut(d.device).index_select(0, level.reshape(-1)).reshape(*d.shape, 3)
-
-
-# ----------------------------------------------------------------------------- scene cloud
-
-
-def dilate_mask(mask: torch.Tensor, radius: int) -> torch.Tensor:
-    """Boolean masks ``(..., H, W)`` grown by ``radius`` pixels (square structuring
-    element: every pixel within Chebyshev distance ``radius`` of the mask)."""
-    radius = int(radius)
-    if radius < 0:
-        raise InputError(f"mask dilation must be >= 0 pixels, got {radius}")
-    mask = torch.as_tensor(mask).bool()
-    if radius == 0 or mask.numel() == 0:
-        return mask
-    shape = mask.shape
-    x = mask.reshape(-1, 1, *shape[-2:]).to(torch.float16 if mask.is_cuda else torch.float32)
-    x = torch.nn.functional.max_pool2d(x, 2 * radius + 1, stride=1, padding=radius)
-    return x.reshape(shape) > 0
-
-
-def _lift(depth_flat: torch.Tensor, rays: torch.Tensor, T: torch.Tensor, image: torch.Tensor, view: torch.Tensor,
-          pix: torch.Tensor) -> torch.Tensor:
-    """World points of selected pixels: ``depth * ray`` in the camera, then ``T_world_cam``.
-    ``view``/``pix`` index ``rays (V, HW, 3)``; ``T (I, 4, 4)`` holds the pose of each image
-    and ``image`` (sorted ascending, as ``nonzero`` returns it) the image of each point, so
-    each image's points are one contiguous block: one small matmul per image, not a
-    gathered 4x4 per point."""
-    p_cam = rays[view, pix] * depth_flat[:, None]
-    counts = torch.bincount(image, minlength=T.shape[0]).tolist()
-    out = torch.empty_like(p_cam)
-    start = 0
-    for i, n in enumerate(counts):  # one block per image (S * V of them), not per point
-        if n:
-            out[start:start + n] = p_cam[start:start + n] @ T[i, :3, :3].T + T[i, :3, 3]
-        start += n
-    return out
-
-
-@dataclass
-class SceneCloud:
-    """The reference scene ``P_s(t)`` of a chunk.
-
-    ``points (P, 3)`` world; ``flat (P,)`` index of each point's pixel in the flattened
-    ``(V, H, W)`` reference images; ``valid (V, H, W)`` pixels that gave a point;
-    ``mask (V, H, W)`` the scene mask (neither in the dilated robot mask nor outside the
-    workspace box), where s2g is painted; ``robot_mask`` the dilated reference robot mask
-    that was removed; ``outside (V, H, W)`` pixels whose point lay outside the workspace box.
-    """
-
-    points: torch.Tensor
-    flat: torch.Tensor
-    valid: torch.Tensor
-    mask: torch.Tensor
-    robot_mask: torch.Tensor
-    outside: torch.Tensor | None = None
-
-    @property
-    def num_views(self) -> int:
-        return int(self.valid.shape[0])
-
-
-def _check_views(depth, K, T_world_cam, robot_mask, *, what: str, device=None):
-    depth = torch.as_tensor(depth, device=device)
-    if depth.ndim != 3:
-        raise InputError(f"{what}: depth must be (V, H, W) metres, got shape {tuple(depth.shape)}")
-    V, H, W = depth.shape
-    if V == 0 or H == 0 or W == 0:
-        raise InputError(f"{what}: depth has no views or no pixels (shape {tuple(depth.shape)})")
-    depth = depth.to(device=depth.device, dtype=torch.float32) if not depth.is_floating_point() else depth
-    K = torch.as_tensor(K, device=depth.device, dtype=torch.float32)
-    T_world_cam = torch.as_tensor(T_world_cam, device=depth.device, dtype=torch.float32)
-    robot_mask = torch.as_tensor(robot_mask, device=depth.device)
-    if K.shape != (V, 3, 3):
-        raise InputError(f"{what}: K must be (V, 3, 3) = ({V}, 3, 3) for {V} depth view(s), got {tuple(K.shape)}")
-    if T_world_cam.shape != (V, 4, 4):
-        raise InputError(f"{what}: camera poses must be (V, 4, 4) = ({V}, 4, 4) for {V} depth view(s), "
-                         f"got {tuple(T_world_cam.shape)}")
-    if robot_mask.shape != (V, H, W):
-        raise InputError(f"{what}: robot mask must be (V, H, W) = {(V, H, W)} like the depth, "
-                         f"got {tuple(robot_mask.shape)}")
-    if not (torch.isfinite(K).all() and torch.isfinite(T_world_cam).all()):
-        raise InputError(f"{what}: K or camera poses contain NaN or inf")
-    return depth.to(torch.float32), K, T_world_cam, robot_mask.bool()
-
-
-def scene_cloud(depth, K, T_world_cam, robot_mask, *, dilate_px: int = DEFAULT_DILATE_PX, workspace=None,
-                device=None) -> SceneCloud:
-    """The reference scene cloud: reference depth ``(V, H, W)`` metres (0 / non-finite /
-    negative = invalid), intrinsics ``K (V, 3, 3)``, camera-to-world poses ``(V, 4, 4)``
-    (OpenCV axes) and the rendered reference robot mask ``(V, H, W)``, grown by
-    ``dilate_px`` pixels before removal (real masks are imperfect).
-
-    ``workspace`` (:class:`~imac_data.workspace.Workspace`, its dict form, or None = no
-    crop): depth outside its range ``[near, far)`` is invalid like 0; points outside its
-    world box leave the cloud and the scene mask. May be empty; the callers decide what
-    that means (:func:`contact_chunk`)."""
-    depth, K, T, rmask = _check_views(depth, K, T_world_cam, robot_mask, what="reference views", device=device)
-    workspace = as_workspace(workspace)
-    V, H, W = depth.shape
-    removed = dilate_mask(rmask, dilate_px)
-    good = torch.isfinite(depth) & (depth > 0) if workspace is None else workspace.valid_depth(depth)
-    valid = good & ~removed
-    flat = torch.nonzero(valid.reshape(-1))[:, 0]
-    view, pix = flat // (H * W), flat % (H * W)
-    rays = pixel_rays(K, H, W)
-    points = _lift(depth.reshape(-1)[flat], rays, T, view, view, pix)
-    mask, outside = ~removed, None
-    if workspace is not None:
-        inside = workspace.contains(points)
-        outside = torch.zeros(V * H * W, dtype=torch.bool, device=depth.device)
-        outside[flat[~inside]] = True
-        outside = outside.reshape(V, H, W)
-        valid, mask = valid & ~outside, mask & ~outside
-        flat, points = flat[inside], points[inside]
-    return SceneCloud(points=points, flat=flat, valid=valid, mask=mask, robot_mask=removed, outside=outside)
-
-
-# ----------------------------------------------------------------------------- gripper surface
-
-
-class GripperSurface:
-    """Surface samples of a robot's gripper links, in each link's own frame.
-
-    Built once from ``robot.visual_meshes`` of ``links`` (default ``robot.gripper_links``):
-    area-weighted random samples plus the mesh vertices, thinned to one per
-    ``spacing``-sized voxel (seeded, so deterministic), so any point of the mesh
-    surface has a sample within about ``spacing``. :meth:`points` poses them for
-    any batch of link poses.
-    """
-
-    def __init__(self, robot, links: Sequence[str] | None = None, *, spacing: float = DEFAULT_GRIPPER_SPACING,
-                 seed: int = 0):
-        links = tuple(robot.gripper_links if links is None else links)
-        if not links:
-            raise InputError(f"robot {robot.name!r} has no gripper links (RobotConfig.gripper_links)")
-        if not (math.isfinite(spacing) and spacing > 0):
-            raise InputError(f"gripper sample spacing must be > 0 metres, got {spacing}")
-        self.links = links
-        self.spacing = float(spacing)
-        rng = np.random.default_rng(seed)
-        samples = {}
-        for link in links:
-            meshes = [m for m in robot.visual_meshes if m.link == link]
-            if not meshes:
-                raise InputError(f"gripper link {link!r} has no visual mesh in robot {robot.name!r}")
-            pts = [_sample_mesh(m.vertices, m.faces, self.spacing, rng) for m in meshes]
-            samples[link] = _voxel_thin(np.concatenate(pts), self.spacing)
-        self.samples = samples  # link -> (n, 3) float32, link frame
-        self.counts = {k: len(v) for k, v in samples.items()}
-        self._stacked = torch.as_tensor(np.concatenate([samples[k] for k in links]))
-        self._link_of = torch.as_tensor(np.repeat(np.arange(len(links)), [len(samples[k]) for k in links]))
-        self._cache: dict = {}
-
-    @property
-    def num_points(self) -> int:
-        return int(self._stacked.shape[0])
-
-    def points(self, link_poses: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """World points ``(*B, M, 3)`` for link poses ``link -> (*B, 4, 4)`` (from FK)."""
-        missing = [k for k in self.links if k not in link_poses]
-        if missing:
-            raise InputError(f"link poses lack gripper link(s) {missing}")
-        T = torch.stack([link_poses[k] for k in self.links], dim=-3)  # (*B, L, 4, 4)
-        key = (T.dtype, str(T.device))
-        if key not in self._cache:
-            self._cache[key] = (self._stacked.to(T), self._link_of.to(T.device))
-        pts, link_of = self._cache[key]
-        Tp = T[..., link_of, :, :]  # (*B, M, 4, 4)
-        return (Tp[..., :3, :3] @ pts[..., None])[..., 0] + Tp[..., :3, 3]
-
-
-def _sample_mesh(vertices: np.ndarray, faces: np.ndarray, spacing: float, rng) -> np.ndarray:
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    total = float(area.sum())
-    n = int(math.ceil(4.0 * total / spacing**2)) if total > 0 else 0
-    if n == 0:
-        return v.astype(np.float32)
-    tri = rng.choice(len(f), size=n, p=area / total)
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    pts = (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
-    return np.concatenate([v, pts]).astype(np.float32)
-
-
-def _voxel_thin(points: np.ndarray, size: float) -> np.ndarray:
-    keys = np.floor(points / size).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return points[np.sort(first)]
 
 
 # ----------------------------------------------------------------------------- chunks
@@ -604,7 +419,7 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
     rflat = torch.nonzero(robot.reshape(-1))[:, 0]  # index into (S, V, H, W)
     step, view, pix = rflat // (V * HW), (rflat // HW) % V, rflat % HW
     rays = pixel_rays(Kt, H, W)
-    r_points = _lift(rd.reshape(-1)[rflat], rays, T.reshape(S * V, 4, 4), rflat // HW, view, pix)
+    r_points = lift_pixels(rd.reshape(-1)[rflat], rays, T.reshape(S * V, 4, 4), rflat // HW, view, pix)
 
     r_cap, g_cap = fixed if fixed is not None else (None, None)
     g_flag = None if gm is None else gm.reshape(-1)[rflat]

@@ -41,7 +41,7 @@ from pathlib import Path
 import torch
 
 from imac_data.cameras import Camera, camera_from_dict
-from imac_data.contact import DEFAULT_GRIPPER_SPACING
+from imac_data.clouds import DEFAULT_GRIPPER_SPACING
 from imac_data.errors import InputError
 from imac_data.motion import Controller, frame_configurations, rollout
 from imac_data.robot import RobotConfig, RobotModel
@@ -261,9 +261,9 @@ class Rig:
 
     @property
     def gripper(self):
-        """Surface samples of the gripper links (:class:`~imac_data.contact.GripperSurface`)."""
+        """Surface samples of the gripper links (:class:`~imac_data.clouds.GripperSurface`)."""
         if self._gripper is None:
-            from imac_data.contact import GripperSurface
+            from imac_data.clouds import GripperSurface
 
             self._gripper = GripperSurface(self.robot, spacing=self.gripper_spacing)
         return self._gripper

@@ -14,7 +14,7 @@ happens where the robot can reach, so the scene cloud is cropped to
   is *outside the workspace* (no scene point, no value, black in s2g, never hole-filled).
 
 Both are plain functions on tensors (:func:`depth_in_range`, :func:`points_in_box`), used
-by :func:`imac_data.contact.scene_cloud` offline (dataset build) and online (a world model
+by :func:`imac_data.clouds.scene_cloud` offline (dataset build) and online (a world model
 rebuilding contact images from its predicted depth), with the same :class:`Workspace`
 recorded in the dataset (``info["imac"]["workspace"]``, carried by
 :class:`~imac_data.rig.Rig`).
