@@ -48,8 +48,8 @@ def dilate_mask(mask: torch.Tensor, radius: int) -> torch.Tensor:
     return x.reshape(shape) > 0
 
 
-def lift_pixels(depth_flat: torch.Tensor, rays: torch.Tensor, T: torch.Tensor, image: torch.Tensor, view: torch.Tensor,
-          pix: torch.Tensor) -> torch.Tensor:
+def lift_pixels(depth_flat: torch.Tensor, rays: torch.Tensor, T: torch.Tensor, image: torch.Tensor,
+                view: torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
     """World points of selected pixels: ``depth * ray`` in the camera, then ``T_world_cam``.
     ``view``/``pix`` index ``rays (V, HW, 3)``; ``T (I, 4, 4)`` holds the pose of each image
     and ``image`` (sorted ascending, as ``nonzero`` returns it) the image of each point, so
