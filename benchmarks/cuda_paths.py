@@ -60,19 +60,20 @@ def export(out: Path, sizes: dict = SIZES, seed: int = 0) -> None:
     import mujoco
 
     from benchmarks.contact_speed import _Capture
-    from imac_data.aloha import ARMS, camera_calibration, load_mujoco_model
+    from imac_data.aloha import ARMS, camera_calibration, load_mujoco_model, robot_config
     from imac_data.contact import chunk_plan
     from imac_data.depth import DepthCodec
     from imac_data.rig import Rig
+    from imac_data.robot import RobotModel
     from imac_data.robot_files import write_description
     from imac_data.simulate import simulate_episode
     from imac_data.workspace import resolve_workspace, saturation_depth
 
     out.mkdir(parents=True, exist_ok=True)
     model = load_mujoco_model("transfer_cube")
-    rig = Rig.from_platform("aloha_sim", camera_calibration(model, 320, 240))
-    rig = Rig(rig.robot, rig.cameras, rig.controller, rig.state_names,
-              workspace=resolve_workspace(None, rig.robot, saturation_depth(DepthCodec.preset("manipulation"))))
+    robot = RobotModel(robot_config())
+    rig = Rig.from_platform("aloha_sim", camera_calibration(model, 320, 240), robot=robot,
+                            workspace=resolve_workspace(None, robot, saturation_depth(DepthCodec.preset("manipulation"))))
     write_description(rig.robot, out / "robot")
     (out / "rig.json").write_text(json.dumps(rig.to_info(), indent=1))
     (out / "sizes.json").write_text(json.dumps(sizes))

@@ -123,7 +123,7 @@ def scene_cloud(depth, K, T_world_cam, robot_mask, *, dilate_px: int = DEFAULT_D
     ``workspace`` (:class:`~imac_data.workspace.Workspace`, its dict form, or None = no
     crop): depth outside its range ``[near, far)`` is invalid like 0; points outside its
     world box leave the cloud and the scene mask. May be empty; the callers decide what
-    that means (:func:`contact_chunk`)."""
+    that means (:func:`~imac_data.contact.contact_chunk`)."""
     depth, K, T, rmask = _check_views(depth, K, T_world_cam, robot_mask, what="reference views", device=device)
     workspace = as_workspace(workspace)
     V, H, W = depth.shape
