@@ -221,9 +221,6 @@ def tree_bytes(root: Path) -> dict:
 # ----------------------------------------------------------------------------- 1. whole builds
 
 
-# ----------------------------------------------------------------------------- 1. whole builds
-
-
 def _usage_s() -> float:
     own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
@@ -339,9 +336,9 @@ def long_episodes(work: Workload, source: Path, recipe: Path, tmp: Path) -> dict
                                           "load_avg_start", "load_avg_end")}
         rows[str(n)]["stages"] = stage_table(b)
         shutil.rmtree(d, ignore_errors=True)
-    s, l = rows[str(work.short_frames)], rows[str(work.long_frames)]
+    short, long_ = rows[str(work.short_frames)], rows[str(work.long_frames)]
     return {"size": list(work.long_size), "rows": rows,
-            "peak_ratio_long_vs_short": l["peak_mem_mb_per_worker"] / s["peak_mem_mb_per_worker"]}
+            "peak_ratio_long_vs_short": long_["peak_mem_mb_per_worker"] / short["peak_mem_mb_per_worker"]}
 
 
 # ----------------------------------------------------------------------------- 4. side by side

@@ -103,3 +103,28 @@ def torch_cuda_available() -> bool:
     import torch
 
     return torch.cuda.is_available()
+
+
+def test_same_host_builds_both_revisions_on_the_same_episodes(tmp_path):
+    """``benchmarks.same_host`` end to end at a tiny size, with HEAD as the baseline: both
+    revisions' CLIs build the same recorded episode (same frame count), every build has its
+    CPU and memory, and the report names both. No timing is asserted."""
+    import json
+
+    from benchmarks import same_host
+
+    out = tmp_path / "out"
+    assert same_host.main(["--baseline", "HEAD", "--sizes", "48x64", "--workers", "1", "--rounds", "1",
+                           "--episodes", "1", "--max-steps", "12", "--keep", str(tmp_path / "work"),
+                           "--out", str(out)]) == 0
+    res = json.loads((out / "same_host.json").read_text())
+    builds = res["builds"]
+    assert sorted(b["revision"] for b in builds) == ["baseline", "this"]
+    assert len({b["frames"] for b in builds}) == 1 and builds[0]["frames"] > 0
+    for b in builds:
+        assert b["cpu_s"] > 0 and b["peak_rss_mb"] > 100 and b["build_s"] > 0
+    (summary,) = res["summary"].values()
+    assert summary["fps_ratio_best"] > 0 and len(summary["pairs"]) == 1
+    md = (out / "same_host.md").read_text()
+    assert "| 48x64 | 0 | 1 | baseline |" in md and "| 48x64 | 0 | 1 | this |" in md
+    assert not (tmp_path / "work" / "baseline").exists(), "the baseline worktree is removed"
