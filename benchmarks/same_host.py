@@ -71,7 +71,7 @@ def cli_build(tree: Path, recipe: Path, source: Path, episodes: int, workers: in
         # wait4, not Popen.wait: its usage covers the CLI and the workers it reaped
         _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t
-    proc.returncode = os.waitstatus_to_exitcode(status)
+    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait for it again
     output = log_path.read_text(errors="replace")
     if proc.returncode:
         raise RuntimeError(f"{tree}: build failed (exit {proc.returncode}):\n{output[-3000:]}")
