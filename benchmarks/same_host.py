@@ -118,21 +118,16 @@ def summarise(rows: list[dict]) -> dict:
     for size in dict.fromkeys(r["size"] for r in rows):
         at = [r for r in rows if r["size"] == size]
         med = {}
-        for name in ("baseline", "this"):
-            for w in sorted({r["workers"] for r in at}):
-                runs = [r for r in at if r["revision"] == name and r["workers"] == w]
-                if runs:
-                    med[name, w] = {"fps": statistics.median(r["fps"] for r in runs),
-                                    "cpu_ms_per_frame": statistics.median(r["cpu_ms_per_frame"] for r in runs)}
+        for name, w in dict.fromkeys((r["revision"], r["workers"]) for r in at):
+            runs = [r for r in at if (r["revision"], r["workers"]) == (name, w)]
+            med[name, w] = {"fps": statistics.median(r["fps"] for r in runs),
+                            "cpu_ms_per_frame": statistics.median(r["cpu_ms_per_frame"] for r in runs)}
         best = {name: max(((w, m) for (n, w), m in med.items() if n == name), key=lambda x: x[1]["fps"])
                 for name in ("baseline", "this")}
-        pairs = []
-        for r in {(x["round"], x["workers"]) for x in at}:
-            a = [x for x in at if (x["round"], x["workers"]) == r and x["revision"] == "baseline"]
-            b = [x for x in at if (x["round"], x["workers"]) == r and x["revision"] == "this"]
-            if a and b:
-                pairs.append({"round": r[0], "workers": r[1], "fps_ratio": b[0]["fps"] / a[0]["fps"],
-                              "cpu_ratio": b[0]["cpu_ms_per_frame"] / a[0]["cpu_ms_per_frame"]})
+        by = {(x["round"], x["workers"], x["revision"]): x for x in at}
+        pairs = [{"round": r, "workers": w, "fps_ratio": this["fps"] / base["fps"],
+                  "cpu_ratio": this["cpu_ms_per_frame"] / base["cpu_ms_per_frame"]}
+                 for (r, w, name), this in by.items() if name == "this" and (base := by.get((r, w, "baseline")))]
         out[size] = {
             "per_setting": {f"{n} w{w}": m for (n, w), m in med.items()},
             "best": {n: {"workers": w, **m} for n, (w, m) in best.items()},
