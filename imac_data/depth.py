@@ -435,9 +435,35 @@ class DepthCodec:
         return rgb
 
     def encode_uint8(self, depth, *, channel_axis: int = -1, name: str = "depth"):
-        """As :meth:`encode`, rounded to uint8 colours (0..255): frames for a video encoder."""
+        """As :meth:`encode`, rounded to uint8 colours (0..255): frames for a video encoder.
+
+        float32 numpy depth that came from whole millimetres (``depth_from_millimetres``:
+        every recorded depth stream) is looked up in a table of this very function over
+        the 65,536 uint16 millimetre values, which gives the same bytes (each value is
+        computed elementwise either way; ``tests/test_depth_codec.py`` checks every
+        table entry) at about a tenth of the cost; other values are computed.
+        """
+        bk = _backend(depth)
+        if not bk.is_torch and np.asarray(depth).dtype == np.float32:
+            rgb = self._encode_uint8_float32(self._check_depth(bk, depth, name))
+            return rgb if channel_axis in (-1, rgb.ndim - 1) else np.moveaxis(rgb, -1, channel_axis)
         rgb = self.encode(depth, channel_axis=channel_axis, name=name)
-        return _backend(rgb).to_uint8(rgb * 255.0)
+        return bk.to_uint8(rgb * 255.0)
+
+    def _encode_uint8_computed(self, depth: np.ndarray) -> np.ndarray:
+        return _NUMPY.to_uint8(self._encode_float(_NUMPY, depth) * 255.0)
+
+    def _encode_uint8_float32(self, depth: np.ndarray) -> np.ndarray:
+        metres, colours = _millimetre_table(self)
+        with np.errstate(invalid="ignore"):  # NaN / inf cast to some integer, clipped, and then fail the check
+            mm = np.rint(depth * np.float32(1000.0)).astype(np.intp)
+        np.clip(mm, 0, len(metres) - 1, out=mm)
+        on_grid = np.take(metres, mm) == depth
+        rgb = np.take(colours, mm, axis=0)
+        if not on_grid.all():
+            off = ~on_grid
+            rgb[off] = self._encode_uint8_computed(depth[off])
+        return rgb
 
     # ------------------------------------------------------------------- decoding
     def decode(self, rgb, *, invalid_codes: float = 0.5, channel_axis: int = -1, name: str = "depth colours"):
@@ -463,6 +489,20 @@ class DepthCodec:
         log_u = xp.where(s < 0.5 * N_SEGMENTS, xp.log1p(-s / N_SEGMENTS), xp.log(r / N_SEGMENTS))
         depth = (-self.lam * self.c) * xp.expm1(log_u / (self.lam + 1.0))
         return xp.where(valid, depth, 0.0)
+
+
+_MILLIMETRE_TABLES: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _millimetre_table(codec: DepthCodec) -> tuple[np.ndarray, np.ndarray]:
+    """``(metres (65536,) float32, colours (65536, 3) uint8)``: every uint16 millimetre
+    depth as :func:`depth_from_millimetres` converts it, and its computed uint8 colour."""
+    key = (codec.lam, codec.c)
+    table = _MILLIMETRE_TABLES.get(key)  # (thread-safe: no check-then-read)
+    if table is None:
+        metres = depth_from_millimetres(np.arange(1 << 16, dtype=np.uint16))
+        table = _MILLIMETRE_TABLES[key] = (metres, codec._encode_uint8_computed(metres))
+    return table
 
 
 def _integer_depth_error(name: str, depth) -> InputError:

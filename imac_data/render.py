@@ -299,12 +299,12 @@ class RaycastRenderer(Renderer):
                        fy.reshape(shp) * yn + cy.reshape(shp)], axis=-1)  # (N, V, L, P, 2)
         n_front = front.sum(-1)
         out = []
-        for n, v, l in zip(*np.nonzero(n_front)):
-            q = uv[n, v, l]
-            if n_front[n, v, l] < front.shape[-1]:  # partly behind the plane: add the edge crossings
-                q = q[front[n, v, l]]
-                e = self._hull_e[l]
-                pa, pb = p[n, v, l, e[:, 0]], p[n, v, l, e[:, 1]]
+        for n, v, li in zip(*np.nonzero(n_front)):
+            q = uv[n, v, li]
+            if n_front[n, v, li] < front.shape[-1]:  # partly behind the plane: add the edge crossings
+                q = q[front[n, v, li]]
+                e = self._hull_e[li]
+                pa, pb = p[n, v, li, e[:, 0]], p[n, v, li, e[:, 1]]
                 cross = (pa[:, 2] - zc) * (pb[:, 2] - zc) < 0
                 pa, pb = pa[cross], pb[cross]
                 x = pa + ((zc - pa[:, 2]) / (pb[:, 2] - pa[:, 2]))[:, None] * (pb - pa)
@@ -319,7 +319,7 @@ class RaycastRenderer(Renderer):
             poly = cv2.convexHull(np.round((q - (u0, v0)) * 16).astype(np.int32))  # 1/16 px fixed point
             cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=4)
             mask = cv2.dilate(mask, self._kernel)  # one pixel of margin: rounding must stay conservative
-            out.append((int(n), int(v), int(l), u0, v0, mask.view(bool), cv2.countNonZero(mask)))
+            out.append((int(n), int(v), int(li), u0, v0, mask.view(bool), cv2.countNonZero(mask)))
         return out
 
     def _workspace(self, n: int) -> np.ndarray:
@@ -370,12 +370,12 @@ class RaycastRenderer(Renderer):
             for i in range(0, N, 16):  # bounded memory for the hull projection
                 feet += [(n + i, *rest) for n, *rest in self._footprints(T_cam_link[i:i + 16], K, hw)]
             if feet:
-                n, v, l = np.array([f[:3] for f in feet]).T
-                dist = np.linalg.norm(T_link_cam[n, v, l, :3, 3], axis=-1)
+                n, v, li = np.array([f[:3] for f in feet]).T
+                dist = np.linalg.norm(T_link_cam[n, v, li, :3, 3], axis=-1)
                 if dist.max() > self.max_range:
                     i = int(dist.argmax())
                     raise InputError(f"camera {names[v[i]]!r} is {dist[i]:.1f} m from link "
-                                     f"{self.link_names[l[i]]!r} (frame {n[i]}), beyond the renderer's max_range "
+                                     f"{self.link_names[li[i]]!r} (frame {n[i]}), beyond the renderer's max_range "
                                      f"{self.max_range} m (make the renderer with a larger max_range)")
             # Per (frame, view, link): ray direction in the link frame = A @ [u, v, 1] with
             # A = R_link_cam K^-1 (z component of K^-1 [u, v, 1] is 1, so the hit parameter
@@ -425,13 +425,13 @@ class RaycastRenderer(Renderer):
         near = self.near
         # Ray generation, footprint by footprint: pixel (u, v) -> A [u, v, 1] per component
         # (strided 1-D writes; no per-ray gathers of per-footprint data).
-        for (n, v, l, u0, v0, foot, _), s, e in zip(feet, starts, ends):
+        for (n, v, li, u0, v0, foot, _), s, e in zip(feet, starts, ends):
             ys, xs = np.nonzero(foot)
             uu, vv = xs + u0, ys + v0
             W = int(hw[v, 1])
             np.add(vv * W + uu, (n - f0) * int(hw[v, 0]) * W, out=pix[s:e])  # pixel index in frames f0:f1
             uf, vf = uu.astype(np.float32), vv.astype(np.float32)
-            a, o = A[n, v, l], origin[n, v, l]
+            a, o = A[n, v, li], origin[n, v, li]
             for k in range(3):
                 d = rays[s:e, 3 + k]
                 np.multiply(uf, a[k, 0], out=d)
@@ -451,10 +451,10 @@ class RaycastRenderer(Renderer):
 
         # z-buffer over links, footprint by footprint; a hit on a foreign slot is a miss.
         winner = [np.full((f1 - f0, int(h), int(w)), -1, dtype=np.int32) for h, w in hw]  # ray index
-        for (n, v, l, *_), s, e in zip(feet, starts, ends):
+        for (n, v, li, *_), s, e in zip(feet, starts, ends):
             zf, wf = depth[v][f0:f1].reshape(-1), winner[v].reshape(-1)
             idx, t = pix[s:e], t_hit[s:e]
-            ok = gid[s:e] == l
+            ok = gid[s:e] == li
             ok &= t < zf[idx]
             sel = np.flatnonzero(ok)
             zf[idx[sel]] = t[sel]

@@ -553,7 +553,7 @@ def test_workspace_crop_keeps_far_and_saturated_depth_out_of_the_caps(grasp):
     the stored s2g colour over the cube still gives MuJoCo's finger-cube distance within
     5 mm + half a colour level at a workspace-sized cap, and the caps stay within the
     workspace's diagonal; without the crop the s2g cap is tens of metres."""
-    model, inp, labels, rig = grasp["model"], grasp["inputs"], grasp["labels"], grasp["rig"]
+    model, inp, rig = grasp["model"], grasp["inputs"], grasp["rig"]
     ws = resolve_workspace(None, rig.robot, saturation_depth(DepthCodec.preset("manipulation")))
     data = mujoco.MjData(model)
     box = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "red_box")

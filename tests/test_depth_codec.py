@@ -192,6 +192,37 @@ def test_out_of_range_depth_saturates():
     np.testing.assert_allclose(codec.decode(codec.encode_uint8(near)), codec.min_depth, rtol=1e-5)
 
 
+@pytest.mark.parametrize("preset", PRESET_NAMES)
+def test_millimetre_depth_colours_equal_the_computed_ones(preset):
+    """float32 depth from whole millimetres is looked up in a table: the colours must be
+    the ones computed value by value (one-element arrays take numpy's scalar/tail loops,
+    the table was filled by its vector loops), on and off the millimetre grid."""
+    codec = DepthCodec.preset(preset)
+    grid = depth_from_millimetres(np.arange(1 << 16, dtype=np.uint16))
+    looked_up = codec.encode_uint8(grid.reshape(256, 256)).reshape(-1, 3)
+    # every entry against the computed colours of a reversed (non-contiguous) view
+    np.testing.assert_array_equal(looked_up[::-1], codec._encode_uint8_computed(grid[::-1]))
+    pick = RNG.choice(len(grid), 2000, replace=False)
+    one_by_one = np.stack([codec._encode_uint8_computed(grid[i:i + 1])[0] for i in pick])
+    np.testing.assert_array_equal(looked_up[pick], one_by_one)
+
+    # A frame mixing grid values with off-grid, invalid and out-of-table values.
+    values = np.concatenate([grid[pick[:500]], grid[pick[500:900]] + np.float32(1.7e-4),
+                             np.float32([0.0, -0.0, np.nan, np.inf, -np.inf, 65.535, 65.536, 70.0, 1e-7])])
+    values = RNG.permutation(values).astype(np.float32)
+    got = codec.encode_uint8(values[:900].reshape(2, 18, 25))
+    want = np.stack([codec._encode_uint8_computed(values[i:i + 1])[0] for i in range(900)])
+    np.testing.assert_array_equal(got.reshape(-1, 3), want)
+    np.testing.assert_array_equal(codec.encode_uint8(values[:900].reshape(18, 50), channel_axis=0),
+                                  np.moveaxis(want.reshape(18, 50, 3), -1, 0))
+
+    # The table against the analytic oracle: min_depth .. max_depth decode within half a code step.
+    mm = np.arange(int(codec.min_depth * 1000) + 1, min(len(grid), int(codec.max_depth * 1000)))
+    back = codec.decode(looked_up[mm])
+    bound = 0.5 * codec.quantisation_step(np.maximum(back, grid[mm]))
+    assert np.all(np.abs(back - grid[mm]) <= bound * (1 + 1e-4) + 1e-7 * grid[mm])
+
+
 # ---------------------------------------------------------------------------- invalid
 @pytest.mark.parametrize("backend", ["numpy", "torch"])
 def test_invalid_depth_is_black_and_decodes_invalid(backend):

@@ -228,7 +228,6 @@ def test_corrupt_depth_becomes_invalid_never_nan(built):
     chunks = ChunkDataset("local/rollout_tiny", layout, root=root, episodes=[0], cache="none")
     batch = chunks.batch([1])
     ref = batch.reference.clone()  # (1, 3, 2h, V w), recorded
-    h, w = spec.view_height, spec.view_width
     rgb, colour = mosaic.split(ref, len(VIEWS))
     clean, clean_invalid = decode_depth(colour, online.codec)
     assert torch.equal(clean_invalid, (colour == 0).all(dim=-3))  # recorded colours: only black is invalid
