@@ -169,6 +169,20 @@ def test_dilate_mask_square():
     assert torch.equal(dilate_mask(m, 0), m)
 
 
+@pytest.mark.parametrize("radius", [1, 2, 3, 7])
+def test_dilate_mask_against_brute_force(radius):
+    """Every pixel within Chebyshev distance ``radius`` of a mask pixel, by brute force
+    over all pixel pairs (odd shapes, masks at the borders, radius beyond the image)."""
+    gen = torch.Generator().manual_seed(radius)
+    m = torch.rand(3, 7, 11, generator=gen) > 0.93
+    m[1, 0, 0] = m[2, 6, 10] = True
+    y, x = torch.meshgrid(torch.arange(7), torch.arange(11), indexing="ij")
+    near = (torch.maximum((y.reshape(-1, 1) - y.reshape(1, -1)).abs(),
+                          (x.reshape(-1, 1) - x.reshape(1, -1)).abs()) <= radius)  # (HW, HW)
+    want = (near[None] & m.reshape(3, 1, -1)).any(-1).reshape(3, 7, 11)
+    assert torch.equal(dilate_mask(m, radius), want)
+
+
 @pytest.mark.parametrize("T, H", [(1, 4), (5, 4), (9, 4), (10, 4), (23, 8), (3, 1)])
 def test_chunk_plan(T, H):
     plan = chunk_plan(T, H)
