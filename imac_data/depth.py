@@ -441,7 +441,7 @@ class DepthCodec:
         every recorded depth stream) is looked up in a table of this very function over
         the 65,536 uint16 millimetre values, which gives the same bytes (each value is
         computed elementwise either way; ``tests/test_depth_codec.py`` checks every
-        table entry) at about a tenth of the cost; other values are computed.
+        table entry) at about a quarter of the cost; other values are computed.
         """
         bk = _backend(depth)
         if not bk.is_torch and np.asarray(depth).dtype == np.float32:
