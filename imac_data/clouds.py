@@ -62,7 +62,7 @@ def lift_pixels(depth_flat: torch.Tensor, rays: torch.Tensor, T: torch.Tensor, i
     and ``image`` (sorted ascending, as ``nonzero`` returns it) the image of each point, so
     each image's points are one contiguous block: one small matmul per image, not a
     gathered 4x4 per point."""
-    p_cam = rays[view, pix] * depth_flat[:, None]
+    p_cam = rays.reshape(-1, 3).index_select(0, view * rays.shape[1] + pix) * depth_flat[:, None]
     counts = torch.bincount(image, minlength=T.shape[0]).tolist()
     out = torch.empty_like(p_cam)
     start = 0
@@ -140,7 +140,7 @@ def scene_cloud(depth, K, T_world_cam, robot_mask, *, dilate_px: int = DEFAULT_D
     flat = torch.nonzero(valid.reshape(-1))[:, 0]
     view, pix = flat // (H * W), flat % (H * W)
     rays = pixel_rays(K, H, W)
-    points = lift_pixels(depth.reshape(-1)[flat], rays, T, view, view, pix)
+    points = lift_pixels(depth.reshape(-1).index_select(0, flat), rays, T, view, view, pix)
     mask, outside = ~removed, None
     if workspace is not None:
         inside = workspace.contains(points)

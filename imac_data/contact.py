@@ -419,7 +419,7 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
     rflat = torch.nonzero(robot.reshape(-1))[:, 0]  # index into (S, V, H, W)
     step, view, pix = rflat // (V * HW), (rflat // HW) % V, rflat % HW
     rays = pixel_rays(Kt, H, W)
-    r_points = lift_pixels(rd.reshape(-1)[rflat], rays, T.reshape(S * V, 4, 4), rflat // HW, view, pix)
+    r_points = lift_pixels(rd.reshape(-1).index_select(0, rflat), rays, T.reshape(S * V, 4, 4), rflat // HW, view, pix)
 
     r_cap, g_cap = fixed if fixed is not None else (None, None)
     g_flag = None if gm is None else gm.reshape(-1)[rflat]
@@ -452,9 +452,9 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
     def finish_r2s() -> tuple:
         cap_r = r_cap if r_cap is not None else _stream_cap(r_vals, percentile)
         maps = torch.full((S * V * HW,), math.nan, dtype=torch.float32, device=device)
-        maps[rflat] = r_vals
+        maps.index_copy_(0, rflat, r_vals)
         rgb = torch.zeros((S * V * HW, 3), dtype=torch.uint8, device=device)
-        rgb[rflat] = colorize(r_vals, cap_r)
+        rgb.index_copy_(0, rflat, colorize(r_vals, cap_r))
         return maps.reshape(S, V, H, W), rgb.reshape(S, V, H, W, 3), cap_r
 
     def scene_to_gripper(s: int) -> None:
@@ -472,13 +472,13 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
     def finish_s2g() -> tuple:
         cap_s = g_cap if g_cap is not None else _stream_cap(s_vals, percentile)
         maps = torch.full((S, V * HW), math.nan, dtype=torch.float32, device=device)
-        maps[:, scene.flat] = s_vals
+        maps.index_copy_(1, scene.flat, s_vals)
         rgb = torch.zeros((S, V * HW, 3), dtype=torch.uint8, device=device)
-        rgb[:, scene.flat] = colorize(s_vals, cap_s)
+        rgb.index_copy_(1, scene.flat, colorize(s_vals, cap_s))
         if fill_px and len(scene.points):
             dst, src = _fill_sources(scene.valid, scene.mask, int(fill_px))
-            maps[:, dst] = maps[:, src]
-            rgb[:, dst] = rgb[:, src]
+            maps.index_copy_(1, dst, maps.index_select(1, src))
+            rgb.index_copy_(1, dst, rgb.index_select(1, src))
         return maps.reshape(S, V, H, W), rgb.reshape(S, V, H, W, 3), cap_s
 
     n_threads = (parallel or cpu_cores()) if device.type == "cpu" and threads is not None else 1

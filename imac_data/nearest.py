@@ -153,8 +153,9 @@ class NearestNeighbours:
             if len(idx) == 0:
                 return dist, near
             if len(idx) < N:
-                d, p = self.query(q[idx], max_distance=max_distance)
-                dist[idx], near[idx] = d.to(q.device), p.to(q.device)
+                d, p = self.query(q.index_select(0, idx), max_distance=max_distance)
+                dist.index_copy_(0, idx, d.to(q.device))
+                near.index_copy_(0, idx, p.to(q.device))
                 return dist, near
         if self.method == "kdtree":
             d, i = self._query_tree(q, max_distance)
@@ -165,7 +166,7 @@ class NearestNeighbours:
             d = torch.where(d <= max_distance, d, torch.full_like(d, math.inf))
         found = torch.isfinite(d)
         i = torch.where(found, i.to(q.device), torch.zeros_like(i, device=q.device))
-        p = self.target.to(q.device, torch.float32)[i]
+        p = self.target.to(q.device, torch.float32).index_select(0, i)
         return d, torch.where(found[:, None], p, torch.full_like(p, math.nan))
 
     def _query_tree(self, q: torch.Tensor, max_distance: float | None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -270,8 +271,8 @@ def _tile_representatives(group: torch.Tensor, pix: torch.Tensor, num_groups: in
     an empty tile) per dense tile (T,))``."""
     N = group.shape[0]
     tile_of, centre_of, per_image = _tile_tables(H, W, s, group.device)
-    tile = group * per_image + tile_of[pix]
-    key = centre_of[pix] * (N + 1) + torch.arange(N, device=group.device)
+    tile = group * per_image + tile_of.index_select(0, pix)
+    key = centre_of.index_select(0, pix) * (N + 1) + torch.arange(N, device=group.device)
     big = torch.iinfo(torch.int64).max
     best = torch.full((num_groups * per_image,), big, dtype=torch.int64, device=group.device)
     best.scatter_reduce_(0, tile, key, "amin")
@@ -300,11 +301,12 @@ class TilePyramid:
             tile, rep = _tile_representatives(self.group, self.pix, self.num_groups, self.H, self.W, self.sizes[i])
             members = self.points
         else:
-            tile, rep = _tile_representatives(self.group[subset], self.pix[subset], self.num_groups, self.H, self.W,
-                                              self.sizes[i])
-            rep = torch.where(rep >= 0, subset[rep.clamp(min=0)], rep)
-            members = self.points[subset]
-        gap = (members - self.points[rep[tile]]).norm(dim=-1)
+            tile, rep = _tile_representatives(self.group.index_select(0, subset), self.pix.index_select(0, subset),
+                                              self.num_groups, self.H, self.W, self.sizes[i])
+            rep = torch.where(rep >= 0, subset.index_select(0, rep.clamp(min=0)), rep)
+            members = self.points.index_select(0, subset)
+        # (index_select rather than x[i] throughout: the same gather, 2-3x faster on the CPU)
+        gap = (members - self.points.index_select(0, rep.index_select(0, tile))).norm(dim=-1)
         out = (tile, rep, gap, members)
         if subset is None and i == 0:
             self._level0 = out
@@ -333,10 +335,9 @@ def certified_distances(pyramid: TilePyramid, query, tolerance: tuple[float, flo
         # A representative farther than cap + (the largest member gap of this level)
         # proves all its members beyond the cap.
         bound = None if max_distance is None else max_distance + float(gap.max())
-        d_rep, n_rep = query(points[rep[at]], bound)
-        table[at, 0] = d_rep.to(dev)
-        table[at, 1:] = n_rep.to(dev)
-        m = table[tile]
+        d_rep, n_rep = query(points.index_select(0, rep.index_select(0, at)), bound)
+        table.index_copy_(0, at, torch.cat([d_rep.to(dev)[:, None], n_rep.to(dev)], dim=1))
+        m = table.index_select(0, tile)
         d = m[:, 0]
         lower = (d - gap).clamp(min=0)  # Lipschitz
         upper = (members - m[:, 1:]).norm(dim=-1)  # distance to an actual target point
@@ -353,7 +354,7 @@ def certified_distances(pyramid: TilePyramid, query, tolerance: tuple[float, flo
         if todo.numel() == 0:
             break
     if todo is not None and todo.numel():
-        out[todo] = query(points[todo], max_distance)[0].to(dev)
+        out.index_copy_(0, todo, query(points.index_select(0, todo), max_distance)[0].to(dev))
     if max_distance is not None:
         out = torch.where(out <= max_distance, out, torch.full_like(out, math.inf))
     return out
