@@ -251,7 +251,7 @@ def test_staged_dataset_swaps_in_on_success_and_discards_on_error(root):
 
 def test_encoding_settings_are_validated_and_round_trip():
     enc = VideoEncoding.lossless_rgb()
-    assert enc.encoder_options() == {"g": "10", "qp": "0", "preset": "medium", "threads": "2"}
+    assert enc.encoder_options() == {"g": "10", "qp": "0", "preset": "medium", "threads": "1"}
     assert VideoEncoding.from_dict(json.loads(json.dumps(enc.to_dict()))) == enc
     lr = VideoEncoding.lerobot_default()
     assert lr.encoder_options() == {"g": "2", "crf": "30", "preset": "12"}
