@@ -336,7 +336,7 @@ def certified_distances(pyramid: TilePyramid, query, tolerance: tuple[float, flo
         # proves all its members beyond the cap.
         bound = None if max_distance is None else max_distance + float(gap.max())
         d_rep, n_rep = query(points.index_select(0, rep.index_select(0, at)), bound)
-        table.index_copy_(0, at, torch.cat([d_rep.to(dev)[:, None], n_rep.to(dev)], dim=1))
+        table.index_copy_(0, at, torch.cat([d_rep.to(dev, torch.float32)[:, None], n_rep.to(dev, torch.float32)], dim=1))
         m = table.index_select(0, tile)
         d = m[:, 0]
         lower = (d - gap).clamp(min=0)  # Lipschitz
@@ -354,7 +354,7 @@ def certified_distances(pyramid: TilePyramid, query, tolerance: tuple[float, flo
         if todo.numel() == 0:
             break
     if todo is not None and todo.numel():
-        out.index_copy_(0, todo, query(points.index_select(0, todo), max_distance)[0].to(dev))
+        out.index_copy_(0, todo, query(points.index_select(0, todo), max_distance)[0].to(dev, torch.float32))
     if max_distance is not None:
         out = torch.where(out <= max_distance, out, torch.full_like(out, math.inf))
     return out
