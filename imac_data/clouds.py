@@ -56,13 +56,13 @@ def dilate_mask(mask: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 def lift_pixels(depth_flat: torch.Tensor, rays: torch.Tensor, T: torch.Tensor, image: torch.Tensor,
-                view: torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
+                ray: torch.Tensor) -> torch.Tensor:
     """World points of selected pixels: ``depth * ray`` in the camera, then ``T_world_cam``.
-    ``view``/``pix`` index ``rays (V, HW, 3)``; ``T (I, 4, 4)`` holds the pose of each image
+    ``ray`` indexes the flattened ``rays (V, HW, 3)`` (``view * HW + pixel``); ``T (I, 4, 4)`` holds the pose of each image
     and ``image`` (sorted ascending, as ``nonzero`` returns it) the image of each point, so
     each image's points are one contiguous block: one small matmul per image, not a
     gathered 4x4 per point."""
-    p_cam = rays.reshape(-1, 3).index_select(0, view * rays.shape[1] + pix) * depth_flat[:, None]
+    p_cam = rays.reshape(-1, 3).index_select(0, ray) * depth_flat[:, None]
     counts = torch.bincount(image, minlength=T.shape[0]).tolist()
     out = torch.empty_like(p_cam)
     start = 0
@@ -138,9 +138,8 @@ def scene_cloud(depth, K, T_world_cam, robot_mask, *, dilate_px: int = DEFAULT_D
     good = torch.isfinite(depth) & (depth > 0) if workspace is None else workspace.valid_depth(depth)
     valid = good & ~removed
     flat = torch.nonzero(valid.reshape(-1))[:, 0]
-    view, pix = flat // (H * W), flat % (H * W)
     rays = pixel_rays(K, H, W)
-    points = lift_pixels(depth.reshape(-1).index_select(0, flat), rays, T, view, view, pix)
+    points = lift_pixels(depth.reshape(-1).index_select(0, flat), rays, T, flat // (H * W), flat)
     mask, outside = ~removed, None
     if workspace is not None:
         inside = workspace.contains(points)

@@ -419,7 +419,8 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
     rflat = torch.nonzero(robot.reshape(-1))[:, 0]  # index into (S, V, H, W)
     step, view, pix = rflat // (V * HW), (rflat // HW) % V, rflat % HW
     rays = pixel_rays(Kt, H, W)
-    r_points = lift_pixels(rd.reshape(-1).index_select(0, rflat), rays, T.reshape(S * V, 4, 4), rflat // HW, view, pix)
+    r_points = lift_pixels(rd.reshape(-1).index_select(0, rflat), rays, T.reshape(S * V, 4, 4), rflat // HW,
+                           rflat % (V * HW))
 
     r_cap, g_cap = fixed if fixed is not None else (None, None)
     g_flag = None if gm is None else gm.reshape(-1)[rflat]
