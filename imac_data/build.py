@@ -229,7 +229,7 @@ def run_jobs(jobs: list[ShardJob], *, executor: str, workers: int, ray_address: 
 
 def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> None:
     """``workers`` workers pull episodes from one queue: this process is one of them (its
-    libraries are loaded already: a spawned worker first spends about 8 CPU-seconds on
+    libraries are loaded already: a spawned worker first spends about 7 CPU-seconds on
     imports), the others are spawned pool processes. The episodes' bytes do not depend on
     who builds them."""
     import multiprocessing as mp

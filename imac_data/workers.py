@@ -49,11 +49,14 @@ def cpu_cores() -> int:
 def default_workers(episodes: int, cores: int | None = None) -> int:
     """``--workers`` when none is given: one worker per core, at most one per episode.
 
-    Why (measured on a 2-core machine, ``benchmarks/run.py``, whole builds of the demo
-    workload): with every worker's pools pinned to its share, one single-threaded worker
-    per core gives the most frames/s per CPU-second; threads inside one process scale
-    worse (the pipeline's serial parts: reading, metadata, the GIL between numpy calls)
-    than whole episodes side by side. More workers than cores only add memory.
+    Why (measured on a 2-core machine with whole builds of the benchmark's 4 recorded
+    episodes, 498 frames, 1 and 2 workers alternated, 3 rounds each): the CPU per frame
+    is the same (211 vs 210 ms), and 2 workers had the higher frames/s in 2 of 3 rounds
+    (7.97 vs 7.56 mean). Threads inside one worker scale worse than whole episodes side
+    by side (the pipeline's serial numpy between the threaded calls: about 1.6 of 2 cores
+    busy vs 1.8), and that gain pays for a spawned worker's imports (about 7 CPU-seconds,
+    torch, LeRobot, Open3D), which larger builds amortise further. At 480x640, 2 workers
+    were 1.01-1.13x faster. More workers than cores only add memory.
     """
     cores = cores or cpu_cores()
     return max(1, min(int(episodes), cores))
