@@ -417,10 +417,11 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
     # ---- robot points of every step and view: back-projected robot depth
     robot = torch.isfinite(rd) & (rd > 0)  # (S, V, H, W)
     rflat = torch.nonzero(robot.reshape(-1))[:, 0]  # index into (S, V, H, W)
-    step, view, pix = rflat // (V * HW), (rflat // HW) % V, rflat % HW
+    image, pix = rflat // HW, rflat % HW  # image = step * V + view
+    step = image // V
     rays = pixel_rays(Kt, H, W)
-    r_points = lift_pixels(rd.reshape(-1).index_select(0, rflat), rays, T.reshape(S * V, 4, 4), rflat // HW,
-                           rflat % (V * HW))
+    r_points = lift_pixels(rd.reshape(-1).index_select(0, rflat), rays, T.reshape(S * V, 4, 4), image,
+                           rflat - step * (V * HW))  # the ray: view * HW + pix
 
     r_cap, g_cap = fixed if fixed is not None else (None, None)
     g_flag = None if gm is None else gm.reshape(-1)[rflat]
@@ -447,7 +448,7 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
         if tol is None:
             r_vals[a:b] = nn.distances(r_points[a:b], max_distance=r_cap).to(device)
         else:
-            pyramid = TilePyramid(r_points[a:b], (step[a:b] - s0) * V + view[a:b], pix[a:b], (s1 - s0) * V, H, W)
+            pyramid = TilePyramid(r_points[a:b], image[a:b] - s0 * V, pix[a:b], (s1 - s0) * V, H, W)
             r_vals[a:b] = certified_distances(pyramid, lambda p, bd: nn.query(p, max_distance=bd), tol, r_cap)
 
     def finish_r2s() -> tuple:
