@@ -363,8 +363,6 @@ def _build_staged(req: BuildRequest, paths, calibration_path, rig, robot, option
     import resource
     import shutil
 
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
     from imac_data.dataset.merge import merge_datasets
     from imac_data.dataset.validate import validate_dataset
     from imac_data.dataset_card import write_card
@@ -419,6 +417,11 @@ def _build_staged(req: BuildRequest, paths, calibration_path, rig, robot, option
 
     _swap_into_place(final, req.root)
     shutil.rmtree(staging, ignore_errors=True)
+    # Imported here, not before the jobs: LeRobot's import takes 1.4 s, and the pool
+    # workers are spawned only when the jobs start (the build process imports it in its
+    # first episode anyway, while the spawned workers import theirs).
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
     return LeRobotDataset(req.repo_id, root=req.root)
 
 
