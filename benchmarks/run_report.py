@@ -121,7 +121,11 @@ def markdown(r: dict) -> str:
     def _stages():
         nonlocal L
         sizes = list(r.get("stages") or {})
-        L += ["", "## Time per stage (the 1-worker builds' own stage timings)", ""]
+        L += ["", "## Time per stage (the 1-worker builds' own stage timings)", "",
+              "A stage's CPU is the process's CPU while it runs, so work that other threads do meanwhile counts "
+              "in it too: LeRobot's SVT-AV1 encoders finish frames asynchronously, and thread pools cost CPU "
+              "between calls. Small stages (FK above all) therefore read high in 1-worker builds, whose pools run "
+              "a thread per core; the total is exact.", ""]
         hdr = "| stage | " + " | ".join(f"{s} wall ms/frame | {s} CPU ms/frame | {s} CPU share" for s in sizes) + " |"
         L += [hdr, "|---|" + "---|" * (3 * len(sizes))]
         keys = []
