@@ -57,8 +57,9 @@ def packaged_description(robot) -> tuple[str, dict[str, Path]]:
                              "which does not exist")
         if src not in rel_of:
             rel = f"{MESH_DIR}/{src.name}"
-            if rel in files:  # two meshes of one name in different directories
-                rel = f"{MESH_DIR}/{src.stem}_{_sha256(str(src).encode())[:8]}{src.suffix}"
+            if rel in files:  # two meshes of one name in different directories: name by content, so
+                # that the packaged URDF does not depend on where the source tree lives
+                rel = f"{MESH_DIR}/{src.stem}_{_sha256(src.read_bytes())[:12]}{src.suffix}"
             rel_of[src], files[rel] = rel, src
         mesh.set("filename", rel_of[src])
     return ET.tostring(root, encoding="unicode"), files

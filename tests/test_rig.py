@@ -90,6 +90,36 @@ def test_description_is_complete_and_checked(base, tmp_path, recipe_rig):
         Rig.from_dataset(damaged)
 
 
+
+def _two_part_robot(root):
+    """A two-link URDF whose links use different meshes of one file name (a/part.stl, b/part.stl)."""
+    import trimesh
+
+    for sub, size in (("a", 0.1), ("b", 0.05)):
+        (root / sub).mkdir(parents=True)
+        trimesh.creation.box((size, size, size)).export(root / sub / "part.stl")
+    (root / "two.urdf").write_text("""<robot name="two">
+  <link name="base"><visual><geometry><mesh filename="a/part.stl"/></geometry></visual></link>
+  <link name="tip"><visual><geometry><mesh filename="b/part.stl"/></geometry></visual></link>
+  <joint name="j" type="revolute"><parent link="base"/><child link="tip"/><origin xyz="0 0 0.2"/>
+    <axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+</robot>""")
+    return RobotModel(RobotConfig(name="two", urdf_path=root / "two.urdf", joint_map=("j",)))
+
+
+def test_meshes_of_one_name_are_packaged_apart_wherever_the_source_lives(tmp_path):
+    """Oracle: the source files' bytes. Both meshes are kept, and the packaged URDF is the
+    same for two copies of the source tree in different places (builds are reproducible)."""
+    text_a, files_a = packaged_description(_two_part_robot(tmp_path / "here"))
+    text_b, files_b = packaged_description(_two_part_robot(tmp_path / "elsewhere" / "deeper"))
+    assert text_a == text_b and sorted(files_a) == sorted(files_b)
+    assert len(files_a) == 2
+    by_source = {path.relative_to(tmp_path / "here").as_posix(): rel for rel, path in files_a.items()}
+    assert set(by_source) == {"a/part.stl", "b/part.stl"}
+    for source, rel in by_source.items():
+        assert f'filename="{rel}"' in text_a
+        assert files_b[rel].read_bytes() == (tmp_path / "here" / source).read_bytes()
+
 def test_every_joint_entry_may_carry_an_affine_map():
     """Arm joints recorded in degrees, the gripper in -100..100: the same link poses as the
     radians / metres vector (analytic conversion as the oracle)."""
