@@ -286,13 +286,15 @@ def _ray_shard(job: ShardJob) -> str:
     return str(build_shard(job))
 
 
-def build_key(recipe: Recipe, paths: list[Path], calibration_path: Path, repo_id: str) -> str:
+def build_key(recipe: Recipe, paths: list[Path], calibration_path: Path, repo_id: str, rig_block: dict) -> str:
     """What a resumable staging directory was built for: the recipe, the source files
-    (path, size, mtime), the calibration and our code. A different key starts over."""
+    (path, size, mtime), the calibration, the rig (``rig_block``: its ``info["imac"]`` part,
+    which holds the sha256 of the URDF and of every mesh, so an edited robot description
+    starts over too) and our code. A different key starts over."""
     from imac_data import __version__
 
     h = hashlib.sha256()
-    h.update(json.dumps([repo_id, __version__, repr(recipe)], default=str).encode())
+    h.update(json.dumps([repo_id, __version__, repr(recipe), rig_block], default=str, sort_keys=True).encode())
     for src in sorted(Path(__file__).parent.rglob("*.py")):  # the code that made the shards
         h.update(src.read_bytes())
     for p in [*paths, calibration_path]:
@@ -373,7 +375,8 @@ def _build_staged(req: BuildRequest, paths, calibration_path, rig, robot, option
 
     recipe = req.recipe
     staging = staging_dir(req.root)
-    key = build_key(recipe, paths, calibration_path, req.repo_id)
+    block = rig.to_info()
+    key = build_key(recipe, paths, calibration_path, req.repo_id, block)
     key_file = staging / "BUILD_KEY"
     if staging.exists() and (not key_file.is_file() or key_file.read_text() != key):
         shutil.rmtree(staging)
@@ -381,7 +384,6 @@ def _build_staged(req: BuildRequest, paths, calibration_path, rig, robot, option
     key_file.write_text(key)
     description = staging / "robot"
     write_description(robot, description)
-    block = rig.to_info()
     workers = workers or default_workers(len(paths))
     threads = threads_per_worker(min(workers, len(paths)))
     jobs = [ShardJob(i, p, staging / "shards" / f"episode_{i:06d}", req.repo_id, recipe.augment, block, description,

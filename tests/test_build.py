@@ -231,6 +231,23 @@ def test_killed_build_resumes_to_the_same_dataset(sim_dir, tmp_path, reference_b
     assert not (tmp_path / ".out.staging").exists()
 
 
+def test_resume_key_follows_the_robot_description(sim_dir, tmp_path):
+    """Shards of a killed build are reused only for the same robot: an edited mesh (its
+    sha256 in the rig's info block, which the key hashes) starts the staging over."""
+    from imac_data.build import build_key
+    from imac_data.rig import Rig
+
+    recipe = load_recipe(write_recipe(tmp_path))
+    paths, calibration = sorted(sim_dir.glob("episode_*.hdf5")), sim_dir / "calibration.json"
+    block = Rig.from_recipe(recipe, calibration).to_info()
+    key = build_key(recipe, paths, calibration, "local/tiny", block)
+    assert key == build_key(recipe, paths, calibration, "local/tiny", json.loads(json.dumps(block)))
+    files = block["robot"]["description"]["files"]
+    edited = json.loads(json.dumps(block))
+    edited["robot"]["description"]["files"][next(iter(files))] = "0" * 64
+    assert build_key(recipe, paths, calibration, "local/tiny", edited) != key
+
+
 def test_hub_card_is_what_lerobot_uploads(reference_build):
     """Everything up to the upload: LeRobot's own card builder renders our description
     (the upload itself needs a token and network, which tests do not have)."""
