@@ -239,6 +239,8 @@ class RaycastRenderer(Renderer):
         link_verts = [np.concatenate(v) for v in verts]
         link_faces = [np.concatenate(f) for f in faces]
 
+        if not link_verts:
+            raise InputError(f"robot {robot.config.name!r} ({robot.config.urdf_path}) has no visual geometry to render")
         # Culling volume of each link: the convex hull of its visual vertices (link frame),
         # padded to a common size by repeating a vertex / an edge.
         hulls = [_convex_hull(v) for v in link_verts]

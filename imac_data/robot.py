@@ -234,6 +234,19 @@ def named_materials(urdf: yourdfpy.URDF) -> dict[str, yourdfpy.Material]:
     return out
 
 
+def _file_unit(mesh: trimesh.Trimesh, path: Path) -> float:
+    """Metres per unit of a mesh file that declares its unit (Collada's ``<unit meter=...>``,
+    which CAD exporters set to millimetres or centimetres; RViz and Gazebo apply it); 1 for
+    formats without one (STL, OBJ, PLY)."""
+    units = getattr(mesh, "units", None)
+    if not units:
+        return 1.0
+    try:
+        return float(trimesh.units.unit_conversion(units, "meters"))
+    except (ValueError, KeyError) as e:
+        raise InputError(f"mesh file {path} declares the unit {units!r}, which is not a length unit") from e
+
+
 def _geometry_mesh(geom: yourdfpy.Geometry, visual_name: str, urdf_path: Path,
                    package_dirs: Mapping[str, Path]) -> trimesh.Trimesh:
     if geom.mesh is not None:
@@ -243,8 +256,10 @@ def _geometry_mesh(geom: yourdfpy.Geometry, visual_name: str, urdf_path: Path,
                              f"referenced by the URDF {urdf_path} does not exist")
         # process=True merges duplicate STL vertices (as MuJoCo does); force="mesh" flattens scenes.
         mesh = trimesh.load(str(path), force="mesh")
+        if len(getattr(mesh, "faces", ())) == 0:  # a point cloud, or an empty scene
+            raise InputError(f"mesh file {path} (visual {visual_name!r} in {urdf_path}) has no faces")
         scale = 1.0 if geom.mesh.scale is None else np.broadcast_to(np.asarray(geom.mesh.scale, float), 3)
-        return trimesh.Trimesh(mesh.vertices * scale, mesh.faces, process=False)
+        return trimesh.Trimesh(mesh.vertices * (scale * _file_unit(mesh, path)), mesh.faces, process=False)
     if geom.box is not None:
         return trimesh.creation.box(extents=geom.box.size)
     if geom.sphere is not None:

@@ -261,6 +261,49 @@ def test_missing_mesh_file_is_named(config, tmp_path):
         RobotModel(no_pkg)
 
 
+def _one_mesh_robot(tmp_path, mesh_file: str) -> RobotConfig:
+    (tmp_path / "r.urdf").write_text(f"""<robot name="r">
+  <link name="base"/>
+  <link name="tip"><visual><geometry><mesh filename="{mesh_file}"/></geometry></visual></link>
+  <joint name="j" type="revolute"><parent link="base"/><child link="tip"/>
+    <axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+</robot>""")
+    return RobotConfig("r", tmp_path / "r.urdf", ("j",))
+
+
+def test_collada_unit_is_applied(tmp_path):
+    """A Collada file in millimetres (``<unit meter="0.001">``, as CAD exporters write it) is
+    scaled to metres, as RViz and Gazebo do; the URDF's own scale multiplies on top.
+    Oracle: the box's analytic extents."""
+    import trimesh
+
+    text = trimesh.creation.box(extents=(100.0, 40.0, 20.0)).export(file_type="dae")
+    text = text.decode() if isinstance(text, bytes) else text
+    assert "<up_axis>" in text
+    (tmp_path / "mm.dae").write_text(text.replace("<up_axis>", '<unit meter="0.001" name="millimeter"/><up_axis>', 1))
+    (mesh,) = RobotModel(_one_mesh_robot(tmp_path, "mm.dae")).visual_meshes
+    np.testing.assert_allclose(mesh.vertices.max(0) - mesh.vertices.min(0), [0.1, 0.04, 0.02], rtol=1e-6)
+    (tmp_path / "r.urdf").write_text((tmp_path / "r.urdf").read_text().replace('"mm.dae"', '"mm.dae" scale="2 1 1"'))
+    (mesh,) = RobotModel(RobotConfig("r", tmp_path / "r.urdf", ("j",))).visual_meshes
+    np.testing.assert_allclose(mesh.vertices.max(0) - mesh.vertices.min(0), [0.2, 0.04, 0.02], rtol=1e-6)
+
+
+def test_mesh_without_faces_and_robot_without_visuals_are_named(tmp_path):
+    import trimesh
+
+    from imac_data.render import make_renderer
+
+    trimesh.PointCloud(np.random.default_rng(0).random((10, 3))).export(tmp_path / "cloud.ply")
+    with pytest.raises(InputError, match=r"cloud\.ply.*has no faces"):
+        RobotModel(_one_mesh_robot(tmp_path, "cloud.ply"))
+    text = (tmp_path / "r.urdf").read_text()
+    (tmp_path / "r.urdf").write_text(text.replace('<visual><geometry><mesh filename="cloud.ply"/></geometry></visual>',
+                                                  ""))
+    robot = RobotModel(RobotConfig("r", tmp_path / "r.urdf", ("j",)))  # FK alone needs no visuals
+    with pytest.raises(InputError, match="'r'.*no visual geometry"):
+        make_renderer(robot)
+
+
 # ----------------------------------------------------------------------------- export cache
 
 
