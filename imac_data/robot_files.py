@@ -5,7 +5,9 @@ that anyone who downloads it can rebuild its controls, or render the robot onlin
 other file (:meth:`imac_data.rig.Rig.from_info`). The copy is:
 
 * ``robot.urdf``: the URDF with every ``<mesh filename=...>`` (visual and collision)
-  rewritten to ``meshes/<file name>``, relative to the URDF; nothing else changes;
+  rewritten to ``meshes/<file name>``, relative to the URDF. Nothing else changes, except
+  that a ``<collision>`` whose mesh cannot be found is left out, with a warning: we render
+  visual geometry only, and many descriptions ship without their collision meshes;
 * ``meshes/``: the mesh files those references resolved to (``package://``, ``file://``,
   absolute or URDF-relative paths), byte for byte.
 
@@ -21,6 +23,7 @@ import hashlib
 import os
 import shutil
 import uuid
+import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -45,6 +48,7 @@ def packaged_description(robot) -> tuple[str, dict[str, Path]]:
 
     config = robot.config
     root = ET.fromstring(robot.urdf_text.encode())
+    _drop_missing_collision_meshes(root, config)
     files: dict[str, Path] = {}
     rel_of: dict[Path, str] = {}
     for mesh in root.iter("mesh"):
@@ -63,6 +67,26 @@ def packaged_description(robot) -> tuple[str, dict[str, Path]]:
             rel_of[src], files[rel] = rel, src
         mesh.set("filename", rel_of[src])
     return ET.tostring(root, encoding="unicode"), files
+
+
+def _drop_missing_collision_meshes(root: ET.Element, config) -> None:
+    from imac_data.robot import resolve_filename
+
+    for link in root.iter("link"):
+        for collision in link.findall("collision"):
+            mesh = collision.find("geometry/mesh")
+            if mesh is None:
+                continue
+            fname = mesh.get("filename") or ""
+            try:
+                found = bool(fname) and resolve_filename(fname, config.urdf_path, dict(config.package_dirs)).is_file()
+            except InputError:  # a package the config does not map
+                found = False
+            if not found:
+                warnings.warn(f"robot {config.name!r}: collision mesh {fname!r} of link {link.get('name')!r} in "
+                              f"{config.urdf_path} was not found; the dataset's copy of the URDF leaves that "
+                              "<collision> out (imac renders visual meshes only)", stacklevel=2)
+                link.remove(collision)
 
 
 def description_manifest(robot) -> dict:

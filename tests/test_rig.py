@@ -7,6 +7,7 @@ the robot description carried by the dataset.
 
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -22,7 +23,7 @@ from imac_data.ingest import IngestOptions, ingest_episodes
 from imac_data.recipes import RECIPES_DIR, load_recipe, parse_recipe
 from imac_data.rig import Rig
 from imac_data.robot import JointEntry, RobotConfig, RobotModel
-from imac_data.robot_files import DESCRIPTION_DIR, packaged_description
+from imac_data.robot_files import DESCRIPTION_DIR, packaged_description, write_description
 from imac_data.simulate import SimConfig, record_dataset
 from imac_data.workspace import DEFAULT_MARGIN, Workspace, depth_in_range, reach_box
 
@@ -105,6 +106,34 @@ def _two_part_robot(root):
     <axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
 </robot>""")
     return RobotModel(RobotConfig(name="two", urdf_path=root / "two.urdf", joint_map=("j",)))
+
+
+def test_collision_meshes_travel_when_found_and_are_left_out_when_missing(tmp_path):
+    """Oracle: the URDF's own elements. A found collision mesh is copied like a visual one;
+    a missing one (or one in an unmapped package) drops its <collision> with a warning,
+    and packaging the result again changes nothing (the fixed point)."""
+    import xml.etree.ElementTree as ET
+
+    robot = _two_part_robot(tmp_path / "src")
+    urdf = robot.config.urdf_path
+    urdf.write_text(urdf.read_text()
+                    .replace('<link name="base">', '<link name="base"><collision><geometry><mesh filename="a/part.stl"/>'
+                             '</geometry></collision>')
+                    .replace('<link name="tip">', '<link name="tip"><collision><geometry><mesh filename="gone.stl"/>'
+                             '</geometry></collision><collision><geometry><mesh filename="package://nowhere/x.stl"/>'
+                             '</geometry></collision>'))
+    robot = RobotModel(robot.config)
+    packaged = tmp_path / "packaged"
+    with pytest.warns(UserWarning) as warned:
+        text, files = packaged_description(robot)
+        write_description(robot, packaged)
+    assert {"collision mesh 'gone.stl' of link 'tip'", "collision mesh 'package://nowhere/x.stl' of link 'tip'"} == {
+        m for w in warned for m in re.findall(r"collision mesh '[^']+' of link '\w+'", str(w.message))}
+    links = {link.get("name"): link for link in ET.fromstring(text).iter("link")}
+    assert len(links["base"].findall("collision")) == 1 and not links["tip"].findall("collision")
+    assert len(files) == 2  # a/part.stl is shared by the visual and the collision
+    again = RobotModel(RobotConfig(name="two", urdf_path=packaged / "robot.urdf", joint_map=("j",)))
+    assert packaged_description(again)[0] == text
 
 
 def test_meshes_of_one_name_are_packaged_apart_wherever_the_source_lives(tmp_path):
