@@ -24,7 +24,9 @@ naming the file and the key.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +53,46 @@ class EpisodeInfo:
     def __post_init__(self) -> None:
         if self.source is not None and self.source not in SOURCES:
             raise InputError(f"episode source must be one of {SOURCES}, got {self.source!r}")
+
+
+def parse_success(value, where: str) -> bool | None:
+    """An episode's success flag from metadata: a boolean, 1/0, or true/false, yes/no,
+    success/failure text (any case); None when absent or empty. Anything else is refused
+    (``bool("no")`` would read as a success)."""
+    if isinstance(value, bytes):
+        value = value.decode(errors="replace")
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return None
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    text = str(value).strip().lower()
+    if text in ("1", "true", "yes", "success"):
+        return True
+    if text in ("0", "false", "no", "failure", "fail"):
+        return False
+    raise InputError(f"{where}: success must be true/false (or 1/0), got {value!r}")
+
+
+def episode_attributes(f: h5py.File, path: Path) -> tuple[EpisodeInfo, float | None]:
+    """The episode's metadata attributes and its recorded rate (``fps``, or None), checked,
+    with errors naming the file and the attribute."""
+    attrs = f.attrs
+    where = f"{path}: attribute"
+    source = _str_attr(attrs.get("source"))
+    if source is not None and source not in SOURCES:
+        raise InputError(f"{where} 'source' must be one of {SOURCES}, got {source!r}")
+    info = EpisodeInfo(task=_str_attr(attrs.get("task")), source=source,
+                       policy_name=_str_attr(attrs.get("policy_name")), checkpoint=_str_attr(attrs.get("checkpoint")),
+                       success=parse_success(attrs.get("success"), f"{where} 'success'"))
+    fps = None
+    if "fps" in attrs:
+        try:
+            fps = float(attrs["fps"])
+        except (TypeError, ValueError):
+            raise InputError(f"{where} 'fps' must be a number, got {attrs['fps']!r}") from None
+        if not (math.isfinite(fps) and fps > 0):
+            raise InputError(f"{where} 'fps' must be a positive number, got {fps}")
+    return info, fps
 
 
 @dataclass
@@ -203,52 +245,69 @@ def _decode_jpeg_stack(data: np.ndarray, lengths: np.ndarray, path: Path, key: s
 
 def probe_episode(path: str | Path) -> dict:
     """Cheap structural check of an episode without loading images: returns
-    ``{"num_frames", "dof", "cameras", "image_hw", "has_depth"}`` or raises InputError."""
+    ``{"num_frames", "dof", "cameras", "image_hw", "compressed", "has_depth", "depth_cameras",
+    "has_qvel", "fps", "info"}`` or raises InputError."""
     path = Path(path)
     try:
         f = h5py.File(path, "r")
     except OSError as e:
         raise InputError(f"{path}: not a readable HDF5 file ({e})") from None
-    with f:
-        qpos = _joint_array(f, path, "observations/qpos")
-        action = _joint_array(f, path, "action")
-        T, D = qpos.shape
-        if T == 0:
-            raise InputError(f"{path}: the episode has no frames ('observations/qpos' is {qpos.shape})")
-        if action.shape != (T, D):
+    with f, damaged_hdf5(path):
+        return _probe(f, path)
+
+
+@contextlib.contextmanager
+def damaged_hdf5(path: Path, what: str = ""):
+    """HDF5's own errors while reading (a corrupt B-tree, object header or compressed chunk:
+    h5py raises OSError, RuntimeError or KeyError) as an :class:`InputError` naming the file."""
+    try:
+        yield
+    except (OSError, RuntimeError, KeyError) as e:
+        raise InputError(f"{path}: damaged HDF5 file{what}: {type(e).__name__}: {e}") from None
+
+
+def _probe(f: h5py.File, path: Path) -> dict:
+    qpos = _joint_array(f, path, "observations/qpos")
+    action = _joint_array(f, path, "action")
+    T, D = qpos.shape
+    if T == 0:
+        raise InputError(f"{path}: the episode has no frames ('observations/qpos' is {qpos.shape})")
+    if action.shape != (T, D):
+        raise InputError(
+            f"{path}: length/width mismatch: 'observations/qpos' is {qpos.shape}, 'action' is {action.shape}"
+        )
+    has_qvel = "observations/qvel" in f
+    if has_qvel and _joint_array(f, path, "observations/qvel").shape != (T, D):
+        raise InputError(f"{path}: 'observations/qvel' is {f['observations/qvel'].shape}, 'observations/qpos' is "
+                         f"{qpos.shape}")
+    info, fps = episode_attributes(f, path)
+    cams = _camera_names(f, path)
+    compressed = bool(f.attrs.get("compress", False))
+    if compressed:
+        lengths = _dataset(f, path, "compress_len")
+        if lengths.shape != (len(cams), T):
             raise InputError(
-                f"{path}: length/width mismatch: 'observations/qpos' is {qpos.shape}, 'action' is {action.shape}"
+                f"{path}: 'compress_len' has shape {lengths.shape}, expected ({len(cams)}, {T}) for cameras {cams}"
             )
-        if "observations/qvel" in f and f["observations/qvel"].shape[0] != T:
-            raise InputError(f"{path}: 'observations/qvel' has {f['observations/qvel'].shape[0]} frames, qpos has {T}")
-        cams = _camera_names(f, path)
-        compressed = bool(f.attrs.get("compress", False))
-        if compressed:
-            lengths = _dataset(f, path, "compress_len")
-            if lengths.shape != (len(cams), T):
-                raise InputError(
-                    f"{path}: 'compress_len' has shape {lengths.shape}, expected ({len(cams)}, {T}) for cameras {cams}"
-                )
-        image_hw = {}
-        for cam in cams:
-            key = f"observations/images/{cam}"
-            ds = f[key]
-            if ds.shape[0] != T:
-                raise InputError(f"{path}: '{key}' has {ds.shape[0]} frames, 'observations/qpos' has {T}")
-            if not compressed:
-                if ds.ndim != 4 or ds.shape[-1] != 3 or ds.dtype != np.uint8:
-                    raise InputError(f"{path}: '{key}' must be (T, H, W, 3) uint8, got {ds.shape} {ds.dtype}")
-                image_hw[cam] = tuple(int(v) for v in ds.shape[1:3])
-            else:  # the first frame's size: a later one of another size fails when it is read
-                image_hw[cam] = tuple(_decode_jpeg_stack(ds[0:1], lengths[cams.index(cam), 0:1], path, key).shape[1:3])
-        has_depth = "observations/images_depth" in f
-        if has_depth:
-            for cam in f["observations/images_depth"].keys():
-                if cam not in cams:
-                    raise InputError(f"{path}: 'observations/images_depth/{cam}' has no matching RGB camera in {cams}")
-                _check_depth(f, path, cam, T, image_hw[cam])
-        return {"num_frames": T, "dof": D, "cameras": cams, "compressed": compressed, "has_depth": has_depth,
-                "image_hw": image_hw}
+    image_hw = {}
+    for cam in cams:
+        key = f"observations/images/{cam}"
+        ds = f[key]
+        if ds.shape[0] != T:
+            raise InputError(f"{path}: '{key}' has {ds.shape[0]} frames, 'observations/qpos' has {T}")
+        if not compressed:
+            if ds.ndim != 4 or ds.shape[-1] != 3 or ds.dtype != np.uint8:
+                raise InputError(f"{path}: '{key}' must be (T, H, W, 3) uint8, got {ds.shape} {ds.dtype}")
+            image_hw[cam] = tuple(int(v) for v in ds.shape[1:3])
+        else:  # the first frame's size: a later one of another size fails when it is read
+            image_hw[cam] = tuple(_decode_jpeg_stack(ds[0:1], lengths[cams.index(cam), 0:1], path, key).shape[1:3])
+    depth_cameras = sorted(f["observations/images_depth"].keys()) if "observations/images_depth" in f else []
+    for cam in depth_cameras:
+        if cam not in cams:
+            raise InputError(f"{path}: 'observations/images_depth/{cam}' has no matching RGB camera in {cams}")
+        _check_depth(f, path, cam, T, image_hw[cam])
+    return {"num_frames": T, "dof": D, "cameras": cams, "compressed": compressed, "has_depth": bool(depth_cameras),
+            "depth_cameras": depth_cameras, "has_qvel": has_qvel, "fps": fps, "info": info, "image_hw": image_hw}
 
 
 DEPTH_DTYPES = "uint16 or float millimetres"
@@ -300,13 +359,7 @@ class EpisodeReader:
             self.qpos = _joint_array(f, self.path, "observations/qpos")
             self.action = _joint_array(f, self.path, "action")
             self.qvel = _joint_array(f, self.path, "observations/qvel") if "observations/qvel" in f else None
-            attrs = f.attrs
-            success = attrs.get("success")
-            self.info = EpisodeInfo(task=_str_attr(attrs.get("task")), source=_str_attr(attrs.get("source")),
-                                    policy_name=_str_attr(attrs.get("policy_name")),
-                                    checkpoint=_str_attr(attrs.get("checkpoint")),
-                                    success=None if success is None else bool(success))
-            self.fps = float(attrs["fps"]) if "fps" in attrs else None
+            self.info, self.fps = probe["info"], probe["fps"]
             self._lengths = f["compress_len"][()] if self.compressed else None
             self.image_hw = {c: probe["image_hw"][c] for c in self.cameras}
         except BaseException:
@@ -336,7 +389,8 @@ class EpisodeReader:
         key = f"observations/images/{cam}"
         if cam not in self._all_cams:
             raise InputError(f"{self.path}: no camera {cam!r} (has {self._all_cams})")
-        data = self._file[key][start:stop]
+        with damaged_hdf5(self.path, f" ('{key}' frames {start}:{stop})"):
+            data = self._file[key][start:stop]
         if self.compressed:
             lengths = self._lengths[self._all_cams.index(cam)][start:stop]
             frames = _decode_jpeg_stack(data, lengths, self.path, key, first=start)
@@ -351,7 +405,8 @@ class EpisodeReader:
         or None when the episode has none for that camera."""
         if f"observations/images_depth/{cam}" not in self._file:
             return None
-        return _check_depth(self._file, self.path, cam, self.num_frames, self.image_hw[cam])[start:stop]
+        with damaged_hdf5(self.path, f" ('observations/images_depth/{cam}' frames {start}:{stop})"):
+            return _check_depth(self._file, self.path, cam, self.num_frames, self.image_hw[cam])[start:stop]
 
     def segmentation(self, cam: str, start: int, stop: int) -> np.ndarray | None:
         key = f"observations/segmentation/{cam}"

@@ -41,6 +41,12 @@ class BuildRequest:
     timings: Path | None = None  # also write the build's stage timings here (JSON)
     wait: bool = False  # wait for another build of the same root instead of refusing (imac_data.lock)
 
+    def __post_init__(self):
+        # Absolute once, here: the staging, lock and backup paths are siblings of the root, and
+        # "." or "x/.." have no name of their own. abspath, not resolve: a symlinked root stays
+        # a symlink for the overlap checks.
+        object.__setattr__(self, "root", Path(os.path.abspath(self.root)))
+
 
 # --------------------------------------------------------------------------- stages
 
@@ -341,9 +347,12 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     check_depth_inputs(recipe.depth, recipe.file, len(rig.names))
     _check_stream_resolution(recipe, rig.cameras)
     _warn_if_short_of_space(req, probe, robot)
-    fps = recipe.fps or _fps_of(paths[0]) or None
+    fps = recipe.fps if recipe.fps is not None else probe["fps"]  # check_episodes: the same in every episode
     if fps is None:
         raise InputError(f"{recipe.file}: fps: the episodes do not record their rate; set fps in the recipe")
+    if not float(fps).is_integer():  # LeRobot stores an integer fps and stamps frame i at i / fps (the recipe's is)
+        raise InputError(f"{paths[0]}: attribute 'fps' is {fps}: a LeRobot dataset has a whole number of frames per "
+                         "second; set fps in the recipe to the rate its timestamps should use")
     defaults = recipe.source.episode_defaults
     options = IngestOptions(
         fps=fps, task=recipe.task, source=defaults.source, policy_name=defaults.policy_name,
@@ -513,13 +522,6 @@ def _check_stream_resolution(recipe: Recipe, calibration) -> None:
                 f"{recipe.file}: augment.height/width {h}x{w} has another aspect ratio than camera {cam.name!r} "
                 f"({cam.height}x{cam.width}); pick a size of the same aspect ratio"
             )
-
-
-def _fps_of(path: Path) -> float | None:
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        return float(f.attrs["fps"]) if "fps" in f.attrs else None
 
 
 # --------------------------------------------------------------------------- CLI

@@ -90,6 +90,16 @@ def check_episodes(paths: Sequence[Path], calibration: dict[str, Camera], robot:
             cam = next(c for c in first["cameras"] if probe["image_hw"][c] != first["image_hw"][c])
             raise InputError(f"{path}: 'observations/images/{cam}' is {probe['image_hw'][cam]} (HxW), "
                              f"{paths[0]} has {first['image_hw'][cam]}; every episode needs the same resolution")
+        # one dataset has one feature set and one rate: what the first episode has, all must have
+        if probe["depth_cameras"] != first["depth_cameras"]:
+            raise InputError(f"{path}: recorded depth ('observations/images_depth') for cameras "
+                             f"{probe['depth_cameras']}, {paths[0]} has it for {first['depth_cameras']}")
+        if probe["has_qvel"] != first["has_qvel"]:
+            has, lacks = (path, paths[0]) if probe["has_qvel"] else (paths[0], path)
+            raise InputError(f"{has} has 'observations/qvel' and {lacks} has not; every episode needs the same keys")
+        if probe["fps"] != first["fps"]:
+            raise InputError(f"{path}: attribute 'fps' is {probe['fps']}, {paths[0]} has {first['fps']}; "
+                             "one dataset has one frame rate")
     cams = first["cameras"]
     extra = sorted(set(calibration) - set(cams))
     if extra:

@@ -63,6 +63,7 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -204,8 +205,8 @@ class AugmentSettings:
             raise InputError(f"augment.motion_source: must be 'action' or 'state', got {self.motion_source!r}")
         if self.contact_chunk < 1:
             raise InputError(f"augment.contact_chunk: must be >= 1, got {self.contact_chunk}")
-        if self.contact_cap is not None and not self.contact_cap > 0:
-            raise InputError(f"augment.contact_cap: must be > 0 metres, got {self.contact_cap}")
+        if self.contact_cap is not None and not 0 < self.contact_cap < math.inf:
+            raise InputError(f"augment.contact_cap: must be a finite number of metres > 0, got {self.contact_cap}")
         if not 0 < self.contact_percentile <= 100:
             raise InputError(f"augment.contact_percentile: must be in (0, 100], got {self.contact_percentile}")
         if self.robot_mask_dilate_px < 0:
@@ -311,8 +312,8 @@ def _validate(recipe: Recipe) -> None:
         raise InputError(f"{f}: cameras.calibration: required for real data (a calibration JSON, see README)")
     if s.episodes is not None and s.episodes <= 0:
         raise InputError(f"{f}: source.episodes: must be positive, got {s.episodes}")
-    if recipe.fps is not None and recipe.fps <= 0:
-        raise InputError(f"{f}: fps: must be positive, got {recipe.fps}")
+    if recipe.fps is not None and not (0 < recipe.fps < math.inf and float(recipe.fps).is_integer()):
+        raise InputError(f"{f}: fps: must be a positive whole number (LeRobot stores an integer fps), got {recipe.fps}")
     if s.episode_defaults.source not in ("teleop", "policy"):
         raise InputError(f"{f}: source.episode_defaults.source: must be 'teleop' or 'policy'")
     sim = s.sim

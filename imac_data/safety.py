@@ -82,6 +82,10 @@ def check_output(root: Path, *, overwrite: bool, what: str = "--root") -> None:
         if any(root.iterdir()) and not (root / "meta" / "info.json").is_file():
             raise InputError(f"{what} {root} is a directory but not a LeRobot dataset (no meta/info.json): "
                              "--overwrite replaces only a dataset. Choose another output")
+        cwd = Path.cwd().resolve()
+        if cwd.is_relative_to(root.resolve()):
+            raise InputError(f"{what} {root} is (or contains) the current directory {cwd}: replacing it would delete "
+                             "the directory this command runs in. Run it from outside the dataset")
     parent = root.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent

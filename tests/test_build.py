@@ -78,6 +78,8 @@ def test_cli_builds_a_loadable_dataset(sim_dir, tmp_path, capsys):
     ({"source.sim.noise": 2.0}, r"recipe.yaml: source\.sim\.noise: must be in \[0, 1\]"),
     ({"robot.platform": "ur5"}, r"robot\.platform: unknown platform 'ur5'"),
     ({"source.colour": "red"}, r"source: unknown field\(s\) \['colour'\]"),
+    ({"fps": 12.5}, r"recipe.yaml: fps: must be a positive whole number .* got 12.5"),
+    ({"augment.contact_cap": float("inf")}, r"augment.contact_cap: must be a finite number of metres > 0, got inf"),
     ({"source.type": "aloha_hdf5"}, r"source\.path: required"),
 ])
 def test_invalid_recipe_fields(tmp_path, changes, message, capsys):

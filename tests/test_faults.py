@@ -166,6 +166,18 @@ def _other_aspect(c):
     c["width"] = 200
 
 
+def edit_file(path: Path, edit) -> None:
+    """``edit(h5py.File)`` on episode ``path``, opened for writing."""
+    with h5py.File(path, "r+") as f:
+        edit(f)
+
+
+def _set_attr(name, value):
+    def edit(f):
+        f.attrs[name] = value
+    return edit
+
+
 DEPTH_HIGH, IMAGES_HIGH = "observations/images_depth/cam_high", "observations/images/cam_high"
 BAD_INPUT = {  # case -> (damage the source directory, what the message must name)
     # calibration (item 2): the calibration file, the camera, the field
@@ -192,6 +204,23 @@ BAD_INPUT = {  # case -> (damage the source directory, what the message must nam
         lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:, ::2, ::2], [IMAGES_HIGH, DEPTH_HIGH]),
         ["episode_1.hdf5", IMAGES_HIGH, "(60, 80)", "episode_0.hdf5"]),
     "empty_episode": (lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:0]), ["episode_1.hdf5", "no frames"]),
+    # one dataset, one feature set and one rate: what differs between episodes is named
+    "depth_missing_in_one_episode": (lambda s: edit_file(s / "episode_1.hdf5", lambda f: f.__delitem__(DEPTH_HIGH)),
+                                     ["episode_1.hdf5", "images_depth", "episode_0.hdf5"]),
+    "qvel_missing_in_one_episode": (
+        lambda s: edit_file(s / "episode_1.hdf5", lambda f: f.__delitem__("observations/qvel")),
+        ["episode_1.hdf5", "observations/qvel", "episode_0.hdf5"]),
+    "qvel_width": (lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:, :7], ["observations/qvel"]),
+                   ["episode_1.hdf5", "observations/qvel", ", 7)"]),
+    "fps_differs_between_episodes": (lambda s: edit_file(s / "episode_1.hdf5", _set_attr("fps", 50.0)),
+                                     ["episode_1.hdf5", "'fps'", "50.0", "episode_0.hdf5"]),
+    "fps_not_whole": (lambda s: [edit_file(s / f"episode_{i}.hdf5", _set_attr("fps", 12.5)) for i in (0, 1)],
+                      ["episode_0.hdf5", "'fps'", "12.5", "whole number"]),
+    # episode attributes are read up front, not in the worker
+    "success_not_a_boolean": (lambda s: edit_file(s / "episode_1.hdf5", _set_attr("success", "maybe")),
+                              ["episode_1.hdf5", "'success'", "maybe"]),
+    "source_unknown": (lambda s: edit_file(s / "episode_1.hdf5", _set_attr("source", "human")),
+                       ["episode_1.hdf5", "'source'", "human"]),
 }
 
 
@@ -212,6 +241,31 @@ def test_bad_input_is_refused_before_any_work(sim_src, tmp_path, capsys, case):
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert tree_digest(src) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == listing
+
+
+def test_success_text_is_parsed_not_truthy(sim_src, tmp_path):
+    """Oracle: the words themselves (bool("no") is True)."""
+    from imac_data.aloha_hdf5 import EpisodeReader
+
+    src = copy_source(sim_src, tmp_path / "episodes")
+    for value, expected in (("no", False), (b"Yes", True), ("failure", False), (np.int64(1), True), ("", None)):
+        edit_file(src / "episode_0.hdf5", _set_attr("success", value))
+        with EpisodeReader(src / "episode_0.hdf5") as ep:
+            assert ep.info.success is expected, value
+
+
+def test_root_that_holds_the_working_directory_is_refused(sim_src, tmp_path, capsys, monkeypatch):
+    """--root . --overwrite from inside an existing dataset: refused before any work (it
+    would delete the directory the command runs in), and the dataset stays as it was."""
+    recipe = recipe_file(tmp_path)
+    root = tmp_path / "out"
+    assert build_main(recipe, sim_src, root) == 0
+    before, listing = tree_digest(tmp_path), sorted(p.name for p in tmp_path.iterdir())
+    monkeypatch.chdir(root / "meta")
+    assert build_main(recipe, sim_src, Path(".."), "--overwrite") == 2
+    err = capsys.readouterr().err
+    assert str(root) in err and "current directory" in err
+    assert tree_digest(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == listing
 
 
 @pytest.mark.parametrize("kind", ["file", "other_directory"])
