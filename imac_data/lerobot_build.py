@@ -82,6 +82,8 @@ def build_from_lerobot(req, robot):
         if recipe.depth.source == "recorded":
             depth_feature = DepthFeature(recipe.depth.feature, recipe.depth.format, recipe.depth.codec)
             depth_feature.check(src, rig.names, where)
+        depth_videos = [depth_feature.key(c) for c in rig.names] if depth_feature and depth_feature.codec else []
+        src.check_files([*cameras, *depth_videos])  # before any work: LeRobot would try the hub for a missing file
         meta_rows = episode_metadata(recipe.resolve_path(src_cfg.metadata), len(src.episodes),
                                      src_cfg.episode_defaults)
         states = episode_states(src.root, src.episodes, src_cfg.state_key)

@@ -143,8 +143,7 @@ class LeRobotEpisodeReader:
     def _video(self, key: str) -> _VideoFrames:
         if key not in self._videos:
             r, info = self.row, self.src.info
-            path = self.src.root / info["video_path"].format(video_key=key, chunk_index=r[f"videos/{key}/chunk_index"],
-                                                             file_index=r[f"videos/{key}/file_index"])
+            path = self.src.video_file(key, r)
             self._videos[key] = _VideoFrames(path, float(r[f"videos/{key}/from_timestamp"]), float(info["fps"]),
                                              self.num_frames, f"{self.path} {key}")
         return self._videos[key]
@@ -175,9 +174,7 @@ class LeRobotEpisodeReader:
         """Frames ``start:stop`` of an array or image feature from the episode's data file."""
         import pyarrow.parquet as pq
 
-        r, info = self.row, self.src.info
-        path = self.src.root / info["data_path"].format(chunk_index=r["data/chunk_index"],
-                                                        file_index=r["data/file_index"])
+        path = self.src.data_file(self.row)
         table = pq.read_table(path, columns=["frame_index", key],
                               filters=[("episode_index", "=", self.index), ("frame_index", ">=", start),
                                        ("frame_index", "<", stop)])

@@ -70,10 +70,11 @@ class SourceDataset:
         info_path = root / "meta" / "info.json"
         if not info_path.is_file():
             raise InputError(f"{root} is not a LeRobot dataset ({info_path} is missing)")
-        info = json.loads(info_path.read_text())
+        info = _read_info(info_path)
         version = info.get("codebase_version")
         if version != "v3.0":
             raise InputError(f"{root}: LeRobot dataset version {version!r}; expected v3.0 (v2.1 is converted first)")
+        _check_info(info, info_path)
         rows = []
         for f in sorted((root / "meta" / "episodes").rglob("*.parquet")):
             cols = [c for c in pq.read_schema(f).names if not c.startswith("stats/")]
@@ -86,6 +87,33 @@ class SourceDataset:
     @property
     def features(self) -> dict:
         return self.info["features"]
+
+    def data_file(self, row: dict) -> Path:
+        """The parquet file that holds episode ``row``'s frames."""
+        return self.root / self.info["data_path"].format(chunk_index=row["data/chunk_index"],
+                                                         file_index=row["data/file_index"])
+
+    def video_file(self, key: str, row: dict) -> Path:
+        """The video file that holds episode ``row``'s frames of camera feature ``key``."""
+        return self.root / self.info["video_path"].format(video_key=key, chunk_index=row[f"videos/{key}/chunk_index"],
+                                                          file_index=row[f"videos/{key}/file_index"])
+
+    def check_files(self, video_keys: list[str]) -> None:
+        """Every file the build reads is there: the tasks table, each episode's data file and
+        its video files of ``video_keys`` (LeRobot would try to download a missing one)."""
+        tasks = self.root / "meta" / "tasks.parquet"
+        if not tasks.is_file():
+            raise InputError(f"dataset {self.root}: {tasks} is missing")
+        for row in self.episodes:
+            try:
+                files = [self.data_file(row), *(self.video_file(key, row) for key in video_keys)]
+            except KeyError as e:
+                raise InputError(f"dataset {self.root}: meta/episodes has no column {e} for episode "
+                                 f"{row['episode_index']}") from None
+            missing = [f for f in files if not f.is_file()]
+            if missing:
+                raise InputError(f"dataset {self.root}: episode {row['episode_index']} needs {missing[0]}, which is "
+                                 "missing")
 
     @property
     def fps(self) -> int:
@@ -115,9 +143,31 @@ class SourceDataset:
 # ------------------------------------------------------------------------------ locate
 
 
+def _check_info(info: dict, info_path: Path) -> None:
+    """The fields of a v3.0 ``info.json`` that reading a source needs, with their types."""
+    for key, kind, what in (("fps", (int, float), "a number"), ("total_episodes", int, "an integer"),
+                            ("features", dict, "an object"), ("data_path", str, "a path template"),
+                            ("video_path", (str, type(None)), "a path template")):
+        if key not in info or isinstance(info[key], bool) or not isinstance(info[key], kind):
+            got = f"got {info[key]!r}" if key in info else "it is missing"
+            raise InputError(f"{info_path}: '{key}' must be {what}; {got}")
+    if not (info["fps"] > 0 and float(info["fps"]).is_integer()):
+        raise InputError(f"{info_path}: 'fps' must be a positive whole number, got {info['fps']!r}")
+
+
+def _read_info(info_path: Path) -> dict:
+    try:
+        info = json.loads(info_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"{info_path}: not valid JSON ({e})") from None
+    if not isinstance(info, dict):
+        raise InputError(f"{info_path}: expected a JSON object, got {type(info).__name__}")
+    return info
+
+
 def _version(root: Path) -> str | None:
     path = root / "meta" / "info.json"
-    return json.loads(path.read_text()).get("codebase_version") if path.is_file() else None
+    return _read_info(path).get("codebase_version") if path.is_file() else None
 
 
 def _download(repo_id: str, into: Path) -> Path:
@@ -307,23 +357,12 @@ META_FIELDS = {"success": "imac/success", "policy_name": "imac/policy_name", "ch
                "source": "imac/source"}
 
 
-def _bool(value, where: str) -> bool | None:
-    if value is None or value == "":
-        return None
-    if isinstance(value, bool):
-        return value
-    text = str(value).strip().lower()
-    if text in ("1", "true", "yes", "success"):
-        return True
-    if text in ("0", "false", "no", "failure", "fail"):
-        return False
-    raise InputError(f"{where}: success must be true/false (or 1/0), got {value!r}")
-
-
 def episode_metadata(path: Path | None, n: int, defaults) -> list[dict]:
     """Per episode ``imac/source``, ``imac/policy_name``, ``imac/checkpoint``, ``imac/success``:
     from ``path`` (CSV with an ``episode_index`` column, or JSON: a list of objects with
     ``episode_index``, or an object keyed by episode index) over the recipe's defaults."""
+    from imac_data.aloha_hdf5 import parse_success
+
     rows = [{"imac/source": defaults.source, "imac/policy_name": defaults.policy_name,
              "imac/checkpoint": defaults.checkpoint, "imac/success": None} for _ in range(n)]
     if path is None:
@@ -358,7 +397,7 @@ def episode_metadata(path: Path | None, n: int, defaults) -> list[dict]:
                 continue
             value = rec[name]
             if name == "success":
-                value = _bool(value, f"{where} (episode {ep})")
+                value = parse_success(value, f"{where} (episode {ep})")
             elif name == "source" and value not in ("teleop", "policy"):
                 raise InputError(f"{where} (episode {ep}): source must be 'teleop' or 'policy', got {value!r}")
             else:

@@ -9,6 +9,7 @@ DA3 weights can be downloaded here: the ``da3`` build loads a randomly initialis
 
 import hashlib
 import json
+import shutil
 
 import huggingface_hub
 import numpy as np
@@ -207,6 +208,41 @@ def test_joint_layout_wider_than_the_state(source, sim, tmp_path):
         check_joint_layout(SourceDataset.open(source), "observation.state", "action", "joint", 16, "r.yaml")
     with pytest.raises(InputError, match=r"no feature 'observation.qpos' \(source.state_key\)"):
         check_joint_layout(SourceDataset.open(source), "observation.qpos", "action", "joint", 14, "r.yaml")
+
+
+def test_missing_source_files_are_named_before_any_work(source, sim, tmp_path):
+    """A deleted camera video or tasks table: one error naming the file, before the copy
+    (LeRobot would otherwise try to download it from the hub), and nothing written."""
+    copy = tmp_path / "src"
+    shutil.copytree(source, copy)
+    video = sorted((copy / "videos" / KEYS["cam_high"]).rglob("*.mp4"))[0]
+    video.unlink()
+    recipe = recipe_file(tmp_path, copy, sim / "sim" / "calibration.json", depth={"source": "none"})
+    expect_error(recipe, tmp_path, f"episode 0 needs {video}, which is missing")
+    shutil.copytree(source / "videos", copy / "videos", dirs_exist_ok=True)
+    (copy / "meta" / "tasks.parquet").unlink()
+    expect_error(recipe, tmp_path, r"meta/tasks.parquet is missing")
+
+
+@pytest.mark.parametrize("damage, match", [
+    (lambda info: info.pop("fps"), r"'fps' must be a number; it is missing"),
+    (lambda info: info.update(fps=12.5), r"'fps' must be a positive whole number, got 12.5"),
+    (lambda info: info.pop("total_episodes"), r"'total_episodes' must be an integer; it is missing"),
+    (lambda info: info.update(features=[]), r"'features' must be an object; got \[\]"),
+    (None, r"info.json: not valid JSON"),
+])
+def test_damaged_info_json_is_named(source, tmp_path, damage, match):
+    from imac_data.lerobot_source import SourceDataset
+
+    copy = tmp_path / "src"
+    shutil.copytree(source / "meta", copy / "meta")
+    path = copy / "meta" / "info.json"
+    info = json.loads(path.read_text())
+    if damage is not None:
+        damage(info)
+    path.write_text("{not json" if damage is None else json.dumps(info))
+    with pytest.raises(InputError, match=match):
+        SourceDataset.open(copy)
 
 
 def test_da3_model_directory_that_does_not_exist(source, sim, tmp_path):
