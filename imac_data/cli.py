@@ -7,6 +7,8 @@ Exit codes of every ``python -m imac_data.*`` command (:func:`run_command`):
 * 3 the environment (:class:`~imac_data.errors.EnvironmentFault`, or an ``OSError`` such as
   no space left, a read-only file system, no permission, a parent that is a file; another
   build holding the output's lock): one line saying what and where;
+* 130 interrupted (Ctrl-C): one line, no traceback (the commands clean up as they unwind;
+  a build keeps its finished episodes and resumes when rerun);
 * 1 only for a bug (a traceback).
 """
 
@@ -21,9 +23,11 @@ from pathlib import Path
 from imac_data.errors import EnvironmentFault, InputError
 
 EXIT_OK, EXIT_BUG, EXIT_BAD_INPUT, EXIT_ENVIRONMENT = 0, 1, 2, 3
+EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
 
 __all__ = ["default_root", "cache_home", "quiet_libraries", "silence_progress_bars", "run_command",
-           "environment_problem", "EXIT_OK", "EXIT_BUG", "EXIT_BAD_INPUT", "EXIT_ENVIRONMENT"]
+           "environment_problem", "EXIT_OK", "EXIT_BUG", "EXIT_BAD_INPUT", "EXIT_ENVIRONMENT",
+           "EXIT_INTERRUPTED"]
 
 # errno -> what the user can do about it
 _ENVIRONMENT_ERRNOS = {
@@ -111,6 +115,9 @@ def run_command(body: Callable[[], int | None]) -> int:
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted (a build keeps its finished episodes: rerun the same command to resume)", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except Exception as e:
         problem = environment_problem(e)
         if problem is None:

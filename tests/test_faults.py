@@ -359,6 +359,17 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     assert need <= 2 * sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
 
 
+def test_ctrl_c_is_one_line_and_exit_130(capsys):
+    from imac_data.cli import EXIT_INTERRUPTED, run_command
+
+    def body():
+        raise KeyboardInterrupt
+
+    assert run_command(body) == EXIT_INTERRUPTED == 130
+    err = capsys.readouterr().err
+    assert err.startswith("interrupted") and len(err.strip().splitlines()) == 1
+
+
 def test_environment_errors_are_recognised_however_they_arrive():
     """From a pool worker (pickled), wrapped by a library (chained), or with only the text kept
     (pyarrow, PyAV): still an environment fault; anything else is a bug."""
