@@ -78,12 +78,13 @@ def episode_attributes(f: h5py.File, path: Path) -> tuple[EpisodeInfo, float | N
     with errors naming the file and the attribute."""
     attrs = f.attrs
     where = f"{path}: attribute"
-    source = _str_attr(attrs.get("source"))
-    if source is not None and source not in SOURCES:
-        raise InputError(f"{where} 'source' must be one of {SOURCES}, got {source!r}")
-    info = EpisodeInfo(task=_str_attr(attrs.get("task")), source=source,
-                       policy_name=_str_attr(attrs.get("policy_name")), checkpoint=_str_attr(attrs.get("checkpoint")),
-                       success=parse_success(attrs.get("success"), f"{where} 'success'"))
+    success = parse_success(attrs.get("success"), f"{where} 'success'")
+    try:
+        info = EpisodeInfo(task=_str_attr(attrs.get("task")), source=_str_attr(attrs.get("source")),
+                           policy_name=_str_attr(attrs.get("policy_name")),
+                           checkpoint=_str_attr(attrs.get("checkpoint")), success=success)
+    except InputError as e:  # EpisodeInfo checks its fields; say which file
+        raise InputError(f"{where} 'source': {e}") from None
     fps = None
     if "fps" in attrs:
         try:
