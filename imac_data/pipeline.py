@@ -219,10 +219,12 @@ class EpisodePipeline:
                     chunk = contact_chunk(torch.as_tensor(ref_depth), K, seen.T_world_cam[0], seen.mask[0],
                                           drawn.depth, drawn.T_world_cam, drawn.gripper_points, cap=s.contact_cap,
                                           percentile=s.contact_percentile, dilate_px=s.robot_mask_dilate_px,
-                                          workspace=rig.workspace, workers=self.threads, parallel=self.threads)
+                                          workspace=rig.workspace, workers=self.threads, parallel=self.threads,
+                                          allow_empty_scene=s.empty_reference_scene == "no_contact")
                 except InputError as e:  # which episode and frame: the contact functions know only tensors
                     raise InputError(f"{reader.path}: contact images of frames {lo}:{hi} (reference frame {ref}, "
-                                     f"cameras {names}): {e}") from None
+                                     f"cameras {names}): {e}. To build such chunks without contact, set "
+                                     "augment.empty_reference_scene: no_contact in the recipe") from None
             r2s, s2g = chunk.r2s_rgb.cpu().numpy(), chunk.s2g_rgb.cpu().numpy()
             motion = drawn.rgb.numpy()
             for v, c in enumerate(names):

@@ -52,6 +52,7 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
         min: [-0.8, -0.6, -0.05]              # world box, metres; no min/max = the robot's reach + margin
         max: [0.8, 0.6, 0.7]
         depth_range: [0.1, 2.5]               # metres of z-depth; default [0, where the depth codec saturates)
+      empty_reference_scene: error            # a chunk start with no valid scene depth: error | no_contact
     depth:                                    # where depth comes from (imac_data.depth_choice)
       source: recorded                        # recorded | da3 | none (motion streams only)
       model: depth-anything/DA3-BASE          # da3: hub id or local weights directory
@@ -195,6 +196,10 @@ class AugmentSettings:
     contact_percentile: float = 99.0
     robot_mask_dilate_px: int = 2  # robot removal from the reference depth
     contact_workspace: WorkspaceSettings = field(default_factory=WorkspaceSettings)  # box + depth range
+    # a chunk whose reference frame has no scene (no valid depth left, e.g. a depth sensor's
+    # first frames): "error" stops the build, "no_contact" builds it without contact
+    # (r2s saturated on the robot, s2g black, caps contact.EMPTY_CAP)
+    empty_reference_scene: str = "error"
 
     def __post_init__(self) -> None:
         from imac_data.depth import DepthCodec
@@ -209,6 +214,9 @@ class AugmentSettings:
             raise InputError(f"augment.contact_cap: must be a finite number of metres > 0, got {self.contact_cap}")
         if not 0 < self.contact_percentile <= 100:
             raise InputError(f"augment.contact_percentile: must be in (0, 100], got {self.contact_percentile}")
+        if self.empty_reference_scene not in ("error", "no_contact"):
+            raise InputError(f"augment.empty_reference_scene: must be 'error' or 'no_contact', got "
+                             f"{self.empty_reference_scene!r}")
         if self.robot_mask_dilate_px < 0:
             raise InputError(f"augment.robot_mask_dilate_px: must be >= 0, got {self.robot_mask_dilate_px}")
         try:

@@ -268,6 +268,35 @@ def test_root_that_holds_the_working_directory_is_refused(sim_src, tmp_path, cap
     assert tree_digest(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == listing
 
 
+def test_reference_frame_without_scene_is_named_or_built_without_contact(sim_src, tmp_path, capsys):
+    """Depth 0 in every camera at frame 0 of episode 1 (a sensor warming up): by default one
+    error naming the file and the frame; with empty_reference_scene: no_contact the build
+    completes, and that chunk (frames 0..4) has the documented empty caps, the others not."""
+    from imac_data.contact import EMPTY_CAP
+
+    src = copy_source(sim_src, tmp_path / "episodes")
+    depth_keys = [f"observations/images_depth/{c}" for c in ("cam_high", "cam_left_wrist", "cam_right_wrist")]
+
+    def zero_first(d):
+        d = d.copy()
+        d[0] = 0
+        return d
+
+    edit_datasets(src / "episode_1.hdf5", zero_first, depth_keys)
+    before = tree_digest(src)
+    assert build_main(recipe_file(tmp_path), src, tmp_path / "out") == 2
+    err = capsys.readouterr().err
+    for name in ("episode_1.hdf5", "reference frame 0", "augment.empty_reference_scene: no_contact"):
+        assert name in err, err
+    assert build_main(recipe_file(tmp_path, empty_reference_scene="no_contact"), src, tmp_path / "out") == 0
+    data = LeRobotDataset("local/x", root=tmp_path / "out").hf_dataset.with_format("numpy")
+    episode = np.asarray(data["episode_index"]) == 1
+    frame = np.asarray(data["frame_index"])[episode]
+    cap = np.stack(list(data["control.contact_cap"]))[episode]
+    assert (frame > 4).any() and np.all(cap[frame <= 4] == EMPTY_CAP) and np.all(cap[frame > 4] != EMPTY_CAP)
+    assert tree_digest(src) == before
+
+
 @pytest.mark.parametrize("kind", ["file", "other_directory"])
 def test_overwrite_replaces_only_a_dataset(sim_src, tmp_path, capsys, kind):
     """--overwrite with --root an existing file, or a directory that is not a LeRobot dataset:
