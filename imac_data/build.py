@@ -26,7 +26,7 @@ from pathlib import Path
 from imac_data.cli import cache_home, default_root, quiet_libraries, run_command, silence_progress_bars
 from imac_data.errors import InputError
 from imac_data.recipes import Recipe, find_recipe, load_recipe, missing_inputs
-from imac_data.safety import check_output, refuse_overlap
+from imac_data.safety import check_output, output_sibling, refuse_overlap
 
 
 @dataclass(frozen=True)
@@ -42,9 +42,7 @@ class BuildRequest:
     wait: bool = False  # wait for another build of the same root instead of refusing (imac_data.lock)
 
     def __post_init__(self):
-        # Absolute once, here: the staging, lock and backup paths are siblings of the root, and
-        # "." or "x/.." have no name of their own. abspath, not resolve: a symlinked root stays
-        # a symlink for the overlap checks.
+        # absolute, as its siblings are (safety.output_sibling): the swap renames the root itself
         object.__setattr__(self, "root", Path(os.path.abspath(self.root)))
 
 
@@ -441,7 +439,7 @@ def _swap_into_place(final: Path, root: Path) -> None:
     removed only once the new one is in place, and put back if the rename fails."""
     import shutil
 
-    old = root.with_name(f".{root.name}.old")
+    old = output_sibling(root, "old")
     shutil.rmtree(old, ignore_errors=True)
     if root.exists():
         root.rename(old)

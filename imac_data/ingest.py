@@ -65,7 +65,9 @@ class IngestOptions:
 
 def staging_dir(root: Path) -> Path:
     """Where a dataset for ``root`` is assembled before it is moved into place."""
-    return root.parent / f".{root.name}.staging"
+    from imac_data.safety import output_sibling
+
+    return output_sibling(root, "staging")
 
 
 def check_episodes(paths: Sequence[Path], calibration: dict[str, Camera], robot: RobotModel) -> dict:

@@ -53,7 +53,7 @@ def build_from_lerobot(req, robot):
     from imac_data.pipeline import StageTimer, add_episode_streams
     from imac_data.rig import Rig
     from imac_data.robot_files import DESCRIPTION_DIR, write_description
-    from imac_data.safety import refuse_overlap
+    from imac_data.safety import output_sibling, refuse_overlap
     from imac_data.workers import pin_threads, threads_per_worker
 
     t0 = time.perf_counter()
@@ -124,7 +124,7 @@ def build_from_lerobot(req, robot):
             print(timer.table("[build] stage"), file=sys.stderr)
 
         # 5: into place; the old output (--overwrite) is removed only once the new one is complete
-        old = req.root.with_name(f".{req.root.name}.old")
+        old = output_sibling(req.root, "old")
         shutil.rmtree(old, ignore_errors=True)
         if req.root.exists():
             req.root.rename(old)

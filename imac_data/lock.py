@@ -24,8 +24,9 @@ __all__ = ["lock_path", "output_lock"]
 
 
 def lock_path(root: Path) -> Path:
-    root = Path(root)
-    return root.parent / f".{root.name}.lock"
+    from imac_data.safety import output_sibling
+
+    return output_sibling(root, "lock")
 
 
 def _holder(path: Path) -> str:

@@ -32,11 +32,23 @@ def _is_within(inner: Path, outer: Path) -> bool:
     return inner == outer or outer in inner.parents
 
 
+SIBLING_SUFFIXES = ("staging", "old", "lock", "imac-staging", "imac-old")
+
+
+def output_sibling(root: Path, suffix: str) -> Path:
+    """``.<name>.<suffix>`` next to the output ``root`` (one of :data:`SIBLING_SUFFIXES`):
+    where it is staged, locked or kept while it is replaced. ``root`` is made absolute first:
+    ``.`` or ``x/..`` have no name of their own. abspath, not resolve: a symlinked root stays
+    a symlink for the overlap checks."""
+    if suffix not in SIBLING_SUFFIXES:
+        raise ValueError(f"unknown output sibling {suffix!r}")
+    root = Path(os.path.abspath(root))
+    return root.parent / f".{root.name}.{suffix}"
+
+
 def output_neighbours(root: Path) -> list[Path]:
     """Every path a build or an augmentation of ``root`` may create, replace or delete."""
-    root = Path(root)
-    return [root] + [root.parent / f".{root.name}.{suffix}"
-                     for suffix in ("staging", "old", "lock", "imac-staging", "imac-old")]
+    return [Path(os.path.abspath(root))] + [output_sibling(root, suffix) for suffix in SIBLING_SUFFIXES]
 
 
 def refuse_overlap(output: Path, inputs: Mapping[str, Path | None], *, what: str = "--root") -> None:

@@ -100,12 +100,12 @@ def staged_dataset(root: str | Path) -> Iterator[Path]:
     renames (``root`` -> ``.<name>.imac-old``, copy -> ``root``), then the old
     tree is deleted.
     """
-    root = Path(root)
     from imac_data.dataset.info import read_info
+    from imac_data.safety import output_sibling
 
+    root = Path(os.path.abspath(root))
     read_info(root)
-    stage = root.parent / f".{root.name}.imac-staging"
-    old = root.parent / f".{root.name}.imac-old"
+    stage, old = output_sibling(root, "imac-staging"), output_sibling(root, "imac-old")
     for leftover in (stage, old):
         if leftover.exists():
             shutil.rmtree(leftover)
