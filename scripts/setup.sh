@@ -22,22 +22,47 @@ if [ ${#need[@]} -gt 0 ]; then
 fi
 
 # --- python environment -------------------------------------------------------------
+# No pip cache: the stack's wheels (torch with its CUDA libraries, open3d, ...) are about 4 GB
+# compressed, and a cached copy of each on top of the 11 GB install has filled a CI disk.
+export PIP_NO_CACHE_DIR=1
 PY=${PYTHON:-python3.11}
 command -v "$PY" >/dev/null || PY=python3
 if [ ! -x .venv/bin/python ]; then
   echo "[setup] creating .venv with $($PY --version)"
   "$PY" -m venv .venv
 fi
+# pip's downloads stay on disk until its command ends. torch and its CUDA libraries are more than
+# half of the install, so they go in first, in a command of their own, at the version the whole
+# resolution picks: the peak is then about 12.5 GB instead of 16 (measured on Linux x86_64).
+need_gb=13
+pip_failed() {  # $1: the log
+  tail -n 40 "$1"
+  if grep -q 'No space left on device' "$1"; then
+    echo "[setup] the disk filled up: the install needs about ${need_gb} GB free under $PWD/.venv and \$TMPDIR (${TMPDIR:-/tmp})" >&2
+  fi
+  echo "[setup] pip install failed; full log in $1" >&2
+  exit 1
+}
 stamp=.venv/.imac-install-stamp
 want=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "[setup] installing the project and its dependencies into .venv (first time: several minutes)"
+  for dir in .venv "${TMPDIR:-/tmp}"; do
+    free_gb=$(df -P -BG "$dir" | awk 'NR == 2 { sub("G", "", $4); print $4 }')
+    if [ -n "$free_gb" ] && [ "$free_gb" -lt "$need_gb" ] && [ ! -d .venv/lib/python3*/site-packages/torch ]; then
+      echo "[setup] warning: $free_gb GB free under $dir; a first install needs about $need_gb GB" >&2
+    fi
+  done
   log=.venv/pip-install.log
-  if ! { .venv/bin/python -m pip install --upgrade pip && .venv/bin/python -m pip install -e ".[dev,ray]"; } > "$log" 2>&1; then
-    tail -n 40 "$log"
-    echo "[setup] pip install failed; full log in $log" >&2
-    exit 1
+  .venv/bin/python -m pip install --upgrade pip > "$log" 2>&1 || pip_failed "$log"
+  torch_pin=$(.venv/bin/python -m pip install --dry-run --quiet --report - -e ".[dev,ray]" 2>> "$log" \
+    | .venv/bin/python -c 'import json, sys
+print("".join("torch==" + p["metadata"]["version"] for p in json.load(sys.stdin)["install"] if p["metadata"]["name"] == "torch"))') \
+    || pip_failed "$log"
+  if [ -n "$torch_pin" ]; then
+    .venv/bin/python -m pip install "$torch_pin" >> "$log" 2>&1 || pip_failed "$log"
   fi
+  .venv/bin/python -m pip install -e ".[dev,ray]" >> "$log" 2>&1 || pip_failed "$log"
   echo "$want" > "$stamp"
   echo "[setup] done (log: $log)"
 fi
