@@ -26,7 +26,7 @@ from pathlib import Path
 from imac_data.cli import cache_home, default_root, quiet_libraries, run_command, silence_progress_bars
 from imac_data.errors import InputError
 from imac_data.recipes import Recipe, find_recipe, load_recipe, missing_inputs
-from imac_data.safety import check_output, output_sibling, refuse_overlap
+from imac_data.safety import check_output, make_sibling_dir, refuse_overlap, remove_sibling, swap_into_place
 
 
 @dataclass(frozen=True)
@@ -386,8 +386,10 @@ def _build_staged(req: BuildRequest, paths, calibration_path, rig, robot, option
     key = build_key(recipe, paths, calibration_path, req.repo_id, block)
     key_file = staging / "BUILD_KEY"
     if staging.exists() and (not key_file.is_file() or key_file.read_text() != key):
-        shutil.rmtree(staging)
-    (staging / "shards").mkdir(parents=True, exist_ok=True)
+        remove_sibling(staging)
+    if not staging.exists():
+        make_sibling_dir(staging)
+    (staging / "shards").mkdir(exist_ok=True)
     key_file.write_text(key)
     description = staging / "robot"
     write_description(robot, description)
@@ -424,7 +426,7 @@ def _build_staged(req: BuildRequest, paths, calibration_path, rig, robot, option
     if req.progress:
         print(_timings_table(report), file=sys.stderr)
 
-    _swap_into_place(final, req.root)
+    swap_into_place(final, req.root)
     shutil.rmtree(staging, ignore_errors=True)
     # Imported here, not before the jobs: LeRobot's import takes 1.4 s, and the pool
     # workers are spawned only when the jobs start (the build process imports it in its
@@ -432,24 +434,6 @@ def _build_staged(req: BuildRequest, paths, calibration_path, rig, robot, option
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     return LeRobotDataset(req.repo_id, root=req.root)
-
-
-def _swap_into_place(final: Path, root: Path) -> None:
-    """Rename the complete dataset ``final`` to ``root``; an old output (``--overwrite``) is
-    removed only once the new one is in place, and put back if the rename fails."""
-    import shutil
-
-    old = output_sibling(root, "old")
-    shutil.rmtree(old, ignore_errors=True)
-    if root.exists():
-        root.rename(old)
-    try:
-        final.rename(root)
-    except BaseException:
-        if old.exists():
-            old.rename(root)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
 
 
 def _warn_if_short_of_space(req: BuildRequest, probe: dict, robot) -> None:

@@ -215,11 +215,13 @@ def ingest_episodes(paths: Sequence[str | Path], *, rig, repo_id: str, root: str
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from imac_data.aloha_hdf5 import EpisodeReader
+    from imac_data.safety import check_output, remove_sibling, swap_into_place
 
     paths = [Path(p) for p in paths]
     root = Path(root)
     if root.exists() and not overwrite:
         raise InputError(f"output {root} already exists (pass overwrite=True / --overwrite to replace it)")
+    check_output(root, overwrite=overwrite, what="output")  # replaces only a dataset; leftovers only ours
     probe = check_episodes(paths, rig.cameras, rig.robot)
     if options.state_names is not None and len(options.state_names) != probe["dof"]:
         raise InputError(f"state_names has {len(options.state_names)} names for a {probe['dof']}-D joint vector")
@@ -228,8 +230,7 @@ def ingest_episodes(paths: Sequence[str | Path], *, rig, repo_id: str, root: str
     rig = rig.with_image_sizes(image_hw)
 
     staging = staging_dir(root)
-    if staging.exists():
-        shutil.rmtree(staging)
+    remove_sibling(staging)
     staging.parent.mkdir(parents=True, exist_ok=True)
     writer = None
     try:
@@ -247,9 +248,7 @@ def ingest_episodes(paths: Sequence[str | Path], *, rig, repo_id: str, root: str
                                {c: ep.images(c, lo, hi) for c in writer.cameras}, poses)
                 writer.end_episode()
         writer.finish(rig)
-        if root.exists():
-            shutil.rmtree(root)
-        staging.rename(root)
+        swap_into_place(staging, root)
     except BaseException:
         if writer is not None:
             writer.abort()

@@ -53,7 +53,7 @@ def build_from_lerobot(req, robot):
     from imac_data.pipeline import StageTimer, add_episode_streams
     from imac_data.rig import Rig
     from imac_data.robot_files import DESCRIPTION_DIR, write_description
-    from imac_data.safety import output_sibling, refuse_overlap
+    from imac_data.safety import make_sibling_dir, refuse_overlap, remove_sibling, swap_into_place
     from imac_data.workers import pin_threads, threads_per_worker
 
     t0 = time.perf_counter()
@@ -63,8 +63,8 @@ def build_from_lerobot(req, robot):
     rig = Rig.from_recipe(recipe, robot=robot)
     check_depth_inputs(recipe.depth, recipe.file, len(rig.names))  # a missing model directory fails here
     staging = staging_dir(req.root)
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
+    remove_sibling(staging)
+    make_sibling_dir(staging)
     try:
         path = req.source_path or recipe.resolve_path(src_cfg.path)
         refuse_overlap(req.root, {"source dataset": path})  # the user's; staged copies are ours
@@ -124,13 +124,7 @@ def build_from_lerobot(req, robot):
             print(timer.table("[build] stage"), file=sys.stderr)
 
         # 5: into place; the old output (--overwrite) is removed only once the new one is complete
-        old = output_sibling(req.root, "old")
-        shutil.rmtree(old, ignore_errors=True)
-        if req.root.exists():
-            req.root.rename(old)
-        req.root.parent.mkdir(parents=True, exist_ok=True)
-        work.rename(req.root)
-        shutil.rmtree(old, ignore_errors=True)
+        swap_into_place(work, req.root)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     if req.progress:

@@ -181,6 +181,7 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
     from imac_data.motion import SOURCES, frame_configurations
     from imac_data.render import make_renderer
     from imac_data.robot import RobotModel
+    from imac_data.safety import check_replaceable
 
     episode_path, out_dir = Path(episode_path), Path(out_dir)
     if fmt not in ("mp4", "png"):
@@ -189,8 +190,7 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
         raise InputError(f"--source must be one of {SOURCES}, got {source!r}")
     if out_dir.exists() and not overwrite:
         raise InputError(f"output {out_dir} exists; pass --overwrite to replace it")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"output {out_dir} exists and is not a directory")
+    check_replaceable(out_dir, made_by="summary.json", what="output")
     calib = load_calibration(calibration_path)
     if isinstance(robot, str):
         if robot not in ROBOTS:

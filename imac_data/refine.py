@@ -52,7 +52,7 @@ __all__ = ["refine_calibration", "add_arguments", "run", "main"]
 
 
 def _check_outputs(out: Path, report: Path, inputs: dict, overwrite: bool) -> None:
-    from imac_data.safety import refuse_overlap
+    from imac_data.safety import check_replaceable, refuse_overlap
 
     for path, what in ((out, "--out"), (report, "--report")):
         for name, p in inputs.items():
@@ -63,6 +63,7 @@ def _check_outputs(out: Path, report: Path, inputs: dict, overwrite: bool) -> No
             raise InputError(f"{what} {path} exists; pass --overwrite to replace it")
     if out.is_dir():
         raise InputError(f"--out {out} is a directory; give a file name such as refined.json")
+    check_replaceable(report, made_by="report.json", what="--report")
 
 
 def _rig(src, recipe, calibration: Path | None):

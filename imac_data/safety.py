@@ -46,6 +46,62 @@ def output_sibling(root: Path, suffix: str) -> Path:
     return root.parent / f".{root.name}.{suffix}"
 
 
+# Written into the staging directories we make (removed before a staged copy becomes the output),
+# so that a leftover one is known to be ours.
+SIBLING_MARKER = ".imac-sibling"
+_OWNED_BY = (SIBLING_MARKER, "BUILD_KEY", "meta/info.json")  # BUILD_KEY: build staging of earlier versions
+
+
+def make_sibling_dir(path: Path) -> Path:
+    """Create the staging directory ``path`` (an :func:`output_sibling`) with our marker in it."""
+    path.mkdir(parents=True)
+    (path / SIBLING_MARKER).write_text("staged by imac_data; safe to delete\n")
+    return path
+
+
+def check_sibling(path: Path) -> None:
+    """Refuse (:class:`InputError`) to delete the :func:`output_sibling` ``path`` unless it is
+    absent or ours: an empty directory, one with our marker (or a build key), or a LeRobot
+    dataset (an output kept while it is replaced). A directory of the user's that happens to
+    have that name is never deleted."""
+    if not (path.exists() or path.is_symlink()):
+        return
+    if path.is_dir() and not path.is_symlink():
+        if not any(path.iterdir()) or any((path / name).is_file() for name in _OWNED_BY):
+            return
+    raise InputError(f"{path} exists and was not made by imac_data (no {SIBLING_MARKER} marker, not a LeRobot "
+                     "dataset): writing the output next to it stages or keeps data at that path and would delete it. "
+                     "Move it away or choose another output")
+
+
+def swap_into_place(new: Path, root: Path) -> None:
+    """Rename the complete dataset ``new`` to ``root``. An existing ``root`` (``--overwrite``)
+    is kept as ``.<name>.old`` until the rename succeeds, put back if it fails, then deleted."""
+    import shutil
+
+    old = output_sibling(root, "old")
+    remove_sibling(old)
+    if root.exists():
+        root.rename(old)
+    try:
+        root.parent.mkdir(parents=True, exist_ok=True)
+        new.rename(root)
+    except BaseException:
+        if old.exists():
+            old.rename(root)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def remove_sibling(path: Path) -> None:
+    """Delete the leftover :func:`output_sibling` ``path`` after :func:`check_sibling`."""
+    import shutil
+
+    check_sibling(path)
+    if path.exists():
+        shutil.rmtree(path)
+
+
 def output_neighbours(root: Path) -> list[Path]:
     """Every path a build or an augmentation of ``root`` may create, replace or delete."""
     return [Path(os.path.abspath(root))] + [output_sibling(root, suffix) for suffix in SIBLING_SUFFIXES]
@@ -76,15 +132,32 @@ def refuse_overlap(output: Path, inputs: Mapping[str, Path | None], *, what: str
                     f"never written. Choose an output directory outside {path}")
 
 
+def check_replaceable(path: Path, *, made_by: str, what: str) -> None:
+    """Refuse (:class:`InputError`) to let ``--overwrite`` replace ``path`` unless it is absent,
+    an empty directory, or a directory holding ``made_by`` (the file every such output of
+    ours has: a QA ``summary.json``, a calibration ``report.json``)."""
+    path = Path(path)
+    if not (path.exists() or path.is_symlink()):
+        return
+    if not path.is_dir() or path.is_symlink():
+        raise InputError(f"{what} {path} exists and is not a directory; --overwrite replaces only an output of ours")
+    if any(path.iterdir()) and not (path / made_by).is_file():
+        raise InputError(f"{what} {path} is a directory without {made_by}, so not an output of this command: "
+                         "--overwrite would delete it. Choose another output")
+
+
 def check_output(root: Path, *, overwrite: bool, what: str = "--root") -> None:
     """Refuse an output that may not be replaced, or cannot be made, before any work starts.
 
     An existing ``root`` is replaced only with ``overwrite``, and only when it is a LeRobot
     dataset (``meta/info.json``) or an empty directory: never a file nor someone's other
-    directory (:class:`InputError`). The nearest existing ancestor must be a directory this
+    directory (:class:`InputError`). The staging and ``.old`` paths next to it must be absent
+    or ours (:func:`check_sibling`). The nearest existing ancestor must be a directory this
     process may write (else :class:`~imac_data.errors.EnvironmentFault`).
     """
     root = Path(root)
+    for suffix in ("staging", "old"):  # a build deletes leftovers there
+        check_sibling(output_sibling(root, suffix))
     if root.exists() or root.is_symlink():
         if not overwrite:
             raise InputError(f"output {root} already exists; pass --overwrite to replace it")

@@ -71,3 +71,20 @@ def test_augment_refuses_mismatched_source(base, tmp_path, capsys):
     assert "does not match" in capsys.readouterr().err
     assert "control.motion.cam_high" not in json.loads((root / "meta" / "info.json").read_text())["features"]
     assert not (root.parent / f".{root.name}.imac-staging").exists()
+
+
+@pytest.mark.parametrize("suffix", ["imac-staging", "imac-old"])
+def test_augment_never_deletes_a_users_directory_next_to_the_dataset(base, capsys, suffix):
+    """A directory of the user's named like augment's staged copy or kept original: refused
+    before any work, with the path named, and left as it was; the dataset is untouched."""
+    src, root, recipe = base
+    theirs = root.parent / f".{root.name}.{suffix}"
+    theirs.mkdir()
+    (theirs / "notes.txt").write_text("mine")
+    info = (root / "meta" / "info.json").read_text()
+    assert main(["--repo", "local/base", "--root", str(root), "--recipe", str(recipe), "--source", str(src),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert str(theirs) in err and "not made by imac_data" in err
+    assert [p.name for p in theirs.iterdir()] == ["notes.txt"] and (root / "meta" / "info.json").read_text() == info
+    assert not (root.parent / f".{root.name}.{'imac-old' if suffix == 'imac-staging' else 'imac-staging'}").exists()

@@ -315,6 +315,28 @@ def test_overwrite_replaces_only_a_dataset(sim_src, tmp_path, capsys, kind):
     assert tree_digest(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == listing
 
 
+@pytest.mark.parametrize("suffix", ["staging", "old"])
+def test_a_users_directory_where_the_build_stages_is_never_deleted(sim_src, tmp_path, capsys, suffix):
+    """A directory of the user's named like the build's staging or kept-output path (``.out.staging``,
+    ``.out.old``): refused before any work, with the path named; a leftover of ours there (marker,
+    or a dataset) is cleared and the build goes on."""
+    root, recipe = tmp_path / "out", recipe_file(tmp_path)
+    theirs = tmp_path / f".out.{suffix}"
+    theirs.mkdir()
+    (theirs / "notes.txt").write_text("mine")
+    before = tree_digest(tmp_path)
+    assert build_main(recipe, sim_src, root, "--overwrite") == 2
+    err = capsys.readouterr().err
+    assert str(theirs) in err and "not made by imac_data" in err
+    assert tree_digest(tmp_path) == before and not root.exists()
+
+    from imac_data.safety import SIBLING_MARKER
+
+    (theirs / SIBLING_MARKER).write_text("")  # now it is a leftover of ours
+    assert build_main(recipe, sim_src, root, "--overwrite") == 0
+    assert not theirs.exists() and (root / "meta" / "info.json").is_file()
+
+
 # --------------------------------------------------------------------------- environment: exit 3, resumable
 
 

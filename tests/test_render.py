@@ -435,6 +435,20 @@ def test_qa_overlay_cli(qa_inputs, capsys):
     assert not (out / "cam_high.mp4").exists()
 
 
+def test_qa_overlay_overwrite_replaces_only_an_overlay(qa_inputs, capsys):
+    """--overwrite into a directory of the user's (no summary.json): refused, nothing deleted."""
+    from imac_data import qa
+
+    out = qa_inputs / "my_notes"
+    out.mkdir(exist_ok=True)
+    (out / "notes.txt").write_text("mine")
+    rc = qa.main(["overlay", str(qa_inputs / "episode_0.hdf5"), "--calibration", str(qa_inputs / "calib.json"),
+                  "--out", str(out), "--overwrite"])
+    assert rc == 2
+    assert "without summary.json" in capsys.readouterr().err
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+
+
 def test_qa_overlay_bad_input_writes_nothing(qa_inputs, capsys):
     from imac_data import qa
     from imac_data.cameras import load_calibration

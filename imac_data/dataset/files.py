@@ -101,26 +101,26 @@ def staged_dataset(root: str | Path) -> Iterator[Path]:
     tree is deleted.
     """
     from imac_data.dataset.info import read_info
-    from imac_data.safety import output_sibling
+    from imac_data.safety import SIBLING_MARKER, make_sibling_dir, output_sibling, remove_sibling
 
     root = Path(os.path.abspath(root))
     read_info(root)
     stage, old = output_sibling(root, "imac-staging"), output_sibling(root, "imac-old")
     for leftover in (stage, old):
-        if leftover.exists():
-            shutil.rmtree(leftover)
+        remove_sibling(leftover)
+    make_sibling_dir(stage)
     try:
         for entry in root.iterdir():
             dst = stage / entry.name
             if entry.is_dir():
                 shutil.copytree(entry, dst, copy_function=_link_or_copy if entry.name == "videos" else shutil.copy2)
             else:
-                stage.mkdir(parents=True, exist_ok=True)
                 shutil.copy2(entry, dst)
         yield stage
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
+    (stage / SIBLING_MARKER).unlink()  # the copy becomes the dataset
     os.rename(root, old)
     try:
         os.rename(stage, root)
