@@ -186,9 +186,10 @@ def build_shard(job: ShardJob) -> Path:
 
 
 def _init_worker(threads: int, parent_pid: int) -> None:
-    from imac_data.workers import exit_with_parent, pin_threads
+    from imac_data.workers import exit_with_parent, pin_threads, quiet_worker_interrupts
 
     exit_with_parent(parent_pid)  # first: the imports below take seconds
+    quiet_worker_interrupts()
     pin_threads(threads)
     quiet_libraries()
 
@@ -241,7 +242,7 @@ def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> No
     import threading
     from concurrent.futures import ProcessPoolExecutor
 
-    from imac_data.workers import thread_env
+    from imac_data.workers import block_interrupts_in_this_thread, run_as_job, thread_env
 
     jobs: queue.Queue = queue.Queue()
     for job in todo:
@@ -249,7 +250,9 @@ def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> No
     errors: list[BaseException] = []
     lock = threading.Lock()
 
-    def worker(run) -> None:
+    def worker(run, *, remote: bool = True) -> None:
+        if remote:  # Ctrl-C goes to this process's main thread; the workers these threads start hold it
+            block_interrupts_in_this_thread()
         while not errors:
             try:
                 job = jobs.get_nowait()
@@ -268,11 +271,11 @@ def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> No
     try:
         with ProcessPoolExecutor(max_workers=workers - 1, mp_context=mp.get_context("spawn"), initializer=_init_worker,
                                  initargs=(threads, os.getpid())) as pool:
-            remote = [threading.Thread(target=worker, args=(lambda j: pool.submit(build_shard, j).result(),))
+            remote = [threading.Thread(target=worker, args=(lambda j: pool.submit(run_as_job, build_shard, j).result(),))
                       for _ in range(workers - 1)]
             for t in remote:
                 t.start()
-            worker(build_shard)  # this process builds episodes too
+            worker(build_shard, remote=False)  # this process builds episodes too
             for t in remote:
                 t.join()
     finally:
@@ -281,8 +284,8 @@ def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> No
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
-    if errors:
-        raise errors[0]
+    if errors:  # a Ctrl-C first: the workers it ended show up as a broken pool
+        raise next((e for e in errors if isinstance(e, KeyboardInterrupt)), errors[0])
 
 
 def _ray_shard(job: ShardJob) -> str:

@@ -114,6 +114,47 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+# --- Ctrl-C in pool workers ---------------------------------------------------------------------
+# A terminal's Ctrl-C reaches every process of the group. The build process reports it in one
+# line; its pool workers must stay quiet. A spawned worker spends seconds importing before any
+# code of ours runs in it, so the threads that start workers block SIGINT (the mask is
+# inherited: the new process starts with SIGINT held), and quiet_worker_interrupts, run by the
+# pool's initializer, installs the worker's handler and releases what was held.
+_in_job = False
+
+
+def block_interrupts_in_this_thread() -> None:
+    """Hold SIGINT in the calling (non-main) thread, and so in the processes it starts."""
+    import signal
+
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
+
+def _worker_interrupt(signum, frame) -> None:
+    if _in_job:  # the job cleans up as it unwinds; the pool hands the exception to the build
+        raise KeyboardInterrupt
+    os._exit(130)  # idle: nothing to clean up, and no traceback from the pool's loop
+
+
+def quiet_worker_interrupts() -> None:
+    """In a pool worker: Ctrl-C interrupts a running job (see :func:`run_as_job`) and ends an
+    idle worker without a traceback."""
+    import signal
+
+    signal.signal(signal.SIGINT, _worker_interrupt)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # a Ctrl-C held during start-up arrives now
+
+
+def run_as_job(fn, *args):
+    """``fn(*args)`` in a pool worker, marked as a job that Ctrl-C interrupts (and cleans up)."""
+    global _in_job
+    _in_job = True
+    try:
+        return fn(*args)
+    finally:
+        _in_job = False
+
+
 def exit_with_parent(parent_pid: int, interval_s: float = 0.2) -> None:
     """Kill this process as soon as its parent ``parent_pid`` is gone (the orphan is
     re-parented, so ``getppid`` changes), from a daemon thread that polls every ``interval_s``.

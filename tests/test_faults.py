@@ -579,3 +579,50 @@ def test_pool_workers_die_with_a_killed_build(sim_src, tmp_path):
     assert not any(_running(c) for c in children), "a pool worker outlived the build"
     time.sleep(1.0)
     assert list(shards.glob("episode_*")) == done, "an orphan finished a shard after the build was killed"
+
+
+def _pool_workers(pid: int) -> list[int]:
+    """The spawned pool workers among ``pid``'s children (not multiprocessing's resource tracker)."""
+    out = []
+    for child in _alive_children(pid):
+        try:
+            if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes():
+                out.append(child)
+        except OSError:
+            pass
+    return out
+
+
+@pytest.mark.parametrize("when", ["worker_starting", "worker_writing"])
+def test_ctrl_c_of_a_pool_build_is_one_line(sim_src, tmp_path, when):
+    """A terminal's Ctrl-C (SIGINT to the whole process group) while a pool worker imports its
+    libraries or writes its episode: exit 130 with the one 'interrupted' line and no worker
+    traceback, no process left, and the rerun completes."""
+    import signal
+
+    recipe, root = recipe_file(tmp_path), tmp_path / "out"
+    shards = tmp_path / ".out.staging" / "shards"
+    cmd = [sys.executable, "-m", "imac_data.build", "--repo", "local/x", "--recipe", str(recipe),
+           "--source", str(sim_src), "--root", str(root), "--no-progress", "--workers", "2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.time() + 600
+    while time.time() < deadline and proc.poll() is None:
+        if when == "worker_starting" and _pool_workers(proc.pid):
+            time.sleep(0.5)  # into its imports (seconds long)
+            break
+        writing, done = list(shards.glob(".episode_*.tmp")), list(shards.glob("episode_*"))
+        if when == "worker_writing" and writing and len(writing) + len(done) == 2:
+            break
+        time.sleep(0.02)
+    workers = _pool_workers(proc.pid)
+    assert proc.poll() is None and workers, "the build ended before the moment to interrupt it"
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines() == ["interrupted (a build keeps its finished episodes: rerun the same command "
+                                        "to resume)"], err
+    deadline = time.time() + 10
+    while time.time() < deadline and any(_running(w) for w in workers):
+        time.sleep(0.1)
+    assert not any(_running(w) for w in workers), "a pool worker outlived the interrupted build"
+    assert subprocess.run(cmd, capture_output=True).returncode == 0 and (root / "meta" / "info.json").is_file()
