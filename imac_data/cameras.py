@@ -294,6 +294,10 @@ def camera_from_dict(name: str, entry, where: str = "camera") -> Camera:
     missing = [k for k in ("K", "width", "height") if k not in entry]
     if missing:
         raise InputError(f"{where}: missing key(s) {missing}")
+    for key in ("width", "height"):  # int() would truncate 160.5 or parse "160"; a size is a whole number
+        v = entry[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not float(v).is_integer():
+            raise InputError(f"{where}.{key}: expected a whole number of pixels, got {v!r}")
     try:
         return Camera(name=name, K=entry["K"], width=int(entry["width"]), height=int(entry["height"]),
                       T_world_cam=entry.get("T_world_cam"), link=entry.get("link"), T_link_cam=entry.get("T_link_cam"))

@@ -195,6 +195,8 @@ BAD_INPUT = {  # case -> (damage the source directory, what the message must nam
                      ["cam_left_wrist", "vx300s_left/no_such_link"]),
     "calibration_other_aspect": (lambda s: edit_calibration(s, "cam_high", _other_aspect),
                                  ["cam_high", "120x160", "aspect ratio"]),
+    "calibration_fractional_width": (lambda s: edit_calibration(s, "cam_high", lambda c: c.update(width=160.5)),
+                                     ["calibration.json", "cam_high", "width", "160.5", "whole number"]),
     # recorded depth (item 3) and the up-front checks (item 4): the file and the key
     "depth_other_aspect": (lambda s: edit_datasets(s / "episode_1.hdf5", lambda d: d[:, :, :120], [DEPTH_HIGH]),
                            ["episode_1.hdf5", DEPTH_HIGH, "aspect ratio"]),
