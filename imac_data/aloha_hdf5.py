@@ -247,7 +247,8 @@ def _decode_jpeg_stack(data: np.ndarray, lengths: np.ndarray, path: Path, key: s
 def probe_episode(path: str | Path) -> dict:
     """Cheap structural check of an episode without loading images: returns
     ``{"num_frames", "dof", "cameras", "image_hw", "compressed", "has_depth", "depth_cameras",
-    "has_qvel", "fps", "info"}`` or raises InputError."""
+    "has_qvel", "fps", "info", "qpos_range"}`` (``qpos_range``: per-entry min and max) or raises
+    InputError."""
     path = Path(path)
     try:
         f = h5py.File(path, "r")
@@ -308,7 +309,8 @@ def _probe(f: h5py.File, path: Path) -> dict:
             raise InputError(f"{path}: 'observations/images_depth/{cam}' has no matching RGB camera in {cams}")
         _check_depth(f, path, cam, T, image_hw[cam])
     return {"num_frames": T, "dof": D, "cameras": cams, "compressed": compressed, "has_depth": bool(depth_cameras),
-            "depth_cameras": depth_cameras, "has_qvel": has_qvel, "fps": fps, "info": info, "image_hw": image_hw}
+            "depth_cameras": depth_cameras, "has_qvel": has_qvel, "fps": fps, "info": info, "image_hw": image_hw,
+            "qpos_range": (qpos.min(axis=0), qpos.max(axis=0))}
 
 
 DEPTH_DTYPES = "uint16 or float millimetres"

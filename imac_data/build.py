@@ -25,6 +25,7 @@ from pathlib import Path
 
 from imac_data.cli import cache_home, default_root, quiet_libraries, run_command, silence_progress_bars
 from imac_data.errors import InputError
+from imac_data.joint_ranges import joint_range_warning
 from imac_data.recipes import Recipe, find_recipe, load_recipe, missing_inputs
 from imac_data.safety import check_output, make_sibling_dir, refuse_overlap, remove_sibling, swap_into_place
 
@@ -343,6 +344,10 @@ def build(req: BuildRequest, *, executor: str = "local", workers: int | None = N
     refuse_overlap(req.root, {"source episodes": paths[0].parent, "calibration": calibration_path})
     rig = Rig.from_recipe(recipe, calibration_path, robot=robot)
     probe = check_episodes(paths, rig.cameras, robot)
+    warning = joint_range_warning(robot, *probe["qpos_range"], source=f"the episodes in {paths[0].parent}",
+                                  recipe=recipe.file or "the recipe")
+    if warning:
+        print(warning, file=sys.stderr)
     from imac_data.depth_choice import check_depth_inputs
 
     check_depth_inputs(recipe.depth, recipe.file, len(rig.names))

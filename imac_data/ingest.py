@@ -73,11 +73,12 @@ def staging_dir(root: Path) -> Path:
 def check_episodes(paths: Sequence[Path], calibration: dict[str, Camera], robot: RobotModel) -> dict:
     """Validate every episode against each other, the calibration and the robot, without
     loading images (a compressed episode's first frames are decoded for their size).
-    Returns the common probe (cameras, dof, image sizes) with ``total_frames``."""
+    Returns the common probe (cameras, dof, image sizes) with ``total_frames`` and, over all
+    episodes, ``qpos_range`` (per-entry min and max of the joint vector)."""
     if not paths:
         raise InputError("no episodes to ingest")
     first = probe_episode(paths[0])
-    total = first["num_frames"]
+    total, (lo, hi) = first["num_frames"], first["qpos_range"]
     for path in paths[1:]:
         probe = probe_episode(path)
         total += probe["num_frames"]
@@ -102,6 +103,7 @@ def check_episodes(paths: Sequence[Path], calibration: dict[str, Camera], robot:
         if probe["fps"] != first["fps"]:
             raise InputError(f"{path}: attribute 'fps' is {probe['fps']}, {paths[0]} has {first['fps']}; "
                              "one dataset has one frame rate")
+        lo, hi = np.minimum(lo, probe["qpos_range"][0]), np.maximum(hi, probe["qpos_range"][1])
     cams = first["cameras"]
     extra = sorted(set(calibration) - set(cams))
     if extra:
@@ -120,7 +122,7 @@ def check_episodes(paths: Sequence[Path], calibration: dict[str, Camera], robot:
         if cam.link is not None and cam.link not in robot.link_names:
             raise InputError(f"camera {cam.name!r} is mounted on link {cam.link!r}, which the robot does not have")
         cam.for_images(*first["image_hw"][cam.name], where=f"the images of {paths[0]}")
-    return {**first, "total_frames": total}
+    return {**first, "total_frames": total, "qpos_range": (lo, hi)}
 
 
 def camera_poses(calibration: dict[str, Camera], robot: RobotModel, qpos: np.ndarray) -> dict[str, np.ndarray]:

@@ -39,6 +39,7 @@ POSE_NAMES = [f"m{r}{c}" for r in range(4) for c in range(4)]
 def build_from_lerobot(req, robot):
     """Build ``req`` (:class:`imac_data.build.BuildRequest`, source type lerobot) with the
     recipe's ``robot`` already loaded; returns the loaded ``LeRobotDataset``."""
+    import numpy as np
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from imac_data.dataset.columns import add_episode_columns, add_frame_column
@@ -47,6 +48,7 @@ def build_from_lerobot(req, robot):
     from imac_data.dataset_card import write_card
     from imac_data.depth_choice import check_depth_inputs, make_depth_source
     from imac_data.ingest import EPISODE_COLUMNS, camera_poses, staging_dir
+    from imac_data.joint_ranges import joint_range_warning
     from imac_data.lerobot_reader import DepthFeature, LeRobotEpisodeReader
     from imac_data.lerobot_source import (SourceDataset, camera_map, check_joint_layout, copy_source,
                                           episode_metadata, episode_states, locate_source)
@@ -88,6 +90,11 @@ def build_from_lerobot(req, robot):
                                      src_cfg.episode_defaults)
         states = episode_states(src.root, src.episodes, src_cfg.state_key)
         actions = episode_states(src.root, src.episodes, src_cfg.action_key)
+        recorded = np.concatenate(states) if states else np.zeros((0, rig.robot.dof))
+        warning = joint_range_warning(rig.robot, recorded.min(axis=0), recorded.max(axis=0),
+                                      source=f"{src.root} ({src_cfg.state_key})", recipe=where)
+        if warning:
+            print(warning, file=sys.stderr)
         by_cam = {cam: key for key, cam in cameras.items()}
         rig = rig.with_image_sizes({cam: src.image_hw(key) for cam, key in by_cam.items()})
         depth_source = make_depth_source(recipe.depth, recipe.file, len(rig.names))

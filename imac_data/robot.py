@@ -309,6 +309,11 @@ class RobotModel:
                                  f"the floating root joint of {path}, held fixed at its origin; it cannot be "
                                  f"driven by the joint vector")
         config.validate(urdf)
+        # URDF limits of the joints the dataset vector drives (imac_data.joint_ranges): name -> (type, lower, upper)
+        self.joint_limits: dict[str, tuple[str, float, float]] = {
+            j.name: (j.type, float(j.limit.lower), float(j.limit.upper)) for j in urdf.robot.joints
+            if j.type in ("revolute", "prismatic") and j.limit is not None and j.limit.lower is not None
+            and j.limit.upper is not None and j.limit.lower < j.limit.upper}
         self.visual_meshes = load_visual_meshes(urdf, path, dict(config.package_dirs))
 
         # pytorch-kinematics ignores <mimic>: the chain treats followers as free

@@ -317,6 +317,28 @@ def test_overwrite_replaces_only_a_dataset(sim_src, tmp_path, capsys, kind):
     assert tree_digest(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == listing
 
 
+def test_joints_recorded_in_degrees_are_named_before_the_build(sim_src, tmp_path, capsys):
+    """The arm joints of one episode recorded in degrees (the grippers left as they are): the
+    build warns up front, naming the index, the joint and the scale that fixes it, and goes on.
+    The episodes as recorded (radians) give no warning."""
+    recipe = recipe_file(tmp_path)
+    assert build_main(recipe, sim_src, tmp_path / "ok") == 0
+    assert "URDF limits" not in capsys.readouterr().err
+    src = copy_source(sim_src, tmp_path / "episodes")
+    arms = [i for i in range(14) if i not in (6, 13)]
+
+    def to_degrees(q):
+        q = q.copy()
+        q[:, arms] = np.degrees(q[:, arms])
+        return q
+    edit_datasets(src / "episode_1.hdf5", to_degrees, ["observations/qpos"])
+    assert build_main(recipe, src, tmp_path / "out") == 0
+    err = capsys.readouterr().err
+    assert err.startswith("warning: the episodes in") and "outside the URDF limits of robot" in err
+    assert "joint vector index 1 ('vx300s_left/shoulder')" in err and "scale: 0.01745329" in err
+    assert "'vx300s_left/left_finger'" not in err and str(recipe) in err
+
+
 @pytest.mark.parametrize("suffix", ["staging", "old"])
 def test_a_users_directory_where_the_build_stages_is_never_deleted(sim_src, tmp_path, capsys, suffix):
     """A directory of the user's named like the build's staging or kept-output path (``.out.staging``,

@@ -30,8 +30,9 @@ KEYS = {"cam_high": "observation.images.top", "cam_left_wrist": "observation.ima
         "cam_right_wrist": "observation.images.right_wrist"}
 
 
-def write_lerobot(sim, root, cameras, *, depth_key=None):
-    """A LeRobot v3.0 dataset of the recorded episodes, by LeRobot's own writer."""
+def write_lerobot(sim, root, cameras, *, depth_key=None, state_unit=1.0):
+    """A LeRobot v3.0 dataset of the recorded episodes, by LeRobot's own writer (``state_unit``:
+    the observation.state of the arm joints is written as ``qpos * state_unit``)."""
     features = {"observation.state": {"dtype": "float32", "shape": (14,), "names": list(aloha.STATE_NAMES)},
                 "action": {"dtype": "float32", "shape": (14,), "names": list(aloha.STATE_NAMES)}}
     for cam in cameras:
@@ -42,7 +43,8 @@ def write_lerobot(sim, root, cameras, *, depth_key=None):
     for path in sorted(sim.glob("episode_*.hdf5")):
         ep = read_episode(path)
         for t in range(ep.num_frames):
-            frame = {"observation.state": ep.qpos[t].astype(np.float32), "action": ep.action[t].astype(np.float32),
+            state = ep.qpos[t] * np.where(np.isin(np.arange(14), (6, 13)), 1.0, state_unit)
+            frame = {"observation.state": state.astype(np.float32), "action": ep.action[t].astype(np.float32),
                      "task": "transfer the cube"}
             for cam in cameras:
                 frame[KEYS[cam]] = ep.images[cam][t]
@@ -180,6 +182,21 @@ def test_one_camera_source_recorded_depth_or_none(sim, tmp_path, depth):
     valid = (truth > 0.1) & (truth < 1.2)
     assert np.median(np.abs(metres[valid] - truth[valid])) < 3e-3
     assert "control.contact_s2g.cam_high" in ds.meta.video_keys
+
+
+def test_a_state_recorded_in_degrees_is_named(sim, tmp_path, capsys):
+    """The arm joints of observation.state in degrees, the recipe's joint map in radians: the
+    build warns before it starts, naming the dataset, key, joint and the scale that fixes it."""
+    source = tmp_path / "degrees"
+    write_lerobot(sim / "sim", source, ["cam_high"], state_unit=180 / np.pi)
+    calibration = tmp_path / "calibration.json"
+    save_calibration(calibration, {"cam_high": load_calibration(sim / "sim" / "calibration.json")["cam_high"]})
+    recipe = recipe_file(tmp_path, source, calibration, depth={"source": "none"},
+                         source={"cameras": {"observation.images.top": "cam_high"}})
+    build(BuildRequest("local/deg", recipe, tmp_path / "out", progress=False))
+    err = capsys.readouterr().err
+    assert f"warning: {source} (observation.state): recorded joint values lie outside the URDF limits" in err
+    assert "index 8 ('vx300s_right/shoulder')" in err and "scale: 0.01745329" in err and "left_finger" not in err
 
 
 # ------------------------------------------------------------------------ bad input

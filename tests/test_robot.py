@@ -304,6 +304,38 @@ def test_mesh_without_faces_and_robot_without_visuals_are_named(tmp_path):
         make_renderer(robot)
 
 
+def test_joint_ranges_outside_the_urdf_limits_are_named(tmp_path):
+    """Analytic limits: a revolute joint in [-1, 2] rad, a prismatic one in [0, 0.04] m, a
+    continuous one (never checked). In range, within the slack, or mapped by the joint map:
+    nothing; in degrees or a wrong gripper scale: the index, joint, both ranges and the unit."""
+    from imac_data.joint_ranges import joint_range_problems
+    from imac_data.robot import JointEntry
+
+    link = '<link name="{0}"><visual><geometry><box size="0.01 0.01 0.01"/></geometry></visual></link>'
+    joint = ('<joint name="{0}" type="{1}"><parent link="{2}"/><child link="{3}"/><axis xyz="0 0 1"/>{4}</joint>')
+    (tmp_path / "r.urdf").write_text(
+        '<robot name="r">' + "".join(link.format(n) for n in "abcd")
+        + joint.format("rev", "revolute", "a", "b", '<limit lower="-1" upper="2" effort="1" velocity="1"/>')
+        + joint.format("slide", "prismatic", "b", "c", '<limit lower="0" upper="0.04" effort="1" velocity="1"/>')
+        + joint.format("spin", "continuous", "c", "d", "") + "</robot>")
+    robot = RobotModel(RobotConfig("r", tmp_path / "r.urdf", ("rev", "slide", "spin")))
+    assert robot.joint_limits == {"rev": ("revolute", -1.0, 2.0), "slide": ("prismatic", 0.0, 0.04)}
+    assert joint_range_problems(robot, [-1.0, 0.0, -100.0], [2.0, 0.04, 100.0]) == []  # continuous: any value
+    assert joint_range_problems(robot, [-1.29, -0.0039], [2.29, 0.0439]) == []  # within 10 % of the span
+    (rev,) = joint_range_problems(robot, [-1.31, 0.0, 0.0], [1.0, 0.0, 0.0])
+    assert rev == "joint vector index 0 ('rev'): recorded -1.31..1, outside the URDF limits -1..2 rad"
+    (rev,) = joint_range_problems(robot, [np.degrees(-0.5), 0.0, 0.0], [np.degrees(1.5), 0.04, 0.0])
+    assert "recorded -28.648..85.944" in rev and rev.endswith("if it records degrees, give it scale: 0.01745329")
+    # a gripper recorded 0..1, mapped by the joint map: fine; without the map: 0..1 m, out of range
+    gripper = RobotModel(RobotConfig("r", tmp_path / "r.urdf", ("rev", JointEntry(1, "slide", scale=0.04), "spin")))
+    assert joint_range_problems(gripper, [0.0, 0.0, 0.0], [1.0, 1.0, 0.0]) == []
+    (slide,) = joint_range_problems(robot, [0.0, 0.0, 0.0], [1.0, 1.0, 0.0])
+    assert "index 1 ('slide'): recorded 0..1, outside the URDF limits 0..0.04 m" in slide and "degrees" not in slide
+    flipped = RobotModel(RobotConfig("r", tmp_path / "r.urdf", ("rev", JointEntry(1, "slide", scale=-0.04), "spin")))
+    (slide,) = joint_range_problems(flipped, [0.0, 0.0, 0.0], [1.0, 1.0, 0.0])  # a negative scale flips the range
+    assert "mapped to -0.04..0 m" in slide
+
+
 # ----------------------------------------------------------------------------- export cache
 
 
