@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-LABEL = (255, 255, 255)
+from imac_model.sample import label
+
 
 
 def _git(*args: str) -> str:
@@ -61,15 +62,6 @@ def _fmt(x, digits=4):
 # --------------------------------------------------------------------------- figures
 
 
-def _label(img: np.ndarray, text: str) -> np.ndarray:
-    import cv2
-
-    img = np.ascontiguousarray(img)
-    cv2.putText(img, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(img, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.38, LABEL, 1, cv2.LINE_AA)
-    return img
-
-
 def _hwc(x) -> np.ndarray:
     return x.permute(1, 2, 0).numpy() if hasattr(x, "permute") else np.asarray(x)
 
@@ -86,10 +78,11 @@ def rollout_figure(samples: dict, H: int, path: Path, scale: int = 2) -> None:
     first = samples[names[0]]
     n = first["generated"].shape[0] // H
     rows = []
-    for label, key, src in [("recorded", "recorded", first)] + [(s, "generated", samples[s]) for s in names]:
+    for row, key, src in [("recorded", "recorded", first)] + [(s, "generated", samples[s]) for s in names]:
         cells = [_hwc(src[key][(c + 1) * H - 1]) for c in range(n)]
         cells = [np.kron(c, np.ones((scale, scale, 1), np.uint8)) for c in cells]
-        cells = [_label(c, f"{label}, chunk {i + 1}" if i == 0 else f"chunk {i + 1}") for i, c in enumerate(cells)]
+        cells = [label(c, f"{row}, chunk {i + 1}" if i == 0 else f"chunk {i + 1}", scale=0.38)
+                 for i, c in enumerate(cells)]
         rows.append(np.concatenate(cells, axis=1))
     _save(np.concatenate(rows, axis=0), path)
 
@@ -107,7 +100,7 @@ def sensitivity_figure(samples: dict, path: Path, scale: int = 2) -> None:
         cells.append(diff)
         cells = [np.kron(c, np.ones((scale, scale, 1), np.uint8)) for c in cells]
         titles = ["motion A (recorded)", "motion B (offset)", f"{name}: A", f"{name}: B", "|A - B| x4"]
-        rows.append(np.concatenate([_label(c, t) for c, t in zip(cells, titles)], axis=1))
+        rows.append(np.concatenate([label(c, t, scale=0.38) for c, t in zip(cells, titles)], axis=1))
     if rows:
         _save(np.concatenate(rows, axis=0), path)
 

@@ -60,3 +60,19 @@ def test_rescaled_K_follows_the_resized_image():
     assert torch.allclose(centroid, uv_small, atol=0.03), (centroid, uv_small)
     naive = K[:2, 2] * np.array([w / W, h / H])  # scaling the principal point alone is half a pixel off
     assert abs(naive[0] - K_small[0, 2]) > 0.4
+
+
+@pytest.mark.parametrize("width", [64, 128, 400])
+def test_sample_labels_fit_their_panel(width):
+    """A label is drawn whole inside its panel however narrow (a one-camera mosaic): the font
+    shrinks first, and only below a legible size is the text cut (ending in '~')."""
+    from imac_model.sample import label
+
+    blank = np.full((96, width, 3), 128, np.uint8)
+    for text in ("generated t+1", "a much longer label than any panel of this width can hold"):
+        drawn = np.any(label(blank.copy(), text) != 128, axis=(0, 2))
+        cols = np.flatnonzero(drawn)
+        assert len(cols) and cols.max() < width - 2, (text, width, cols.max())  # not clipped by the edge
+    # shrunk rather than cut short: on a 64-pixel panel the short label still spans most of the width
+    narrow = np.flatnonzero(np.any(label(np.full((96, 64, 3), 128, np.uint8), "generated t+1") != 128, axis=(0, 2)))
+    assert narrow.max() - narrow.min() > 40
