@@ -86,6 +86,7 @@ def build_from_lerobot(req, robot):
             depth_feature.check(src, rig.names, where)
         depth_videos = [depth_feature.key(c) for c in rig.names] if depth_feature and depth_feature.codec else []
         src.check_files([*cameras, *depth_videos])  # before any work: LeRobot would try the hub for a missing file
+        src.check_videos([*cameras, *depth_videos], progress=req.progress)
         meta_rows = episode_metadata(recipe.resolve_path(src_cfg.metadata), len(src.episodes),
                                      src_cfg.episode_defaults)
         states = episode_states(src.root, src.episodes, src_cfg.state_key)

@@ -115,6 +115,40 @@ class SourceDataset:
                 raise InputError(f"dataset {self.root}: episode {row['episode_index']} needs {missing[0]}, which is "
                                  "missing")
 
+    def check_videos(self, video_keys: list[str], *, progress: bool = False) -> None:
+        """Every frame the episodes use of ``video_keys`` decodes, checked before any work: each
+        video file is decoded once (threads over files; measured 1.3 / 4.9 CPU ms per AV1 frame
+        at 240x320 / 480x640, 2-3 % of a build). A damaged or short file is named with the
+        episode that needs it: the build would copy it as it is, and LeRobot fails only when
+        that frame is loaded."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        from tqdm.auto import tqdm
+
+        from imac_data.dataset.videos import count_decodable_frames
+        from imac_data.workers import cpu_cores
+
+        spans: dict[Path, list[tuple[int, int, int, str]]] = {}  # file -> (first, end, episode, key) per episode
+        for row in self.episodes:
+            for key in video_keys:
+                try:
+                    first, end = (round(row[f"videos/{key}/{c}_timestamp"] * self.fps) for c in ("from", "to"))
+                except KeyError as e:
+                    raise InputError(f"dataset {self.root}: meta/episodes has no column {e} for episode "
+                                     f"{row['episode_index']}") from None
+                spans.setdefault(self.video_file(key, row), []).append((first, end, row["episode_index"], key))
+        files = sorted(spans)
+        with ThreadPoolExecutor(min(cpu_cores(), len(files) or 1)) as pool:
+            counted = list(tqdm(pool.map(count_decodable_frames, files), total=len(files), unit="file",
+                                desc="check source videos", disable=not progress))
+        for path, (got, error) in zip(files, counted):
+            short = [s for s in sorted(spans[path]) if s[1] > got]
+            if short:
+                first, end, episode, key = short[0]
+                why = f"does not decode after frame {got} ({error})" if error else f"holds {got} frames"
+                raise InputError(f"dataset {self.root}: {path} ({key}) {why}, but episode {episode} uses its frames "
+                                 f"{first}..{end - 1}: the video is damaged or cut short")
+
     @property
     def fps(self) -> int:
         return int(self.info["fps"])

@@ -9,6 +9,8 @@ DA3 weights can be downloaded here: the ``da3`` build loads a randomly initialis
 
 import hashlib
 import json
+import os
+import re
 import shutil
 
 import huggingface_hub
@@ -225,6 +227,22 @@ def test_joint_layout_wider_than_the_state(source, sim, tmp_path):
         check_joint_layout(SourceDataset.open(source), "observation.state", "action", "joint", 16, "r.yaml")
     with pytest.raises(InputError, match=r"no feature 'observation.qpos' \(source.state_key\)"):
         check_joint_layout(SourceDataset.open(source), "observation.qpos", "action", "joint", 14, "r.yaml")
+
+
+def test_damaged_source_video_is_named_before_any_work(source, sim, tmp_path):
+    """A camera video cut at 60 % of its bytes (the second episode's frames are gone): one error
+    naming the file, the frame where decoding stops and the episode that needs the rest, before
+    any work; without the check the build copied the video and only a later load failed."""
+    copy = tmp_path / "src"
+    shutil.copytree(source, copy)
+    video = sorted((copy / "videos" / KEYS["cam_left_wrist"]).rglob("*.mp4"))[0]
+    os.truncate(video, int(video.stat().st_size * 0.6))
+    before = tree_digest(copy)
+    recipe = recipe_file(tmp_path, copy, sim / "sim" / "calibration.json", depth={"source": "none"})
+    expect_error(recipe, tmp_path, rf"{re.escape(str(video))} \({KEYS['cam_left_wrist']}\) (does not decode after frame "
+                                   r"\d+|holds \d+ frames).*but episode \d uses its frames \d+\.\.\d+: the video is "
+                                   "damaged or cut short")
+    assert tree_digest(copy) == before
 
 
 def test_missing_source_files_are_named_before_any_work(source, sim, tmp_path):

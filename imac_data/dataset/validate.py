@@ -196,7 +196,7 @@ def _video_files(ctx: _Context, key: str) -> dict[Path, int]:
 
 
 def _count_video_frames(ctx: _Context) -> list[str]:
-    import av
+    from imac_data.dataset.videos import count_decodable_frames
 
     problems = []
     for key in ctx.video_keys():
@@ -204,11 +204,9 @@ def _count_video_frames(ctx: _Context) -> list[str]:
             if not path.is_file():
                 problems.append(f"{key}: {path.relative_to(ctx.root)} is missing")
                 continue
-            try:
-                with av.open(str(path)) as container:
-                    got = sum(1 for _ in container.decode(video=0))
-            except Exception as e:  # noqa: BLE001 - any decoder error is the finding
-                problems.append(f"{key}: {path.relative_to(ctx.root)} does not decode ({type(e).__name__}: {e})")
+            got, error = count_decodable_frames(path)
+            if error:
+                problems.append(f"{key}: {path.relative_to(ctx.root)} does not decode after frame {got} ({error})")
                 continue
             if got != want:
                 problems.append(f"{key}: {path.relative_to(ctx.root)} holds {got} frames, its episodes {want}")
