@@ -221,8 +221,6 @@ def ingest_episodes(paths: Sequence[str | Path], *, rig, repo_id: str, root: str
 
     paths = [Path(p) for p in paths]
     root = Path(root)
-    if root.exists() and not overwrite:
-        raise InputError(f"output {root} already exists (pass overwrite=True / --overwrite to replace it)")
     check_output(root, overwrite=overwrite, what="output")  # replaces only a dataset; leftovers only ours
     probe = check_episodes(paths, rig.cameras, rig.robot)
     if options.state_names is not None and len(options.state_names) != probe["dof"]:

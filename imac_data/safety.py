@@ -74,12 +74,13 @@ def check_sibling(path: Path) -> None:
                      "Move it away or choose another output")
 
 
-def swap_into_place(new: Path, root: Path) -> None:
-    """Rename the complete dataset ``new`` to ``root``. An existing ``root`` (``--overwrite``)
-    is kept as ``.<name>.old`` until the rename succeeds, put back if it fails, then deleted."""
+def swap_into_place(new: Path, root: Path, *, old_suffix: str = "old") -> None:
+    """Rename the complete dataset ``new`` to ``root``. An existing ``root`` (``--overwrite``,
+    or the dataset an in-place edit replaces) is kept as ``.<name>.<old_suffix>`` until the
+    rename succeeds, put back if it fails, then deleted."""
     import shutil
 
-    old = output_sibling(root, "old")
+    old = output_sibling(root, old_suffix)
     remove_sibling(old)
     if root.exists():
         root.rename(old)

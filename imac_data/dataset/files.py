@@ -97,11 +97,11 @@ def staged_dataset(root: str | Path) -> Iterator[Path]:
     ``videos/`` are hard links to the originals (no copy of the big files), so code
     working in the copy must never modify an existing video file in place (this
     module only creates new ones); everything else is copied. The swap is two
-    renames (``root`` -> ``.<name>.imac-old``, copy -> ``root``), then the old
-    tree is deleted.
+    renames (``root`` -> ``.<name>.imac-old``, copy -> ``root``; :func:`imac_data.safety.swap_into_place`),
+    then the old tree is deleted.
     """
     from imac_data.dataset.info import read_info
-    from imac_data.safety import SIBLING_MARKER, make_sibling_dir, output_sibling, remove_sibling
+    from imac_data.safety import SIBLING_MARKER, make_sibling_dir, output_sibling, remove_sibling, swap_into_place
 
     root = Path(os.path.abspath(root))
     read_info(root)
@@ -121,11 +121,8 @@ def staged_dataset(root: str | Path) -> Iterator[Path]:
         shutil.rmtree(stage, ignore_errors=True)
         raise
     (stage / SIBLING_MARKER).unlink()  # the copy becomes the dataset
-    os.rename(root, old)
     try:
-        os.rename(stage, root)
+        swap_into_place(stage, root, old_suffix="imac-old")
     except BaseException:
-        os.rename(old, root)
         shutil.rmtree(stage, ignore_errors=True)
         raise
-    shutil.rmtree(old, ignore_errors=True)
