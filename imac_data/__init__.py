@@ -36,3 +36,8 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 __version__ = "0.1.0"
+
+if __import__("sys").argv[:1] == ["-m"]:  # `python -m imac_data.<command>` is starting (Python's argv while -m loads)
+    from imac_data.cli import quiet_startup_interrupts
+
+    quiet_startup_interrupts()

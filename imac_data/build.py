@@ -23,7 +23,8 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from imac_data.cli import cache_home, default_root, quiet_libraries, run_command, silence_progress_bars
+from imac_data.cli import (cache_home, default_root, interrupted, quiet_libraries, run_command,
+                           silence_progress_bars)
 from imac_data.errors import InputError
 from imac_data.joint_ranges import joint_range_warning
 from imac_data.recipes import Recipe, find_recipe, load_recipe, missing_inputs
@@ -160,10 +161,11 @@ def build_shard(job: ShardJob) -> Path:
     import shutil
 
     from imac_data.pipeline import StageTimer, write_episode_dataset, write_timings
-    from imac_data.workers import pin_threads
+    from imac_data.workers import pin_threads, raise_if_interrupted
 
     if (job.shard_dir / "meta" / "info.json").is_file():
         return job.shard_dir
+    raise_if_interrupted()
     pin_threads(job.threads)
     timer = StageTimer()
     wall, cpu = time.perf_counter(), time.process_time()
@@ -243,7 +245,7 @@ def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> No
     import threading
     from concurrent.futures import ProcessPoolExecutor
 
-    from imac_data.workers import block_interrupts_in_this_thread, run_as_job, thread_env
+    from imac_data.workers import block_interrupts_in_this_thread, raise_if_interrupted, run_as_job, thread_env
 
     jobs: queue.Queue = queue.Queue()
     for job in todo:
@@ -285,8 +287,9 @@ def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> No
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
-    if errors:  # a Ctrl-C first: the workers it ended show up as a broken pool
-        raise next((e for e in errors if isinstance(e, KeyboardInterrupt)), errors[0])
+    raise_if_interrupted()  # a Ctrl-C first: the workers it ended show up as a broken pool
+    if errors:
+        raise next((e for e in errors if interrupted(e)), errors[0])
 
 
 def _ray_shard(job: ShardJob) -> str:
@@ -583,4 +586,6 @@ def _run(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from imac_data.cli import exit_process
+
+    exit_process(main())

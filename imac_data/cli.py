@@ -86,13 +86,26 @@ def silence_progress_bars() -> None:
         tqdm.std.tqdm._imac_silenced = True
 
 
+def _chain(exc: BaseException | None):
+    """``exc`` and the exceptions it was raised from or while handling, newest first."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        yield exc
+        exc = exc.__cause__ or exc.__context__
+
+
+def interrupted(exc: BaseException) -> bool:
+    """Whether Ctrl-C caused ``exc``: a ``KeyboardInterrupt`` anywhere in its chain (a native
+    import interrupted half-way re-raises it as ``ImportError: initialization failed``)."""
+    return any(isinstance(e, KeyboardInterrupt) for e in _chain(exc))
+
+
 def environment_problem(exc: BaseException) -> str | None:
     """A one-line description of ``exc`` if the environment caused it (an ``OSError`` with
     an errno of :data:`_ENVIRONMENT_ERRNOS` anywhere in its chain, also when a library
     re-raised it with only the message kept), else None."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        seen.add(id(exc))
+    for exc in _chain(exc):
         if isinstance(exc, EnvironmentFault):
             return str(exc)
         code = getattr(exc, "errno", None) if isinstance(exc, OSError) else None
@@ -102,23 +115,54 @@ def environment_problem(exc: BaseException) -> str | None:
             where = getattr(exc, "filename", None)
             return (f"{os.strerror(code)} ({errno.errorcode[code]}){f': {where}' if where else ''} - "
                     f"{_ENVIRONMENT_ERRNOS[code]}")
-        exc = exc.__cause__ or exc.__context__
     return None
+
+
+INTERRUPTED = "interrupted (a build keeps its finished episodes: rerun the same command to resume)"
+
+
+def quiet_startup_interrupts() -> None:
+    """Ctrl-C while ``python -m imac_data.<command>`` loads its libraries (seconds: torch),
+    before :func:`run_command` takes over: the one line and 130, not a traceback from deep
+    inside an import. Nothing is written yet, so the process just ends."""
+    import signal
+
+    def handler(signum, frame) -> None:
+        print(INTERRUPTED, file=sys.stderr, flush=True)
+        os._exit(EXIT_INTERRUPTED)
+
+    signal.signal(signal.SIGINT, handler)
+
+
+def exit_process(code: int) -> None:
+    """End a command-line process with ``code`` (``sys.exit`` at the bottom of each CLI
+    module). After Ctrl-C the process ends at once, flushed, without Python's shutdown: a
+    native library interrupted while loading (Open3D: ``ImportError: initialization
+    failed``) runs exit handlers that turn the status into 1. Cleanup already ran as the
+    stack unwound; the output's lock is the kernel's to drop."""
+    if code == EXIT_INTERRUPTED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 def run_command(body: Callable[[], int | None]) -> int:
     """Run a command's body with the shared exit codes (module docstring): bad input and
-    environment faults print one ``error:`` line (the message) and return 2 or 3; anything
-    else is a bug and propagates with its traceback."""
+    environment faults print one ``error:`` line (the message) and return 2 or 3, Ctrl-C one
+    line and 130; anything else is a bug and propagates with its traceback."""
+    from imac_data.workers import interrupt_pending, note_interrupts
+
+    note_interrupts()
     try:
         code = body()
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("interrupted (a build keeps its finished episodes: rerun the same command to resume)", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except Exception as e:
+    except (KeyboardInterrupt, Exception) as e:
+        if interrupted(e) or interrupt_pending():  # an error that a Ctrl-C caused, however wrapped
+            print(INTERRUPTED, file=sys.stderr)
+            return EXIT_INTERRUPTED
         problem = environment_problem(e)
         if problem is None:
             raise

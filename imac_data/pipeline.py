@@ -46,6 +46,7 @@ import numpy as np
 import torch
 
 from imac_data.errors import InputError
+from imac_data.workers import raise_if_interrupted
 
 __all__ = ["StageTimer", "ChunkOutput", "EpisodePipeline", "stream_keys", "write_episode_dataset",
            "add_episode_streams", "CAP_KEY", "MOTION", "R2S", "S2G", "STAGES"]
@@ -180,6 +181,7 @@ class EpisodePipeline:
         need_images = images or getattr(self.depth_source, "needs_images", True)
         carry = None  # stream-resolution depth of the previous chunk's last frame: the next reference
         for ref, frames in chunk_plan(T, s.contact_chunk):
+            raise_if_interrupted()  # a Ctrl-C that a library swallowed stops here
             lo, hi = frames[0], frames[-1] + 1
             with timer("read"):
                 rgb = {c: reader.images(c, lo, hi) for c in names} if need_images else {}

@@ -46,6 +46,7 @@ import torch
 from imac_data.calibrate import (DatasetFrames, RefineConfig, RobotPixels, choose_frames, open_frames,
                                  refine_camera, refine_camera_edges, silhouette_agreement)
 from imac_data.calibrate.report import camera_entry, draw_overlay, format_report, write_outputs
+from imac_data.cli import run_command
 from imac_data.errors import InputError
 
 __all__ = ["refine_calibration", "add_arguments", "run", "main"]
@@ -233,8 +234,11 @@ def run(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m imac_data.refine", description=__doc__.split("\n\n")[0])
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    args = parser.parse_args(argv)
+    return run_command(lambda: run(args))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from imac_data.cli import exit_process
+
+    exit_process(main())

@@ -540,8 +540,7 @@ def _as_float_tensor(x) -> torch.Tensor:
 
 
 if __name__ == "__main__":  # python -m imac_data.robot joints ROBOT.urdf
-    import sys
-
+    from imac_data.cli import exit_process
     from imac_data.urdf_summary import main
 
-    sys.exit(main())
+    exit_process(main())

@@ -76,7 +76,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -955,4 +954,6 @@ def _run(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from imac_data.cli import exit_process
+
+    exit_process(main())

@@ -5,7 +5,6 @@ report when not; 3 when the machine fails it (:mod:`imac_data.cli`)."""
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from imac_data.cli import EXIT_BAD_INPUT, EXIT_OK, quiet_libraries, run_command
@@ -31,4 +30,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from imac_data.cli import exit_process
+
+    exit_process(main())

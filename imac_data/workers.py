@@ -114,13 +114,46 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-# --- Ctrl-C in pool workers ---------------------------------------------------------------------
+# --- Ctrl-C ----------------------------------------------------------------------------------------
 # A terminal's Ctrl-C reaches every process of the group. The build process reports it in one
 # line; its pool workers must stay quiet. A spawned worker spends seconds importing before any
 # code of ours runs in it, so the threads that start workers block SIGINT (the mask is
 # inherited: the new process starts with SIGINT held), and quiet_worker_interrupts, run by the
 # pool's initializer, installs the worker's handler and releases what was held.
+# Some libraries swallow the KeyboardInterrupt (trimesh wraps its optional imports in
+# ``except BaseException``), so both handlers also record it, and the pipeline stops at the
+# next chunk (raise_if_interrupted).
 _in_job = False
+_interrupt_pending = False
+
+
+def _command_interrupt(signum, frame) -> None:
+    global _interrupt_pending
+    _interrupt_pending = True
+    raise KeyboardInterrupt
+
+
+def note_interrupts() -> None:
+    """In a command's main thread: Ctrl-C raises KeyboardInterrupt as usual and is recorded, so
+    that one a library swallowed still stops the command (:func:`raise_if_interrupted`)."""
+    import signal
+    import threading
+
+    global _interrupt_pending
+    _interrupt_pending = False
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _command_interrupt)
+
+
+def interrupt_pending() -> bool:
+    """Whether Ctrl-C reached this process (see :func:`note_interrupts`)."""
+    return _interrupt_pending
+
+
+def raise_if_interrupted() -> None:
+    """KeyboardInterrupt if Ctrl-C reached this process, even if a library swallowed it."""
+    if _interrupt_pending:
+        raise KeyboardInterrupt
 
 
 def block_interrupts_in_this_thread() -> None:
@@ -131,6 +164,8 @@ def block_interrupts_in_this_thread() -> None:
 
 
 def _worker_interrupt(signum, frame) -> None:
+    global _interrupt_pending
+    _interrupt_pending = True
     if _in_job:  # the job cleans up as it unwinds; the pool hands the exception to the build
         raise KeyboardInterrupt
     os._exit(130)  # idle: nothing to clean up, and no traceback from the pool's loop
