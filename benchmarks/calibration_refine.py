@@ -9,7 +9,7 @@ segmentation), recorded once into ``$XDG_CACHE_HOME/imac/bench/``. The simulated
 calibration is exact (its render matches MuJoCo's robot pixels to IoU 0.9999, see
 ``benchmarks/render_vs_mujoco.py``), so the truth is known. Per seed, the calibration is
 perturbed as the issue asks: the head camera by a random 2-5 cm and 2-5 degrees, each wrist
-mount by 1 cm and 3 degrees (random directions). ``imac_data.refine.refine_calibration``
+mount by 1 cm and 3 degrees (random directions). ``imac_data.calibrate.refine.refine_calibration``
 (the ``qa refine`` command, end to end: the rig from ``recipes/aloha_sim_transfer_cube.yaml``
 and the perturbed calibration, frame choice, robot pixels, refinement, files) then refines
 it, with the renderer clipped at MuJoCo's near plane as the simulator's masks are, with
@@ -43,12 +43,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import imac_data  # noqa: F401  (MUJOCO_GL=egl before mujoco is imported)
 import numpy as np
 import torch
 
-from imac_data.calibrate import AXES, RefineConfig, apply_update, pose_change
-from imac_data.cameras import backproject, load_calibration, project, save_calibration
+from imac_data.calibrate.config import RefineConfig
+from imac_data.calibrate.pose import AXES, apply_update, pose_change
+from imac_data.core.cameras import backproject, load_calibration, project, save_calibration
 
 RESULTS = Path(__file__).resolve().parent / "results"
 RECIPE = Path(__file__).resolve().parent.parent / "recipes" / "aloha_sim_transfer_cube.yaml"
@@ -63,8 +63,8 @@ ABLATION = {
 
 def record(height: int, width: int, episodes: int) -> Path:
     """Simulated episodes with segmentation, recorded once per setting into the cache."""
-    from imac_data.cli import cache_home
-    from imac_data.simulate import SimConfig, record_dataset
+    from imac_data.console import cache_home
+    from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
     path = cache_home() / "bench" / f"calibration-{height}x{width}-{episodes}"
     if (path / "calibration.json").is_file() and len(list(path.glob("episode_*.hdf5"))) >= episodes:
@@ -110,7 +110,7 @@ def reprojection_px(renderer, truth, est, q: np.ndarray) -> float:
 
 def sim_near() -> float:
     """MuJoCo's near clip plane (``znear * extent``, 0.166 m): the simulator's masks are clipped there."""
-    from imac_data.aloha import load_mujoco_model
+    from imac_data.sources.sim.rig import load_mujoco_model
 
     model = load_mujoco_model("transfer_cube")
     return float(model.vis.map.znear * model.stat.extent)
@@ -118,8 +118,9 @@ def sim_near() -> float:
 
 def _one(src: Path, truth: dict, start: dict, seed: int, pixels: str, config: RefineConfig, renderer,
          tmp: Path, cameras=None, frames: int = 8) -> dict:
-    from imac_data.calibrate import EpisodeFrames, silhouette_agreement
-    from imac_data.refine import refine_calibration
+    from imac_data.calibrate.frames import EpisodeFrames
+    from imac_data.calibrate.objective import silhouette_agreement
+    from imac_data.calibrate.refine import refine_calibration
 
     bad = tmp / f"start-{seed}.json"
     save_calibration(bad, start)
@@ -180,9 +181,9 @@ def _summary(rows: list[dict]) -> dict:
 def run(*, quick: bool = False, seeds: int = 3, methods=("gradient", "nelder-mead"), cues=("sim", "edges"),
         ablation: bool = False, cameras=None, frames: int = 8, progress: bool = True,
         partial: Path | None = None) -> dict:
+    from imac_data.core.render import make_renderer
+    from imac_data.core.rig import Rig
     from imac_data.recipes import load_recipe
-    from imac_data.render import make_renderer
-    from imac_data.rig import Rig
 
     torch.set_num_threads(max(1, os.cpu_count() or 1))
     h, w, n_ep = (120, 160, 1) if quick else (480, 640, 2)
@@ -299,7 +300,7 @@ def figure(out: Path = Path(__file__).resolve().parent.parent / "docs" / "calibr
     the third chosen frame of the head and left wrist overlays, before and after."""
     import cv2
 
-    from imac_data.qa import main as qa_main
+    from imac_data.qa.overlay import main as qa_main
 
     src = record(480, 640, 2)
     with tempfile.TemporaryDirectory(prefix="calib-figure-") as tmp:
@@ -309,7 +310,7 @@ def figure(out: Path = Path(__file__).resolve().parent.parent / "docs" / "calibr
         argv = ["refine", str(src), "--recipe", str(RECIPE), "--calibration", str(start), "--out",
                 str(tmp / "refined.json"), "--cameras", "cam_high,cam_left_wrist", "--robot-pixels", "sim",
                 "--near", f"{sim_near():.3f}"]
-        print("python -m imac_data.qa " + " ".join(argv), file=sys.stderr)
+        print("imac qa " + " ".join(argv), file=sys.stderr)
         if qa_main(argv) != 0:
             raise SystemExit("qa refine failed")
         report = tmp / "refined.report"

@@ -12,7 +12,7 @@ separately and not counted in the contact time), chunks of 8 future steps.
 Timed, on the same chunks and interleaved chunk by chunk (both sides see the same
 machine load):
 
-* ours, :func:`imac_data.contact.contact_chunk` with the default certified tolerance
+* ours, :func:`imac_data.core.contact.images.contact_chunk` with the default certified tolerance
   (every distance within [exact, exact + max(1 mm, 3 %)]), and exact per pixel
   (``tolerance=None``); everything included: scene cloud, KD-tree, both
   streams, percentile caps, hole filling, colour images;
@@ -49,16 +49,16 @@ import platform
 import time
 from pathlib import Path
 
-import imac_data  # noqa: F401  (MUJOCO_GL=egl before mujoco is imported)
 import mujoco
 import numpy as np
 import torch
 
-from imac_data.aloha import camera_calibration, load_mujoco_model, robot_config
-from imac_data.contact import chunk_plan, contact_chunk, scene_cloud
-from imac_data.rig import Rig
-from imac_data.robot import RobotModel
-from imac_data.simulate import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
+from imac_data.core.contact.images import chunk_plan, contact_chunk, scene_cloud
+from imac_data.core.rig import Rig
+from imac_data.core.robot.aloha import robot_config
+from imac_data.core.robot.model import RobotModel
+from imac_data.sources.sim.recorder import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
+from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 
 CHUNK = 8
 REFERENCE_SAMPLES = 3000
@@ -255,7 +255,7 @@ def run(quick: bool = False, cores: int | None = 2, max_steps: int | None = None
                 if run_ref:
                     ref_errors.append((f, ref, mj, float(s2g_ref[cube_idx].min())))
 
-    from imac_data.contact import DEFAULT_TOLERANCE
+    from imac_data.core.contact.images import DEFAULT_TOLERANCE
 
     ours_ms = 1e3 * best_s / ours_n
     ref_ms = 1e3 * ref_s / max(ref_n, 1)

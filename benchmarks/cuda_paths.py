@@ -8,7 +8,7 @@ A GPU machine without MuJoCo's renderer, Open3D or LeRobot (the ``device`` tool'
 
 * ``export`` simulates gym-aloha's ``transfer_cube`` (seed 0, the scripted policy, 25 fps)
   at 240x320 and 480x640, renders the robot with our renderer, and writes what FK and
-  :func:`imac_data.contact.contact_chunk` take: the rig (``rig.json`` + the packaged robot
+  :func:`imac_data.core.contact.images.contact_chunk` take: the rig (``rig.json`` + the packaged robot
   description, exactly what a built dataset carries), joint vectors, the recorded depth at
   the chunk references (uint16 millimetres, as recorded), the rendered robot depth, the
   camera poses and the gripper surface points of every frame (``inputs_HxW.npz``).
@@ -56,18 +56,18 @@ FK_BATCHES = (1, 8, 64, 512, 4096)
 
 
 def export(out: Path, sizes: dict = SIZES, seed: int = 0) -> None:
-    import imac_data  # noqa: F401  (MUJOCO_GL=egl before mujoco is imported)
     import mujoco
 
     from benchmarks.contact_speed import _Capture
-    from imac_data.aloha import ARMS, camera_calibration, load_mujoco_model, robot_config
-    from imac_data.contact import chunk_plan
-    from imac_data.depth import DepthCodec
-    from imac_data.rig import Rig
-    from imac_data.robot import RobotModel
-    from imac_data.robot_files import write_description
-    from imac_data.simulate import simulate_episode
-    from imac_data.workspace import resolve_workspace, saturation_depth
+    from imac_data.core.contact.images import chunk_plan
+    from imac_data.core.contact.workspace import resolve_workspace, saturation_depth
+    from imac_data.core.depth import DepthCodec
+    from imac_data.core.rig import Rig
+    from imac_data.core.robot.aloha import ARMS, robot_config
+    from imac_data.core.robot.description import write_description
+    from imac_data.core.robot.model import RobotModel
+    from imac_data.sources.sim.recorder import simulate_episode
+    from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 
     out.mkdir(parents=True, exist_ok=True)
     model = load_mujoco_model("transfer_cube")
@@ -158,7 +158,7 @@ def _cores(n: int | None):
 
 
 def _load_rig(inputs: Path):
-    from imac_data.rig import Rig
+    from imac_data.core.rig import Rig
 
     return Rig.from_block(json.loads((inputs / "rig.json").read_text()), inputs / "robot")
 
@@ -221,7 +221,7 @@ def fk_vs_mujoco(rig, data) -> dict:
 
 
 def _chunks(data, rig, H: int, W: int, device):
-    from imac_data.contact import chunk_plan
+    from imac_data.core.contact.images import chunk_plan
 
     T = len(data["q"])
     K = rig.intrinsics((H, W)).to(device)
@@ -253,7 +253,7 @@ def _within_tolerance(certified, exact, tol) -> float:
 
 
 def contact_figures(rig, data, H: int, W: int, cpu_threads: int, bruteforce_cpu: bool = False) -> dict:
-    from imac_data.contact import DEFAULT_TOLERANCE, contact_chunk
+    from imac_data.core.contact.images import DEFAULT_TOLERANCE, contact_chunk
 
     ws = rig.workspace
     oracle = {}  # chunk -> CPU exact (all cores)

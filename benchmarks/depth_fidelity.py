@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/depth_fidelity.py [--episodes 2] [--width 320 --height 240]
         [--max-steps N] [--no-candidates] [--slow] [--markdown out.md] [--keep DIR]
 
-Path: MuJoCo depth recorded by ``imac_data.simulate`` (uint16 millimetres, the
+Path: MuJoCo depth recorded by ``imac_data.sources.sim.recorder`` (uint16 millimetres, the
 oracle) -> ``RecordedDepth`` -> ``add_depth_streams`` (codec ``manipulation`` +
 encoder) -> ``LeRobotDataset`` with its default decoder (torchcodec) -> decode ->
 metres. Errors are over pixels whose ground truth lies in [0.1, 1.2] m, whole
@@ -36,9 +36,9 @@ import numpy as np
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+from imac_data.core.depth import DepthCodec, depth_stream_key  # noqa: E402
 from imac_data.dataset.depth_streams import add_depth_streams  # noqa: E402
 from imac_data.dataset.videos import VideoEncoding, encode_video, read_video_frames  # noqa: E402
-from imac_data.depth import DepthCodec, depth_stream_key  # noqa: E402
 
 NEAR, FAR = 0.1, 1.2
 CAMS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
@@ -82,13 +82,14 @@ def error_stats(decoded: list[np.ndarray], truth: list[np.ndarray]) -> dict:
 
 
 def record(workdir: Path, episodes: int, width: int, height: int, max_steps: int | None) -> tuple[Path, Path]:
-    from imac_data import aloha
-    from imac_data.aloha_hdf5 import episode_paths
-    from imac_data.cameras import load_calibration
-    from imac_data.ingest import IngestOptions, ingest_episodes
-    from imac_data.rig import Rig
-    from imac_data.robot import RobotModel
-    from imac_data.simulate import SimConfig, record_dataset
+    from imac_data.build.from_episodes import ingest_episodes
+    from imac_data.core.cameras import load_calibration
+    from imac_data.core.rig import Rig
+    from imac_data.core.robot import aloha
+    from imac_data.core.robot.model import RobotModel
+    from imac_data.dataset.ingest import IngestOptions
+    from imac_data.sources.hdf5 import episode_paths
+    from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
     src, base = workdir / "src", workdir / "base"
     record_dataset(SimConfig(num_episodes=episodes, width=width, height=height, max_steps=max_steps), src,
@@ -103,11 +104,12 @@ def through_dataset(src: Path, base: Path, root: Path, encoding: VideoEncoding, 
     """add_depth_streams -> LeRobotDataset (default decoder) -> decode; errors and sizes."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from imac_data import aloha
-    from imac_data.aloha_hdf5 import episode_paths, read_episode
-    from imac_data.cameras import load_calibration
-    from imac_data.depth_sources import RecordedDepth, episode_views
-    from imac_data.robot import RobotModel
+    from imac_data.core.cameras import load_calibration
+    from imac_data.core.rig import Rig
+    from imac_data.core.robot import aloha
+    from imac_data.core.robot.model import RobotModel
+    from imac_data.sources.depth import RecordedDepth, episode_views
+    from imac_data.sources.hdf5 import episode_paths, read_episode
 
     shutil.copytree(base, root)
     paths = episode_paths(src)
@@ -117,7 +119,7 @@ def through_dataset(src: Path, base: Path, root: Path, encoding: VideoEncoding, 
 
     def episodes():
         for p in paths:
-            yield source.depth(episode_views(read_episode(p), calib, robot, name=p.name))
+            yield source.depth(episode_views(read_episode(p), Rig(robot, calib), name=p.name))
 
     t0 = time.perf_counter()
     add_depth_streams(root, episodes(), cameras=list(CAMS), codec=codec, encoding=encoding,
@@ -146,7 +148,7 @@ def through_dataset(src: Path, base: Path, root: Path, encoding: VideoEncoding, 
 def candidate_rows(src: Path, workdir: Path, codec: DepthCodec, slow: bool) -> list[dict]:
     from torchcodec.decoders import VideoDecoder
 
-    from imac_data.aloha_hdf5 import episode_paths, read_episode
+    from imac_data.sources.hdf5 import episode_paths, read_episode
 
     clips = []  # (codec frames, ground truth metres) per episode and camera
     for p in episode_paths(src):

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from imac_data.depth import CORNERS, N_CODES, PRESETS, DepthCodec
+from imac_data.core.depth import CORNERS, N_CODES, PRESETS, DepthCodec
 
 DEPTHS = [0.05, 0.1, 0.2, 0.5, 1.0, 1.2, 1.5, 2.0, 5.0, 10.0, 20.0]
 # DESIGN.md section 4, manipulation preset: depth (m) -> quoted 8-bit step (mm).

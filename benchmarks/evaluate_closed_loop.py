@@ -2,7 +2,7 @@
 
     python -m benchmarks.evaluate_closed_loop [--quick] [--json PATH]
 
-Workload: one simulated cube-transfer episode (``imac_data.simulate``, noise 0.5, 96x128 per
+Workload: one simulated cube-transfer episode (``imac_data.sources.sim.recorder``, noise 0.5, 96x128 per
 view, recorded depth) as the start, the ALOHA rig of ``recipes/aloha_sim_transfer_cube.yaml``, the
 model of ``imac_model/configs/experiment.yaml`` (the small DiT, 48x64 per view, chunks of 1 + 8
 frames, ``motion+contact``, one torch thread), randomly initialised with its zero-initialised
@@ -16,7 +16,7 @@ generated episode written by :class:`~imac_model.evaluate.closed_loop.GeneratedD
   :class:`~imac_model.evaluate.policies.LeRobotPolicy` (pre-processor, 8 ``select_action``
   calls, post-processor), and a replay of the recorded actions (no compute);
 * **world model**: the online control rebuild (motion and both contact images) plus sampling
-  (``sample_steps`` Euler steps), one :func:`imac_model.rollout.sample_rollout` call;
+  (``sample_steps`` Euler steps), one :func:`imac_model.pipelines.rollout.sample_rollout` call;
 * **write**: encoding the chunk's frames (generated RGB and depth, 3 control streams, 3 views)
   with LeRobot's default encoder.
 
@@ -76,15 +76,15 @@ def _act(directory: Path, hw, stats) -> Path:
 def run(quick: bool = False) -> dict:
     import torch
 
-    from imac_data.aloha_hdf5 import read_episode
-    from imac_data.depth import DepthCodec
+    from imac_data.core.depth import DepthCodec
+    from imac_data.core.rig import Rig
     from imac_data.recipes import RECIPES_DIR, load_recipe
-    from imac_data.rig import Rig
-    from imac_data.simulate import SimConfig, record_dataset
+    from imac_data.sources.hdf5 import read_episode
+    from imac_data.sources.sim.recorder import SimConfig, record_dataset
     from imac_model.evaluate.closed_loop import GeneratedDatasetWriter, Start, rollout_episode
     from imac_model.evaluate.policies import ActionQueue, LeRobotPolicy, recorded_actions_policy
-    from imac_model.online_controls import OnlineControls
-    from imac_model.world_model import WorldModel
+    from imac_model.models.world_model import WorldModel
+    from imac_model.pipelines.online_controls import OnlineControls
 
     one_thread()
     load_start = os.getloadavg()

@@ -25,8 +25,16 @@ import time
 import numpy as np
 
 from imac_model.evaluate.statistics import (
-    INTERVALS, STATISTIC_FUNCTIONS, STATISTICS, BootstrapConfig, _interval, bootstrap_draws, kendall_tau_b, mmrv,
-    pearson, spearman,
+    INTERVALS,
+    STATISTIC_FUNCTIONS,
+    STATISTICS,
+    BootstrapConfig,
+    _interval,
+    bootstrap_draws,
+    kendall_tau_b,
+    mmrv,
+    pearson,
+    spearman,
 )
 
 SCENARIOS = [  # (policies, groups, episodes per group, rho)

@@ -34,14 +34,18 @@ def main(argv=None) -> int:
     ap.add_argument("--keep", default=None, help="keep the recorded episodes and dataset here")
     args = ap.parse_args(argv)
 
-    from imac_data import aloha
-    from imac_data.cameras import load_calibration
-    from imac_data.ingest import IngestOptions, ingest_episodes
-    from imac_data.rig import Rig
-    from imac_data.robot import RobotModel
-    from imac_data.simulate import SimConfig, record_dataset
+    from imac_data.build.from_episodes import ingest_episodes
+    from imac_data.core.cameras import load_calibration
+    from imac_data.core.rig import Rig
+    from imac_data.core.robot import aloha
+    from imac_data.core.robot.model import RobotModel
+    from imac_data.dataset.ingest import IngestOptions
+    from imac_data.sources.sim.recorder import SimConfig, record_dataset
     from imac_model.evaluate.success import (
-        SuccessClassifierConfig, dataset_success_labels, image_cameras, train_success_classifier,
+        SuccessClassifierConfig,
+        dataset_success_labels,
+        image_cameras,
+        train_success_classifier,
     )
 
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="imac_success_"))

@@ -30,7 +30,11 @@ def timed(fn):
 
 def main(argv=None) -> int:
     from imac_model.evaluate.video_metrics import (
-        VideoMetricsConfig, compute_video_metrics, load_fid_extractor, load_fvd_extractor, save_random_weights,
+        VideoMetricsConfig,
+        compute_video_metrics,
+        load_fid_extractor,
+        load_fvd_extractor,
+        save_random_weights,
     )
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -2,17 +2,17 @@
 
     python -m benchmarks.model_rollout [--quick] [--json PATH]
 
-Workload: one simulated cube-transfer episode (``imac_data.simulate``, noise 0.5, 96x128 per
+Workload: one simulated cube-transfer episode (``imac_data.sources.sim.recorder``, noise 0.5, 96x128 per
 view, recorded depth), the ALOHA rig of ``recipes/aloha_sim_transfer_cube.yaml``, and the
 model of ``imac_model/configs/experiment.yaml`` (the small DiT, 48x64 per view, batch 4,
 chunks of 1 + 8 frames, one torch thread as the experiment trains).
 
-* **Online controls** (:meth:`imac_model.online_controls.OnlineControls.controls`): motion and
+* **Online controls** (:meth:`imac_model.pipelines.online_controls.OnlineControls.controls`): motion and
   both contact images of B = 4 chunks from recorded reference frames (their colour depth
   decoded), at the model's view size (``rollout.resolution: model``) and at the dataset's
   (``dataset``). CPU and wall seconds per chunk, median of the timed repeats.
 * **Training steps**: an ordinary step (one chunk batch: forward, loss, backward, AdamW) and a
-  rollout step with R = 4 (:func:`imac_model.rollout.rollout_loss`, backward per chunk, the
+  rollout step with R = 4 (:func:`imac_model.pipelines.rollout.rollout_loss`, backward per chunk, the
   contact images of chunks 2-4 rebuilt from the one-step estimates). The model is randomly
   initialised: its decoded depth is mostly invalid, so the contact rebuild is cheaper than a
   trained model's; the online-controls figure above (recorded depth) is the realistic one.
@@ -49,15 +49,15 @@ def _timed(fn, repeats: int):
 def run(quick: bool = False) -> dict:
     import torch
 
-    from imac_data.aloha_hdf5 import read_episode
-    from imac_data.depth import DepthCodec
+    from imac_data.core.depth import DepthCodec
+    from imac_data.core.rig import Rig
     from imac_data.recipes import RECIPES_DIR, load_recipe
-    from imac_data.rig import Rig
-    from imac_data.simulate import SimConfig, record_dataset
-    from imac_model.batch import ChunkBatch
-    from imac_model.online_controls import OnlineControls
-    from imac_model.rollout import rollout_loss
-    from imac_model.world_model import WorldModel
+    from imac_data.sources.hdf5 import read_episode
+    from imac_data.sources.sim.recorder import SimConfig, record_dataset
+    from imac_model.data.batch import ChunkBatch
+    from imac_model.models.world_model import WorldModel
+    from imac_model.pipelines.online_controls import OnlineControls
+    from imac_model.pipelines.rollout import rollout_loss
 
     one_thread()
     load_start = os.getloadavg()

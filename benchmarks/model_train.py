@@ -3,7 +3,7 @@
     python -m benchmarks.model_train [--quick] [--threads 2] [--json PATH]
 
 Workload: one optimizer step (forward, flow loss, backward, AdamW) of
-:class:`imac_model.world_model.WorldModel` with the small backbone of
+:class:`imac_model.models.world_model.WorldModel` with the small backbone of
 ``imac_model/configs/small_cpu.yaml`` (pixel-unshuffle 4, patch 4, dim 128, 4 blocks),
 conditioning ``motion+contact`` (three control streams), a chunk of 1 + 8 frames,
 batch 4, three views, at 64x64 and 128x128 per view (mosaics 128x192 and 256x384).
@@ -47,9 +47,9 @@ def _rss_mb() -> float:
 def _measure(size: int, steps: int, threads: int, queue) -> None:
     import torch
 
-    from imac_model.batch import ChunkBatch
     from imac_model.config import ModelSpec, load_run_config
-    from imac_model.world_model import WorldModel
+    from imac_model.data.batch import ChunkBatch
+    from imac_model.models.world_model import WorldModel
 
     torch.set_num_threads(threads)
     run = load_run_config(CONFIG)

@@ -3,12 +3,12 @@ package, through our Python API, against PyBullet as an independent oracle.
 
     python -m benchmarks.panda_vs_pybullet [--configs N] [--height H --width W] [--json PATH]
 
-* **FK**: our :class:`~imac_data.robot.RobotModel` (pytorch-kinematics, plus our mimic,
+* **FK**: our :class:`~imac_data.core.robot.model.RobotModel` (pytorch-kinematics, plus our mimic,
   axis and material handling) against PyBullet's own URDF loader and
   ``getLinkState(computeForwardKinematics=1)`` link frames, over random configurations
   in the joint limits (the second finger follows the first through ``<mimic>`` on our
   side, set explicitly on PyBullet's).
-* **Render**: our :class:`~imac_data.render.RaycastRenderer` against PyBullet's CPU
+* **Render**: our :class:`~imac_data.core.render.RaycastRenderer` against PyBullet's CPU
   software rasteriser (``ER_TINY_RENDERER``): robot mask IoU against its segmentation
   mask, link agreement against its per-link segmentation, |z-depth error| on pixels both
   call robot (its depth buffer converted to z-depth), for a fixed head camera and a wrist
@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from imac_data.cameras import Camera, look_at
-from imac_data.render import RaycastRenderer
-from imac_data.robot import RobotConfig, RobotModel
+from imac_data.core.cameras import Camera, look_at
+from imac_data.core.render import RaycastRenderer
+from imac_data.core.robot.model import RobotConfig, RobotModel
 
 ARM = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGER, FINGER_MIMIC = "panda_finger_joint1", "panda_finger_joint2"

@@ -3,7 +3,7 @@
     python -m benchmarks.render_vs_mujoco [--quick] [--episodes N] [--json PATH]
 
 Accuracy (240x320, both gym-aloha tasks, scripted episodes from
-:mod:`imac_data.simulate`, or random workspace configurations if it is missing):
+:mod:`imac_data.sources.sim.recorder`, or random workspace configurations if it is missing):
 
 * **robot-only** oracle: MuJoCo renders the frozen-camera model at each recorded
   ``qpos`` with every non-robot geom hidden, i.e. exactly what we render. Mask IoU
@@ -41,16 +41,16 @@ import os
 import time
 from pathlib import Path
 
-import imac_data  # noqa: F401  (MUJOCO_GL=egl before mujoco is imported)
 import mujoco
 import numpy as np
 import torch
 
-from imac_data import aloha
-from imac_data.render import RaycastRenderer
-from imac_data.robot import RobotModel
+from imac_data.core.render import RaycastRenderer
+from imac_data.core.robot import aloha
+from imac_data.core.robot.model import RobotModel
+from imac_data.sources.sim import rig as sim_rig
 
-VIEWS = tuple(aloha.CAMERA_NAMES.values())  # cam_high, cam_left_wrist, cam_right_wrist
+VIEWS = tuple(sim_rig.CAMERA_NAMES.values())  # cam_high, cam_left_wrist, cam_right_wrist
 HEAD = "cam_high"
 WRISTS = ("cam_left_wrist", "cam_right_wrist")
 
@@ -69,7 +69,7 @@ class MujocoViews:
     """gym-aloha's frozen-camera model at dataset vectors: RGB / depth / segmentation passes."""
 
     def __init__(self, task: str, height: int, width: int, *, robot_only: bool, fast: bool = True):
-        model = aloha.load_mujoco_model(task)
+        model = sim_rig.load_mujoco_model(task)
         if fast:
             model.vis.quality.shadowsize = 0
             model.vis.quality.offsamples = 0
@@ -91,7 +91,7 @@ class MujocoViews:
         m, d = self.model, self.data
         if m.nkey:
             mujoco.mj_resetDataKeyframe(m, d, 0)
-        aloha.set_mujoco_qpos(m, d, q14)
+        sim_rig.set_mujoco_qpos(m, d, q14)
         mujoco.mj_forward(m, d)
 
     def pass_(self, camera: str, kind: str) -> np.ndarray:
@@ -114,7 +114,7 @@ class MujocoViews:
     def robot_mask_depth(self, q14: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         self.set(q14)
         out = {}
-        for mj_cam, name in aloha.CAMERA_NAMES.items():
+        for mj_cam, name in sim_rig.CAMERA_NAMES.items():
             seg = self.pass_(mj_cam, "seg")
             geom = np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)
             depth = self.pass_(mj_cam, "depth").copy()
@@ -145,10 +145,10 @@ def _workspace_configs(n: int, seed: int) -> np.ndarray:
 def _episode(task: str, seed: int, height: int, width: int) -> tuple[np.ndarray, dict | None, str]:
     """(qpos (T, 14), visible-robot masks {cam: (T, H, W)} or None, description)."""
     try:
-        from imac_data.simulate import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
+        from imac_data.sources.sim.recorder import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
     except ImportError:
-        return _workspace_configs(120, seed), None, "random workspace configurations (no imac_data.simulate)"
-    model = aloha.load_mujoco_model(task)
+        return _workspace_configs(120, seed), None, "random workspace configurations (no imac_data.sources.sim.recorder)"
+    model = sim_rig.load_mujoco_model(task)
     fr = FrameRenderer(model, width, height, depth=False, segmentation=True)
     try:
         ep = simulate_episode(task, seed, renderer=fr)
@@ -167,7 +167,7 @@ def accuracy(robot: RobotModel, tasks, episodes: int, seed: int, height: int = 2
     stats = {}
     for task in tasks:
         oracle = MujocoViews(task, height, width, robot_only=True)
-        calib = aloha.camera_calibration(oracle.model, width, height)
+        calib = sim_rig.camera_calibration(oracle.model, width, height)
         ours = RaycastRenderer(robot, near=oracle.near)
         free = RaycastRenderer(robot)
         acc = {c: {"iou": [], "err": [], "visible_iou": [], "near_frac": [], "pixels": []} for c in VIEWS}
@@ -266,10 +266,10 @@ def timing(robot: RobotModel, task: str, q: np.ndarray, height: int, width: int,
            shipped_frames: int = 4) -> dict:
     """Milliseconds per view (interleaved blocks; medians over blocks)."""
     mj = MujocoViews(task, height, width, robot_only=False)
-    calib = aloha.camera_calibration(mj.model, width, height)
+    calib = sim_rig.camera_calibration(mj.model, width, height)
     ours = RaycastRenderer(robot)
     rebuild = _RebuildBaseline(robot)
-    mj_cams = list(aloha.CAMERA_NAMES)
+    mj_cams = list(sim_rig.CAMERA_NAMES)
     ours.render(torch.as_tensor(q[:1]), calib)  # warm-up (allocations, caches)
     rebuild.render(torch.as_tensor(q[0]), calib)
     for c in mj_cams:

@@ -2,12 +2,12 @@
 
     python -m benchmarks.run [--quick] [--episodes N] [--long-frames N] [--out DIR] [--keep DIR]
 
-Workload: scripted ``transfer_cube`` episodes recorded by :mod:`imac_data.simulate` (noise
+Workload: scripted ``transfer_cube`` episodes recorded by :mod:`imac_data.sources.sim.recorder` (noise
 0.3, seeds 0..), whole scripts (about 125 frames at 25 fps), three views, recorded depth,
 at 240x320 and 480x640. One *frame* = 3 views x (base RGB + depth + motion + contact r2s +
 contact s2g) plus the tabular columns.
 
-1. **Whole builds**: ``imac_data.build.build`` (what ``python -m imac_data.build`` runs),
+1. **Whole builds**: ``imac_data.build.flow.build_dataset`` (what ``python -m imac_data.build`` runs),
    each in a fresh subprocess, end to end, at each size with 1 and 2 local workers, and
    with ``--executor ray`` and 2 workers. Frames/s; CPU seconds per frame (the build
    process and its pool workers by ``getrusage``; for Ray the workers' own CPU from the
@@ -19,7 +19,7 @@ contact s2g) plus the tabular columns.
    the result and 30 frames/s.
 3. **Episode length**: one 1000-frame episode at 480x640 and its first 100 frames,
    each built by one worker (synthetic: a recorded episode played forward and backward,
-   ``imac_data.aloha_hdf5.tile_episode``; recorded depth): peak RSS and frames/s.
+   ``imac_data.sources.hdf5.tile_episode``; recorded depth): peak RSS and frames/s.
 4. **Side by side**, same process: our renderer vs MuJoCo's own OpenGL renderer and the
    mask IoU (``benchmarks/render_vs_mujoco.py``); our contact streams vs a straightforward
    trimesh-sampling + scipy KD-tree implementation, and their error against MuJoCo's
@@ -191,7 +191,7 @@ def write_recipe(path: Path, size, episodes: int, seed: int, noise: float) -> Pa
 
 
 def record(work: Workload, size, out: Path) -> float:
-    from imac_data.simulate import SimConfig, record_dataset
+    from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
     t = time.perf_counter()
     record_dataset(SimConfig(task=TASK, num_episodes=work.episodes_at(size), height=size[0], width=size[1],
@@ -229,10 +229,11 @@ def _usage_s() -> float:
 def child_build(spec_path: str) -> int:
     """Subprocess side of a whole build: ``build()`` timed end to end, its CPU, its timings."""
     spec = json.loads(Path(spec_path).read_text())
-    from imac_data.build import BuildRequest, build
-    from imac_data.cli import quiet_libraries
+    from imac_data.build.flow import build_dataset as build
+    from imac_data.build.staging import BuildRequest
+    from imac_data.build.workers import peak_rss_mb
+    from imac_data.console import quiet_libraries
     from imac_data.recipes import load_recipe
-    from imac_data.workers import peak_rss_mb
 
     quiet_libraries()
     root = Path(spec["root"])
@@ -323,7 +324,7 @@ def gap_to_target(table: dict, cores: int, target: float = TARGET_FPS) -> dict:
 
 def long_episodes(work: Workload, source: Path, recipe: Path, tmp: Path) -> dict:
     """One worker builds a ``long_frames`` and a ``short_frames`` episode (tiles of a recorded one)."""
-    from imac_data.aloha_hdf5 import tile_episode
+    from imac_data.sources.hdf5 import tile_episode
 
     rows = {}
     for n in (work.short_frames, work.long_frames):
@@ -394,10 +395,11 @@ def _render_quick(work: Workload, sources: dict, rvm) -> dict:
     import numpy as np
     import torch
 
-    from imac_data import aloha
-    from imac_data.aloha_hdf5 import episode_paths, read_episode
-    from imac_data.render import RaycastRenderer
-    from imac_data.robot import RobotModel
+    from imac_data.core.render import RaycastRenderer
+    from imac_data.core.robot import aloha
+    from imac_data.core.robot.model import RobotModel
+    from imac_data.sources.hdf5 import episode_paths, read_episode
+    from imac_data.sources.sim import rig as sim_rig
 
     robot = RobotModel(aloha.robot_config())
     h, w = work.small
@@ -405,7 +407,7 @@ def _render_quick(work: Workload, sources: dict, rvm) -> dict:
     oracle = rvm.MujocoViews(TASK, h, w, robot_only=True)
     iou = {c: [] for c in VIEWS}
     try:
-        calib = aloha.camera_calibration(oracle.model, w, h)
+        calib = sim_rig.camera_calibration(oracle.model, w, h)
         views = RaycastRenderer(robot, near=oracle.near).render(torch.as_tensor(q), calib)
         for j in range(len(q)):
             ref = oracle.robot_mask_depth(q[j])
@@ -676,7 +678,7 @@ def main(argv: list[str] | None = None) -> int:
     if work.episodes < 1 or (work.max_steps is not None and work.max_steps < 2):
         p.error("--episodes must be >= 1 and --max-steps >= 2")
 
-    from imac_data.cli import quiet_libraries
+    from imac_data.console import quiet_libraries
 
     quiet_libraries()
     tmp = a.keep or Path(tempfile.mkdtemp(prefix="imac_bench_"))

@@ -100,7 +100,7 @@ def markdown(r: dict) -> str:
 
     def _whole_build():
         nonlocal L
-        L += ["", "## Whole build (`imac_data.build.build`, end to end, fresh process)", "",
+        L += ["", "## Whole build (`imac_data.build.hdf5.build`, end to end, fresh process)", "",
               "| size | executor | workers x threads | episodes | frames | build s | frames/s | CPU ms/frame | "
               "peak RSS per worker MB | coordinator MB | output KB/frame | load start -> end |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]

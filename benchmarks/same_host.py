@@ -6,7 +6,7 @@
 Frames/s measured on one machine cannot be compared with frames/s measured on another,
 and on a shared machine not even with those of another hour. This benchmark therefore
 builds the *same* recorded episodes with the CLI of both revisions (``python -m
-imac_data.build``, each in a fresh process, the baseline from a ``git worktree``),
+imac_data.build.hdf5``, each in a fresh process, the baseline from a ``git worktree``),
 alternating the order every round, and reports the ratio per round beside the load
 average. The default baseline, afa9031, is ``main`` as the streamed-pipeline issue measured
 it (5.8 frames/s at 240x320 and 1.1 at 480x640 on its machine).

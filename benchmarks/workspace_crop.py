@@ -23,16 +23,16 @@ import torch
 
 
 def main() -> None:
-    import imac_data  # noqa: F401  (MUJOCO_GL before mujoco)
     import mujoco
 
-    from imac_data.aloha import camera_calibration, load_mujoco_model, robot_config
-    from imac_data.contact import JET_LUT, contact_chunk
-    from imac_data.depth import DepthCodec
-    from imac_data.rig import Rig
-    from imac_data.robot import RobotModel
-    from imac_data.simulate import FrameRenderer, simulate_episode
-    from imac_data.workspace import resolve_workspace, saturation_depth
+    from imac_data.core.contact.images import JET_LUT, contact_chunk
+    from imac_data.core.contact.workspace import resolve_workspace, saturation_depth
+    from imac_data.core.depth import DepthCodec
+    from imac_data.core.rig import Rig
+    from imac_data.core.robot.aloha import robot_config
+    from imac_data.core.robot.model import RobotModel
+    from imac_data.sources.sim.recorder import FrameRenderer, simulate_episode
+    from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 
     class Capture(FrameRenderer):
         def __init__(self, *a, **k):

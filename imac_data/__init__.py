@@ -1,43 +1,38 @@
 """imac_data: LeRobot datasets with action-derived control videos (motion, depth, contact).
 
-Modules, one concept each:
+The layers, data flowing one way (``docs/architecture.md``): ``core`` (arrays and tensors:
+cameras, robot, render, rig, depth codec, contact) -> ``sources`` (episodes from HDF5, LeRobot
+datasets, the simulator; depth sources) -> ``augment`` (the per-chunk pipeline) -> ``dataset``
+(every on-disk edit, validation) -> ``build`` (the staged flow) -> ``cli``.
 
-* ``rig``         robot + cameras + controller (+ renderer, gripper surface), from a recipe or a dataset
-* ``cameras``     pinhole cameras, calibration files, projection, pixel rays (torch)
-* ``robot``       URDF robot model, joint maps with affine entries, batched forward kinematics
-* ``urdf_summary`` a URDF's joints, limits, mimics, visuals; a recipe robot: block
-* ``robot_files`` the robot description (URDF + meshes) packaged into a dataset
-* ``mjcf_to_urdf`` export a MuJoCo model's robot to URDF
-* ``aloha``       the simulated ALOHA rig of gym-aloha
-* ``simulate``    scripted-policy recorder writing ALOHA HDF5 episodes
-* ``aloha_hdf5``  the raw HDF5 episode format (read chunk by chunk, validate, write)
-* ``motion``      the controller map phi: which configuration a motion image shows
-* ``render``      the robot renderer (RGB, mask, z-depth, link id per view)
-* ``depth``       the depth colour codec
-* ``depth_sources`` recorded depth, Depth Anything 3
-* ``nearest``     exact nearest distances, certified distances over pixel tiles
-* ``clouds``      the reference scene cloud and the gripper surface samples that contact compares
-* ``contact``     contact images (robot-to-scene, scene-to-gripper)
-* ``pipeline``    the streamed episode pipeline and its stage timings
-* ``ingest``      raw episodes -> base LeRobot dataset
-* ``dataset``     every on-disk edit of a LeRobot dataset (streams, columns, imac block, merge, validate)
-* ``recipes``, ``build``, ``workers`` the build's recipes, CLI, worker pinning
-* ``safety``      the user's inputs are never written: overlap checks between output and inputs
-* ``augment``     adding the streams to an existing dataset
-* ``validate``    ``python -m imac_data.validate``
-* ``qa``          calibration overlay; ``preview``: an mp4 mosaic of a built episode; ``qa refine`` (``refine``) fixes a calibration
-* ``calibrate``   camera poses from the robot's silhouette (the algorithm of ``qa refine``; a package)
+The public surface is below; importing this package loads none of it until it is used.
 """
 
-import os
-
-# MuJoCo picks its GL backend when it is first imported: default to headless EGL
-# (Mesa on the CPU), so nothing needs a display.
-os.environ.setdefault("MUJOCO_GL", "egl")
+import importlib
 
 __version__ = "0.1.0"
 
-if __import__("sys").argv[:1] == ["-m"]:  # `python -m imac_data.<command>` is starting (Python's argv while -m loads)
-    from imac_data.cli import quiet_startup_interrupts
+_API = {  # name -> the module that defines it
+    "Rig": "imac_data.core.rig",
+    "DepthCodec": "imac_data.core.depth",
+    "depth_codec_of": "imac_data.core.depth",
+    "chunk_timestamps": "imac_data.layout",
+    "stream_keys": "imac_data.layout",
+    "load_recipe": "imac_data.recipes",
+    "Recipe": "imac_data.recipes",
+    "BuildRequest": "imac_data.build.staging",
+    "build_dataset": "imac_data.build.flow",
+    "validate_dataset": "imac_data.dataset.validate",
+}
 
-    quiet_startup_interrupts()
+__all__ = ["__version__", *_API]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        return getattr(importlib.import_module(_API[name]), name)
+    raise AttributeError(f"module 'imac_data' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

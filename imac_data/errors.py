@@ -2,7 +2,7 @@
 
 Messages name the file, key or field at fault, so a user can fix their data
 without reading our source. CLIs print the message and exit non-zero
-(:func:`imac_data.cli.run_command`: 2 for bad input, 3 for the environment).
+(:func:`imac_data.console.run_command`: 2 for bad input, 3 for the environment).
 """
 
 

@@ -20,7 +20,7 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
                                      # (the older {gripper: finger_joint, ...} form still reads)
       gripper_links: [left_finger_link, ...]
       package_dirs: {my_robot_description: path/to/pkg}
-      controller:                    # how actions become configurations (imac_data.motion.Controller)
+      controller:                    # how actions become configurations (imac_data.core.motion.Controller)
         mode: absolute               # joint-position targets, or delta
         grippers: [{index: 6, scale: 1.0, offset: 0.0, low: null, high: null}]
         absolute_indices: []         # delta mode: indices that are absolute targets anyway
@@ -48,12 +48,12 @@ Schema (every section optional except ``name``, ``task``, ``robot`` and ``source
       depth_codec: manipulation               # or general
       contact_chunk: 8                        # H; the reference is the chunk's first frame
       contact_cap: null                       # metres; null = 99th percentile per chunk
-      contact_workspace:                      # scene points the contact streams use (imac_data.workspace)
+      contact_workspace:                      # scene points the contact streams use (imac_data.core.contact.workspace)
         min: [-0.8, -0.6, -0.05]              # world box, metres; no min/max = the robot's reach + margin
         max: [0.8, 0.6, 0.7]
         depth_range: [0.1, 2.5]               # metres of z-depth; default [0, where the depth codec saturates)
       empty_reference_scene: error            # a chunk start with no valid scene depth: error | no_contact
-    depth:                                    # where depth comes from (imac_data.depth_choice)
+    depth:                                    # where depth comes from (imac_data.sources.depth)
       source: recorded                        # recorded | da3 | none (motion streams only)
       model: depth-anything/DA3-BASE          # da3: hub id or local weights directory
       monocular_model: null                   # da3 with < 3 posed views: DA3's metric model
@@ -72,9 +72,11 @@ from pathlib import Path
 
 import yaml
 
+from imac_data.config import parse_dataclass
+from imac_data.core.contact.workspace import WorkspaceSettings
+from imac_data.core.depth import DepthCodec
+from imac_data.core.motion import Controller
 from imac_data.errors import InputError
-from imac_data.typed_config import parse_dataclass
-from imac_data.workspace import WorkspaceSettings
 
 RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
 PLATFORMS = ("aloha_sim",)
@@ -112,7 +114,7 @@ class GripperActionSpec:
 
 @dataclass(frozen=True)
 class ControllerSection:
-    """``robot.controller``: :class:`imac_data.motion.Controller` as a recipe writes it."""
+    """``robot.controller``: :class:`imac_data.core.motion.Controller` as a recipe writes it."""
 
     mode: str = "absolute"
     grippers: tuple[GripperActionSpec, ...] = ()
@@ -132,7 +134,7 @@ class RobotSection:
     controller: ControllerSection | None = None
 
     def joint_map_entries(self) -> list:
-        """The joint map in :meth:`imac_data.robot.RobotConfig.parse_joint_map`'s input form."""
+        """The joint map in :meth:`imac_data.core.robot.model.RobotConfig.parse_joint_map`'s input form."""
         out = []
         for e in self.joint_map or ():
             if isinstance(e, JointSpec):
@@ -202,8 +204,6 @@ class AugmentSettings:
     empty_reference_scene: str = "error"
 
     def __post_init__(self) -> None:
-        from imac_data.depth import DepthCodec
-
         if self.height <= 0 or self.width <= 0:
             raise InputError(f"augment: resolution must be positive, got {self.height}x{self.width}")
         if self.motion_source not in ("action", "state"):
@@ -231,7 +231,7 @@ class AugmentSettings:
 
 @dataclass(frozen=True)
 class DepthSection:
-    """Where the depth streams come from (``depth:``; :mod:`imac_data.depth_choice`)."""
+    """Where the depth streams come from (``depth:``; :mod:`imac_data.sources.depth`)."""
 
     source: str = "recorded"  # recorded | da3 | none
     model: str | None = None  # da3: hub id or local weights directory (default DA3-BASE)
@@ -283,8 +283,6 @@ def _validate(recipe: Recipe) -> None:
             raise InputError(f"{f}: robot: platform {r.platform!r} brings its own robot and controller; "
                              f"remove {extra} (or drop 'platform' and describe your robot)")
     if r.controller is not None:
-        from imac_data.motion import Controller
-
         try:
             Controller.from_dict(dataclasses.asdict(r.controller), where="robot.controller").validate(
                 len(r.joint_map or ()))

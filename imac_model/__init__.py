@@ -1,18 +1,39 @@
 """imac_model: the action-conditioned video world model (iMaC), trained on imac datasets.
 
-Modules, one concept each (diffusers-like: models, schedulers and pipelines apart):
+Layers, as diffusers keeps them apart (``docs/architecture.md``): ``config`` -> ``data``
+(LeRobot chunks, the six-panel mosaic) -> ``models`` (backbones, control injection, the
+world model, checkpoints) and ``schedulers`` (flow matching) -> ``pipelines`` (rollouts,
+controls rebuilt online, sampling) -> ``training`` -> ``evaluate`` -> ``experiments`` ->
+``cli``.
 
-* ``config``       typed run / model configs, validated, saved with every checkpoint
-* ``dataset_meta`` the one reader of a dataset's ``meta/info.json`` ``imac`` block
-* ``mosaic``       views <-> the six-panel mosaic; resize and K rescale
-* ``batch``        ``ChunkBatch``: the tensors the model consumes
-* ``data``         chunks of a LeRobot dataset (``delta_timestamps``), checked against a run
-* ``backbones``    the backbone interface; a small CPU video DiT; Wan2.2-TI2V via diffusers
-* ``controls``     control-image injection (paper eq. 2) and the action-vector baseline
-* ``flow``         flow matching (tau = 0 noise, 1 data), Euler sampler, one-step estimate
-* ``world_model``  backbone + conditioning + flow: loss, sampling, decode
-* ``checkpoint``   safetensors checkpoints with their ModelSpec
-* ``train``, ``sample``  the CLIs
+The public surface is below; importing this package loads none of it until it is used.
 """
 
+import importlib
+
 __version__ = "0.1.0"
+
+_API = {  # name -> the module that defines it
+    "RunConfig": "imac_model.config",
+    "ModelSpec": "imac_model.config",
+    "load_run_config": "imac_model.config",
+    "ChunkBatch": "imac_model.data.batch",
+    "ChunkDataset": "imac_model.data.chunks",
+    "WorldModel": "imac_model.models.world_model",
+    "load_world_model": "imac_model.models.checkpoint",
+    "OnlineControls": "imac_model.pipelines.online_controls",
+    "sample_rollout": "imac_model.pipelines.rollout",
+    "train": "imac_model.training.train",
+}
+
+__all__ = ["__version__", *_API]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        return getattr(importlib.import_module(_API[name]), name)
+    raise AttributeError(f"module 'imac_model' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

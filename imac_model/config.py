@@ -33,8 +33,8 @@ from typing import Literal
 
 import yaml
 
+from imac_data.config import parse_dataclass
 from imac_data.errors import InputError
-from imac_data.typed_config import parse_dataclass
 
 MODES = ("none", "motion", "motion+contact", "action-vector")
 CONTROL_STREAMS = ("motion", "contact_s2g", "contact_r2s")  # the order of paper eq. 2: P_m, P_s2g, P_r2s
@@ -207,7 +207,7 @@ class TrainConfig:
 @dataclass(frozen=True)
 class RolloutConfig:
     """Training-time rollout (paper section 3.4) and the online rebuild of controls
-    (:mod:`imac_model.rollout`, :mod:`imac_model.online_controls`).
+    (:mod:`imac_model.pipelines.rollout`, :mod:`imac_model.pipelines.online_controls`).
 
     An epoch is one pass over the run's training items: chunks, or clips of ``chunks``
     consecutive chunks when ``chunks > 1``."""
@@ -299,7 +299,7 @@ def _positive(obj, name: str, section: str = "data") -> None:
 
 def parse(cls, value, where: str = ""):
     """Build dataclass ``cls`` from a mapping, strictly (unknown keys are errors;
-    :func:`imac_data.typed_config.parse_dataclass`)."""
+    :func:`imac_data.config.parse_dataclass`)."""
     return parse_dataclass(cls, value, where, root="config")
 
 

@@ -70,16 +70,16 @@ fi
 # --- Depth Anything 3, so that `make test` runs its tests (randomly initialised da3-small; -----
 # weights are never downloaded). depth-anything-3 0.1.1 pins numpy<2, which lerobot's stack does
 # not allow, so it goes in without dependency resolution, with the modules it imports: the exact
-# command is imac_data.depth_sources.DA3_INSTALL (read without importing the package, which
+# command is imac_data.sources.da3.DA3_INSTALL (read without importing the package, which
 # would cost a torch import on every run). Stamped with that command, so a new list reinstalls.
 da3_stamp=.venv/.imac-da3-stamp
 da3_cmd=$(.venv/bin/python -c '
 import ast
-for node in ast.parse(open("imac_data/depth_sources.py").read()).body:
+for node in ast.parse(open("imac_data/sources/da3.py").read()).body:
     if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "DA3_INSTALL" for t in node.targets):
         print(ast.literal_eval(node.value))
 ')
-case "$da3_cmd" in "pip install "*) ;; *) echo "[setup] cannot read DA3_INSTALL from imac_data/depth_sources.py" >&2; exit 1;; esac
+case "$da3_cmd" in "pip install "*) ;; *) echo "[setup] cannot read DA3_INSTALL from imac_data/sources/da3.py" >&2; exit 1;; esac
 if [ ! -f "$da3_stamp" ] || [ "$(cat "$da3_stamp")" != "$da3_cmd" ]; then
   echo "[setup] installing Depth Anything 3 (code only, no weights) into .venv"
   log=.venv/pip-install-da3.log

@@ -7,15 +7,16 @@ import pytest
 import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data import aloha
-from imac_data.augment import main
-from imac_data.cameras import load_calibration
-from imac_data.depth import depth_codec_of
-from imac_data.ingest import IngestOptions, ingest_episodes
+from imac_data.build.from_episodes import ingest_episodes
+from imac_data.cli import main as imac_main
+from imac_data.core.cameras import load_calibration
+from imac_data.core.depth import depth_codec_of
+from imac_data.core.rig import Rig
+from imac_data.core.robot import aloha
+from imac_data.core.robot.model import RobotModel
+from imac_data.dataset.ingest import IngestOptions
 from imac_data.recipes import RECIPES_DIR
-from imac_data.rig import Rig
-from imac_data.robot import RobotModel
-from imac_data.simulate import SimConfig, record_dataset
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +44,7 @@ def base(sim_src, tmp_path):
 def test_augment_existing_dataset_keeps_original_videos(base):
     src, root, recipe = base
     originals = {p: p.read_bytes() for p in (root / "videos").rglob("*.mp4")}
-    assert main(["--repo", "local/base", "--root", str(root), "--recipe", str(recipe), "--source", str(src),
+    assert imac_main(["augment", "--repo", "local/base", "--root", str(root), "--recipe", str(recipe), "--source", str(src),
                  "--no-progress"]) == 0
     for path, content in originals.items():
         assert path.read_bytes() == content, f"{path} changed"
@@ -53,7 +54,7 @@ def test_augment_existing_dataset_keeps_original_videos(base):
     # depth decodes back to the recorded depth (bit-exact stream, 8-bit codec steps)
     item = ds[3]
     metres = depth_codec_of(ds.meta.info).decode(item["observation.depth.cam_high"], channel_axis=-3)
-    from imac_data.aloha_hdf5 import read_episode
+    from imac_data.sources.hdf5 import read_episode
 
     truth = read_episode(sorted(src.glob("episode_*.hdf5"))[0]).depth_mm["cam_high"][3] / 1000.0
     valid = (truth > 0.1) & (truth < 1.2)
@@ -66,14 +67,14 @@ def test_augment_refuses_mismatched_source(base, tmp_path, capsys):
     src, root, recipe = base
     other = tmp_path / "other"
     record_dataset(SimConfig(num_episodes=2, width=80, height=64, max_steps=16, seed=7), other, progress=False)
-    assert main(["--repo", "local/base", "--root", str(root), "--recipe", str(recipe), "--source", str(other),
+    assert imac_main(["augment", "--repo", "local/base", "--root", str(root), "--recipe", str(recipe), "--source", str(other),
                  "--no-progress"]) == 2
     assert "does not match" in capsys.readouterr().err
     assert "control.motion.cam_high" not in json.loads((root / "meta" / "info.json").read_text())["features"]
-    assert not (root.parent / f".{root.name}.imac-staging").exists()
+    assert not (root.parent / f".{root.name}.staging").exists()
 
 
-@pytest.mark.parametrize("suffix", ["imac-staging", "imac-old"])
+@pytest.mark.parametrize("suffix", ["staging", "old"])
 def test_augment_never_deletes_a_users_directory_next_to_the_dataset(base, capsys, suffix):
     """A directory of the user's named like augment's staged copy or kept original: refused
     before any work, with the path named, and left as it was; the dataset is untouched."""
@@ -82,9 +83,9 @@ def test_augment_never_deletes_a_users_directory_next_to_the_dataset(base, capsy
     theirs.mkdir()
     (theirs / "notes.txt").write_text("mine")
     info = (root / "meta" / "info.json").read_text()
-    assert main(["--repo", "local/base", "--root", str(root), "--recipe", str(recipe), "--source", str(src),
+    assert imac_main(["augment", "--repo", "local/base", "--root", str(root), "--recipe", str(recipe), "--source", str(src),
                  "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert str(theirs) in err and "not made by imac_data" in err
     assert [p.name for p in theirs.iterdir()] == ["notes.txt"] and (root / "meta" / "info.json").read_text() == info
-    assert not (root.parent / f".{root.name}.{'imac-old' if suffix == 'imac-staging' else 'imac-staging'}").exists()
+    assert not (root.parent / f".{root.name}.{'old' if suffix == 'staging' else 'staging'}").exists()

@@ -8,12 +8,12 @@ import pytest
 import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data import aloha
-from imac_data.build import main
+from imac_data.cli import main as imac_main
+from imac_data.core.robot import aloha
+from imac_data.dataset.output import staging_dir
 from imac_data.errors import InputError
-from imac_data.ingest import staging_dir
 from imac_data.recipes import RECIPES_DIR, load_recipe, parse_recipe
-from imac_data.simulate import SimConfig, record_dataset
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +45,7 @@ def test_shipped_recipes_parse():
 
 def test_cli_builds_a_loadable_dataset(sim_dir, tmp_path, capsys):
     root = tmp_path / "out"
-    rc = main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
+    rc = imac_main(["build", "--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
                "--root", str(root), "--no-progress"])
     assert rc == 0
     assert "built local/tiny: 2 episodes" in capsys.readouterr().out
@@ -65,10 +65,10 @@ def test_cli_builds_a_loadable_dataset(sim_dir, tmp_path, capsys):
     assert info["contact"]["chunk_size"] == 4 and info["depth"]["codec"]["lam"] == -500
     assert (root / "README.md").read_text().startswith("# local/tiny")
     # the output is complete: rebuilding without --overwrite is refused, with it succeeds
-    assert main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
+    assert imac_main(["build", "--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
                  "--root", str(root), "--no-progress"]) == 2
     assert "already exists" in capsys.readouterr().err
-    assert main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
+    assert imac_main(["build", "--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
                  "--root", str(root), "--no-progress", "--overwrite", "--episodes", "1"]) == 0
     assert LeRobotDataset("local/tiny", root=root).meta.total_episodes == 1
 
@@ -87,16 +87,16 @@ def test_invalid_recipe_fields(tmp_path, changes, message, capsys):
     with pytest.raises(InputError, match=message):
         load_recipe(recipe)
     root = tmp_path / "out"
-    assert main(["--repo", "local/x", "--recipe", str(recipe), "--root", str(root)]) == 2
+    assert imac_main(["build", "--repo", "local/x", "--recipe", str(recipe), "--root", str(root)]) == 2
     assert "error:" in capsys.readouterr().err
     assert not root.exists() and not staging_dir(root).exists()
 
 
 def test_cli_bad_input_exits_nonzero_and_writes_nothing(sim_dir, tmp_path, capsys):
     root = tmp_path / "out"
-    assert main(["--repo", "local/definitely_not_a_recipe", "--root", str(root)]) == 2
+    assert imac_main(["build", "--repo", "local/definitely_not_a_recipe", "--root", str(root)]) == 2
     assert "unknown recipe" in capsys.readouterr().err
-    assert main(["--repo", "local/x", "--recipe", str(write_recipe(tmp_path)), "--root", str(root),
+    assert imac_main(["build", "--repo", "local/x", "--recipe", str(write_recipe(tmp_path)), "--root", str(root),
                  "--source", str(tmp_path / "missing")]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert not root.exists() and not staging_dir(root).exists()
@@ -131,7 +131,7 @@ def test_custom_urdf_recipe_builds(sim_dir, tmp_path):
     text = aloha.robot_config().urdf_path.read_text()
     recipe = custom_robot_recipe(tmp_path, sim_dir, text)
     root = tmp_path / "out"
-    assert main(["--repo", "local/custom", "--recipe", str(recipe), "--root", str(root), "--no-progress"]) == 0
+    assert imac_main(["build", "--repo", "local/custom", "--recipe", str(recipe), "--root", str(root), "--no-progress"]) == 0
     assert LeRobotDataset("local/custom", root=root).meta.total_frames > 0
 
 
@@ -143,7 +143,7 @@ def test_robot_errors_name_the_joint_or_mesh_and_write_nothing(sim_dir, tmp_path
     text = edit(aloha.robot_config().urdf_path.read_text())
     recipe = custom_robot_recipe(tmp_path, sim_dir, text)
     root = tmp_path / "out"
-    assert main(["--repo", "local/custom", "--recipe", str(recipe), "--root", str(root)]) == 2
+    assert imac_main(["build", "--repo", "local/custom", "--recipe", str(recipe), "--root", str(root)]) == 2
     assert message in capsys.readouterr().err
     assert not root.exists() and not staging_dir(root).exists()
     assert sorted(p.name for p in sim_dir.iterdir()) == sorted(
@@ -154,7 +154,7 @@ def test_source_is_never_modified(sim_dir, tmp_path):
     src = tmp_path / "src"
     shutil.copytree(sim_dir, src)
     before = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in src.iterdir()}
-    assert main(["--repo", "local/x", "--recipe", str(write_recipe(tmp_path)), "--source", str(src),
+    assert imac_main(["build", "--repo", "local/x", "--recipe", str(write_recipe(tmp_path)), "--source", str(src),
                  "--root", str(tmp_path / "out"), "--no-progress"]) == 0
     assert {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in src.iterdir()} == before
 
@@ -168,7 +168,7 @@ def test_paper_recipes_say_what_is_missing(name, tmp_path, capsys, monkeypatch):
     for var in ("IMAC_COBOT_MAGIC_URDF", "IMAC_COBOT_MAGIC_MESHES", "IMAC_COBOT_MAGIC_CALIBRATION", "IMAC_DATA_ROOT"):
         monkeypatch.delenv(var, raising=False)
     root = tmp_path / "out"
-    assert main(["--repo", f"local/{name}", "--root", str(root)]) == 2
+    assert imac_main(["build", "--repo", f"local/{name}", "--root", str(root)]) == 2
     err = capsys.readouterr().err
     for var in ("IMAC_COBOT_MAGIC_URDF", "IMAC_COBOT_MAGIC_CALIBRATION", "IMAC_DATA_ROOT"):
         assert var in err
@@ -178,7 +178,7 @@ def test_paper_recipes_say_what_is_missing(name, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("IMAC_COBOT_MAGIC_MESHES", str(tmp_path))
     monkeypatch.setenv("IMAC_COBOT_MAGIC_CALIBRATION", str(tmp_path / "calib.json"))
     monkeypatch.setenv("IMAC_DATA_ROOT", str(tmp_path / "data"))
-    assert main(["--repo", f"local/{name}", "--root", str(root)]) == 2
+    assert imac_main(["build", "--repo", f"local/{name}", "--root", str(root)]) == 2
     err = capsys.readouterr().err
     assert f"not found at {tmp_path / 'rig.urdf'}" in err
     assert f"not found at {tmp_path / 'data' / name}" in err
@@ -195,14 +195,14 @@ def reference_build(sim_dir, tmp_path_factory):
     """An uninterrupted local build in this process (1 worker)."""
     tmp = tmp_path_factory.mktemp("ref")
     root = tmp / "out"
-    assert main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp)), "--source", str(sim_dir),
+    assert imac_main(["build", "--repo", "local/tiny", "--recipe", str(write_recipe(tmp)), "--source", str(sim_dir),
                  "--root", str(root), "--no-progress", "--workers", "1"]) == 0
     return root
 
 
 def test_ray_build_is_identical_to_local_build(sim_dir, tmp_path, reference_build):
     root = tmp_path / "out"
-    assert main(["--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
+    assert imac_main(["build", "--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
                  "--root", str(root), "--no-progress", "--executor", "ray", "--workers", "2"]) == 0
     assert dataset_files(root) == dataset_files(reference_build)
 
@@ -236,8 +236,8 @@ def test_killed_build_resumes_to_the_same_dataset(sim_dir, tmp_path, reference_b
 def test_resume_key_follows_the_robot_description(sim_dir, tmp_path):
     """Shards of a killed build are reused only for the same robot: an edited mesh (its
     sha256 in the rig's info block, which the key hashes) starts the staging over."""
-    from imac_data.build import build_key
-    from imac_data.rig import Rig
+    from imac_data.build.from_episodes import build_key
+    from imac_data.core.rig import Rig
 
     recipe = load_recipe(write_recipe(tmp_path))
     paths, calibration = sorted(sim_dir.glob("episode_*.hdf5")), sim_dir / "calibration.json"
@@ -255,7 +255,7 @@ def test_hub_card_is_what_lerobot_uploads(reference_build):
     (the upload itself needs a token and network, which tests do not have)."""
     from lerobot.datasets.utils import create_lerobot_dataset_card
 
-    from imac_data.dataset_card import hub_card_kwargs
+    from imac_data.dataset.card import hub_card_kwargs
 
     recipe = load_recipe(RECIPES_DIR / "aloha_sim_transfer_cube.yaml")
     kwargs = hub_card_kwargs(reference_build, "local/tiny", recipe)

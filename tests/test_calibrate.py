@@ -22,16 +22,19 @@ import numpy as np
 import pytest
 import torch
 
-from imac_data import aloha
-from imac_data.aloha_hdf5 import RawEpisode, read_episode, write_episode
-from imac_data.calibrate import RefineConfig, apply_update, pose_change, select_frames
+from imac_data.calibrate.config import RefineConfig
+from imac_data.calibrate.frames import select_frames
 from imac_data.calibrate.objective import SoftSilhouette, exact_energy, make_level, render_level
-from imac_data.cameras import load_calibration, save_calibration
+from imac_data.calibrate.pose import apply_update, pose_change
+from imac_data.cli import main as imac_main
+from imac_data.core.cameras import load_calibration, save_calibration
+from imac_data.core.render import RaycastRenderer
+from imac_data.core.robot import aloha
+from imac_data.core.robot.model import RobotModel
 from imac_data.errors import InputError
-from imac_data.qa import main as qa_main
-from imac_data.render import RaycastRenderer
-from imac_data.robot import RobotModel
-from imac_data.simulate import SimConfig, record_dataset
+from imac_data.sources.hdf5 import RawEpisode, read_episode, write_episode
+from imac_data.sources.sim import rig as sim_rig
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 REPO = Path(__file__).resolve().parent.parent
 RECIPE = REPO / "recipes" / "aloha_sim_transfer_cube.yaml"
@@ -39,7 +42,7 @@ RECIPE = REPO / "recipes" / "aloha_sim_transfer_cube.yaml"
 
 def sim_near() -> str:
     """MuJoCo's near clip plane (``znear * extent``): the simulator's masks are clipped there."""
-    model = aloha.load_mujoco_model("transfer_cube")
+    model = sim_rig.load_mujoco_model("transfer_cube")
     return str(model.vis.map.znear * model.stat.extent)
 
 
@@ -80,7 +83,7 @@ def test_pose_update_and_change_are_in_camera_axes():
     that, for a fixed and a mounted camera, whatever the camera's orientation in its parent."""
     from scipy.spatial.transform import Rotation
 
-    calib = aloha.camera_calibration(aloha.load_mujoco_model("transfer_cube"), 160, 120)
+    calib = sim_rig.camera_calibration(sim_rig.load_mujoco_model("transfer_cube"), 160, 120)
     for cam in (calib["cam_high"], calib["cam_left_wrist"]):
         moved = apply_update(cam, [1.0, 0, 0, 0, 3.0, 0])
         change = pose_change(cam, moved)
@@ -117,7 +120,7 @@ def test_soft_objective_equals_the_exact_one_at_zero(sim_src, robot):
     """The differentiable objective, built around an exact render, reproduces that render's
     objective at zero update (IoU and edge term), so the exact render can judge its steps."""
     ep = read_episode(sim_src / "episode_0.hdf5", cameras=["cam_high"], load_depth=False, load_segmentation=True)
-    from imac_data.qa import ground_truth_robot_mask
+    from imac_data.qa.overlay import ground_truth_robot_mask
 
     renderer = RaycastRenderer(robot)
     idx = [20, 60, 100]
@@ -146,7 +149,7 @@ def test_refine_returns_to_the_truth_with_sim_masks(sim_src, tmp_path, capsys):
     save_calibration(bad, start)
     before = digest(bad)
     out = tmp_path / "refined.json"
-    rc = qa_main(["refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(bad), "--out", str(out),
+    rc = imac_main(["qa", "refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(bad), "--out", str(out),
                   "--cameras", "cam_high,cam_right_wrist", "--robot-pixels", "sim", "--near", sim_near()])
     printed = capsys.readouterr().out
     assert rc == 0, printed
@@ -173,10 +176,10 @@ def test_refine_returns_to_the_truth_with_sim_masks(sim_src, tmp_path, capsys):
     assert "cam_high" in printed and "IoU" in printed
 
     # never over the input, and an existing output needs --overwrite
-    assert qa_main(["refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(bad), "--out",
+    assert imac_main(["qa", "refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(bad), "--out",
                     str(bad)]) == 2
     assert "never overwritten" in capsys.readouterr().err
-    assert qa_main(["refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(bad), "--out",
+    assert imac_main(["qa", "refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(bad), "--out",
                     str(out)]) == 2
     assert "--overwrite" in capsys.readouterr().err
     assert digest(bad) == before
@@ -187,10 +190,11 @@ def test_refine_a_lerobot_dataset_with_a_segmenters_masks(sim_src, tmp_path, cap
     dataset itself (no recipe), the robot's pixels from a mask directory (a 'segmenter' whose
     masks are the simulator's), the frames through LeRobot's decoder, and returns the head
     camera to the simulator's exact calibration. The dataset is not modified."""
-    from imac_data.ingest import IngestOptions, ingest_episodes
-    from imac_data.qa import ground_truth_robot_mask
+    from imac_data.build.from_episodes import ingest_episodes
+    from imac_data.core.rig import Rig
+    from imac_data.dataset.ingest import IngestOptions
+    from imac_data.qa.overlay import ground_truth_robot_mask
     from imac_data.recipes import load_recipe
-    from imac_data.rig import Rig
 
     truth = load_calibration(sim_src / "calibration.json")
     start = perturbed(truth, 2)
@@ -208,7 +212,7 @@ def test_refine_a_lerobot_dataset_with_a_segmenters_masks(sim_src, tmp_path, cap
         m = ground_truth_robot_mask(ep.segmentation["cam_high"][t], ep.segmentation_labels, rig.robot.link_names)
         cv2.imwrite(str(folder / f"{t:06d}.png"), m.astype(np.uint8) * 255)
     # the dataset reader against the raw episode: the same joint vectors, the same frames (lossy video)
-    from imac_data.calibrate import DatasetFrames
+    from imac_data.calibrate.frames import DatasetFrames
 
     frames = DatasetFrames(root)
     assert frames.cameras == ["cam_high", "cam_left_wrist", "cam_right_wrist"]
@@ -219,7 +223,7 @@ def test_refine_a_lerobot_dataset_with_a_segmenters_masks(sim_src, tmp_path, cap
     assert (same < 3.0).all() and (same < swapped).all(), (same, swapped)
     info = digest(root / "meta" / "info.json")
     out = tmp_path / "refined.json"
-    rc = qa_main(["refine", str(root), "--out", str(out), "--cameras", "cam_high", "--robot-pixels",
+    rc = imac_main(["qa", "refine", str(root), "--out", str(out), "--cameras", "cam_high", "--robot-pixels",
                   str(tmp_path / "masks"), "--near", sim_near()])
     assert rc == 0, capsys.readouterr().err
     assert digest(root / "meta" / "info.json") == info
@@ -230,7 +234,7 @@ def test_refine_a_lerobot_dataset_with_a_segmenters_masks(sim_src, tmp_path, cap
     frames = json.loads((tmp_path / "refined.report" / "report.json").read_text())["cameras"]["cam_high"]["frames"]
     assert len(frames) == 8 and all(t % 4 == 0 for _, t in frames)  # only frames that have a mask
     # raw episodes need a recipe: only a dataset carries its rig
-    assert qa_main(["refine", str(sim_src), "--out", str(tmp_path / "r2.json")]) == 2
+    assert imac_main(["qa", "refine", str(sim_src), "--out", str(tmp_path / "r2.json")]) == 2
     assert "--recipe is required" in capsys.readouterr().err
 
 
@@ -242,7 +246,7 @@ def test_refine_refuses_views_without_the_robot(sim_src, tmp_path, capsys):
     for t in range(0, 125, 5):
         cv2.imwrite(str(masks / f"{t:06d}.png"), np.zeros((120, 160), np.uint8))
     out = tmp_path / "refined.json"
-    rc = qa_main(["refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(sim_src / "calibration.json"),
+    rc = imac_main(["qa", "refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(sim_src / "calibration.json"),
                   "--out", str(out), "--cameras", "cam_high", "--robot-pixels", str(tmp_path / "masks")])
     err = capsys.readouterr().err
     assert rc == 2
@@ -261,7 +265,7 @@ def test_refine_refuses_too_few_distinct_poses(sim_src, tmp_path, capsys):
         segmentation={c: v[keep] for c, v in ep.segmentation.items()}, segmentation_labels=ep.segmentation_labels,
         fps=ep.fps))
     out = tmp_path / "refined.json"
-    rc = qa_main(["refine", str(still), "--recipe", str(RECIPE), "--calibration", str(sim_src / "calibration.json"),
+    rc = imac_main(["qa", "refine", str(still), "--recipe", str(RECIPE), "--calibration", str(sim_src / "calibration.json"),
                   "--out", str(out), "--cameras", "cam_high"])
     err = capsys.readouterr().err
     assert rc == 2
@@ -275,7 +279,7 @@ def test_edge_cue_needs_an_overlay_that_shows_the_robot(sim_src, tmp_path, capsy
     calib = load_calibration(sim_src / "calibration.json")
     away = tmp_path / "away.json"
     save_calibration(away, {**calib, "cam_high": apply_update(calib["cam_high"], [0, 0, 0, 180.0, 0, 0])})
-    rc = qa_main(["refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(away),
+    rc = imac_main(["qa", "refine", str(sim_src), "--recipe", str(RECIPE), "--calibration", str(away),
                   "--out", str(tmp_path / "r.json"), "--cameras", "cam_high", "--robot-pixels", "edges"])
     assert rc == 2
     assert "no robot visible in camera 'cam_high'" in capsys.readouterr().err

@@ -9,8 +9,7 @@ import torch
 from dm_control.mujoco.engine import Camera as DmCamera
 from dm_control.mujoco.engine import Physics
 
-from imac_data import aloha
-from imac_data.cameras import (
+from imac_data.core.cameras import (
     Camera,
     backproject,
     load_calibration,
@@ -18,13 +17,15 @@ from imac_data.cameras import (
     rescale_intrinsics,
     save_calibration,
 )
+from imac_data.core.robot import aloha
+from imac_data.core.robot.model import RobotModel
 from imac_data.errors import InputError
-from imac_data.robot import RobotModel
+from imac_data.sources.sim import rig as sim_rig
 
 
 @pytest.fixture(scope="module")
 def rig():
-    model = aloha.load_mujoco_model("transfer_cube")
+    model = sim_rig.load_mujoco_model("transfer_cube")
     robot = RobotModel(aloha.robot_config())
     return model, robot
 
@@ -54,9 +55,9 @@ def mujoco_camera_pose_cv(data, cam_id):
 
 @pytest.mark.parametrize("task", aloha.TASKS)
 def test_wrist_camera_pose_from_fk_matches_mujoco(task):
-    model = aloha.load_mujoco_model(task)
+    model = sim_rig.load_mujoco_model(task)
     robot = RobotModel(aloha.robot_config())
-    calib = aloha.camera_calibration(model, 320, 240)
+    calib = sim_rig.camera_calibration(model, 320, 240)
     data = mujoco.MjData(model)
     qs = random_qpos(model, np.random.default_rng(0), 64)
     links = robot.link_poses(torch.as_tensor(dataset_vector(qs), dtype=torch.float64))
@@ -65,7 +66,7 @@ def test_wrist_camera_pose_from_fk_matches_mujoco(task):
         data.qpos[:16] = q
         mujoco.mj_kinematics(model, data)
         mujoco.mj_camlight(model, data)
-        for mj_name, name in aloha.CAMERA_NAMES.items():
+        for mj_name, name in sim_rig.CAMERA_NAMES.items():
             cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, mj_name)
             T_ref = mujoco_camera_pose_cv(data, cam_id)
             T = calib[name].pose({k: v[i] for k, v in links.items()}, dtype=torch.float64).numpy()
@@ -83,7 +84,7 @@ def test_projection_matches_mujoco_camera_matrix(rig, hw):
     model, robot = rig
     H, W = hw
     physics = physics_of(model)
-    calib = aloha.camera_calibration(model, W, H)
+    calib = sim_rig.camera_calibration(model, W, H)
     rng = np.random.default_rng(1)
     qs = random_qpos(model, rng, 8)
     links = robot.link_poses(torch.as_tensor(dataset_vector(qs), dtype=torch.float64))
@@ -94,7 +95,7 @@ def test_projection_matches_mujoco_camera_matrix(rig, hw):
         physics.forward()
         # robot points: every 40th vertex of every robot mesh, posed by MuJoCo
         pts = robot_surface_points(model, physics.data)
-        for mj_name, name in aloha.CAMERA_NAMES.items():
+        for mj_name, name in sim_rig.CAMERA_NAMES.items():
             M = DmCamera(physics, height=H, width=W, camera_id=mj_name).matrix
             hom = np.c_[pts, np.ones(len(pts))] @ M.T
             in_front = hom[:, 2] < -1e-3  # dm_control keeps OpenGL's sign: w < 0 in front
@@ -138,9 +139,9 @@ def physics_of(model):
 
 def test_rescale_intrinsics_matches_mujoco_at_new_resolution():
     """K rescaled from 240x320 to 480x640 equals the K MuJoCo's camera model gives at 480x640."""
-    model = aloha.load_mujoco_model("transfer_cube")
-    small = aloha.camera_calibration(model, 320, 240)
-    big = aloha.camera_calibration(model, 640, 480)
+    model = sim_rig.load_mujoco_model("transfer_cube")
+    small = sim_rig.camera_calibration(model, 320, 240)
+    big = sim_rig.camera_calibration(model, 640, 480)
     for name in small:
         np.testing.assert_allclose(small[name].rescaled(640, 480).K, big[name].K, atol=1e-9)
         np.testing.assert_allclose(
@@ -166,12 +167,12 @@ def test_backproject_inverts_project():
 def test_backprojected_table_depth_lies_on_the_table():
     """MuJoCo's rendered depth of the top camera, lifted with our calibration, lands on the table
     plane (z = 0) wherever MuJoCo's segmentation says the table is visible."""
-    model = aloha.load_mujoco_model("transfer_cube")
+    model = sim_rig.load_mujoco_model("transfer_cube")
     data = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, data, 0)
     mujoco.mj_forward(model, data)
     H, W = 120, 160
-    calib = aloha.camera_calibration(model, W, H)
+    calib = sim_rig.camera_calibration(model, W, H)
     with mujoco.Renderer(model, H, W) as r:
         r.update_scene(data, camera="top")
         r.enable_depth_rendering()
@@ -191,8 +192,8 @@ def test_backprojected_table_depth_lies_on_the_table():
 
 
 def test_calibration_round_trip_and_errors(tmp_path):
-    model = aloha.load_mujoco_model("transfer_cube")
-    calib = aloha.camera_calibration(model, 320, 240)
+    model = sim_rig.load_mujoco_model("transfer_cube")
+    calib = sim_rig.camera_calibration(model, 320, 240)
     path = tmp_path / "calibration.json"
     save_calibration(path, calib)
     back = load_calibration(path)

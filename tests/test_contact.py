@@ -1,4 +1,4 @@
-"""Contact images (imac_data.contact) against independent oracles: float64 brute force
+"""Contact images (imac_data.core.contact.images) against independent oracles: float64 brute force
 (nearest distances), matplotlib (colour map), exact per-pixel queries (the certified
 tolerance), an analytic plane, and MuJoCo's own geometric distances on recorded
 simulated grasps (mj_geomDistance between the finger and cube geoms)."""
@@ -7,14 +7,12 @@ from __future__ import annotations
 
 import math
 
-import imac_data  # noqa: F401  (MUJOCO_GL before mujoco)
 import mujoco
 import numpy as np
 import pytest
 import torch
 
-from imac_data.aloha import camera_calibration, load_mujoco_model, robot_config
-from imac_data.contact import (
+from imac_data.core.contact.images import (
     DEFAULT_TOLERANCE,
     JET_LUT,
     GripperSurface,
@@ -27,12 +25,14 @@ from imac_data.contact import (
     nearest_distances,
     scene_cloud,
 )
-from imac_data.depth import DepthCodec
+from imac_data.core.contact.workspace import Workspace, resolve_workspace, saturation_depth
+from imac_data.core.depth import DepthCodec
+from imac_data.core.rig import Rig
+from imac_data.core.robot.aloha import robot_config
+from imac_data.core.robot.model import RobotModel
 from imac_data.errors import InputError
-from imac_data.rig import Rig
-from imac_data.robot import RobotModel
-from imac_data.simulate import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
-from imac_data.workspace import Workspace, resolve_workspace, saturation_depth
+from imac_data.sources.sim.recorder import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
+from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 
 METHODS = ["kdtree", "torch"]
 

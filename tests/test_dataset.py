@@ -1,6 +1,6 @@
 """The dataset package: exact image stats (oracle: LeRobot's own functions), LeRobot's
 encoder reproduced byte for byte, merging keeps the imac block and refuses two rigs, and
-validation (``python -m imac_data.validate``) finds each kind of damage and names it."""
+validation (``imac validate``) finds each kind of damage and names it."""
 
 import hashlib
 import json
@@ -13,16 +13,15 @@ import pytest
 import yaml
 from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
 
-from imac_data.build import main as build_main
+from imac_data.cli import main as imac_main
+from imac_data.core.robot.description import DESCRIPTION_DIR
 from imac_data.dataset.info import SCHEMA_VERSION
 from imac_data.dataset.merge import merge_datasets
 from imac_data.dataset.validate import validate_dataset
 from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter
 from imac_data.errors import InputError
 from imac_data.recipes import RECIPES_DIR
-from imac_data.robot_files import DESCRIPTION_DIR
-from imac_data.simulate import SimConfig, record_dataset
-from imac_data.validate import main as validate_main
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 
 @pytest.mark.parametrize("T, H, W", [(37, 48, 64), (130, 120, 160), (5, 300, 400)])
@@ -46,8 +45,8 @@ def test_image_stats_equal_lerobots_in_constant_memory(T, H, W):
 def test_lerobot_style_writer_is_lerobots_encoder(tmp_path):
     """Our streaming writer with LeRobot's settings writes the bytes LeRobot's own PNG path
     (encode_video_frames) writes, with no PNGs."""
-    from PIL import Image
     from lerobot.datasets.video_utils import encode_video_frames
+    from PIL import Image
 
     rng = np.random.default_rng(0)
     frames = np.clip(rng.normal(128, 40, (9, 48, 64, 3)), 0, 255).astype(np.uint8)
@@ -78,7 +77,7 @@ def built(tmp_path_factory):
     recipe = tmp / "recipe.yaml"
     recipe.write_text(yaml.safe_dump(data))
     root = tmp / "ds0"
-    assert build_main(["--repo", "local/pkg", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
+    assert imac_main(["build", "--repo", "local/pkg", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
                        "--no-progress", "--workers", "1", "--episodes", "1"]) == 0
     shutil.copytree(root, tmp / "ds1")
     return [root, tmp / "ds1"]
@@ -89,7 +88,7 @@ def test_built_dataset_is_valid_every_frame(built, capsys):
     assert report.ok, report.format()
     assert set(report.results) == {"metadata", "frame_counts", "imac_block", "rig", "calibration", "caps",
                                    "decode", "depth"}
-    assert validate_main([str(built[0])]) == 0
+    assert imac_main(["validate", str(built[0])]) == 0
     assert "OK" in capsys.readouterr().out
 
 
@@ -150,12 +149,12 @@ def test_validation_names_the_damage(built, tmp_path, what, check, capsys):
     _damage(root, what)
     report = validate_dataset(root, full=True)
     assert not report.ok and report.results.get(check), report.format()
-    assert validate_main([str(root), "--full"]) == 2
+    assert imac_main(["validate", str(root), "--full"]) == 2
     assert "INVALID" in capsys.readouterr().out
 
 
 def test_linear_features_constructor_equals_datasets_own(built):
-    """hf_features.install(): the same Features (values and decoding flags) as datasets' own
+    """hf_features.use_linear_features(): the same Features (values and decoding flags) as datasets' own
     quadratic constructor, on every parquet schema of a built dataset and on old-style lists."""
     import datasets
     from datasets.features.features import Features, List, Value
@@ -164,6 +163,7 @@ def test_linear_features_constructor_equals_datasets_own(built):
 
     if not str(datasets.__version__).startswith("4."):
         pytest.skip(f"datasets {datasets.__version__}: the patch is not installed there")
+    hf_features.use_linear_features()
     assert hf_features.installed() and Features.__init__ is hf_features._linear_init
     original = hf_features.original_init()
 

@@ -1,4 +1,4 @@
-"""The depth colour codec (imac_data.depth) against independent oracles: the power
+"""The depth colour codec (imac_data.core.depth) against independent oracles: the power
 transform written out here from DESIGN.md section 4, a brute-force nearest point on a
 densely sampled walk, and the analytic 8-bit quantisation step."""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from imac_data.depth import (
+from imac_data.core.depth import (
     CORNERS,
     N_CODES,
     DepthCodec,

@@ -4,7 +4,7 @@ No real DA3 weights can be downloaded here, so the DA3 tests use a randomly
 initialised ``da3-small``: they check shapes, that our batched pipeline equals DA3's
 own ``inference()``, the pose convention, scale handling and the errors, not the
 accuracy of the depth. They are skipped when ``depth_anything_3`` is not importable
-(install it with ``imac_data.depth_sources.DA3_INSTALL``).
+(install it with ``imac_data.sources.da3.DA3_INSTALL``).
 """
 
 import importlib.util
@@ -14,15 +14,10 @@ import types
 import numpy as np
 import pytest
 
-from imac_data.cameras import Camera, rescale_intrinsics
-from imac_data.depth_sources import (
-    DepthAnything3,
-    DepthSource,
-    EpisodeViews,
-    RecordedDepth,
-    check_view_geometry,
-)
+from imac_data.core.cameras import Camera, rescale_intrinsics
 from imac_data.errors import InputError
+from imac_data.sources.da3 import DepthAnything3, check_view_geometry
+from imac_data.sources.depth import DepthSource, EpisodeViews, RecordedDepth
 
 HAVE_DA3 = importlib.util.find_spec("depth_anything_3") is not None
 needs_da3 = pytest.mark.skipif(not HAVE_DA3, reason="depth_anything_3 not installed (optional extra da3)")

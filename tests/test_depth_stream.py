@@ -17,23 +17,24 @@ import pytest
 from lerobot.datasets.aggregate import aggregate_datasets
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data import aloha
-from imac_data.aloha_hdf5 import episode_paths, read_episode
-from imac_data.cameras import load_calibration, rescale_intrinsics
-from imac_data.dataset.depth_streams import add_depth_streams
-from imac_data.dataset.videos import VideoEncoding
-from imac_data.depth import (
+from imac_data.build.from_episodes import ingest_episodes
+from imac_data.core.cameras import load_calibration, rescale_intrinsics
+from imac_data.core.depth import (
     DepthCodec,
     depth_codec_of,
     depth_stream_key,
     resize_depth,
 )
-from imac_data.depth_sources import RecordedDepth, episode_views
+from imac_data.core.rig import Rig
+from imac_data.core.robot import aloha
+from imac_data.core.robot.model import RobotModel
+from imac_data.dataset.depth_streams import add_depth_streams
+from imac_data.dataset.ingest import IngestOptions
+from imac_data.dataset.videos import VideoEncoding
 from imac_data.errors import InputError
-from imac_data.ingest import IngestOptions, ingest_episodes
-from imac_data.rig import Rig
-from imac_data.robot import RobotModel
-from imac_data.simulate import SimConfig, record_dataset
+from imac_data.sources.depth import RecordedDepth, episode_views
+from imac_data.sources.hdf5 import episode_paths, read_episode
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 CAMS = ["cam_high", "cam_left_wrist", "cam_right_wrist"]
 CODEC = DepthCodec.preset("manipulation")
@@ -60,7 +61,7 @@ def sim(tmp_path_factory, robot):
 
 def recorded(sim, robot):
     for i, raw in enumerate(sim["raws"]):
-        yield RecordedDepth().depth(episode_views(raw, sim["calib"], robot, name=f"episode {i}"))
+        yield RecordedDepth().depth(episode_views(raw, Rig(robot, sim["calib"]), name=f"episode {i}"))
 
 
 @pytest.fixture(scope="module")
@@ -236,7 +237,7 @@ def test_nan_and_inf_depth_are_stored_as_invalid(copy, sim, robot):
 
 def test_recorded_depth_source(sim, robot):
     raw = sim["raws"][0]
-    views = episode_views(raw, sim["calib"], robot)
+    views = episode_views(raw, Rig(robot, sim["calib"]))
     depth = RecordedDepth().depth(views)
     assert sorted(depth) == CAMS
     for cam in CAMS:

@@ -1,12 +1,12 @@
 """Closed-loop policy evaluation in the world model, end to end on the CPU, and its CLI.
 
-Real parts only: a dataset built by ``imac_data.build`` (the rollout tests' fixture), the small
+Real parts only: a dataset built by ``imac_data.build.hdf5`` (the rollout tests' fixture), the small
 DiT (untrained, its zero-initialised layers randomised so that the controls change its output: the
 test checks the plumbing, not quality), LeRobot's own ACT policy saved with ``save_pretrained`` and
 its processors, LeRobot's writer and loader, and ``lerobot-dataset-viz``'s own function.
 
 Oracles: a policy that replays the recorded actions must reproduce, bit for bit, the open-loop
-long rollout of those actions (:func:`imac_model.rollout.sample_rollout`, written before this
+long rollout of those actions (:func:`imac_model.pipelines.rollout.sample_rollout`, written before this
 module); the LeRobot adapter must return what ACT's own ``predict_action_chunk`` and
 post-processor return; the written dataset's actions, states and first frame against the source
 dataset and the controller map.
@@ -23,18 +23,19 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from test_model_rollout import built  # noqa: F401  (the rollout tests' built dataset fixture)
 
 from imac_data.errors import InputError
-from imac_model import mosaic
-from imac_model.batch import ChunkBatch
-from imac_model.checkpoint import load_world_model, save_checkpoint
+from imac_model.cli import main as model_main
 from imac_model.config import RunConfig
-from imac_model.data import open_metadata
-from imac_model.evaluate import cli
+from imac_model.data import mosaic
+from imac_model.data.batch import ChunkBatch
+from imac_model.data.chunks import open_metadata
 from imac_model.evaluate.closed_loop import ClosedLoopConfig, episode_starts, rollout_episode, run_closed_loop
 from imac_model.evaluate.policies import ActionQueue, LeRobotPolicy, recorded_actions_policy
+from imac_model.evaluate.results import write_json
 from imac_model.evaluate.success import CallableJudge
-from imac_model.online_controls import OnlineControls
-from imac_model.rollout import sample_rollout
-from imac_model.sample import open_chunks
+from imac_model.models.checkpoint import load_world_model, save_checkpoint
+from imac_model.pipelines.online_controls import OnlineControls
+from imac_model.pipelines.rollout import sample_rollout
+from imac_model.pipelines.sampling import open_chunks
 
 REPO = "local/rollout_tiny"
 VIEWS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
@@ -43,8 +44,8 @@ TINY = {"backbone.small.dim": 32, "backbone.small.depth": 1, "backbone.small.hea
 
 
 def _checkpoint(root, out: Path, mode: str) -> Path:
-    from imac_model import train as train_cli
-    from imac_model.world_model import WorldModel
+    from imac_model.models.world_model import WorldModel
+    from imac_model.training import train as train_cli
 
     run = RunConfig().replace(**{"data.dataset": REPO, "data.root": str(root), "conditioning.mode": mode, **TINY})
     spec, _ = train_cli.model_spec(run, open_metadata(run.data))
@@ -93,7 +94,7 @@ def test_replaying_the_recorded_actions_is_the_open_loop_rollout(world):
 def test_closed_loop_cli_writes_a_lerobot_dataset_of_generated_episodes(world, tmp_path, capsys):
     root, ckpt, model, spec, chunks, online = world
     out = tmp_path / "generated"
-    assert cli.main(["closed-loop", "--checkpoint", str(ckpt), "--mode", "motion+contact", "--policy", "recorded",
+    assert model_main(["evaluate", "closed-loop", "--checkpoint", str(ckpt), "--mode", "motion+contact", "--policy", "recorded",
                      "--output", str(out), "--episodes", "0", "1", "--horizon-chunks", "2", "--seed", "3",
                      "--no-progress"]) == 0
     assert "wrote 2 generated episodes" in capsys.readouterr().out
@@ -139,12 +140,12 @@ def test_closed_loop_cli_writes_a_lerobot_dataset_of_generated_episodes(world, t
     # labels scored by people go into the dataset; a CSV naming other episodes is refused
     labels = tmp_path / "labels.csv"
     labels.write_text("episode_index,success\n0,1\n1,0\n")
-    assert cli.main(["label", "--dataset", str(out), "--labels", str(labels)]) == 0
+    assert model_main(["evaluate", "label", "--dataset", str(out), "--labels", str(labels)]) == 0
     assert list(LeRobotDataset("local/generated", root=out).meta.episodes["imac/success"]) == [True, False]
     labels.write_text("episode_index,success\n0,1\n7,0\n")
-    assert cli.main(["label", "--dataset", str(out), "--labels", str(labels)]) == 2
+    assert model_main(["evaluate", "label", "--dataset", str(out), "--labels", str(labels)]) == 2
     assert "names episodes the dataset does not have: [7]" in capsys.readouterr().err
-    assert cli.main(["label", "--dataset", str(root), "--labels", str(labels)]) == 2
+    assert model_main(["evaluate", "label", "--dataset", str(root), "--labels", str(labels)]) == 2
     assert "a recorded dataset is never modified" in capsys.readouterr().err
 
 
@@ -245,16 +246,16 @@ def test_a_policy_that_does_not_fit_the_world_model_is_refused(world, act_dir, t
     out = tmp_path / "never"
     args = ["closed-loop", "--checkpoint", str(ckpt), "--output", str(out), "--episodes", "0", "--horizon-chunks", "1",
             "--no-progress"]
-    assert cli.main([*args, "--policy", f"lerobot:{top}"]) == 2
+    assert model_main(["evaluate", *args, "--policy", f"lerobot:{top}"]) == 2
     assert "do not match the world model's views" in capsys.readouterr().err
-    assert cli.main([*args, "--policy", f"lerobot:{seven}"]) == 2
+    assert model_main(["evaluate", *args, "--policy", f"lerobot:{seven}"]) == 2
     assert "7-dimensional actions" in capsys.readouterr().err
     # a plain callable with the wrong action size is refused at its first answer; nothing is left behind
     with pytest.raises(InputError, match="returned 3-dimensional actions"):
         run_closed_loop(model, chunks, online, lambda obs: torch.zeros(4, 3), out,
                         config=ClosedLoopConfig(episodes=(0,), horizon_chunks=1), progress=False)
     # a checkpoint trained with another conditioning mode than asked
-    assert cli.main([*args, "--policy", "hold", "--mode", "motion"]) == 2
+    assert model_main(["evaluate", *args, "--policy", "hold", "--mode", "motion"]) == 2
     assert "trained with conditioning mode 'motion+contact', not 'motion'" in capsys.readouterr().err
     assert not out.exists() and not list(tmp_path.glob(".never*"))
 
@@ -265,7 +266,7 @@ def test_a_policy_that_does_not_fit_the_world_model_is_refused(world, act_dir, t
 def test_video_metrics_cli_writes_the_protocol(world, tmp_path):
     _, ckpt, *_ = world
     out = tmp_path / "metrics.json"
-    assert cli.main(["video-metrics", "--checkpoint", str(ckpt), "--episodes", "1", "--chunks", "2", "--json", str(out),
+    assert model_main(["evaluate", "video-metrics", "--checkpoint", str(ckpt), "--episodes", "1", "--chunks", "2", "--json", str(out),
                      "--no-progress"]) == 0
     result = json.loads(out.read_text())
     p = result["protocol"]
@@ -276,7 +277,7 @@ def test_video_metrics_cli_writes_the_protocol(world, tmp_path):
 
 
 def test_strict_json_names_non_finite_values(tmp_path):
-    path = cli.write_json(tmp_path / "r.json", {"pooled": {"psnr": float("inf"), "mse": 0.0},
+    path = write_json(tmp_path / "r.json", {"pooled": {"psnr": float("inf"), "mse": 0.0},
                                                  "per_frame": [1.0, float("nan"), -float("inf")]})
 
     def refuse(name):
@@ -303,7 +304,7 @@ def test_correlate_cli_reads_per_episode_successes(tmp_path):
     with path.open("w", newline="") as f:
         csv.writer(f).writerows([("policy", "group", "source", "success"), *rows])
     out, png = tmp_path / "corr.json", tmp_path / "corr.png"
-    assert cli.main(["correlate", "--outcomes", str(path), "--json", str(out), "--png", str(png),
+    assert model_main(["evaluate", "correlate", "--outcomes", str(path), "--json", str(out), "--png", str(png),
                      "--replicates", "200"]) == 0
     result = json.loads(out.read_text())
     assert result["levels"]["group"]["n_points"] == 6
@@ -311,4 +312,4 @@ def test_correlate_cli_reads_per_episode_successes(tmp_path):
     assert png.stat().st_size > 1000
     bad = tmp_path / "bad.csv"
     bad.write_text("policy,source,success\na,simulator,1\n")
-    assert cli.main(["correlate", "--outcomes", str(bad), "--json", str(out)]) == 2
+    assert model_main(["evaluate", "correlate", "--outcomes", str(bad), "--json", str(out)]) == 2

@@ -12,8 +12,15 @@ import scipy.stats
 
 from imac_data.errors import InputError
 from imac_model.evaluate.statistics import (
-    STATISTIC_FUNCTIONS, STATISTICS, kendall_tau_b, mmrv, pearson, plot_policy_scatter, policy_correlation,
-    scatter_figure, spearman,
+    STATISTIC_FUNCTIONS,
+    STATISTICS,
+    kendall_tau_b,
+    mmrv,
+    pearson,
+    plot_policy_scatter,
+    policy_correlation,
+    scatter_figure,
+    spearman,
 )
 
 

@@ -10,16 +10,26 @@ import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data import aloha
-from imac_data.cameras import load_calibration
+from imac_data.build.from_episodes import ingest_episodes
+from imac_data.core.cameras import load_calibration
+from imac_data.core.rig import Rig
+from imac_data.core.robot import aloha
+from imac_data.core.robot.model import RobotModel
+from imac_data.dataset.ingest import IngestOptions
 from imac_data.errors import InputError
-from imac_data.ingest import IngestOptions, ingest_episodes
-from imac_data.robot import RobotModel
-from imac_data.rig import Rig
-from imac_data.simulate import SimConfig, record_dataset
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 from imac_model.evaluate.success import (
-    CallableJudge, CsvJudge, EpisodeFrames, SuccessClassifier, SuccessClassifierConfig, dataset_success_labels,
-    episode_frames, evaluate_judge, fit_classifier, split_episodes, train_success_classifier,
+    CallableJudge,
+    CsvJudge,
+    EpisodeFrames,
+    SuccessClassifier,
+    SuccessClassifierConfig,
+    dataset_success_labels,
+    episode_frames,
+    evaluate_judge,
+    fit_classifier,
+    split_episodes,
+    train_success_classifier,
 )
 
 CAMS = ("observation.images.cam_high", "observation.images.cam_left_wrist", "observation.images.cam_right_wrist")

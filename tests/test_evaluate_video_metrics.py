@@ -17,8 +17,15 @@ from scipy import ndimage
 from imac_data.errors import InputError
 from imac_model.evaluate import video_metrics as vm
 from imac_model.evaluate.video_metrics import (
-    FID_WEIGHTS_URL, FVD_WEIGHTS_URL, MissingWeightsError, VideoMetricsConfig, compute_video_metrics,
-    frechet_distance, load_fid_extractor, load_fvd_extractor, save_random_weights,
+    FID_WEIGHTS_URL,
+    FVD_WEIGHTS_URL,
+    MissingWeightsError,
+    VideoMetricsConfig,
+    compute_video_metrics,
+    frechet_distance,
+    load_fid_extractor,
+    load_fvd_extractor,
+    save_random_weights,
 )
 
 PIXEL_ONLY = VideoMetricsConfig(metrics=("mse", "psnr", "ssim"))

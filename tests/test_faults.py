@@ -17,9 +17,9 @@ import pytest
 import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data.build import main
+from imac_data.cli import main as imac_main
 from imac_data.recipes import RECIPES_DIR
-from imac_data.simulate import SimConfig, record_dataset
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +62,7 @@ def test_overwrite_never_deletes_the_source(sim_src, tmp_path, capsys, layout):
     recipe = recipe_file(tmp_path)
     before = tree_digest(src)
     listing = sorted(p.name for p in tmp_path.iterdir())
-    rc = main(["--repo", "local/x", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
+    rc = imac_main(["build", "--repo", "local/x", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
                "--overwrite", "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2
@@ -83,7 +83,7 @@ def test_overwrite_never_deletes_the_calibration(sim_src, tmp_path, capsys):
     recipe = tmp_path / "recipe.yaml"
     recipe.write_text(yaml.safe_dump(data))
     digest = hashlib.sha256(calib.read_bytes()).hexdigest()
-    rc = main(["--repo", "local/x", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
+    rc = imac_main(["build", "--repo", "local/x", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
                "--overwrite", "--no-progress"])
     assert rc == 2
     assert "calibration" in capsys.readouterr().err
@@ -91,7 +91,7 @@ def test_overwrite_never_deletes_the_calibration(sim_src, tmp_path, capsys):
 
 
 def test_augment_refuses_a_dataset_inside_its_raw_episodes(sim_src, tmp_path, capsys):
-    from imac_data.augment import main as augment_main
+    from imac_data.build.augment import main as augment_main
 
     src = copy_source(sim_src, tmp_path / "episodes")
     before = tree_digest(src)
@@ -107,7 +107,7 @@ def test_augment_refuses_a_dataset_inside_its_raw_episodes(sim_src, tmp_path, ca
 
 def build_main(recipe: Path, src: Path, root: Path, *extra) -> int:
     """The build CLI in this process (one worker: no pool), quiet."""
-    return main(["--repo", "local/x", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
+    return imac_main(["build", "--repo", "local/x", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
                  "--no-progress", "--workers", "1", *extra])
 
 
@@ -247,7 +247,7 @@ def test_bad_input_is_refused_before_any_work(sim_src, tmp_path, capsys, case):
 
 def test_success_text_is_parsed_not_truthy(sim_src, tmp_path):
     """Oracle: the words themselves (bool("no") is True)."""
-    from imac_data.aloha_hdf5 import EpisodeReader
+    from imac_data.sources.hdf5 import EpisodeReader
 
     src = copy_source(sim_src, tmp_path / "episodes")
     for value, expected in (("no", False), (b"Yes", True), ("failure", False), (np.int64(1), True), ("", None)):
@@ -274,7 +274,7 @@ def test_reference_frame_without_scene_is_named_or_built_without_contact(sim_src
     """Depth 0 in every camera at frame 0 of episode 1 (a sensor warming up): by default one
     error naming the file and the frame; with empty_reference_scene: no_contact the build
     completes, and that chunk (frames 0..4) has the documented empty caps, the others not."""
-    from imac_data.contact import EMPTY_CAP
+    from imac_data.core.contact.images import EMPTY_CAP
 
     src = copy_source(sim_src, tmp_path / "episodes")
     depth_keys = [f"observations/images_depth/{c}" for c in ("cam_high", "cam_left_wrist", "cam_right_wrist")]
@@ -354,7 +354,7 @@ def test_a_users_directory_where_the_build_stages_is_never_deleted(sim_src, tmp_
     assert str(theirs) in err and "not made by imac_data" in err
     assert tree_digest(tmp_path) == before and not root.exists()
 
-    from imac_data.safety import SIBLING_MARKER
+    from imac_data.dataset.output import SIBLING_MARKER
 
     (theirs / SIBLING_MARKER).write_text("")  # now it is a leftover of ours
     assert build_main(recipe, sim_src, root, "--overwrite") == 0
@@ -391,7 +391,7 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
 
     The source also holds what is accepted and rescaled (items 2, 3): a calibration made at
     twice the images' resolution, and float depth at half of it in one episode."""
-    from imac_data import dataset_card
+    from imac_data.dataset import card as dataset_card
     from imac_data.dataset import columns
 
     src = copy_source(sim_src, tmp_path / "episodes")
@@ -426,7 +426,7 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     assert sorted(p.name for p in root.parent.iterdir()) == ["out"]
     assert tree_digest(src) == source
     # the free-space estimate is a lower bound of the staging peak (about twice the output)
-    from imac_data.diskspace import estimate_build_bytes
+    from imac_data.dataset.output import estimate_build_bytes
 
     robot = sum(p.stat().st_size for p in (root / "meta" / "imac" / "robot").rglob("*") if p.is_file())
     need = estimate_build_bytes(12, {c: (120, 160) for c in ("cam_high", "cam_left_wrist", "cam_right_wrist")},
@@ -435,7 +435,7 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
 
 
 def test_ctrl_c_is_one_line_and_exit_130(capsys):
-    from imac_data.cli import EXIT_INTERRUPTED, run_command
+    from imac_data.console import EXIT_INTERRUPTED, run_command
 
     def body():
         raise KeyboardInterrupt
@@ -460,7 +460,7 @@ def test_a_ctrl_c_that_a_library_swallowed_still_stops_the_command():
     swallowed, yet recorded, and the pipeline's next check raises it."""
     import signal
 
-    from imac_data.workers import interrupt_pending, note_interrupts, raise_if_interrupted
+    from imac_data.console import interrupt_pending, note_interrupts, raise_if_interrupted
 
     note_interrupts()
     try:
@@ -498,7 +498,7 @@ def test_environment_errors_are_recognised_however_they_arrive():
     (pyarrow, PyAV): still an environment fault; anything else is a bug."""
     import pickle
 
-    from imac_data.cli import environment_problem
+    from imac_data.console import environment_problem
 
     full = pickle.loads(pickle.dumps(OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/data/x.mp4")))
     assert environment_problem(full).startswith("No space left on device (ENOSPC): /data/x.mp4 - free some space")
@@ -558,7 +558,7 @@ def test_a_really_full_disk_warns_fails_cleanly_and_resumes(sim_src, tmp_path, s
 HOLD_LOCK = """
 import os, sys, time
 from pathlib import Path
-from imac_data.lock import lock_path, output_lock
+from imac_data.dataset.output import lock_path, output_lock
 root = Path(sys.argv[1])
 with output_lock(root):
     print("locked", flush=True)
@@ -582,7 +582,7 @@ def hold_lock(root: Path, *args) -> subprocess.Popen:
 def test_a_second_build_of_the_same_output_is_locked_out(sim_src, tmp_path, capsys):
     """Another build holds the output's lock: refused with exit 3 naming its PID, nothing
     written; the lock file lies next to the staging directory."""
-    from imac_data.lock import lock_path
+    from imac_data.dataset.output import lock_path
 
     recipe, root = recipe_file(tmp_path), tmp_path / "out"
     assert lock_path(root).parent == root.parent

@@ -9,14 +9,16 @@ import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data import aloha
-from imac_data.aloha_hdf5 import read_episode, write_episode
-from imac_data.cameras import load_calibration, save_calibration
+from imac_data.build.from_episodes import ingest_episodes
+from imac_data.core.cameras import load_calibration, save_calibration
+from imac_data.core.rig import Rig
+from imac_data.core.robot import aloha
+from imac_data.core.robot.model import RobotModel
+from imac_data.dataset.ingest import IngestOptions
+from imac_data.dataset.output import staging_dir
 from imac_data.errors import InputError
-from imac_data.ingest import IngestOptions, ingest_episodes, staging_dir
-from imac_data.rig import Rig
-from imac_data.robot import RobotModel
-from imac_data.simulate import SimConfig, record_dataset
+from imac_data.sources.hdf5 import read_episode, write_episode
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 
 @pytest.fixture(scope="module")
@@ -163,7 +165,7 @@ def test_existing_output_is_not_replaced_without_overwrite(source, robot, tmp_pa
 def test_failure_midway_leaves_nothing(source, robot, tmp_path, monkeypatch):
     """An error after LeRobot has started writing (here: while reading episode 2's frames)
     removes the staging dir."""
-    from imac_data.aloha_hdf5 import EpisodeReader
+    from imac_data.sources.hdf5 import EpisodeReader
 
     real = EpisodeReader.images
 

@@ -19,13 +19,14 @@ import pytest
 import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data import aloha
-from imac_data.aloha_hdf5 import read_episode
-from imac_data.build import BuildRequest, build
-from imac_data.cameras import load_calibration, save_calibration
+from imac_data.build.flow import build_dataset as build
+from imac_data.build.staging import BuildRequest
+from imac_data.core.cameras import load_calibration, save_calibration
+from imac_data.core.robot import aloha
 from imac_data.errors import InputError
 from imac_data.recipes import load_recipe
-from imac_data.simulate import SimConfig, record_dataset
+from imac_data.sources.hdf5 import read_episode
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 H, W = 48, 64
 KEYS = {"cam_high": "observation.images.top", "cam_left_wrist": "observation.images.left_wrist",
@@ -90,7 +91,7 @@ def recipe_file(tmp_path, source_root, calibration, **sections):
 
 @pytest.fixture(scope="module")
 def da3_weights(sim):
-    from imac_data.depth_sources import DepthAnything3
+    from imac_data.sources.da3 import DepthAnything3
 
     pytest.importorskip("depth_anything_3")
     weights = sim / "da3-small-random"
@@ -142,8 +143,8 @@ def test_lerobot_v30_source_built_with_da3(source, sim, da3_weights, tmp_path):
 def test_reader_frames_equal_lerobots_decoding(source):
     """The streamed reader against LeRobot's own loader (its video decoder) as the oracle,
     read in the pipeline's ranges: frame 0..4, then 5..8, ..."""
-    from imac_data.lerobot_reader import LeRobotEpisodeReader
-    from imac_data.lerobot_source import SourceDataset, episode_states
+    from imac_data.sources.lerobot_dataset import SourceDataset, episode_states
+    from imac_data.sources.lerobot_episodes import LeRobotEpisodeReader
 
     src = SourceDataset.open(source)
     ds = LeRobotDataset("local/source", root=source)
@@ -162,7 +163,7 @@ def test_reader_frames_equal_lerobots_decoding(source):
 @pytest.mark.parametrize("depth", ["recorded", "none"])
 def test_one_camera_source_recorded_depth_or_none(sim, tmp_path, depth):
     """One camera; depth recorded as float metres in the source, or no depth (motion only)."""
-    from imac_data.depth import depth_codec_of
+    from imac_data.core.depth import depth_codec_of
 
     source = tmp_path / "one_cam"
     write_lerobot(sim / "sim", source, ["cam_high"], depth_key="observation.depth_m.{cam}")
@@ -220,7 +221,7 @@ def test_camera_mapping_naming_a_missing_key(source, sim, tmp_path):
 
 
 def test_joint_layout_wider_than_the_state(source, sim, tmp_path):
-    from imac_data.lerobot_source import SourceDataset, check_joint_layout
+    from imac_data.sources.lerobot_dataset import SourceDataset, check_joint_layout
 
     with pytest.raises(InputError, match=r"robot.joint_map has 16 entries, wider than 'observation.state' of "
                                          r"dataset .*source \(14 entries"):
@@ -267,7 +268,7 @@ def test_missing_source_files_are_named_before_any_work(source, sim, tmp_path):
     (None, r"info.json: not valid JSON"),
 ])
 def test_damaged_info_json_is_named(source, tmp_path, damage, match):
-    from imac_data.lerobot_source import SourceDataset
+    from imac_data.sources.lerobot_dataset import SourceDataset
 
     copy = tmp_path / "src"
     shutil.copytree(source / "meta", copy / "meta")
@@ -288,7 +289,7 @@ def test_da3_model_directory_that_does_not_exist(source, sim, tmp_path):
 
 
 def test_end_effector_actions_are_refused(source, sim, tmp_path):
-    from imac_data.lerobot_source import cartesian_names
+    from imac_data.sources.lerobot_dataset import cartesian_names
 
     recipe = recipe_file(tmp_path, source, sim / "sim" / "calibration.json", depth={"source": "none"},
                          source={"action_space": "ee"})
@@ -299,7 +300,7 @@ def test_end_effector_actions_are_refused(source, sim, tmp_path):
 
 
 def test_hub_source_offline_is_a_clear_error(tmp_path, monkeypatch):
-    from imac_data.lerobot_source import locate_source
+    from imac_data.sources.lerobot_dataset import locate_source
 
     monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
     with pytest.raises(InputError, match="source.repo_id 'lerobot/pusht': LeRobot cannot download it.*source.path"):
@@ -307,8 +308,8 @@ def test_hub_source_offline_is_a_clear_error(tmp_path, monkeypatch):
 
 
 def test_episode_metadata_errors_name_the_file_and_entry(tmp_path):
-    from imac_data.lerobot_source import episode_metadata
     from imac_data.recipes import EpisodeDefaults
+    from imac_data.sources.lerobot_dataset import episode_metadata
 
     bad = tmp_path / "meta.json"
     bad.write_text(json.dumps({"0": {"success": True}, "5": {"success": False}}))
@@ -406,8 +407,8 @@ def test_hdf5_build_with_depth_none_has_motion_streams_only(sim, tmp_path):
 READER = """
 import json, sys
 from pathlib import Path
-from imac_data.lerobot_reader import _VideoFrames
-from imac_data.workers import peak_rss_mb
+from imac_data.sources.lerobot_episodes import _VideoFrames
+from imac_data.build.workers import peak_rss_mb
 path, length, step = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 frames = _VideoFrames(path, 0.0, 25.0, length, "memory test")
 total = 0
@@ -469,7 +470,7 @@ def test_lerobot_source_build_takes_the_output_lock(source, sim, tmp_path):
     recipe = recipe_file(tmp_path, source, sim / "sim" / "calibration.json", depth={"source": "none"})
     root = tmp_path / "out"
     holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom pathlib import Path\n"
-                               "from imac_data.lock import output_lock\nwith output_lock(Path(sys.argv[1])):\n"
+                               "from imac_data.dataset.output import output_lock\nwith output_lock(Path(sys.argv[1])):\n"
                                "    print('locked', flush=True)\n    time.sleep(600)", str(root)],
                               stdout=subprocess.PIPE, text=True)
     try:

@@ -2,7 +2,7 @@
 
 * ``lerobot-train``: the exact command of the dataset card, for 2 steps on the CPU.
 * ``lerobot-dataset-viz --save 1``: its rerun recording holds every stream, frame for frame.
-* ``python -m imac_data.qa preview``: the mosaic's tiles match the dataset's videos decoded
+* ``imac qa preview``: the mosaic's tiles match the dataset's videos decoded
   independently with PyAV.
 """
 
@@ -19,13 +19,12 @@ import numpy as np
 import pytest
 import yaml
 
-from imac_data.build import main as build_main
-from imac_data.dataset_card import lerobot_train_command
-from imac_data.preview import LABEL_PX, ROWS
-from imac_data.qa import main as qa_main
+from imac_data.cli import main as imac_main
+from imac_data.dataset.card import lerobot_train_command
+from imac_data.dataset.videos import read_video_frames
+from imac_data.qa.preview import LABEL_PX, ROWS
 from imac_data.recipes import RECIPES_DIR
-from imac_data.simulate import SimConfig, record_dataset
-from imac_data.video_streams import read_video_frames
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 REPO_ID = "local/tiny"
 H, W, T = 64, 80, 10
@@ -41,7 +40,7 @@ def built(tmp_path_factory):
     (tmp / "recipe.yaml").write_text(yaml.safe_dump(recipe))
     home = tmp / "lerobot_home"
     root = home / REPO_ID
-    assert build_main(["--repo", REPO_ID, "--recipe", str(tmp / "recipe.yaml"), "--source", str(tmp / "sim"),
+    assert imac_main(["build", "--repo", REPO_ID, "--recipe", str(tmp / "recipe.yaml"), "--source", str(tmp / "sim"),
                        "--root", str(root), "--episodes", "1", "--no-progress"]) == 0
     return home, root
 
@@ -108,7 +107,7 @@ def _source_frames(root: Path, key: str) -> np.ndarray:
 def test_preview_mosaic_of_every_stream(built, tmp_path, capsys):
     home, root = built
     out = tmp_path / "preview.mp4"
-    assert qa_main(["preview", str(root), "--episode", "0", "--out", str(out), "--no-progress"]) == 0
+    assert imac_main(["qa", "preview", str(root), "--episode", "0", "--out", str(out), "--no-progress"]) == 0
     assert f"wrote {out}" in capsys.readouterr().out
     video = read_video_frames(out)
     cams = ["cam_high", "cam_left_wrist", "cam_right_wrist"]
@@ -123,10 +122,10 @@ def test_preview_mosaic_of_every_stream(built, tmp_path, capsys):
                 err = np.abs(tile - _source_frames(root, prefix + cam)).mean()
                 assert err < 6, f"{label} {cam}: mean abs error {err:.1f} against the source video"
     # Bad input: a clear error and nothing written.
-    assert qa_main(["preview", str(root), "--episode", "3", "--out", str(tmp_path / "x.mp4")]) == 2
+    assert imac_main(["qa", "preview", str(root), "--episode", "3", "--out", str(tmp_path / "x.mp4")]) == 2
     assert "episode 3 does not exist" in capsys.readouterr().err
-    assert qa_main(["preview", str(root), "--out", str(root / "x.mp4")]) == 2
+    assert imac_main(["qa", "preview", str(root), "--out", str(root / "x.mp4")]) == 2
     assert "outside the dataset" in capsys.readouterr().err
-    assert qa_main(["preview", str(tmp_path), "--out", str(tmp_path / "y.mp4")]) == 2
+    assert imac_main(["qa", "preview", str(tmp_path), "--out", str(tmp_path / "y.mp4")]) == 2
     assert "not a LeRobot dataset" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["preview.mp4"]

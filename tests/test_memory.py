@@ -16,9 +16,9 @@ from pathlib import Path
 
 import yaml
 
-from imac_data.aloha_hdf5 import EpisodeReader, tile_episode
 from imac_data.recipes import RECIPES_DIR
-from imac_data.simulate import SimConfig, record_dataset
+from imac_data.sources.hdf5 import EpisodeReader, tile_episode
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 REPO = Path(__file__).resolve().parent.parent
 SHORT, LONG = 32, 192
@@ -27,18 +27,18 @@ GROWTH_LIMIT_MB = 50.0
 WORKER = """
 import json, sys
 from pathlib import Path
-from imac_data.cli import quiet_libraries
-from imac_data.ingest import IngestOptions
-from imac_data.pipeline import write_episode_dataset
+from imac_data.console import quiet_libraries
+from imac_data.dataset.ingest import IngestOptions
+from imac_data.build.streams import write_episode_dataset
 from imac_data.recipes import load_recipe
-from imac_data.rig import Rig
+from imac_data.core.rig import Rig
 quiet_libraries()
 episode, recipe, out = (Path(a) for a in sys.argv[1:4])
 r = load_recipe(recipe)
 rig = Rig.from_recipe(r, episode.parent / "calibration.json")
 options = IngestOptions(fps=25, task="t", robot_type=rig.robot.name, state_names=rig.state_names)
 write_episode_dataset(episode, out, "local/mem", rig, r.augment, options)
-from imac_data.workers import peak_rss_mb  # VmHWM: ru_maxrss would carry the test process's peak over
+from imac_data.build.workers import peak_rss_mb  # VmHWM: ru_maxrss would carry the test process's peak over
 print(json.dumps({"peak_mb": peak_rss_mb()}))
 """
 

@@ -19,9 +19,9 @@ import torch
 import trimesh
 import yourdfpy
 
+from imac_data.core.robot.mjcf import export_urdf, mat_to_rpy, mesh_file, write_urdf
+from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.errors import InputError
-from imac_data.mjcf_to_urdf import export_urdf, mat_to_rpy, mesh_file, write_urdf
-from imac_data.robot import RobotConfig, RobotModel
 
 TOL = 1e-5  # metres / rotation-matrix entries (~rad)
 

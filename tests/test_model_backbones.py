@@ -5,9 +5,9 @@ import pytest
 import torch
 from torch import nn
 
-from imac_model.batch import ChunkBatch
 from imac_model.config import BackboneConfig, ConditioningConfig, FlowConfig, ModelSpec, SmallDiTConfig, WanConfig
-from imac_model.world_model import WorldModel
+from imac_model.data.batch import ChunkBatch
+from imac_model.models.world_model import WorldModel
 
 TINY_WAN = WanConfig(
     transformer=dict(num_attention_heads=2, attention_head_dim=8, ffn_dim=32, num_layers=2, text_dim=16, freq_dim=16),
@@ -145,7 +145,7 @@ def test_loss_ignores_reference_and_padded_frames(kind):
     # a target in a padded frame can be anything
     target = out.target.clone()
     target[1, :, -1] += 100.0
-    from imac_model.flow import masked_mse
+    from imac_model.schedulers.flow import masked_mse
     torch.testing.assert_close(masked_mse(out.velocity, target, out.frame_mask), out.loss)
 
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from imac_model import flow
+from imac_model.schedulers import flow
 
 
 def test_one_step_clean_estimate_recovers_data_with_the_true_velocity():

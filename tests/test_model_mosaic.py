@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from imac_data.cameras import project
+from imac_data.core.cameras import project
 from imac_data.errors import InputError
-from imac_model import mosaic
+from imac_model.data import mosaic
 
 
 def test_mosaic_layout_and_inverse():
@@ -66,7 +66,7 @@ def test_rescaled_K_follows_the_resized_image():
 def test_sample_labels_fit_their_panel(width):
     """A label is drawn whole inside its panel however narrow (a one-camera mosaic): the font
     shrinks first, and only below a legible size is the text cut (ending in '~')."""
-    from imac_model.sample import label
+    from imac_model.evaluate.pictures import label
 
     blank = np.full((96, width, 3), 128, np.uint8)
     for text in ("generated t+1", "a much longer label than any panel of this width can hold"):

@@ -1,4 +1,4 @@
-"""Training-time rollout and the online control rebuild, on a dataset built by imac_data.build.
+"""Training-time rollout and the online control rebuild, on a dataset built by imac_data.build.hdf5.
 
 Oracles: the dataset's own stored control streams (the offline build) against the online
 rebuild, with the certified contact tolerance and the codec's quantisation as the bounds;
@@ -18,22 +18,22 @@ import torch
 import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data.aloha_hdf5 import read_episode
-from imac_data.build import main as build_main
-from imac_data.contact import JET_LUT, chunk_plan
-from imac_data.depth import depth_codec_of, depth_from_millimetres, walk_distance
+from imac_data.cli import main as imac_main
+from imac_data.core.contact.images import JET_LUT, chunk_plan
+from imac_data.core.contact.nearest import DEFAULT_TOLERANCE
+from imac_data.core.depth import depth_codec_of, depth_from_millimetres, walk_distance
 from imac_data.errors import InputError
-from imac_data.nearest import DEFAULT_TOLERANCE
 from imac_data.recipes import RECIPES_DIR
-from imac_data.simulate import SimConfig, record_dataset
-from imac_model import mosaic
-from imac_model import sample as sample_cli
-from imac_model import train as train_cli
+from imac_data.sources.hdf5 import read_episode
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
+from imac_model.cli import main as model_main
 from imac_model.config import RolloutConfig, RunConfig, load_run_config, parse, save_config, to_dict
-from imac_model.data import ChunkDataset, open_metadata
-from imac_model.online_controls import OnlineControls, decode_depth
-from imac_model.rollout import rollout_loss
-from imac_model.world_model import WorldModel
+from imac_model.data import mosaic
+from imac_model.data.chunks import ChunkDataset, open_metadata
+from imac_model.models.world_model import WorldModel
+from imac_model.pipelines.online_controls import OnlineControls, decode_depth
+from imac_model.pipelines.rollout import rollout_loss
+from imac_model.training import train as train_cli
 
 CHUNK = 4
 VIEWS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
@@ -53,7 +53,7 @@ def built(tmp_path_factory):
     recipe["augment"] = {"height": HW[0], "width": HW[1], "contact_chunk": CHUNK}
     (tmp / "recipe.yaml").write_text(yaml.safe_dump(recipe))
     root = tmp / "ds"
-    assert build_main(["--repo", "local/rollout_tiny", "--recipe", str(tmp / "recipe.yaml"), "--source", str(sim),
+    assert imac_main(["build", "--repo", "local/rollout_tiny", "--recipe", str(tmp / "recipe.yaml"), "--source", str(sim),
                        "--root", str(root), "--no-progress", "--workers", "1"]) == 0
     return root, sim
 
@@ -161,7 +161,7 @@ def test_online_rebuild_matches_the_build(built, stored):
     assert (spec.view_height, spec.view_width) == HW
     online = OnlineControls.from_dataset(root, spec)
 
-    def float_depth(frame):  # what imac_data.depth_sources.RecordedDepth gave the build
+    def float_depth(frame):  # what imac_data.sources.depth.RecordedDepth gave the build
         return torch.stack([torch.as_tensor(depth_from_millimetres(ep.depth_mm[v][frame])) for v in VIEWS])
 
     gap, upper, same, caps, motion_equal = _rebuild_episode(online, rows, ep, float_depth)
@@ -276,7 +276,7 @@ def test_corrupt_depth_becomes_invalid_never_nan(built):
 
 def _segment(colour):
     """(3, h, w) colours on the walk -> segment index and fraction (the codec's corners)."""
-    from imac_data.depth import path_position
+    from imac_data.core.depth import path_position
 
     s = path_position(colour, channel_axis=0)
     k = s.floor().clamp(0, 6).long()
@@ -285,7 +285,7 @@ def _segment(colour):
 
 def _fixed_channel(k):
     """A channel that segment k of the walk black-red-yellow-green-cyan-blue-magenta-white holds fixed."""
-    from imac_data.depth import CORNERS
+    from imac_data.core.depth import CORNERS
 
     steps = np.abs(np.diff(CORNERS, axis=0))
     fixed = torch.as_tensor([int(np.flatnonzero(steps[j] == 0)[0]) for j in range(7)])
@@ -397,7 +397,7 @@ def test_rollout_training_and_long_sampling_clis(built, tmp_path, capsys):
                                                   "rollout.chunks": 2, "rollout.warmup_epochs": 0.1,
                                                   "train.checkpoint_every": 3}.items()]
     args = ["--dataset", "local/rollout_tiny", "--root", str(root), "--output-dir", str(out), "--no-progress"]
-    assert train_cli.main(args + [a for s in sets for a in ("--set", s)]) == 0
+    assert model_main(["train", *args, *[a for s in sets for a in ("--set", s)]]) == 0
     rows = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [r.get("phase") for r in rows[1:]] == ["warmup", "rollout", "rollout"]
     assert all(len(r["chunk_losses"]) == 2 and 0 <= r["invalid_depth"] <= 1 for r in rows[2:])
@@ -405,14 +405,14 @@ def test_rollout_training_and_long_sampling_clis(built, tmp_path, capsys):
 
     video, png = tmp_path / "long.mp4", tmp_path / "long.png"
     capsys.readouterr()
-    assert sample_cli.main(["--checkpoint", str(out), "--episode", "1", "--chunk", "1", "--chunks", "2",
+    assert model_main(["sample", "--checkpoint", str(out), "--episode", "1", "--chunk", "1", "--chunks", "2",
                             "--out", str(video), "--png", str(png), "--steps", "2", "--scale", "1"]) == 0
     printed = capsys.readouterr().out
     assert "2 chunks" in printed and "per chunk 1:" in printed and "2:" in printed
     with av.open(str(video)) as f:
         frames = [fr.to_ndarray(format="rgb24") for fr in f.decode(video=0)]
     assert len(frames) == 2 * CHUNK and png.is_file()
-    assert sample_cli.main(["--checkpoint", str(out), "--episode", "1", "--chunk", "5", "--chunks", "2"]) == 2
+    assert model_main(["sample", "--checkpoint", str(out), "--episode", "1", "--chunk", "5", "--chunks", "2"]) == 2
     assert "--chunk 5 --chunks 2: episode 1 has chunks 0..5" in capsys.readouterr().err
 
 

@@ -1,4 +1,4 @@
-"""imac_model on a real dataset built by imac_data.build: chunks against LeRobot's own loader,
+"""imac_model on a real dataset built by imac_data.build.hdf5: chunks against LeRobot's own loader,
 the training and sampling CLIs, exact resume, and bad input."""
 
 import json
@@ -11,13 +11,13 @@ import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors.torch import load_file
 
-from imac_data.build import main as build_main
+from imac_data.cli import main as imac_main
 from imac_data.recipes import RECIPES_DIR
-from imac_data.simulate import SimConfig, record_dataset
-from imac_model import sample as sample_cli
-from imac_model import train as train_cli
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
+from imac_model.cli import main as model_main
 from imac_model.config import DataConfig, load_run_config
-from imac_model.data import ChunkDataset, open_metadata, resolve_layout
+from imac_model.data.chunks import ChunkDataset, open_metadata, resolve_layout
+from imac_model.training import train as train_cli
 
 CHUNK = 4
 VIEWS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
@@ -41,7 +41,7 @@ def dataset(tmp_path_factory):
     recipe["augment"] = {"height": 64, "width": 80, "contact_chunk": CHUNK}
     (tmp / "recipe.yaml").write_text(yaml.safe_dump(recipe))
     root = tmp / "ds"
-    assert build_main(["--repo", "local/model_tiny", "--recipe", str(tmp / "recipe.yaml"), "--source", str(sim),
+    assert imac_main(["build", "--repo", "local/model_tiny", "--recipe", str(tmp / "recipe.yaml"), "--source", str(sim),
                        "--root", str(root), "--no-progress", "--workers", "1"]) == 0
     return root
 
@@ -93,8 +93,8 @@ def test_chunks_are_lerobots_frames_in_the_mosaic(dataset):
 @pytest.fixture(scope="module")
 def trained(dataset, cache_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "run"
-    rc = train_cli.main(run_args(dataset, out, "--set", "train.max_steps=4", "--set", "train.checkpoint_every=2",
-                                 "--set", "train.eval_every=2", "--set", f"data.cache_dir={cache_dir}"))
+    rc = model_main(["train", *run_args(dataset, out, "--set", "train.max_steps=4", "--set", "train.checkpoint_every=2",
+                                        "--set", "train.eval_every=2", "--set", f"data.cache_dir={cache_dir}")])
     assert rc == 0
     return out
 
@@ -140,7 +140,7 @@ def test_sample_cli_writes_the_mosaic_video(trained, tmp_path, capsys):
     import av
 
     out, png = tmp_path / "s.mp4", tmp_path / "s.png"
-    assert sample_cli.main(["--checkpoint", str(trained), "--episode", "1", "--chunk", "1", "--out", str(out),
+    assert model_main(["sample", "--checkpoint", str(trained), "--episode", "1", "--chunk", "1", "--out", str(out),
                             "--png", str(png), "--steps", "2", "--scale", "1"]) == 0
     assert "pixel MSE vs recorded" in capsys.readouterr().out
     with av.open(str(out)) as f:
@@ -171,7 +171,7 @@ def _copy_without(dataset: Path, dst: Path, prefix: str) -> Path:
 ])
 def test_bad_runs_fail_before_training_and_write_nothing(dataset, tmp_path, capsys, extra, message):
     out = tmp_path / "run"
-    assert train_cli.main(run_args(dataset, out, *extra)) == 2
+    assert model_main(["train", *run_args(dataset, out, *extra)]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
 
@@ -180,7 +180,7 @@ def test_a_dataset_without_the_modes_streams_is_refused(dataset, tmp_path, capsy
     no_contact = _copy_without(dataset, tmp_path / "no_contact", "control.contact_")
     out = tmp_path / "run"
     args = ["--dataset", "local/x", "--root", str(no_contact), "--output-dir", str(out), *TINY]
-    assert train_cli.main([*args, "--mode", "motion+contact"]) == 2
+    assert model_main(["train", *args, "--mode", "motion+contact"]) == 2
     err = capsys.readouterr().err
     assert "lacks streams that conditioning mode 'motion+contact' needs" in err
     assert "control.contact_s2g.cam_high" in err and "control.contact_r2s.cam_right_wrist" in err
@@ -195,12 +195,12 @@ def test_unreadable_checkpoints_are_named(trained, tmp_path, capsys):
     shutil.copytree(trained / "checkpoints" / "step_000004", bad)
     weights = bad / "model.safetensors"
     weights.write_bytes(weights.read_bytes()[:1000])
-    assert sample_cli.main(["--checkpoint", str(bad), "--episode", "0"]) == 2
+    assert model_main(["sample", "--checkpoint", str(bad), "--episode", "0"]) == 2
     assert f"{weights}: unreadable weights" in capsys.readouterr().err
     (bad / "model.json").write_text("{not json")
-    assert sample_cli.main(["--checkpoint", str(bad), "--episode", "0"]) == 2
+    assert model_main(["sample", "--checkpoint", str(bad), "--episode", "0"]) == 2
     assert "model.json" in capsys.readouterr().err
-    assert sample_cli.main(["--checkpoint", str(tmp_path / "nope"), "--episode", "0"]) == 2
+    assert model_main(["sample", "--checkpoint", str(tmp_path / "nope"), "--episode", "0"]) == 2
     assert "checkpoint not found" in capsys.readouterr().err
     # weights of another model
     other = tmp_path / "other"
@@ -209,7 +209,7 @@ def test_unreadable_checkpoints_are_named(trained, tmp_path, capsys):
     spec["backbone"]["small"]["dim"] = 64
     spec["backbone"]["small"]["heads"] = 4
     (other / "model.json").write_text(json.dumps(spec))
-    assert sample_cli.main(["--checkpoint", str(other), "--episode", "0"]) == 2
+    assert model_main(["sample", "--checkpoint", str(other), "--episode", "0"]) == 2
     assert "do not fit the model" in capsys.readouterr().err
     # resuming into a directory whose checkpoints are of another model is refused
     run = load_run_config(trained / "config.yaml").replace(**{"backbone.small.dim": 64, "backbone.small.heads": 4})

@@ -1,18 +1,18 @@
-"""The controller map phi (imac_data.motion): absolute targets, accumulated deltas,
+"""The controller map phi (imac_data.core.motion): absolute targets, accumulated deltas,
 gripper mapping, frame alignment; gym-aloha's position actuators as the oracle."""
 
 from __future__ import annotations
 
-import imac_data  # noqa: F401  (MUJOCO_GL=egl before mujoco is imported)
 import mujoco
 import numpy as np
 import pytest
 import torch
 from gym_aloha.constants import START_ARM_POSE, normalize_puppet_gripper_position, unnormalize_puppet_gripper_position
 
-from imac_data import aloha
+from imac_data.core.motion import Controller, GripperActionMap, frame_configurations, rollout
+from imac_data.core.robot import aloha
 from imac_data.errors import InputError
-from imac_data.motion import Controller, GripperActionMap, aloha_controller, frame_configurations, rollout
+from imac_data.sources.sim import rig as sim_rig
 
 
 def test_absolute_targets_are_the_last_command():
@@ -100,7 +100,7 @@ def test_aloha_controller_matches_gym_aloha_actuators():
     ctrlrange, which saturates it). A fully closed command is not tested: the two fingers
     touch at 0.0224 m (normalised 0.10) before reaching their limit, which is contact,
     not the controller."""
-    model = aloha.load_mujoco_model("transfer_cube")
+    model = sim_rig.load_mujoco_model("transfer_cube")
     data = mujoco.MjData(model)
     start = np.asarray(START_ARM_POSE, dtype=float)
     rng = np.random.default_rng(3)
@@ -117,10 +117,10 @@ def test_aloha_controller_matches_gym_aloha_actuators():
     qp = data.qpos[:16]
     measured = np.r_[qp[0:6], normalize_puppet_gripper_position(qp[6]), qp[8:14],
                      normalize_puppet_gripper_position(qp[14])]
-    predicted = rollout(q0, action[None], aloha_controller(model))[0]
+    predicted = rollout(q0, action[None], aloha.controller("transfer_cube"))[0]
     arms = np.r_[0:6, 7:13]
     np.testing.assert_allclose(measured[arms], predicted[arms], atol=0.015)  # rad
     np.testing.assert_allclose(measured[[6, 13]], predicted[[6, 13]], atol=0.01)  # 0.4 mm of finger travel
     # without the actuators' saturation the "beyond open" gripper would be predicted off
-    naive = rollout(q0, action[None], aloha_controller())[0]
+    naive = rollout(q0, action[None], aloha.controller())[0]
     assert abs(naive[13] - measured[13]) > 0.02

@@ -16,18 +16,19 @@ from __future__ import annotations
 import json
 import math
 
-import imac_data  # noqa: F401  (MUJOCO_GL=egl before mujoco is imported)
 import mujoco
 import numpy as np
 import pytest
 import torch
 from gym_aloha.constants import START_ARM_POSE, unnormalize_puppet_gripper_position
 
-from imac_data import aloha
-from imac_data.cameras import Camera, backproject, save_calibration
+from imac_data.cli import main as imac_main
+from imac_data.core.cameras import Camera, backproject, save_calibration
+from imac_data.core.render import RaycastRenderer, Renderer, RenderOutput, make_renderer
+from imac_data.core.robot import aloha
+from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.errors import InputError
-from imac_data.render import RaycastRenderer, Renderer, RenderOutput, make_renderer
-from imac_data.robot import RobotConfig, RobotModel
+from imac_data.sources.sim import rig as sim_rig
 
 H, W = 240, 320
 N_FRAMES = 6
@@ -49,7 +50,7 @@ class MujocoOracle:
     """Segmentation + depth (+ RGB) of gym-aloha's frozen-camera model at dataset vectors."""
 
     def __init__(self, task: str, height: int, width: int, robot_only: bool = True):
-        model = aloha.load_mujoco_model(task)
+        model = sim_rig.load_mujoco_model(task)
         model.vis.quality.shadowsize = 0
         model.vis.quality.offsamples = 0
         model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), width)
@@ -84,7 +85,7 @@ class MujocoOracle:
         """{dataset camera: {"geom": (H,W) geom id or -1, "mask", "depth" (m, 0 = none)[, "rgb"]}}."""
         self.set(q14)
         r, out = self.renderer, {}
-        for mj_cam, name in aloha.CAMERA_NAMES.items():
+        for mj_cam, name in sim_rig.CAMERA_NAMES.items():
             r.update_scene(self.data, camera=mj_cam, scene_option=self.option)
             view = {}
             if rgb:
@@ -137,13 +138,13 @@ def oracle(request):
 
 @pytest.fixture(scope="module")
 def renderer(robot):
-    model = aloha.load_mujoco_model("transfer_cube")
+    model = sim_rig.load_mujoco_model("transfer_cube")
     return RaycastRenderer(robot, near=float(model.vis.map.znear * model.stat.extent))
 
 
 @pytest.fixture(scope="module")
 def calib():
-    return aloha.camera_calibration(aloha.load_mujoco_model("transfer_cube"), W, H)
+    return sim_rig.camera_calibration(sim_rig.load_mujoco_model("transfer_cube"), W, H)
 
 
 # ----------------------------------------------------------------------------- against MuJoCo
@@ -387,7 +388,7 @@ def test_bad_input(robot, renderer, calib):
 @pytest.fixture(scope="module")
 def qa_inputs(tmp_path_factory):
     """A 4-frame simulated episode (RGB of the full scene, segmentation, labels) and its calibration."""
-    from imac_data.aloha_hdf5 import RawEpisode, write_episode
+    from imac_data.sources.hdf5 import RawEpisode, write_episode
 
     tmp = tmp_path_factory.mktemp("qa")
     o = MujocoOracle("transfer_cube", H, W, robot_only=False)
@@ -398,23 +399,22 @@ def qa_inputs(tmp_path_factory):
         model = o.model
     finally:
         o.close()
-    cams = list(aloha.CAMERA_NAMES.values())
+    cams = list(sim_rig.CAMERA_NAMES.values())
     ep = RawEpisode(qpos=q, action=q, images={c: np.stack([f[c]["rgb"] for f in frames]) for c in cams},
                     segmentation={c: np.stack([f[c]["geom"] for f in frames]).astype(np.int16) for c in cams},
                     segmentation_labels=labels, fps=25.0)
     write_episode(tmp / "episode_0.hdf5", ep)
     # calibration at another resolution: the overlay must rescale it to the images
-    save_calibration(tmp / "calib.json", aloha.camera_calibration(model, 2 * W, 2 * H))
+    save_calibration(tmp / "calib.json", sim_rig.camera_calibration(model, 2 * W, 2 * H))
     return tmp
 
 
 def test_qa_overlay_cli(qa_inputs, capsys):
     import av
 
-    from imac_data import qa
 
     out = qa_inputs / "overlay"
-    rc = qa.main(["overlay", str(qa_inputs / "episode_0.hdf5"), "--calibration", str(qa_inputs / "calib.json"),
+    rc = imac_main(["qa", "overlay", str(qa_inputs / "episode_0.hdf5"), "--calibration", str(qa_inputs / "calib.json"),
                   "--out", str(out)])
     assert rc == 0
     assert "cam_high" in capsys.readouterr().out
@@ -428,7 +428,7 @@ def test_qa_overlay_cli(qa_inputs, capsys):
     rows = (out / "iou.csv").read_text().strip().splitlines()
     assert rows[0] == "frame," + ",".join(summary["cameras"]) and len(rows) == 5
     # png output, one frame
-    rc = qa.main(["overlay", str(qa_inputs / "episode_0.hdf5"), "--calibration", str(qa_inputs / "calib.json"),
+    rc = imac_main(["qa", "overlay", str(qa_inputs / "episode_0.hdf5"), "--calibration", str(qa_inputs / "calib.json"),
                   "--out", str(out), "--format", "png", "--frames", "1:3", "--overwrite", "--cameras", "cam_high"])
     assert rc == 0
     assert sorted(p.name for p in (out / "cam_high").iterdir()) == ["000001.png", "000002.png"]
@@ -437,12 +437,11 @@ def test_qa_overlay_cli(qa_inputs, capsys):
 
 def test_qa_overlay_overwrite_replaces_only_an_overlay(qa_inputs, capsys):
     """--overwrite into a directory of the user's (no summary.json): refused, nothing deleted."""
-    from imac_data import qa
 
     out = qa_inputs / "my_notes"
     out.mkdir(exist_ok=True)
     (out / "notes.txt").write_text("mine")
-    rc = qa.main(["overlay", str(qa_inputs / "episode_0.hdf5"), "--calibration", str(qa_inputs / "calib.json"),
+    rc = imac_main(["qa", "overlay", str(qa_inputs / "episode_0.hdf5"), "--calibration", str(qa_inputs / "calib.json"),
                   "--out", str(out), "--overwrite"])
     assert rc == 2
     assert "without summary.json" in capsys.readouterr().err
@@ -450,8 +449,7 @@ def test_qa_overlay_overwrite_replaces_only_an_overlay(qa_inputs, capsys):
 
 
 def test_qa_overlay_bad_input_writes_nothing(qa_inputs, capsys):
-    from imac_data import qa
-    from imac_data.cameras import load_calibration
+    from imac_data.core.cameras import load_calibration
 
     calib = load_calibration(qa_inputs / "calib.json")
     wrist = calib["cam_left_wrist"]
@@ -471,7 +469,7 @@ def test_qa_overlay_bad_input_writes_nothing(qa_inputs, capsys):
         (["--calibration", str(qa_inputs / "calib.json"), "--frames", "10:20"], "selects no frame"),
     ]
     for extra, message in cases:
-        rc = qa.main(["overlay", str(qa_inputs / "episode_0.hdf5"), "--out", str(qa_inputs / "new" / "dir"), *extra])
+        rc = imac_main(["qa", "overlay", str(qa_inputs / "episode_0.hdf5"), "--out", str(qa_inputs / "new" / "dir"), *extra])
         assert rc == 2
         assert message in capsys.readouterr().err
         assert sorted(p.name for p in qa_inputs.iterdir()) == before  # nothing written, no temp dirs

@@ -15,17 +15,19 @@ import pytest
 import torch
 import yaml
 
-from imac_data import aloha
-from imac_data.depth import DepthCodec
+from imac_data.build.from_episodes import ingest_episodes
+from imac_data.core.contact.workspace import DEFAULT_MARGIN, Workspace, depth_in_range, reach_box
+from imac_data.core.depth import DepthCodec
+from imac_data.core.rig import Rig
+from imac_data.core.robot import aloha
+from imac_data.core.robot.description import DESCRIPTION_DIR, packaged_description, write_description
+from imac_data.core.robot.model import JointEntry, RobotConfig, RobotModel
 from imac_data.dataset.info import RIG_KEYS, SCHEMA_VERSION, imac_block
+from imac_data.dataset.ingest import IngestOptions
 from imac_data.errors import InputError
-from imac_data.ingest import IngestOptions, ingest_episodes
 from imac_data.recipes import RECIPES_DIR, load_recipe, parse_recipe
-from imac_data.rig import Rig
-from imac_data.robot import JointEntry, RobotConfig, RobotModel
-from imac_data.robot_files import DESCRIPTION_DIR, packaged_description, write_description
-from imac_data.simulate import SimConfig, record_dataset
-from imac_data.workspace import DEFAULT_MARGIN, Workspace, depth_in_range, reach_box
+from imac_data.sources.sim import rig as sim_rig
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 
 @pytest.fixture(scope="module")
@@ -203,7 +205,7 @@ def test_recipe_joint_map_and_controller_sections(tmp_path, sim_dir):
 
 def test_contact_from_predicted_depth_has_a_batch_axis(recipe_rig, sim_dir):
     """Rig.contact on a batch of depth maps = one call per item (what a world model rollout does)."""
-    from imac_data.aloha_hdf5 import read_episode
+    from imac_data.sources.hdf5 import read_episode
 
     ep = read_episode(sorted(sim_dir.glob("episode_*.hdf5"))[0])
     depth = torch.stack([torch.as_tensor(ep.depth_mm[n][:2].astype(np.float32) / 1000) for n in recipe_rig.names],
@@ -230,9 +232,9 @@ def test_workspace_in_recipes_and_info(tmp_path, sim_dir, recipe_rig, base):
     # every vertex of MuJoCo's own robot meshes, posed by MuJoCo over a recorded episode, lies in the box
     import mujoco
 
-    from imac_data.aloha_hdf5 import read_episode
+    from imac_data.sources.hdf5 import read_episode
 
-    model = aloha.load_mujoco_model("transfer_cube")
+    model = sim_rig.load_mujoco_model("transfer_cube")
     data = mujoco.MjData(model)
     free = {model.jnt_bodyid[j] for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE}
     geoms = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH
@@ -241,7 +243,7 @@ def test_workspace_in_recipes_and_info(tmp_path, sim_dir, recipe_rig, base):
     verts = [model.mesh_vert[model.mesh_vertadr[model.geom_dataid[g]]:][:model.mesh_vertnum[model.geom_dataid[g]]]
              for g in geoms]
     for q14 in read_episode(sorted(sim_dir.glob("episode_*.hdf5"))[0]).qpos:
-        aloha.set_mujoco_qpos(model, data, q14)
+        sim_rig.set_mujoco_qpos(model, data, q14)
         mujoco.mj_kinematics(model, data)
         world = np.concatenate([v @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g] for g, v in zip(geoms, verts)])
         assert ws.contains(torch.as_tensor(world)).all()
@@ -287,7 +289,7 @@ def test_workspace_in_recipes_and_info(tmp_path, sim_dir, recipe_rig, base):
 def test_rig_contact_crops_to_its_workspace(recipe_rig, sim_dir):
     """Rig.contact applies the rig's workspace: saturated depth (65.535 m) gives exactly what
     invalid depth (0) gives; with the crop switched off it ruins the caps."""
-    from imac_data.aloha_hdf5 import read_episode
+    from imac_data.sources.hdf5 import read_episode
 
     ep = read_episode(sorted(sim_dir.glob("episode_*.hdf5"))[0])
     depth = torch.stack([torch.as_tensor(ep.depth_mm[n][0].astype(np.float32) / 1000) for n in recipe_rig.names])

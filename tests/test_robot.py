@@ -16,9 +16,9 @@ import pytest
 import torch
 from gym_aloha.constants import unnormalize_puppet_gripper_position
 
-from imac_data import aloha
+from imac_data.core.robot import aloha
+from imac_data.core.robot.model import GripperMap, RobotConfig, RobotModel
 from imac_data.errors import InputError
-from imac_data.robot import GripperMap, RobotConfig, RobotModel
 
 TOL = 1e-5  # m, and rotation-matrix entries (~rad)
 N_CONFIGS = 64
@@ -291,7 +291,7 @@ def test_collada_unit_is_applied(tmp_path):
 def test_mesh_without_faces_and_robot_without_visuals_are_named(tmp_path):
     import trimesh
 
-    from imac_data.render import make_renderer
+    from imac_data.core.render import make_renderer
 
     trimesh.PointCloud(np.random.default_rng(0).random((10, 3))).export(tmp_path / "cloud.ply")
     with pytest.raises(InputError, match=r"cloud\.ply.*has no faces"):
@@ -308,8 +308,8 @@ def test_joint_ranges_outside_the_urdf_limits_are_named(tmp_path):
     """Analytic limits: a revolute joint in [-1, 2] rad, a prismatic one in [0, 0.04] m, a
     continuous one (never checked). In range, within the slack, or mapped by the joint map:
     nothing; in degrees or a wrong gripper scale: the index, joint, both ranges and the unit."""
-    from imac_data.joint_ranges import joint_range_problems
-    from imac_data.robot import JointEntry
+    from imac_data.core.robot.joint_ranges import joint_range_problems
+    from imac_data.core.robot.model import JointEntry
 
     link = '<link name="{0}"><visual><geometry><box size="0.01 0.01 0.01"/></geometry></visual></link>'
     joint = ('<joint name="{0}" type="{1}"><parent link="{2}"/><child link="{3}"/><axis xyz="0 0 1"/>{4}</joint>')

@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("pybullet")  # a project dependency: present in CI
 
 from benchmarks.panda_vs_pybullet import PyBulletPanda, compare, panda_config, random_configs  # noqa: E402
-from imac_data.robot import RobotModel  # noqa: E402
+from imac_data.core.robot.model import RobotModel  # noqa: E402
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 

@@ -1,4 +1,4 @@
-"""The simulated recorder (imac_data.simulate) against independent oracles: the HDF5
+"""The simulated recorder (imac_data.sources.sim.recorder) against independent oracles: the HDF5
 reader, the analytic table plane (depth), camera projection of known world points
 (segmentation), and the simulator's own contacts (success labels)."""
 
@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 
-import imac_data  # noqa: F401  (MUJOCO_GL before mujoco)
 import h5py
 import mujoco
 import numpy as np
@@ -14,20 +13,21 @@ import pytest
 import torch
 from gym_aloha.utils import sample_box_pose
 
-from imac_data.aloha import CAMERA_NAMES, STATE_NAMES, load_mujoco_model
-from imac_data.aloha_hdf5 import probe_episode, read_episode
-from imac_data.cameras import load_calibration, project
+from imac_data.cli import main as imac_main
+from imac_data.core.cameras import load_calibration, project
+from imac_data.core.robot.aloha import STATE_NAMES
 from imac_data.errors import InputError
-from imac_data.simulate import (
+from imac_data.sources.hdf5 import probe_episode, read_episode
+from imac_data.sources.sim.recorder import (
     TASK_INSTRUCTIONS,
     FrameRenderer,
     SimConfig,
-    main,
     record_dataset,
     robot_mask,
     segmentation_labels,
     simulate_episode,
 )
+from imac_data.sources.sim.rig import CAMERA_NAMES, load_mujoco_model
 
 CAMS = sorted(CAMERA_NAMES.values())
 
@@ -152,7 +152,7 @@ def test_wrist_depth_matches_mounted_calibration(cube_dir):
 
 
 def test_cube_projects_where_the_calibration_says(cube_dir):
-    """The cube's segmentation in the top view vs imac_data.cameras.project of the cube
+    """The cube's segmentation in the top view vs imac_data.core.cameras.project of the cube
     (frame 0 is the reset state: gym-aloha's sampled pose for the episode seed)."""
     out, paths, cfg = cube_dir
     from scipy.spatial import ConvexHull
@@ -262,12 +262,12 @@ def test_refuses_to_mix_datasets_and_cli_summary(tmp_path, capsys):
     out = tmp_path / "cli"
     argv = ["--task", "transfer_cube", "--episodes", "1", "--out", str(out), "--height", "48", "--width", "64",
             "--max-steps", "4", "--quiet", "--no-depth"]
-    assert main(argv) == 0
+    assert imac_main(["simulate", *argv]) == 0
     line = capsys.readouterr().out.strip()
     assert line.startswith("transfer_cube: 1 episodes, 0 successes, 2 frames") and " s -> " in line
     assert probe_episode(out / "episode_0.hdf5")["has_depth"] is False
-    assert main(argv) == 2  # out already holds episodes
+    assert imac_main(["simulate", *argv]) == 2  # out already holds episodes
     assert "already holds" in capsys.readouterr().err
-    assert main([*argv, "--overwrite"]) == 0
-    assert main([*argv[:-2], "--noise", "2"]) == 2
+    assert imac_main(["simulate", *argv, "--overwrite"]) == 0
+    assert imac_main(["simulate", *argv[:-2], "--noise", "2"]) == 2
     assert "SimConfig.noise" in capsys.readouterr().err

@@ -6,8 +6,8 @@ from typing import Any, Literal
 
 import pytest
 
+from imac_data.config import parse_dataclass
 from imac_data.errors import InputError
-from imac_data.typed_config import parse_dataclass
 
 
 @dataclass

@@ -1,5 +1,5 @@
 """URDF robustness: the spec's default axis (analytic FK), floating/planar joints,
-materials by name across links, and ``python -m imac_data.robot joints``."""
+materials by name across links, and ``imac robot joints``."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import pytest
 import torch
 import yaml
 
+from imac_data.cli import main as imac_main
+from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.errors import InputError
 from imac_data.recipes import parse_recipe
-from imac_data.robot import RobotConfig, RobotModel
-from imac_data.urdf_summary import main as urdf_main
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -124,7 +124,7 @@ def test_unsupported_joint_types_name_file_and_joint(tmp_path, edit, message):
     urdf = _write(tmp_path, edit(FLOATING_ROOT))
     with pytest.raises(InputError, match=message):
         RobotModel(RobotConfig("r", urdf, ("j1",)))
-    assert urdf_main(["joints", str(urdf)]) == 2
+    assert imac_main(["robot", "joints", str(urdf)]) == 2
 
 
 # ----------------------------------------------------------------------------- materials
@@ -164,7 +164,7 @@ def _panda():
 
 def test_joints_cli_lists_joints_and_prints_a_working_recipe_block(tmp_path, capsys):
     urdf, meshes = _panda()
-    assert urdf_main(["joints", str(urdf), "--package-dir", f"meshes={meshes}"]) == 0
+    assert imac_main(["robot", "joints", str(urdf), "--package-dir", f"meshes={meshes}"]) == 0
     out = capsys.readouterr().out
     cut = out.index("# Recipe `robot:` block")
     listing, block = out[:cut], out[cut:]
@@ -188,14 +188,14 @@ def test_joints_cli_lists_joints_and_prints_a_working_recipe_block(tmp_path, cap
     assert robot.joint_names == [f"panda_joint{i}" for i in range(1, 8)] + [
         "panda_finger_joint1", "panda_finger_joint2"]
     # Without the package directory every mesh is reported missing, with the option to fix it.
-    assert urdf_main(["joints", str(urdf)]) == 0
+    assert imac_main(["robot", "joints", str(urdf)]) == 0
     assert "give --package-dir meshes=PATH" in capsys.readouterr().out
 
 
 def test_joints_cli_as_a_module(tmp_path):
     urdf = _write(tmp_path, FLOATING_ROOT)
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    res = subprocess.run([sys.executable, "-m", "imac_data.robot", "joints", str(urdf)], capture_output=True,
+    res = subprocess.run([sys.executable, "-m", "imac_data", "robot", "joints", str(urdf)], capture_output=True,
                          text=True, env=env, cwd=REPO, timeout=120)
     assert res.returncode == 0, res.stderr
     assert "floating root joint(s) held fixed at their origin: place" in res.stdout
@@ -203,9 +203,9 @@ def test_joints_cli_as_a_module(tmp_path):
 
 
 def test_joints_cli_errors(tmp_path, capsys):
-    assert urdf_main(["joints", str(tmp_path / "none.urdf")]) == 2
+    assert imac_main(["robot", "joints", str(tmp_path / "none.urdf")]) == 2
     assert "none.urdf does not exist" in capsys.readouterr().err
     bad = tmp_path / "bad.urdf"
     bad.write_text("<robot name='r'><link name='a'>")
-    assert urdf_main(["joints", str(bad)]) == 2
+    assert imac_main(["robot", "joints", str(bad)]) == 2
     assert "cannot parse URDF" in capsys.readouterr().err

@@ -15,7 +15,7 @@ Robot pixels (``RobotPixels``), a pluggable source:
   nearest edge (:func:`imac_data.calibrate.optimise.refine_camera_edges`).
 
 Frames are read from raw episodes (:class:`EpisodeFrames`, through
-:class:`imac_data.aloha_hdf5.EpisodeReader`) or from a LeRobot dataset
+:class:`imac_data.sources.hdf5.EpisodeReader`) or from a LeRobot dataset
 (:class:`DatasetFrames`, through LeRobot's ``LeRobotDataset``; ``<episode>`` in a mask
 directory is then ``episode_000000``, ...), frame by frame and only where asked, so memory
 follows the chosen frames, not the episodes' length. :func:`open_frames` picks the reader.
@@ -32,8 +32,10 @@ import cv2
 import numpy as np
 import torch
 
-from imac_data.cameras import Camera
+from imac_data.core.cameras import Camera
+from imac_data.core.masks import ground_truth_robot_mask
 from imac_data.errors import InputError
+from imac_data.sources.hdf5 import EpisodeReader, episode_paths
 
 __all__ = ["PIXEL_SOURCES", "EpisodeFrames", "DatasetFrames", "open_frames", "RobotPixels", "CameraFrames",
            "select_frames", "choose_frames", "image_edges"]
@@ -55,8 +57,6 @@ class EpisodeFrames:
     """
 
     def __init__(self, source: str | Path):
-        from imac_data.aloha_hdf5 import EpisodeReader, episode_paths
-
         source = Path(source)
         if source.is_file():
             paths = [source]
@@ -80,8 +80,6 @@ class EpisodeFrames:
         self.has_segmentation = self._seg
 
     def _reader(self, episode: str):
-        from imac_data.aloha_hdf5 import EpisodeReader
-
         return EpisodeReader(episode)
 
     def image_hw(self, camera: str) -> tuple[int, int]:
@@ -101,8 +99,6 @@ class EpisodeFrames:
 
     def robot_masks(self, episode: str, camera: str, frames: Sequence[int], links: Sequence[str]) -> np.ndarray:
         """The simulator's robot pixels ``(n, H, W)`` bool (geoms of the robot's links)."""
-        from imac_data.qa import ground_truth_robot_mask
-
         with self._reader(episode) as ep:
             if ep.segmentation(camera, 0, 1) is None:
                 raise InputError(f"{episode}: no ground-truth segmentation for camera {camera!r}; "

@@ -42,7 +42,7 @@ import torch
 
 from imac_data.calibrate.config import RefineConfig
 from imac_data.calibrate.pose import UNITS, se3_exp
-from imac_data.cameras import Camera
+from imac_data.core.cameras import Camera
 
 __all__ = ["distance_field", "edge_distance", "silhouette_agreement", "Level", "make_level", "level_camera",
            "View", "render_level", "exact_energy", "SoftSilhouette"]

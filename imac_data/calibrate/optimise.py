@@ -33,7 +33,7 @@ from imac_data.calibrate.config import RefineConfig
 from imac_data.calibrate.frames import image_edges
 from imac_data.calibrate.objective import Level, SoftSilhouette, make_level, render_level
 from imac_data.calibrate.pose import apply_update
-from imac_data.cameras import Camera
+from imac_data.core.cameras import Camera
 from imac_data.errors import InputError
 
 __all__ = ["CameraFit", "refine_camera", "refine_camera_edges"]
@@ -154,7 +154,7 @@ def refine_camera(renderer, camera: Camera, q, target: np.ndarray, config: Refin
     """Refine one camera's pose (and optionally focal length) so the rendered robot matches
     ``target``.
 
-    ``renderer``: an :class:`imac_data.render.Renderer` of the robot; ``camera``: the initial
+    ``renderer``: an :class:`imac_data.core.render.Renderer` of the robot; ``camera``: the initial
     calibration (any resolution; it is rescaled to the frames'); ``q`` ``(N, D)`` the frames'
     joint vectors; ``target`` ``(N, H, W)`` the robot pixels of those frames (bool, or a
     probability in [0, 1]), or with ``edges=True`` the frames' image edges near the robot

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from imac_data.cameras import Camera
+from imac_data.core.cameras import Camera
 
 __all__ = ["UNITS", "AXES", "se3_exp", "apply_update", "pose_change"]
 

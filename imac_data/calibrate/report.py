@@ -21,7 +21,8 @@ import cv2
 import numpy as np
 
 from imac_data.calibrate.pose import AXES, pose_change
-from imac_data.cameras import Camera, load_calibration, save_calibration
+from imac_data.core.cameras import Camera, load_calibration, save_calibration
+from imac_data.core.masks import outline
 
 __all__ = ["OUTLINE_RGB", "TARGET_RGB", "draw_overlay", "camera_entry", "format_report", "write_outputs"]
 
@@ -33,8 +34,6 @@ def draw_overlay(images: np.ndarray, rendered: np.ndarray, target: np.ndarray, t
                  edges: bool = False) -> np.ndarray:
     """A grid of the frames (at most 8, four per row), with the outline of the robot pixels
     (or the edge pixels themselves, ``edges=True``) and of the render."""
-    from imac_data.qa import outline
-
     tiles = []
     for img, r, g in zip(images[:8], rendered[:8], target[:8]):
         t = max(1, round(img.shape[0] / 240))

@@ -1,6 +1,6 @@
 """Depth as video streams: ``observation.depth.{cam}``, colour-coded metric depth.
 
-The frames are :meth:`~imac_data.depth.DepthCodec.encode_uint8` colours, written with our
+The frames are :meth:`~imac_data.core.depth.DepthCodec.encode_uint8` colours, written with our
 own encoder settings (bit-exact RGB by default, :meth:`VideoEncoding.lossless_rgb`); the
 codec, encoder settings, depth source and per-camera intrinsics are recorded in
 ``meta/info.json["imac"]["depth"]``, and each feature's ``info`` block carries
@@ -17,7 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from imac_data.depth import DepthCodec, _as_numpy_depth, depth_stream_key, resize_depth
+from imac_data.core.cameras import rescale_intrinsics
+from imac_data.core.depth import DepthCodec, _as_numpy_depth, depth_stream_key, resize_depth
+from imac_data.dataset.info import read_info
+from imac_data.dataset.streams import StreamWriter
+from imac_data.dataset.videos import VideoEncoding, encoder_versions
 from imac_data.errors import InputError
 
 __all__ = ["add_depth_streams", "depth_info_extra", "depth_imac_block"]
@@ -32,9 +36,6 @@ def depth_imac_block(features: Mapping[str, dict], cameras, calibration: Mapping
                      encoding, source: Mapping[str, Any] | None, existing: Mapping | None = None) -> dict:
     """``{"depth": {...}}`` for ``info["imac"]``: codec, encoding, encoder versions, source,
     and per camera the stream key, size and the intrinsics at that size."""
-    from imac_data.cameras import rescale_intrinsics
-    from imac_data.dataset.videos import encoder_versions
-
     streams = dict(existing.get("streams", {})) if existing else {}
     for cam in cameras:
         key = depth_stream_key(cam)
@@ -67,18 +68,14 @@ def add_depth_streams(root, episodes, *, cameras=None, codec: DepthCodec | None 
     field of view, any resolution of the same aspect ratio). ``cameras`` defaults to the
     dataset's calibrated cameras (``info["imac"]["cameras"]``). ``size``: stored
     ``(h, w)`` for all cameras or ``{cam: (h, w)}`` (default: the input's); depth is
-    resized with :func:`~imac_data.depth.resize_depth` and the intrinsics recorded for the
-    stream are the calibration's rescaled with :func:`~imac_data.cameras.rescale_intrinsics`.
+    resized with :func:`~imac_data.core.depth.resize_depth` and the intrinsics recorded for the
+    stream are the calibration's rescaled with :func:`~imac_data.core.cameras.rescale_intrinsics`.
     ``codec`` defaults to the ``manipulation`` preset, ``encoding`` to
     :meth:`VideoEncoding.lossless_rgb` (bit-exact colours, chosen by measurement:
     ``benchmarks/depth_fidelity.py``). ``source`` describes where the depth came from (e.g.
     ``DepthSource.describe()``) and is recorded. Returns the feature dicts written.
     """
     from tqdm.auto import tqdm
-
-    from imac_data.dataset.info import read_info
-    from imac_data.dataset.streams import StreamWriter
-    from imac_data.dataset.videos import VideoEncoding
 
     root = Path(root)
     info = read_info(root)

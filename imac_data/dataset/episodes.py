@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imac_data.dataset.files import write_parquet_atomic
 from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter, quiet_libav
 from imac_data.errors import InputError
 
@@ -159,8 +160,6 @@ class EpisodeWriter:
         in ``meta/episodes``; its PNG path (and so every dataset LeRobot writes by default)
         has them in feature order. Put them there, so the files match LeRobot's own."""
         import pyarrow.parquet as pq
-
-        from imac_data.dataset.files import write_parquet_atomic
 
         order = {k: i for i, k in enumerate(self.dataset.meta.features)}
         for f in sorted((self.root / "meta" / "episodes").rglob("*.parquet")):

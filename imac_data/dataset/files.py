@@ -1,9 +1,9 @@
-"""Atomic file writes for dataset edits.
+"""Atomic file writes for dataset edits, and the copy of a dataset that an edit works on.
 
-A dataset edit never leaves a half-written file behind: each file is written to a
-temporary sibling (same directory, so the final ``os.replace`` is a rename on one file
-system) and renamed over its destination when complete. Several edits that must land
-together go into a :func:`staged_dataset` copy that is swapped into place at the end.
+A dataset edit never leaves a half-written file behind: each file is written to a temporary
+sibling (same directory, so the final ``os.replace`` is a rename on one file system) and
+renamed over its destination when complete. Edits that must land together work on a
+:func:`copy_for_edit` that the build's staged flow swaps into place.
 """
 
 from __future__ import annotations
@@ -12,12 +12,15 @@ import json
 import os
 import shutil
 import uuid
-from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import pyarrow.parquet as pq
+
+from imac_data.layout import VIDEOS_DIR, episodes_dir, image_key, info_path, stats_path
+
 __all__ = ["atomic_path", "atomic_write_text", "atomic_write_json", "write_parquet_atomic", "replace_files",
-           "staged_dataset"]
+           "copy_for_edit", "copy_source"]
 
 
 @contextmanager
@@ -44,8 +47,6 @@ def atomic_write_json(path: str | Path, data, indent: int = 4) -> None:
 
 
 def write_parquet_atomic(table, path: str | Path) -> None:
-    import pyarrow.parquet as pq
-
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)
 
@@ -76,7 +77,7 @@ def replace_files(pairs: list[tuple[Path, Path]], backup_dir: Path) -> None:
         raise
 
 
-# ------------------------------------------------------------------------------ staging
+# ------------------------------------------------------------------------------ copies
 def _link_or_copy(src: str, dst: str) -> None:
     try:
         os.link(src, dst)
@@ -84,45 +85,60 @@ def _link_or_copy(src: str, dst: str) -> None:
         shutil.copy2(src, dst)
 
 
-@contextmanager
-def staged_dataset(root: str | Path) -> Iterator[Path]:
-    """A private copy of the dataset at ``root`` to write into; swapped into place
-    when the ``with`` block ends without error, deleted otherwise::
+def copy_for_edit(root: str | Path, dst: str | Path) -> Path:
+    """A copy of the dataset at ``root`` at ``dst`` to edit and swap in. Files under
+    ``videos/`` are hard links to the originals (no copy of the big files), so an edit must
+    never modify an existing video file in place (ours only add files); the rest is copied."""
+    root, dst = Path(root), Path(dst)
+    dst.mkdir()
+    for entry in root.iterdir():
+        if entry.is_dir():
+            shutil.copytree(entry, dst / entry.name,
+                            copy_function=_link_or_copy if entry.name == VIDEOS_DIR else shutil.copy2)
+        else:
+            shutil.copy2(entry, dst / entry.name)
+    return dst
 
-        with staged_dataset(root) as work:
-            add_video_streams(work, ...)
-            add_video_streams(work, ...)
 
-    The copy sits next to ``root`` (``.<name>.imac-staging``). Files under
-    ``videos/`` are hard links to the originals (no copy of the big files), so code
-    working in the copy must never modify an existing video file in place (this
-    module only creates new ones); everything else is copied. The swap is two
-    renames (``root`` -> ``.<name>.imac-old``, copy -> ``root``; :func:`imac_data.safety.swap_into_place`),
-    then the old tree is deleted.
-    """
-    from imac_data.dataset.info import read_info
-    from imac_data.safety import SIBLING_MARKER, make_sibling_dir, output_sibling, remove_sibling, swap_into_place
 
-    root = Path(os.path.abspath(root))
-    read_info(root)
-    stage, old = output_sibling(root, "imac-staging"), output_sibling(root, "imac-old")
-    for leftover in (stage, old):
-        remove_sibling(leftover)
-    make_sibling_dir(stage)
-    try:
-        for entry in root.iterdir():
-            dst = stage / entry.name
-            if entry.is_dir():
-                shutil.copytree(entry, dst, copy_function=_link_or_copy if entry.name == "videos" else shutil.copy2)
-            else:
-                shutil.copy2(entry, dst)
-        yield stage
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
-    (stage / SIBLING_MARKER).unlink()  # the copy becomes the dataset
-    try:
-        swap_into_place(stage, root, old_suffix="imac-old")
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
+
+def copy_source(src, dst: Path, cameras: dict[str, str]) -> None:
+    """A byte-identical copy of ``src`` at ``dst`` with its camera features renamed to
+    ``observation.images.<cam>`` (``cameras``: source key -> camera) and unmapped camera
+    features dropped. The video files are copied unchanged, only their directories move."""
+    shutil.copytree(src.root, dst, ignore=shutil.ignore_patterns(".cache", ".imac-tmp-*"))
+    rename = {k: image_key(c) for k, c in cameras.items()}
+    drop = [k for k in src.video_keys if k not in rename]
+    if all(k == v for k, v in rename.items()) and not drop:
+        return
+    aside = dst / ".imac-rekey"  # moved aside first, so that a rename onto another source key cannot clash
+    aside.mkdir()
+    for key in [*rename, *drop]:
+        if (dst / VIDEOS_DIR / key).exists():
+            (dst / VIDEOS_DIR / key).rename(aside / key)
+    for key, new in rename.items():
+        if (aside / key).exists():
+            (aside / key).rename(dst / VIDEOS_DIR / new)
+    shutil.rmtree(aside)  # what is left: the dropped cameras' copies
+
+    def rekey(name: str) -> str | None:
+        for prefix in ("videos/", "stats/"):
+            if name.startswith(prefix):
+                rest = name[len(prefix):]
+                for key in sorted([*rename, *drop], key=len, reverse=True):
+                    if rest.startswith(key + "/"):
+                        return None if key in drop else prefix + rename[key] + rest[len(key):]
+        return name
+
+    for f in sorted(episodes_dir(dst).rglob("*.parquet")):
+        table = pq.read_table(f)
+        keep = [(n, rekey(n)) for n in table.column_names]
+        table = table.select([n for n, m in keep if m is not None]).rename_columns([m for _, m in keep if m])
+        write_parquet_atomic(table, f)
+    info = json.loads(info_path(dst).read_text())
+    info["features"] = {rename.get(k, k): v for k, v in info["features"].items() if k not in drop}
+    atomic_write_json(info_path(dst), info)
+    stats_file = stats_path(dst)
+    if stats_file.is_file():
+        stats = json.loads(stats_file.read_text())
+        atomic_write_json(stats_file, {rename.get(k, k): v for k, v in stats.items() if k not in drop})

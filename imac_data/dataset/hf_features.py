@@ -9,17 +9,17 @@ recomputes the "requires decoding" flag of *all* columns. A built iMaC dataset's
 (measured on the demo dataset; the build loads each shard at the merge, and the result
 twice more).
 
-:func:`install` replaces ``Features.__init__`` with one that does the same work once per
+:func:`use_linear_features` replaces ``Features.__init__`` with one that does the same work once per
 column: the same values (old-style ``[feature]`` lists become ``List(feature)``) and the
 same decoding flags, so nothing read or written changes (``tests/test_dataset.py``
-compares it with the original on a built dataset's schemas). It is installed when
-:mod:`imac_data.dataset` is imported, only over the implementation it was checked against
-(``datasets`` 4.x); any other version is left alone.
+compares it with the original on a built dataset's schemas). The build calls it
+before it writes (:mod:`imac_data.build.staging`, the workers); it replaces only the
+implementation it was checked against (``datasets`` 4.x) and leaves any other alone.
 """
 
 from __future__ import annotations
 
-__all__ = ["install", "installed", "original_init"]
+__all__ = ["use_linear_features", "installed", "original_init"]
 
 _ORIGINAL = None
 
@@ -42,7 +42,7 @@ def _linear_init(*args, **kwargs):
     self._column_requires_decoding = {name: require_decoding(f) for name, f in dict.items(self)}
 
 
-def install() -> bool:
+def use_linear_features() -> bool:
     """Use the linear constructor (idempotent). False when this ``datasets`` is not 4.x."""
     global _ORIGINAL
     import datasets

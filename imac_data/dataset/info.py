@@ -12,7 +12,7 @@ Schema version 2 (``imac.schema_version``)::
       controller:  {mode, grippers, absolute_indices, delta_grippers, clip_low, clip_high}
       gripper_surface: {links, spacing, seed}
       workspace:   {min: [x, y, z], max: [x, y, z], depth_range: [near, far], source} | null
-                                                  # the contact streams' scene crop (imac_data.workspace);
+                                                  # the contact streams' scene crop (imac_data.core.contact.workspace);
                                                   # far null = no far limit; null = not cropped
       camera_pose_convention: "camera-to-world, OpenCV axes, row-major 4x4"
       augment:     AugmentSettings (resolution, motion source, codec, chunk, caps, ...)
@@ -22,13 +22,13 @@ Schema version 2 (``imac.schema_version``)::
       build:       {recipe, command, episodes}      # built datasets only
 
 ``robot`` + ``cameras`` + ``controller`` + ``gripper_surface`` + ``workspace`` are the rig
-(:meth:`imac_data.rig.Rig.to_info`); with the description under ``meta/imac/robot/``
-they rebuild it (:meth:`imac_data.rig.Rig.from_info`). A base dataset (ingest only) has
+(:meth:`imac_data.core.rig.Rig.to_info`); with the description under ``meta/imac/robot/``
+they rebuild it (:meth:`imac_data.core.rig.Rig.from_info`). A base dataset (ingest only) has
 the rig keys; an augmented one all but ``build``.
 
 Versions: 2 added ``workspace`` (and ``contact.scene_crop``). Version 1 datasets still
 read: they have no workspace, and their contact streams were built without a crop, so
-:meth:`~imac_data.rig.Rig.from_info` gives a rig without one and an online rebuild
+:meth:`~imac_data.core.rig.Rig.from_info` gives a rig without one and an online rebuild
 matches them. Code that only knows version 1 refuses version 2 rather than rebuilding
 contact images without the crop.
 
@@ -42,6 +42,7 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
+from imac_data import __version__
 from imac_data.dataset.files import atomic_write_json
 from imac_data.errors import InputError
 
@@ -82,8 +83,6 @@ def update_imac_info(root: str | Path, block: Mapping) -> dict:
 
 def base_block(rig) -> dict:
     """The block of a base dataset: schema, builder version, the rig, the pose convention."""
-    from imac_data import __version__
-
     return {"schema_version": SCHEMA_VERSION, "builder_version": __version__, **rig.to_info(),
             "camera_pose_convention": "camera-to-world, OpenCV axes, row-major 4x4"}
 

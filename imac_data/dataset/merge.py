@@ -23,6 +23,7 @@ import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from imac_data.core.robot.description import DESCRIPTION_DIR, check_description
 from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info
 from imac_data.errors import InputError
 
@@ -52,8 +53,6 @@ def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *
     exist). ``imac_extra`` is merged into the restored ``imac`` block; the robot
     description is copied from ``description_dir`` (default: the first input's)."""
     from lerobot.datasets.aggregate import aggregate_datasets
-
-    from imac_data.robot_files import DESCRIPTION_DIR, check_description
 
     roots = [Path(r) for r in roots]
     out = Path(out)

@@ -45,6 +45,7 @@ from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
+from imac_data.dataset.info import read_info
 from imac_data.dataset.videos import (
     SUBSAMPLED_CHROMA,
     ImageStats,
@@ -66,8 +67,6 @@ STAT_KEYS = ("min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "
 
 
 def read_v3_info(root: Path) -> dict:
-    from imac_data.dataset.info import read_info
-
     info = read_info(root)
     if info.get("codebase_version") != "v3.0":
         raise InputError(f"{root}: dataset format {info.get('codebase_version')!r}; only LeRobot v3.0 is supported")

@@ -1,5 +1,5 @@
 """Checks of a LeRobot dataset built by imac: one module for the build (run on the staged
-dataset before its final rename) and for ``python -m imac_data.validate ROOT [--full]``.
+dataset before its final rename) and for ``python -m imac_data.cli.validate ROOT [--full]``.
 
 Each check is a function ``(ctx) -> [problem, ...]`` in :data:`CHECKS`, run in order;
 a check that cannot run because an earlier one failed says so. By default video frames
@@ -33,7 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
+from imac_data.core.cameras import camera_from_dict, rigid_problem
+from imac_data.core.depth import depth_codec_of, walk_distance
+from imac_data.core.rig import Rig
+from imac_data.dataset.info import RIG_KEYS, STREAM_KEYS, imac_block, read_info
+from imac_data.dataset.streams import episode_files
+from imac_data.dataset.videos import read_video_frames
 from imac_data.errors import InputError
+from imac_data.sources.lerobot_episodes import count_decodable_frames
 
 __all__ = ["validate_dataset", "Report", "CHECKS"]
 
@@ -91,8 +98,6 @@ class _Context:
             import pyarrow as pa
             import pyarrow.parquet as pq
 
-            from imac_data.dataset.streams import episode_files
-
             self._episodes = pa.concat_tables([pq.read_table(f) for f in episode_files(self.root)],
                                               promote_options="default")
         return self._episodes
@@ -139,8 +144,6 @@ class _Context:
 
 
 def check_metadata(ctx: _Context) -> list[str]:
-    from imac_data.dataset.info import read_info
-
     ctx.info = read_info(ctx.root)
     problems = []
     if ctx.info.get("codebase_version") != "v3.0":
@@ -196,8 +199,6 @@ def _video_files(ctx: _Context, key: str) -> dict[Path, int]:
 
 
 def _count_video_frames(ctx: _Context) -> list[str]:
-    from imac_data.dataset.videos import count_decodable_frames
-
     problems = []
     for key in ctx.video_keys():
         for path, want in _video_files(ctx, key).items():
@@ -214,8 +215,6 @@ def _count_video_frames(ctx: _Context) -> list[str]:
 
 
 def check_imac_block(ctx: _Context) -> list[str]:
-    from imac_data.dataset.info import RIG_KEYS, STREAM_KEYS, imac_block
-
     streams = any(k.startswith("control.") or k.startswith("observation.depth.") for k in ctx.features)
     try:
         imac_block(ctx.info, "info.json", require=RIG_KEYS + (STREAM_KEYS if streams else ()))
@@ -225,8 +224,6 @@ def check_imac_block(ctx: _Context) -> list[str]:
 
 
 def check_rig(ctx: _Context) -> list[str]:
-    from imac_data.rig import Rig
-
     try:
         rig = Rig.from_info(ctx.info, ctx.root)
     except InputError as e:
@@ -238,8 +235,6 @@ def check_rig(ctx: _Context) -> list[str]:
 
 
 def check_calibration(ctx: _Context) -> list[str]:
-    from imac_data.cameras import camera_from_dict, rigid_problem
-
     problems = []
     for name, c in ctx.info.get("imac", {}).get("cameras", {}).items():
         try:  # the calibration checks of the build's input (fx, fy, principal point, rigid pose)
@@ -291,8 +286,6 @@ def _lossless(encoding: dict) -> bool:
 
 
 def check_depth(ctx: _Context) -> list[str]:
-    from imac_data.depth import depth_codec_of, walk_distance
-
     keys = ctx.video_keys("observation.depth.")
     if not keys:
         return []
@@ -315,8 +308,6 @@ def check_depth(ctx: _Context) -> list[str]:
             problems.append(f"{where}: decodes outside the codec's range [0, {codec.max_depth:.3f}] m")
 
     if ctx.full:
-        from imac_data.dataset.videos import read_video_frames
-
         for key in keys:
             for path in _video_files(ctx, key):
                 if path.is_file():

@@ -30,7 +30,7 @@ import numpy as np
 from imac_data.errors import InputError
 
 __all__ = ["VideoEncoding", "VideoWriter", "ImageStats", "encode_video", "read_video_frames", "encoder_versions",
-           "count_decodable_frames", "frame_batches", "quiet_libav", "SUBSAMPLED_CHROMA"]
+           "frame_batches", "quiet_libav", "SUBSAMPLED_CHROMA"]
 
 SUBSAMPLED_CHROMA = ("420", "422", "411", "410", "nv12", "nv21", "nv16")
 
@@ -315,24 +315,6 @@ def read_video_frames(path: str | Path) -> np.ndarray:
 
     with av.open(str(path)) as container:
         return np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
-
-
-def count_decodable_frames(path: str | Path) -> tuple[int, str | None]:
-    """How many frames of the first video stream of ``path`` decode, and the decoder's error
-    that stopped it (``None``: the whole file decoded). One decoder thread: callers check
-    several files at once."""
-    import av
-
-    n = 0
-    try:
-        with av.open(str(path)) as container:
-            stream = container.streams.video[0]
-            stream.thread_count = 1
-            for _ in container.decode(stream):
-                n += 1
-    except Exception as e:  # noqa: BLE001 - any demuxer or decoder error is the finding
-        return n, f"{type(e).__name__}: {e}"
-    return n, None
 
 
 # ------------------------------------------------------------------------------ statistics

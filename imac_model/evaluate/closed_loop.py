@@ -16,7 +16,7 @@ horizon (enough chunks to cover the recorded episode), the episode's task, and a
    LeRobot's ``select_action`` semantics, the policy is asked again only when its queue is empty);
 2. the motion and contact images of the chunk are rebuilt online from those actions and the
    reference's predicted depth, and the chunk is sampled: one call of
-   :func:`imac_model.rollout.sample_rollout` (``first_controls="online"``, chunk noise from
+   :func:`imac_model.pipelines.rollout.sample_rollout` (``first_controls="online"``, chunk noise from
    ``seed + n``, so a policy that replays recorded actions reproduces the open-loop rollout
    of those actions exactly);
 3. the next state is the last commanded configuration ``phi(q, a)[-1]``
@@ -54,10 +54,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from imac_data.dataset.columns import add_episode_columns
+from imac_data.dataset.episodes import EpisodeWriter
+from imac_data.dataset.info import update_imac_info
+from imac_data.dataset.output import refuse_overlap
 from imac_data.errors import InputError
-from imac_model import mosaic
-from imac_model.batch import ChunkBatch
-from imac_model.evaluate.policies import STATE_KEY, ActionQueue, image_key, policy_name
+from imac_model.data import mosaic
+from imac_model.data.batch import ChunkBatch
+from imac_model.evaluate.policies import STATE_KEY, ActionQueue, image_key, policy_name, recorded_actions_policy
+from imac_model.evaluate.success import EpisodeFrames
+from imac_model.pipelines.rollout import sample_rollout
 
 SOURCE = "world_model"
 
@@ -81,7 +87,7 @@ class Start:
 
 def episode_starts(chunks, episodes: Sequence[int], *, seed: int = 0, horizon_chunks: int | None = None
                    ) -> list[Start]:
-    """One :class:`Start` per episode of ``chunks`` (:class:`imac_model.data.ChunkDataset`):
+    """One :class:`Start` per episode of ``chunks`` (:class:`imac_model.data.chunks.ChunkDataset`):
     its first chunk's reference frame and state; ``horizon_chunks`` (default: enough chunks to
     cover the recorded episode); seed ``seed + episode``."""
     meta = chunks.lerobot.meta
@@ -146,8 +152,6 @@ def rollout_episode(model, online, policy, start: Start, *, steps: int | None = 
     """Run ``policy`` in the world model from ``start`` for ``start.chunks`` chunks (see the
     module docstring), yielding each chunk as it is generated. ``policy``: a callable or an
     :class:`ActionQueue`."""
-    from imac_model.rollout import sample_rollout
-
     base = getattr(model, "module", model)
     spec = base.spec
     views = tuple(views or spec.views)
@@ -211,8 +215,6 @@ class GeneratedDatasetWriter:
 
     def __init__(self, root: str | Path, repo_id: str, spec, *, state_names: Sequence[str] | None = None,
                  overwrite: bool = False):
-        from imac_data.dataset.episodes import EpisodeWriter
-
         self.root = Path(root)
         if self.root.exists() and not overwrite:
             raise InputError(f"output {self.root} already exists (pass --overwrite to replace it)")
@@ -272,9 +274,6 @@ class GeneratedDatasetWriter:
 
     def finish(self, info_block: Mapping | None = None) -> Path:
         import pyarrow as pa
-
-        from imac_data.dataset.columns import add_episode_columns
-        from imac_data.dataset.info import update_imac_info
 
         self.writer.finish()
         add_episode_columns(self.staging, self.rows, {k: getattr(pa, t)() for k, t in EPISODE_COLUMNS.items()})
@@ -347,10 +346,6 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
     ``"recorded"`` (each start episode's own recorded actions)."""
     from tqdm.auto import tqdm
 
-    from imac_data.safety import refuse_overlap
-    from imac_model.evaluate.policies import recorded_actions_policy
-    from imac_model.evaluate.success import EpisodeFrames
-
     spec = model.spec
     output = Path(output)
     meta = chunks.lerobot.meta
@@ -384,7 +379,7 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
         "policy": name,
         "judge": None if judge is None else getattr(judge, "name", type(judge).__name__),
         "judge_frames": config.judge_frames,
-        "controls": "rebuilt online from the policy's actions and the predicted depth (imac_model.online_controls)",
+        "controls": "rebuilt online from the policy's actions and the predicted depth (imac_model.pipelines.online_controls)",
         "next_state": "the last commanded configuration",
     }
     writer = GeneratedDatasetWriter(output, repo_id, spec, state_names=names, overwrite=overwrite)

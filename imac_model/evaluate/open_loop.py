@@ -2,7 +2,7 @@
 the recording, and an action-sensitivity check.
 
 * :func:`rollout_videos`: from recorded reference frames of held-out episodes, roll out N
-  chunks with the recorded actions (:func:`imac_model.rollout.sample_rollout`: chunk 1 with
+  chunks with the recorded actions (:func:`imac_model.pipelines.rollout.sample_rollout`: chunk 1 with
   the dataset's controls, every later chunk from the last generated frame, controls rebuilt
   online from the generated depth, robot state = last commanded configuration, as a closed
   loop would). Returns generated and recorded mosaics as uint8.
@@ -26,8 +26,10 @@ from dataclasses import dataclass
 import torch
 
 from imac_data.errors import InputError
-from imac_model import mosaic
-from imac_model.batch import ChunkBatch
+from imac_model.data import mosaic
+from imac_model.data.batch import ChunkBatch
+from imac_model.evaluate.video_metrics import VideoMetricsConfig, compute_video_metrics
+from imac_model.pipelines.rollout import sample_rollout
 
 ROBOT_THRESHOLD = 0.02  # a motion-image pixel brighter than this (any channel) shows the robot
 DIFFERENCE_THRESHOLD = 0.1  # two motion images differ at a pixel where a channel differs by more than this
@@ -66,8 +68,6 @@ def rollout_videos(model, dataset, starts: Sequence[tuple[int, int]], chunks: in
     """Roll out ``chunks`` chunks from each start (see the module docstring)."""
     from tqdm.auto import tqdm
 
-    from imac_model.rollout import sample_rollout
-
     gen, rec, refs, invalid = [], [], [], []
     for b0 in tqdm(range(0, len(starts), batch_size), desc="rollouts", disable=not progress):
         part = starts[b0:b0 + batch_size]
@@ -85,8 +85,6 @@ def per_chunk_metrics(generated: torch.Tensor, recorded: torch.Tensor, *, horizo
                       sampler_steps: int | None = None, seed: int | None = None) -> list[dict]:
     """:func:`compute_video_metrics` of each chunk index (frames ``n H .. (n + 1) H - 1``) on the
     RGB row: one result per chunk index."""
-    from imac_model.evaluate.video_metrics import VideoMetricsConfig, compute_video_metrics
-
     V = len(views)
     n_chunks = generated.shape[1] // horizon
     out = []
@@ -132,8 +130,6 @@ def action_sensitivity(model, dataset, starts: Sequence[tuple[int, int]], online
                        steps: int | None = None, seed: int = 0, batch_size: int = 8) -> Sensitivity:
     """See the module docstring. ``online`` renders both action sequences' controls (and the
     motion masks, for every conditioning mode)."""
-    from imac_model.rollout import sample_rollout
-
     V = len(model.spec.views)
     streams = tuple(model.streams)
     inside_sum = outside_sum = 0.0

@@ -1,0 +1,52 @@
+"""``imac qa overlay | refine | preview``: look at a calibration, fix it, look at a built episode."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from imac_data.calibrate.config import RefineConfig
+from imac_data.calibrate.refine import refine_calibration
+from imac_data.calibrate.report import format_report
+from imac_data.console import run_command
+from imac_data.core.rig import Rig
+from imac_data.qa.overlay import format_summary, overlay
+from imac_data.qa.preview import write_preview
+from imac_data.recipes import load_recipe
+
+
+def run(args: argparse.Namespace) -> int:
+    body = {"overlay": _overlay, "refine": _refine, "preview": _preview}[args.qa_command]
+    return run_command(lambda: body(args))
+
+
+def _overlay(args: argparse.Namespace) -> None:
+    cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
+    robot, controller = args.robot, None
+    if args.recipe:
+        rig = Rig.from_recipe(load_recipe(args.recipe), args.calibration)
+        robot, controller = rig.robot, rig.controller
+    summary = overlay(args.episode, args.calibration, args.out, robot=robot, source=args.source, fmt=args.fmt,
+                      frames=args.frames, cameras=cams, overwrite=args.overwrite, controller=controller)
+    print(format_summary(summary, Path(args.out)))
+
+
+def _refine(args: argparse.Namespace) -> None:
+    over = {}
+    if args.method:
+        over["method"] = args.method
+    if args.refine_focal:
+        over["refine_focal"] = True
+    cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
+    result = refine_calibration(args.source, args.out, recipe=args.recipe, calibration=args.calibration,
+                                robot_pixels=args.robot_pixels, cameras=cams, frames=args.frames,
+                                min_separation=args.min_separation, config=RefineConfig(**over), near=args.near,
+                                report=args.report, overwrite=args.overwrite, log=lambda m: print(m, file=sys.stderr))
+    print(format_report(result))
+
+
+def _preview(args: argparse.Namespace) -> None:
+    path = write_preview(args.root, args.episode, args.out, depth_max=args.depth_max, overwrite=args.overwrite,
+                         progress=not args.no_progress)
+    print(f"wrote {path}")

@@ -1,0 +1,19 @@
+"""``imac validate ROOT [--full]``: check a built dataset; exit 0 when valid, 2 with a report."""
+
+from __future__ import annotations
+
+import argparse
+
+from imac_data.console import EXIT_BAD_INPUT, EXIT_OK, quiet_libraries, run_command
+from imac_data.dataset.validate import validate_dataset
+
+
+def run(args: argparse.Namespace) -> int:
+    quiet_libraries()
+
+    def body() -> int:
+        report = validate_dataset(args.root, full=args.full, sample=args.sample, checks=args.check)
+        print(report.format())
+        return EXIT_OK if report.ok else EXIT_BAD_INPUT
+
+    return run_command(body)

@@ -1,0 +1,225 @@
+"""How a command runs: the cores it may use, quiet libraries, exit codes, one-line errors, Ctrl-C.
+
+Every ``imac`` command runs its body through :func:`run_command`. Exit codes:
+0 success, 2 bad input (:class:`~imac_data.errors.InputError`), 3 the environment
+(:class:`~imac_data.errors.EnvironmentFault` or an ``OSError`` such as no space left),
+130 Ctrl-C (one line, wherever it lands), 1 a bug (a traceback). ``docs/building.md``
+explains the Ctrl-C design: worker processes, libraries that swallow the interrupt.
+"""
+
+from __future__ import annotations
+
+import errno
+import functools
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable
+
+from imac_data.errors import EnvironmentFault, InputError
+
+EXIT_OK, EXIT_BUG, EXIT_BAD_INPUT, EXIT_ENVIRONMENT = 0, 1, 2, 3
+EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
+INTERRUPTED = "interrupted (a build keeps its finished episodes: rerun the same command to resume)"
+
+__all__ = ["cpu_cores", "run_command", "exit_process", "environment_problem", "interrupted", "quiet_libraries",
+           "silence_progress_bars", "quiet_startup_interrupts", "note_interrupts", "interrupt_pending",
+           "raise_if_interrupted", "block_interrupts_in_this_thread", "quiet_worker_interrupts", "run_as_job",
+           "EXIT_OK", "EXIT_BUG", "EXIT_BAD_INPUT", "EXIT_ENVIRONMENT", "EXIT_INTERRUPTED", "INTERRUPTED"]
+
+# errno -> what the user can do about it
+_ENVIRONMENT_ERRNOS = {
+    errno.ENOSPC: "free some space and rerun: finished episodes stay in staging, so the build resumes",
+    errno.EDQUOT: "free some space or raise the quota and rerun: the build resumes",
+    errno.EROFS: "the file system is read-only: choose another output",
+    errno.EACCES: "check the permissions of that path",
+    errno.EPERM: "check the permissions of that path",
+    errno.ENOTDIR: "a parent of that path is a file, not a directory",
+    errno.EMFILE: "raise the open-file limit (ulimit -n)",
+    errno.ENFILE: "the system ran out of open files",
+    errno.EIO: "the disk reported an I/O error",
+}
+_BY_TEXT = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)  # unambiguous enough to find in a message
+
+
+# ----------------------------------------------------------------------------- the machine
+
+
+def cpu_cores() -> int:
+    """Cores this process may run on (its affinity mask, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+# ----------------------------------------------------------------------------- libraries
+
+
+def quiet_libraries() -> None:
+    """Keep the console to our progress bars: SVT-AV1 banners, libav muxer notes and the
+    datasets library's per-file bars say nothing a user acts on."""
+    import av
+    import datasets
+
+    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1: errors only
+    av.logging.set_level(av.logging.ERROR)
+    datasets.disable_progress_bars()
+
+
+def silence_progress_bars() -> None:
+    """``--no-progress``: no bar at all, LeRobot's own included. tqdm reads ``TQDM_DISABLE``
+    when imported, which covers worker processes; here tqdm is usually loaded already."""
+    import datasets
+    import huggingface_hub.utils
+    import tqdm.std
+
+    os.environ.update(TQDM_DISABLE="1", HF_DATASETS_DISABLE_PROGRESS_BARS="1", HF_HUB_DISABLE_PROGRESS_BARS="1")
+    datasets.disable_progress_bars()
+    huggingface_hub.utils.disable_progress_bars()
+    if not getattr(tqdm.std.tqdm, "_imac_silenced", False):  # what TQDM_DISABLE=1 does at import
+        tqdm.std.tqdm.__init__ = functools.partialmethod(tqdm.std.tqdm.__init__, disable=True)
+        tqdm.std.tqdm._imac_silenced = True
+
+
+# ----------------------------------------------------------------------------- errors
+
+
+def _chain(exc: BaseException | None):
+    """``exc`` and the exceptions it was raised from or while handling, newest first."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        yield exc
+        exc = exc.__cause__ or exc.__context__
+
+
+def interrupted(exc: BaseException) -> bool:
+    """Whether Ctrl-C caused ``exc``: a ``KeyboardInterrupt`` anywhere in its chain (a native
+    import interrupted half-way re-raises it as ``ImportError: initialization failed``)."""
+    return any(isinstance(e, KeyboardInterrupt) for e in _chain(exc))
+
+
+def environment_problem(exc: BaseException) -> str | None:
+    """One line describing ``exc`` if the machine caused it (an errno of
+    :data:`_ENVIRONMENT_ERRNOS` anywhere in its chain, also when only the message kept it)."""
+    for exc in _chain(exc):
+        if isinstance(exc, EnvironmentFault):
+            return str(exc)
+        code = getattr(exc, "errno", None) if isinstance(exc, OSError) else None
+        if code not in _ENVIRONMENT_ERRNOS:  # pyarrow, PyAV: errno lost, strerror kept in the text
+            code = next((c for c in _BY_TEXT if os.strerror(c) in str(exc)), None)
+        if code is not None:
+            where = getattr(exc, "filename", None)
+            return (f"{os.strerror(code)} ({errno.errorcode[code]}){f': {where}' if where else ''} - "
+                    f"{_ENVIRONMENT_ERRNOS[code]}")
+    return None
+
+
+def run_command(body: Callable[[], int | None]) -> int:
+    """Run a command's body with the exit codes above: bad input and environment faults print
+    one ``error:`` line, Ctrl-C one line; anything else is a bug and keeps its traceback."""
+    note_interrupts()
+    try:
+        code = body()
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except (KeyboardInterrupt, Exception) as e:
+        if interrupted(e) or interrupt_pending():  # an error that a Ctrl-C caused, however wrapped
+            print(INTERRUPTED, file=sys.stderr)
+            return EXIT_INTERRUPTED
+        problem = environment_problem(e)
+        if problem is None:
+            raise
+        print(f"error: {problem}", file=sys.stderr)
+        return EXIT_ENVIRONMENT
+    return EXIT_OK if code is None else code
+
+
+def exit_process(code: int) -> None:
+    """End a command-line process. After Ctrl-C it ends at once, without Python's shutdown: a
+    native library interrupted while loading (Open3D) runs exit handlers that turn 130 into 1.
+    Cleanup already ran as the stack unwound."""
+    if code == EXIT_INTERRUPTED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
+# ----------------------------------------------------------------------------- Ctrl-C
+# A terminal's Ctrl-C reaches every process of the group: the command reports it in one line,
+# its pool workers stay quiet. Some libraries swallow the KeyboardInterrupt (trimesh's optional
+# imports catch BaseException), so the handlers also record it and long loops poll
+# raise_if_interrupted.
+_in_job = False
+_interrupt_pending = False
+
+
+def quiet_startup_interrupts() -> None:
+    """Ctrl-C while a command still loads its libraries (seconds: torch): the one line and 130,
+    not a traceback from deep inside an import. Nothing is written yet, so the process just ends."""
+    def handler(signum, frame) -> None:
+        print(INTERRUPTED, file=sys.stderr, flush=True)
+        os._exit(EXIT_INTERRUPTED)
+
+    signal.signal(signal.SIGINT, handler)
+
+
+def _command_interrupt(signum, frame) -> None:
+    global _interrupt_pending
+    _interrupt_pending = True
+    raise KeyboardInterrupt
+
+
+def note_interrupts() -> None:
+    """In a command's main thread: Ctrl-C raises KeyboardInterrupt as usual and is recorded, so
+    that one a library swallowed still stops the command (:func:`raise_if_interrupted`)."""
+    global _interrupt_pending
+    _interrupt_pending = False
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _command_interrupt)
+
+
+def interrupt_pending() -> bool:
+    """Whether Ctrl-C reached this process (see :func:`note_interrupts`)."""
+    return _interrupt_pending
+
+
+def raise_if_interrupted() -> None:
+    """KeyboardInterrupt if Ctrl-C reached this process, even if a library swallowed it."""
+    if _interrupt_pending:
+        raise KeyboardInterrupt
+
+
+def block_interrupts_in_this_thread() -> None:
+    """Hold SIGINT in the calling (non-main) thread, and so in the processes it starts: a
+    spawned worker then starts with it held until :func:`quiet_worker_interrupts`."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
+
+def _worker_interrupt(signum, frame) -> None:
+    global _interrupt_pending
+    _interrupt_pending = True
+    if _in_job:  # the job cleans up as it unwinds; the pool hands the exception to the build
+        raise KeyboardInterrupt
+    os._exit(EXIT_INTERRUPTED)  # idle: nothing to clean up, and no traceback from the pool's loop
+
+
+def quiet_worker_interrupts() -> None:
+    """In a pool worker: Ctrl-C interrupts a running job (:func:`run_as_job`) and ends an idle
+    worker without a traceback; a Ctrl-C held while the worker started arrives now."""
+    signal.signal(signal.SIGINT, _worker_interrupt)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+def run_as_job(fn, *args):
+    """``fn(*args)`` in a pool worker, marked as a job that Ctrl-C interrupts (and cleans up)."""
+    global _in_job
+    _in_job = True
+    try:
+        return fn(*args)
+    finally:
+        _in_job = False

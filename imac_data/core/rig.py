@@ -1,0 +1,371 @@
+"""The rig: one robot with its cameras and controller, and what is derived from them.
+
+A :class:`Rig` turns joint vectors into pixels. It holds
+
+* the robot (:class:`~imac_data.core.robot.model.RobotModel`: URDF, joint map with per-entry affine
+  maps, mimic joints, batched FK),
+* the calibrated cameras (fixed or mounted on a link; view order = the dataset's),
+* the controller map phi (:class:`~imac_data.core.motion.Controller`),
+* the workspace the contact streams crop the scene to (:class:`~imac_data.core.contact.workspace.Workspace`:
+  a world box and a depth range; from the recipe, by default the robot's reach; None = no crop),
+* and, built on first use in each process, the renderer and the gripper surface samples.
+
+It is made in one of two ways, which give the same rig:
+
+* :meth:`Rig.from_recipe`: a recipe (``robot`` section, calibration). The only place that
+  knows a built-in platform by name (``robot.platform: aloha_sim``);
+* :meth:`Rig.from_info`: a built dataset, from its ``meta/info.json`` ``imac`` block and the
+  robot description it carries under ``meta/imac/robot/`` (URDF + meshes), with no other file.
+
+:meth:`to_info` writes the block :meth:`from_info` reads: ``Rig.from_info(...).to_info()``
+equals the block it was read from (tested), and the rig renders and measures the same.
+
+Everything after construction is tensors in, tensors out (torch, any leading batch shape,
+CPU; FK and contact also on CUDA), so the world model calls the same functions on its own
+predicted depth during rollouts as the dataset build does offline::
+
+    rig = Rig.from_info(ds.meta.info, ds.root)
+    q = rig.frame_configurations(state, action)                  # or rig.rollout(q_t, actions)
+    views = rig.robot_views(q, resolution=(240, 320))            # rgb, mask, depth, poses, gripper points
+    chunk = rig.contact(ref_depth, q_ref, q_future)              # both contact streams of one chunk
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from imac_data.core.cameras import Camera, camera_from_dict, load_calibration
+from imac_data.core.contact.clouds import DEFAULT_GRIPPER_SPACING, GripperSurface
+from imac_data.core.contact.images import ContactChunk, contact_chunk
+from imac_data.core.contact.workspace import Workspace, as_workspace, resolve_workspace, saturation_depth
+from imac_data.core.depth import DepthCodec
+from imac_data.core.motion import Controller, frame_configurations, rollout
+from imac_data.core.render import make_renderer
+from imac_data.core.robot import aloha
+from imac_data.core.robot.description import check_description, description_manifest
+from imac_data.core.robot.model import RobotConfig, RobotModel
+from imac_data.errors import InputError
+from imac_data.layout import URDF_NAME, description_dir, info_path
+
+__all__ = ["Rig", "RobotViews", "DEFAULT_GRIPPER_SPACING", "RIG_KEYS"]
+
+RIG_KEYS = ("robot", "cameras", "controller", "gripper_surface", "workspace")  # what to_info writes into info["imac"]
+
+
+@dataclass
+class RobotViews:
+    """The robot seen from every camera at N configurations (views in the rig's order).
+
+    ``rgb (N, V, H, W, 3)`` uint8 (motion image), ``mask (N, V, H, W)`` bool, ``depth
+    (N, V, H, W)`` float32 robot z-depth (0 = no robot), ``link_id (N, V, H, W)`` int16
+    (index into ``rig.renderer.link_names``, -1 = none), ``T_world_cam (N, V, 4, 4)``
+    camera-to-world (OpenCV; wrist cameras posed by FK), ``gripper_points (N, M, 3)``."""
+
+    rgb: torch.Tensor | None
+    mask: torch.Tensor
+    depth: torch.Tensor
+    link_id: torch.Tensor
+    T_world_cam: torch.Tensor
+    gripper_points: torch.Tensor | None
+
+
+@dataclass(eq=False)
+class Rig:
+    """Robot + cameras + controller (+ renderer and gripper surface, built on first use)."""
+
+    robot: RobotModel
+    cameras: dict[str, Camera]
+    controller: Controller = field(default_factory=Controller)
+    state_names: tuple[str, ...] | None = None
+    gripper_spacing: float = DEFAULT_GRIPPER_SPACING
+    threads: int = 0  # renderer (Embree) and contact threads; 0 = all cores
+    workspace: Workspace | None = None  # the contact streams' scene crop; None = none
+
+    def __post_init__(self) -> None:
+        if not self.cameras:
+            raise InputError(f"rig of robot {self.robot.name!r}: no cameras")
+        self.cameras = dict(self.cameras)
+        links = set(self.robot.link_names)
+        for name, cam in self.cameras.items():
+            if cam.is_mounted and cam.link not in links:
+                raise InputError(f"camera {name!r} is mounted on link {cam.link!r}, which robot "
+                                 f"{self.robot.name!r} does not have")
+        self.controller.validate(self.robot.dof)
+        if self.state_names is not None:
+            self.state_names = tuple(self.state_names)
+            if len(self.state_names) != self.robot.dof:
+                raise InputError(f"rig: {len(self.state_names)} state names for a {self.robot.dof}-D joint vector")
+        if not (math.isfinite(self.gripper_spacing) and self.gripper_spacing > 0):
+            raise InputError(f"rig: gripper spacing must be > 0 metres, got {self.gripper_spacing}")
+        self.workspace = as_workspace(self.workspace)
+        self._renderer = None
+        self._gripper = None
+
+    # ------------------------------------------------------------------ construction
+
+    @classmethod
+    def from_recipe(cls, recipe, calibration: str | Path | Mapping[str, Camera] | None = None, *,
+                    robot: RobotModel | None = None) -> Rig:
+        """The rig a recipe describes. ``calibration``: a calibration file or cameras
+        (default: the recipe's ``cameras.calibration``); ``robot``: the recipe's robot if
+        already loaded (:meth:`robot_from_recipe`). The workspace is the recipe's
+        ``augment.contact_workspace``, defaults filled in (:func:`~imac_data.core.contact.workspace.resolve_workspace`)."""
+        if calibration is None:
+            path = recipe.resolve_path(recipe.cameras.calibration)
+            if path is None:
+                raise InputError(f"{recipe.file or 'recipe'}: cameras.calibration: no calibration given")
+            calibration = path
+        cameras = load_calibration(calibration) if isinstance(calibration, (str, Path)) else dict(calibration)
+        robot = robot if robot is not None else cls.robot_from_recipe(recipe)
+        a = recipe.augment
+        workspace = resolve_workspace(a.contact_workspace, robot, saturation_depth(DepthCodec.preset(a.depth_codec)))
+        r = recipe.robot
+        if r.platform is not None:
+            task = recipe.source.sim.task if recipe.source.type == "aloha_sim" else None
+            return cls.from_platform(r.platform, cameras, robot=robot, task=task, workspace=workspace)
+        controller = Controller()
+        if r.controller is not None:
+            from dataclasses import asdict
+
+            controller = Controller.from_dict(asdict(r.controller), where=f"{recipe.file}: robot.controller")
+        return cls(robot, cameras, controller, workspace=workspace)
+
+    @classmethod
+    def from_platform(cls, platform: str, cameras: Mapping[str, Camera], *, robot: RobotModel | None = None,
+                      task: str | None = None, workspace: Workspace | None = None) -> Rig:
+        """A built-in rig by name with the given cameras. ``aloha_sim``: gym-aloha's two
+        ViperX 300s (:mod:`imac_data.core.robot.aloha`), its actuators' saturation in the controller
+        (``task``: which scene's MJCF; the arms are the same in every task)."""
+        if platform != "aloha_sim":
+            raise InputError(f"unknown robot platform {platform!r}; known: ['aloha_sim']")
+
+        robot = robot if robot is not None else RobotModel(aloha.robot_config())
+        return cls(robot, dict(cameras), aloha.controller(task or aloha.TASKS[0]), state_names=aloha.STATE_NAMES,
+                   workspace=workspace)
+
+    @staticmethod
+    def robot_from_recipe(recipe) -> RobotModel:
+        """The recipe's robot alone (URDF, joint map; checked against each other), e.g. to
+        fail on a bad URDF before any work starts."""
+        r = recipe.robot
+        if r.platform == "aloha_sim":
+            return RobotModel(aloha.robot_config())
+        if r.platform is not None:
+            raise InputError(f"{recipe.file}: robot.platform: unknown platform {r.platform!r}")
+        urdf = recipe.resolve_path(r.urdf)
+        if not urdf.is_file():
+            raise InputError(f"{recipe.file}: robot.urdf: file not found: {urdf}")
+        joint_map = RobotConfig.parse_joint_map(r.joint_map_entries(), f"{recipe.file}: robot.joint_map")
+        return RobotModel(RobotConfig(name=recipe.name, urdf_path=urdf, joint_map=joint_map,
+                                      gripper_links=r.gripper_links,
+                                      package_dirs={k: recipe.resolve_path(v) for k, v in r.package_dirs.items()}))
+
+    @classmethod
+    def from_info(cls, info: Mapping, root: str | Path, *, check_files: bool = True) -> Rig:
+        """The rig of a built dataset: ``info`` is its ``meta/info.json`` (or only the ``imac``
+        block), ``root`` the dataset directory that holds ``meta/imac/robot/``."""
+        block = info.get("imac", info) if isinstance(info, Mapping) else None
+        if not isinstance(block, Mapping) or "robot" not in block:
+            raise InputError(f"{root}: info.json has no imac.robot block (not built by imac, or too old)")
+        return cls.from_block(block, description_dir(root), check_files=check_files,
+                              where=f"{root}/meta/info.json imac")
+
+    @classmethod
+    def from_dataset(cls, root: str | Path) -> Rig:
+        """:meth:`from_info` of the dataset at ``root``."""
+        path = info_path(root)
+        if not path.is_file():
+            raise InputError(f"{root} is not a LeRobot dataset ({path} is missing)")
+        return cls.from_info(json.loads(path.read_text()), root)
+
+    @classmethod
+    def from_block(cls, block: Mapping, description_dir: str | Path, *, check_files: bool = True,
+                   where: str = "imac block") -> Rig:
+        """A rig from the ``imac`` block's rig keys and a packaged robot description directory."""
+        missing = [k for k in ("robot", "cameras", "controller") if k not in block]
+        if missing:
+            raise InputError(f"{where}: missing key(s) {missing}")
+        rb = block["robot"]
+        for key in ("name", "joint_map", "description"):
+            if key not in rb:
+                raise InputError(f"{where}.robot: missing key {key!r}")
+        description_dir = Path(description_dir)
+        if check_files:
+            check_description(description_dir, rb["description"], where=f"{where}.robot.description")
+        config = RobotConfig(name=rb["name"], urdf_path=description_dir / URDF_NAME,
+                             joint_map=RobotConfig.parse_joint_map(rb["joint_map"], f"{where}.robot.joint_map"),
+                             gripper_links=tuple(rb.get("gripper_links", ())))
+        cameras = {n: camera_from_dict(n, c, f"{where}.cameras.{n}") for n, c in block["cameras"].items()}
+        surface = block.get("gripper_surface", {})
+        # schema 1 datasets have no workspace: their contact streams were not cropped
+        workspace = Workspace.from_dict(block.get("workspace"), f"{where}.workspace")
+        return cls(RobotModel(config), cameras, Controller.from_dict(block["controller"], f"{where}.controller"),
+                   state_names=rb.get("state_names"),
+                   gripper_spacing=float(surface.get("spacing", DEFAULT_GRIPPER_SPACING)), workspace=workspace)
+
+    def to_info(self) -> dict:
+        """The rig's part of ``info["imac"]`` (:data:`RIG_KEYS`), JSON-ready."""
+        config = self.robot.config
+        return {
+            "robot": {"name": config.name, "joint_map": config.joint_map_dict(),
+                      "gripper_links": list(config.gripper_links),
+                      "state_names": None if self.state_names is None else list(self.state_names),
+                      "description": description_manifest(self.robot)},
+            "cameras": {name: cam.to_dict() for name, cam in self.cameras.items()},
+            "controller": self.controller.to_dict(),
+            "gripper_surface": {"links": list(config.gripper_links), "spacing": self.gripper_spacing, "seed": 0},
+            "workspace": None if self.workspace is None else self.workspace.to_dict(),
+        }
+
+    def with_image_sizes(self, sizes: Mapping[str, tuple[int, int]]) -> Rig:
+        """The same rig with each camera's calibration rescaled to the recorded image size
+        ``(height, width)`` (same aspect ratio; K follows, :meth:`Camera.rescaled`)."""
+        cams = {name: cam.for_images(*sizes.get(name, (cam.height, cam.width)))
+                for name, cam in self.cameras.items()}
+        rig = Rig(self.robot, cams, self.controller, self.state_names, self.gripper_spacing, self.threads,
+                  self.workspace)
+        rig._renderer, rig._gripper = self._renderer, self._gripper
+        return rig
+
+    # ------------------------------------------------------------------ parts
+
+    @property
+    def names(self) -> list[str]:
+        """View order (the order of ``cameras``; DESIGN: head, left wrist, right wrist)."""
+        return list(self.cameras)
+
+    @property
+    def dof(self) -> int:
+        return self.robot.dof
+
+    @property
+    def renderer(self):
+        if self._renderer is None:
+            self._renderer = make_renderer(self.robot, nthreads=self.threads)
+        return self._renderer
+
+    @property
+    def gripper(self):
+        """Surface samples of the gripper links (:class:`~imac_data.core.contact.clouds.GripperSurface`)."""
+        if self._gripper is None:
+            self._gripper = GripperSurface(self.robot, spacing=self.gripper_spacing)
+        return self._gripper
+
+    def set_threads(self, threads: int) -> None:
+        """Threads for the renderer's ray casting and the contact queries (0 = all cores)."""
+        self.threads = int(threads)
+        if self._renderer is not None and hasattr(self._renderer, "nthreads"):
+            self._renderer.nthreads = self.threads
+
+    def stream_cameras(self, resolution: tuple[int, int] | None = None) -> dict[str, Camera]:
+        """The cameras at ``resolution`` ``(H, W)`` (K rescaled with :meth:`Camera.rescaled`)."""
+        if resolution is None:
+            return dict(self.cameras)
+        try:
+            h, w = (int(x) for x in resolution)
+        except (TypeError, ValueError):
+            raise InputError(f"rig: resolution must be (height, width), got {resolution!r}") from None
+        if h <= 0 or w <= 0:
+            raise InputError(f"rig: resolution must be positive, got {resolution!r}")
+        return {n: (c if (c.height, c.width) == (h, w) else c.rescaled(w, h)) for n, c in self.cameras.items()}
+
+    def intrinsics(self, resolution: tuple[int, int] | None = None, device=None) -> torch.Tensor:
+        """``K (V, 3, 3)`` float32 at ``resolution``."""
+        cams = self.stream_cameras(resolution)
+        return torch.stack([torch.as_tensor(c.K, dtype=torch.float32, device=device) for c in cams.values()])
+
+    # ------------------------------------------------------------------ kinematics
+
+    def link_poses(self, q) -> dict[str, torch.Tensor]:
+        """World pose ``(*B, 4, 4)`` of every link at joint vectors ``q (*B, D)``."""
+        return self.robot.link_poses(q)
+
+    def camera_poses(self, q=None, *, link_poses=None, dtype=torch.float32) -> torch.Tensor:
+        """Camera-to-world poses ``(*B, V, 4, 4)`` at joint vectors ``q (*B, D)`` (or FK link
+        poses); fixed cameras broadcast, mounted ones follow their link."""
+        if link_poses is None:
+            link_poses = self.link_poses(torch.as_tensor(q, dtype=dtype))
+        ref = next(iter(link_poses.values()))
+        batch = tuple(ref.shape[:-2])
+        return torch.stack([c.pose(link_poses, batch_shape=batch, dtype=ref.dtype, device=ref.device)
+                            for c in self.cameras.values()], dim=-3)
+
+    def frame_configurations(self, state, action=None, *, source: str = "action"):
+        """The configuration each frame's motion image shows (:func:`imac_data.core.motion.frame_configurations`)."""
+        return frame_configurations(state, action, source=source, controller=self.controller)
+
+    def rollout(self, q_t, actions):
+        """phi: configurations ``(*B, K, D)`` after each of ``actions (*B, K, D)`` from ``q_t (*B, D)``."""
+        return rollout(q_t, actions, self.controller)
+
+    # ------------------------------------------------------------------ rendering
+
+    def robot_views(self, q=None, *, link_poses=None, resolution: tuple[int, int] | None = None,
+                    gripper: bool = True) -> RobotViews:
+        """Render the robot at joint vectors ``q (N, D)`` (or FK ``link_poses``) into every
+        camera at ``resolution`` (default: each camera's size)."""
+        if link_poses is None:
+            q = torch.as_tensor(q, dtype=torch.float32)
+            if q.ndim != 2:
+                raise InputError(f"robot_views: joint vectors must be (N, D), got shape {tuple(q.shape)}")
+            link_poses = self.link_poses(q)
+        cams = self.stream_cameras(resolution)
+        views = self.renderer.render(cameras=cams, link_poses=link_poses)
+        names = list(cams)
+        ref = next(iter(link_poses.values()))
+        batch = tuple(ref.shape[:-2])
+
+        def stack(attr):
+            return torch.stack([getattr(views[n], attr) for n in names], dim=len(batch))
+
+        poses = torch.stack([cams[n].pose(link_poses, batch_shape=batch) for n in names], dim=len(batch))
+        return RobotViews(rgb=stack("rgb"), mask=stack("mask"), depth=stack("depth"), link_id=stack("link_id"),
+                          T_world_cam=poses, gripper_points=self.gripper.points(link_poses) if gripper else None)
+
+    # ------------------------------------------------------------------ contact
+
+    def contact(self, ref_depth, q_ref, q_future, **options):
+        """Both contact streams of one chunk, from depth: ``ref_depth (V, H, W)`` metres at the
+        reference (sensed, or a world model's prediction), the reference state ``q_ref (D,)``
+        (robot mask and camera poses) and the configurations to draw ``q_future (S, D)``.
+        With a leading batch axis (``(B, V, H, W)``, ``(B, D)``, ``(B, S, D)``) every tensor
+        of the result gets one too. Cameras are rescaled to the depth's ``(H, W)``.
+        ``options``: :func:`imac_data.core.contact.images.contact_chunk` (cap, percentile, dilate_px,
+        tolerance, method, device, ...); the scene is cropped to the rig's workspace unless
+        ``workspace`` is given (None = no crop). Returns a :class:`~imac_data.core.contact.images.ContactChunk`.
+        """
+        ref_depth = torch.as_tensor(ref_depth)
+        q_ref = torch.as_tensor(q_ref, dtype=torch.float32)
+        q_future = torch.as_tensor(q_future, dtype=torch.float32)
+        V = len(self.cameras)
+        if ref_depth.ndim == 4:
+            if q_ref.ndim != 2 or q_future.ndim != 3 or not (len(ref_depth) == len(q_ref) == len(q_future)):
+                raise InputError(f"contact: batched inputs must be (B, V, H, W), (B, D), (B, S, D); got "
+                                 f"{tuple(ref_depth.shape)}, {tuple(q_ref.shape)}, {tuple(q_future.shape)}")
+            parts = [self.contact(ref_depth[b], q_ref[b], q_future[b], **options) for b in range(len(ref_depth))]
+            return ContactChunk(*(torch.stack([getattr(p, k) for p in parts])
+                                  for k in ("r2s", "s2g", "r2s_rgb", "s2g_rgb", "caps")))
+        if ref_depth.ndim != 3 or ref_depth.shape[0] != V:
+            raise InputError(f"contact: reference depth must be (V, H, W) with V = {V} views {self.names}, "
+                             f"got {tuple(ref_depth.shape)}")
+        if q_ref.ndim != 1 or q_future.ndim != 2:
+            raise InputError(f"contact: q_ref must be (D,) and q_future (S, D), got {tuple(q_ref.shape)}, "
+                             f"{tuple(q_future.shape)}")
+        hw = tuple(ref_depth.shape[-2:])
+        ref = self.robot_views(q_ref[None], resolution=hw, gripper=False)
+        fut = self.robot_views(q_future, resolution=hw)
+        device = options.pop("device", None) or ref_depth.device
+        options.setdefault("workspace", self.workspace)
+        return contact_chunk(ref_depth.to(device), self.intrinsics(hw), ref.T_world_cam[0], ref.mask[0],
+                             fut.depth, fut.T_world_cam, fut.gripper_points, device=device, **options)
+
+    def __repr__(self) -> str:
+        return (f"Rig(robot={self.robot.name!r}, dof={self.dof}, cameras={self.names}, "
+                f"controller={self.controller.mode!r})")
+

@@ -1,0 +1,123 @@
+"""Where things are in an imac dataset and what its features are called, named once.
+
+A built dataset is a LeRobot v3.0 dataset (``docs/dataset-format.md``): LeRobot's own files,
+plus the added features below, the ``imac`` block of ``meta/info.json`` and the robot
+description under ``meta/imac/robot/``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+
+# ----------------------------------------------------------------------------- files
+INFO = "meta/info.json"
+STATS = "meta/stats.json"
+TASKS = "meta/tasks.parquet"
+EPISODES_DIR = "meta/episodes"
+DATA_DIR = "data"
+VIDEOS_DIR = "videos"
+DEFAULT_VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+DESCRIPTION_DIR = "meta/imac/robot"  # the robot description a dataset carries
+URDF_NAME = "robot.urdf"
+MESH_DIR = "meshes"
+CALIBRATION = "calibration.json"  # beside raw episodes
+
+
+def info_path(root: str | Path) -> Path:
+    return Path(root) / INFO
+
+
+def stats_path(root: str | Path) -> Path:
+    return Path(root) / STATS
+
+
+def episodes_dir(root: str | Path) -> Path:
+    return Path(root) / EPISODES_DIR
+
+
+def description_dir(root: str | Path) -> Path:
+    return Path(root) / DESCRIPTION_DIR
+
+
+def cache_home() -> Path:
+    """Our cache: recorded simulator episodes, the exported ALOHA URDF, metric weights."""
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "imac"
+
+
+# ----------------------------------------------------------------------------- features
+STATE = "observation.state"
+ACTION = "action"
+VELOCITY = "observation.velocity"
+IMAGE_PREFIX = "observation.images."
+DEPTH_PREFIX = "observation.depth."
+CONTROL_PREFIX = "control."
+MOTION = "control.motion"
+R2S = "control.contact_r2s"
+S2G = "control.contact_s2g"
+CAP_KEY = "control.contact_cap"  # per frame: the (r2s, s2g) caps of the frame's chunk, metres
+POSE_PREFIX = "camera_pose."  # per frame and camera: camera-to-world, OpenCV axes, row-major 4x4
+POSE_NAMES = [f"m{r}{c}" for r in range(4) for c in range(4)]
+EPISODE_COLUMNS = ("imac/source", "imac/policy_name", "imac/checkpoint", "imac/success")  # meta/episodes
+SUCCESS_COLUMN = "imac/success"
+
+
+def image_key(camera: str) -> str:
+    return IMAGE_PREFIX + camera
+
+
+def depth_key(camera: str) -> str:
+    return DEPTH_PREFIX + camera
+
+
+def pose_key(camera: str) -> str:
+    return POSE_PREFIX + camera
+
+
+def control_key(stream: str, camera: str) -> str:
+    """``control.<stream>.<camera>``; ``stream`` is ``motion``, ``contact_r2s`` or ``contact_s2g``."""
+    return f"{CONTROL_PREFIX}{stream}.{camera}"
+
+
+def stream_keys(cameras: Iterable[str], *, depth: bool = True) -> list[str]:
+    """The added video streams in the dataset's order: depth per camera, then per camera
+    motion, robot-to-scene, scene-to-gripper (``depth=False``: motion only)."""
+    cameras = list(cameras)
+    if not depth:
+        return [f"{MOTION}.{c}" for c in cameras]
+    return [depth_key(c) for c in cameras] + [f"{k}.{c}" for c in cameras for k in (MOTION, R2S, S2G)]
+
+
+def is_added_stream(key: str) -> bool:
+    return key.startswith((CONTROL_PREFIX, DEPTH_PREFIX))
+
+
+def video_column(key: str, field: str) -> str:
+    """A ``meta/episodes`` column locating an episode in a video feature's files
+    (``chunk_index``, ``file_index``, ``from_timestamp``, ``to_timestamp``)."""
+    return f"videos/{key}/{field}"
+
+
+def stats_column(key: str, stat: str) -> str:
+    return f"stats/{key}/{stat}"
+
+
+# ----------------------------------------------------------------------------- loading
+def chunk_timestamps(info: Mapping, cameras: Sequence[str] | None = None) -> dict[str, list[float]]:
+    """``delta_timestamps`` for ``LeRobotDataset`` that load one contact chunk per item: the
+    reference frame and the H future frames of RGB and depth, the H future frames of every
+    control stream, and the actions ``a_t .. a_{t+H-1}`` (``info``: the dataset's
+    ``meta/info.json``, e.g. ``ds.meta.info``; ``cameras``: default all)."""
+    fps = float(info["fps"])
+    H = int(info["imac"]["contact"]["chunk_size"])
+    cameras = list(cameras) if cameras is not None else list(info["imac"]["cameras"])
+    future = [k / fps for k in range(1, H + 1)]
+    out: dict[str, list[float]] = {}
+    for cam in cameras:
+        out[image_key(cam)] = [0.0, *future]
+        out[depth_key(cam)] = [0.0, *future]
+        for stream in (MOTION, R2S, S2G):
+            out[f"{stream}.{cam}"] = list(future)
+    out[ACTION] = [k / fps for k in range(H)]
+    return {k: v for k, v in out.items() if k in info["features"]}

@@ -1,0 +1,152 @@
+"""The one parser of the ``imac-model`` command line. It imports nothing heavy; each command's
+body is its module's ``run(args)``."""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["build_parser", "COMMANDS", "command_of"]
+
+COMMANDS = {  # command -> the module whose run(args) carries it out
+    "train": "imac_model.cli.train",
+    "sample": "imac_model.cli.sample",
+    "evaluate": "imac_model.cli.evaluate",
+    "experiment": "imac_model.cli.experiment",
+}
+MODES = ("none", "motion", "motion+contact", "action-vector")
+EXPERIMENT_STAGES = ("record", "build", "decode", "train", "evaluate", "report")
+
+
+def _train(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dataset", help="LeRobot repo id (overrides data.dataset)")
+    p.add_argument("--root", help="dataset directory (overrides data.root)")
+    p.add_argument("--config", help="run config (YAML/JSON); defaults for anything it leaves out")
+    p.add_argument("--mode", choices=MODES, help="conditioning mode (overrides conditioning.mode)")
+    p.add_argument("--output-dir", help="overrides train.output_dir")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="override any field, e.g. --set train.max_steps=100 --set data.held_out_episodes=[8,9]")
+    p.add_argument("--resume", action=argparse.BooleanOptionalAction, default=None,
+                   help="continue from the output directory's latest checkpoint (default: when it has one)")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def _sample(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", required=True, help="checkpoint directory, or a run directory (latest checkpoint)")
+    p.add_argument("--episode", type=int, nargs="+", required=True, help="episode(s); several only with --evaluate")
+    p.add_argument("--chunk", type=int, default=0, help="which chunk of the episode (default: the first)")
+    p.add_argument("--chunks", type=int, default=1,
+                   help="roll out this many chunks autoregressively from --chunk, rebuilding the controls from the "
+                        "generated depth at every chunk boundary (default 1)")
+    p.add_argument("--recorded-states", action="store_true",
+                   help="with --chunks: the robot state at each boundary is the recorded one, not the last command")
+    p.add_argument("--evaluate", action="store_true",
+                   help="no video: sample every chunk of the episodes and print the mean errors")
+    p.add_argument("--dataset", help="LeRobot repo id (default: the one the model was trained on)")
+    p.add_argument("--root", help="dataset directory (default: the training run's)")
+    p.add_argument("--out", help="mp4 path (default: <checkpoint>/samples/episode_<N>_chunk_<C>.mp4)")
+    p.add_argument("--png", help="also write a still of the first, middle and last future frame here")
+    p.add_argument("--steps", type=int, help="Euler steps (default: the model's flow.sample_steps)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--weights", choices=("ema", "raw"), default="ema")
+    p.add_argument("--scale", type=int, default=2, help="pixel upscale of the written images")
+
+
+def _model_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", required=True, help="world-model checkpoint directory or run directory")
+    p.add_argument("--mode", help="the conditioning mode you mean to evaluate; a checkpoint trained with another "
+                                  "is refused (none, motion, motion+contact, action-vector)")
+    p.add_argument("--dataset", help="LeRobot repo id of the source dataset (default: the model's)")
+    p.add_argument("--root", help="source dataset directory (default: the training run's)")
+    p.add_argument("--episodes", type=int, nargs="+",
+                   help="start episodes (default: the run's held-out episodes, else all)")
+    p.add_argument("--steps", type=int, help="sampler (Euler) steps (default: the model's flow.sample_steps)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--weights", choices=("ema", "raw"), default="ema")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def _evaluate(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="evaluate_command", required=True, metavar="EVALUATE_COMMAND")
+
+    c = sub.add_parser("closed-loop", help="run a policy in the world model; write a LeRobot dataset of its episodes")
+    _model_args(c)
+    c.add_argument("--policy", required=True,
+                   help="recorded (replay each start episode's actions), hold, lerobot:DIR (a LeRobot policy "
+                        "checkpoint directory) or python:MODULE:NAME (a callable observation -> (K, D) actions)")
+    c.add_argument("--camera-map", nargs="+", metavar="POLICY_KEY=VIEW",
+                   help="lerobot policies: which world-model view feeds each of the policy's camera keys "
+                        "(default: observation.images.X reads view X)")
+    c.add_argument("--output", required=True, help="directory of the LeRobot dataset of generated episodes")
+    c.add_argument("--repo-id", help="its repo id (default local/<output name>)")
+    c.add_argument("--overwrite", action="store_true")
+    c.add_argument("--horizon-chunks", type=int,
+                   help="world-model chunks per episode (default: enough to cover each recorded episode)")
+    c.add_argument("--success-classifier", help="a saved SuccessClassifier directory: judges every episode")
+    c.add_argument("--judge-frames", type=int, default=4, help="last frames per view the judge sees")
+    c.add_argument("--json", help="result JSON (default <output>/closed_loop.json)")
+
+    v = sub.add_parser("video-metrics", help="rollouts of the recorded actions against the recording")
+    _model_args(v)
+    v.add_argument("--chunks", type=int, default=1, help="chunks per rollout (default 1)")
+    v.add_argument("--metrics", nargs="+", default=["mse", "psnr", "ssim"],
+                   help="of mse psnr ssim fid fvd (FID/FVD need local weights, see docs/evaluation.md)")
+    v.add_argument("--fid-weights", help="FID Inception weights file (default under $XDG_CACHE_HOME/imac/weights)")
+    v.add_argument("--fvd-weights", help="FVD I3D weights file (default under $XDG_CACHE_HOME/imac/weights)")
+    v.add_argument("--batch-size", type=int, default=8)
+    v.add_argument("--json", required=True, help="result JSON")
+
+    lab = sub.add_parser("label", help="import success labels (CSV episode_index,success) into generated episodes")
+    lab.add_argument("--dataset", required=True, help="directory of a dataset written by closed-loop")
+    lab.add_argument("--labels", required=True, help="CSV with columns episode_index, success")
+    lab.add_argument("--repo-id")
+    lab.add_argument("--json", help="also write the labels and success rate here")
+
+    r = sub.add_parser("correlate", help="world-model vs real success: correlations, MMRV, bootstrap, scatter plot")
+    r.add_argument("--outcomes", required=True,
+                   help="CSV (policy,group,source,success; source world_model or real) or JSON "
+                        "{world_model: {policy: [..]}, real: {...}}")
+    r.add_argument("--json", required=True, help="result JSON")
+    r.add_argument("--png", help="scatter plot (PNG)")
+    r.add_argument("--title")
+    r.add_argument("--replicates", type=int, default=2000)
+    r.add_argument("--confidence", type=float, default=0.95)
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--paired", action="store_true", help="resample world-model and real episodes together")
+    r.add_argument("--normalize", default="none", choices=("none", "max", "minmax"),
+                   help="rates normalised per side before the statistics (default none)")
+    r.add_argument("--interval", default="bc", choices=("bc", "percentile", "basic"),
+                   help="bootstrap interval (default bc, bias-corrected)")
+
+
+def _experiment(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--work", default="runs/experiment", help="cache of every stage (resumable)")
+    p.add_argument("--docs", default="docs/experiment", help="where the report goes")
+    p.add_argument("--episodes", type=int, default=44)
+    p.add_argument("--held-out", type=int, default=8, help="the last N episodes are held out")
+    p.add_argument("--cpu-minutes", type=float, default=15.0, help="training budget per setting (process CPU minutes)")
+    p.add_argument("--jobs", type=int, default=5, help="settings trained at once")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=int, help="Euler steps at evaluation (default: the model's, 20)")
+    p.add_argument("--warmup-epochs", type=float, default=5.0,
+                   help="the rollout setting's epochs of ordinary steps before rollout (default 5)")
+    p.add_argument("--stages", default=",".join(EXPERIMENT_STAGES),
+                   help=f"comma-separated subset of {','.join(EXPERIMENT_STAGES)}")
+    p.add_argument("--internal", choices=("decode", "evaluate"), help=argparse.SUPPRESS)
+    p.add_argument("--setting", help=argparse.SUPPRESS)
+
+
+def build_parser(prog: str = "imac-model") -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description="The iMaC world model: train, sample, evaluate. "
+                                                            "docs/world-model.md has the details.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _train(sub.add_parser("train", help="train the world model on an imac dataset"))
+    _sample(sub.add_parser("sample", help="generate chunks of a dataset episode and show them beside the recording"))
+    _evaluate(sub.add_parser("evaluate", help="closed-loop policy evaluation, video metrics, success labels, "
+                                              "world-model vs real correlations"))
+    _experiment(sub.add_parser("experiment", help="the small-scale comparison of docs/experiment (resumable)"))
+    return parser
+
+
+def command_of(args: argparse.Namespace) -> str:
+    return args.command

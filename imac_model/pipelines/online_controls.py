@@ -1,0 +1,312 @@
+"""Control videos rebuilt online from a predicted frame: what a rollout needs at a chunk boundary.
+
+At the end of a chunk the world model has generated its last mosaic frame (RGB row over
+colour-depth row). The next chunk needs a reference frame (that mosaic) and its control
+videos, which :mod:`imac_data` computed offline for recorded chunks. This module rebuilds
+them from tensors, with the same :class:`~imac_data.core.rig.Rig` and contact functions the
+dataset build used (:mod:`imac_data.augment.pipeline`), so a training-time rollout, the sampler's
+long rollouts and a closed-loop evaluation all call one function::
+
+    online = OnlineControls.from_dataset(root, spec)                 # the dataset's rig, codec, settings
+    out = online.controls(reference_mosaic, q_ref, actions, streams=spec.conditioning.streams)
+    batch = ChunkBatch(reference=reference_mosaic, actions=actions, controls=out.controls)
+    q_next = out.next_state                                          # last commanded configuration
+
+Steps (per batch item; every stage batched over the items and steps of a chunk):
+
+1. **Depth.** The depth row of the mosaic is split per view (:func:`imac_model.data.mosaic.split`)
+   and decoded with the dataset's colour codec (:class:`imac_data.core.depth.DepthCodec`). A
+   generated colour need not lie on the codec's colour walk; the codec projects it onto the
+   nearest point of the walk. A colour farther than ``max_walk_distance`` from the walk
+   (:func:`imac_data.core.depth.walk_distance`, Euclidean, RGB in [0, 1]; default
+   :data:`DEFAULT_MAX_WALK_DISTANCE` = 0.1, i.e. about 25 8-bit levels: a lossless stream
+   stays within 1/255 and the codec's own mosaic resize never leaves the walk) is not a depth
+   the codec wrote, and becomes **invalid depth** (0), as do black, near-black
+   (:data:`DEFAULT_INVALID_CODES`) and non-finite colours. Never a NaN, never an exception:
+   a chunk whose whole reference depth is invalid gets saturated robot-to-scene colours and
+   no scene-to-gripper values (``allow_empty_scene``).
+2. **Configurations.** The chunk's actions go through the controller map phi
+   (:meth:`Rig.rollout`): ``q_{t+k} = phi(q_t, a_{t:t+k-1})``, the configurations the motion
+   images show (DESIGN section 4; the build's ``frame t shows phi(state[t-1], action[t-1])``
+   is the same for absolute actions). ``next_state`` = the last of them: the state a
+   closed loop assumes at the next chunk boundary.
+3. **Motion images** from the actions and forward kinematics alone (:meth:`Rig.robot_views`).
+4. **Contact images** (:func:`imac_data.core.contact.images.contact_chunk`, the dataset's cap rule,
+   percentile and mask dilation from ``meta/info.json``) from the decoded depth, the robot
+   mask and camera poses at the reference state ``q_ref``, and the future configurations.
+   The scene is cropped to the dataset's workspace (``imac.workspace``, carried by the rig:
+   world box and depth range), as the build cropped it; the default depth range ends where
+   the codec saturates (:func:`imac_data.core.contact.workspace.saturation_depth`), so saturated decoded
+   depth is invalid online as the raw far depth was offline.
+
+Resolution (``resolution``): ``"model"`` computes at the model's view size, with the cameras
+rescaled exactly as the mosaic resizes the views (:func:`imac_model.data.mosaic.rescale_cameras`,
+the same :meth:`Camera.rescaled` that :meth:`Rig.stream_cameras` applies). ``"dataset"``
+computes at the dataset's stream resolution (the depth is upsampled nearest-pixel,
+:func:`imac_data.core.depth.resize_depth`) and resizes the colour images as the data loader
+resizes stored controls (:func:`imac_model.data.mosaic.resize_frames`, then 8-bit rounding), so
+the online controls come from the training distribution; it costs the pixel ratio more.
+
+Devices: forward kinematics and the nearest-distance queries run on ``device`` (CUDA where
+the model is; default: the depth's device). The robot renderer is Open3D ray casting and
+always runs on the CPU; its outputs are moved to ``device``. The CUDA path is unverified on
+these machines (no GPU).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from imac_data.core.contact.images import contact_chunk
+from imac_data.core.depth import resize_depth, walk_distance
+from imac_data.core.rig import Rig
+from imac_data.errors import InputError
+from imac_model.data import meta as dataset_meta
+from imac_model.data import mosaic
+
+DEFAULT_MAX_WALK_DISTANCE = 0.1  # RGB units in [0, 1]: about 25 8-bit levels off the codec's colour walk
+DEFAULT_INVALID_CODES = 2.0  # walk positions within 2 codes of black (depth < 0.6 mm, manipulation) = invalid
+CONTACT_STREAMS = ("contact_s2g", "contact_r2s")
+RESOLUTIONS = ("model", "dataset")
+
+
+# --------------------------------------------------------------------------- depth
+
+
+def decode_depth(colour: torch.Tensor, codec, *, max_walk_distance: float = DEFAULT_MAX_WALK_DISTANCE,
+                 invalid_codes: float = DEFAULT_INVALID_CODES) -> tuple[torch.Tensor, torch.Tensor]:
+    """Generated colour depth ``(..., 3, h, w)`` (float, nominally [0, 1]) -> ``(metres (..., h, w)
+    float32, invalid (..., h, w) bool)``: metres are 0 wherever ``invalid``, which holds for
+    colours farther than ``max_walk_distance`` from the codec's walk, (near-)black colours and
+    non-finite values. Never NaN."""
+    if not 0 < max_walk_distance:
+        raise InputError(f"max_walk_distance must be > 0 (RGB units), got {max_walk_distance}")
+    colour = torch.as_tensor(colour)
+    if colour.ndim < 3 or colour.shape[-3] != 3:
+        raise InputError(f"decode_depth: colours must be (..., 3, h, w), got {tuple(colour.shape)}")
+    if not colour.is_floating_point():
+        colour = colour.float() / 255.0
+    colour = colour.float()
+    finite = torch.isfinite(colour).all(dim=-3)
+    safe = torch.where(finite[..., None, :, :], colour, torch.zeros_like(colour))
+    off_walk = ~(walk_distance(safe, channel_axis=-3) <= max_walk_distance)
+    metres = codec.decode(safe, channel_axis=-3, invalid_codes=invalid_codes).float()
+    invalid = ~finite | off_walk | ~(metres > 0) | ~torch.isfinite(metres)
+    return torch.where(invalid, torch.zeros_like(metres), metres), invalid
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclass
+class ContactControls:
+    """Contact images of B chunks: ``r2s``, ``s2g`` ``(B, S, V, 3, h, w)`` float in [0, 1] at
+    the model's view size; ``caps (B, 2)`` metres (r2s, s2g); ``distances``: the raw
+    :class:`~imac_data.core.contact.images.ContactChunk` of each item at the compute resolution."""
+
+    r2s: torch.Tensor
+    s2g: torch.Tensor
+    caps: torch.Tensor
+    distances: list = field(default_factory=list)
+
+
+@dataclass
+class OnlineChunkControls:
+    """Everything :meth:`OnlineControls.controls` rebuilt for B chunks."""
+
+    controls: dict[str, torch.Tensor]  # stream -> (B, H, 3, 2h, V w) control mosaics in [0, 1]
+    configurations: torch.Tensor  # (B, H, D) phi(q_ref, actions)
+    next_state: torch.Tensor  # (B, D) the last commanded configuration
+    depth: torch.Tensor | None  # (B, V, h, w) decoded reference depth, metres (0 = invalid)
+    invalid_fraction: torch.Tensor | None  # (B,) share of reference depth pixels that are invalid
+    caps: torch.Tensor | None  # (B, 2) contact caps
+
+
+# --------------------------------------------------------------------------- the rebuilder
+
+
+class OnlineControls:
+    """A dataset's rig, depth codec and contact settings, bound to a model's views and size.
+
+    ``rig``: :class:`~imac_data.core.rig.Rig` (its cameras are reordered to ``views``);
+    ``codec``: the dataset's :class:`~imac_data.core.depth.DepthCodec`; ``view_hw``: the model's
+    per-view size; ``source_hw``: the dataset's stream resolution; ``contact``: keyword
+    options of :func:`imac_data.core.contact.images.contact_chunk` (cap, percentile, dilate_px).
+    """
+
+    def __init__(self, rig, codec, views: Sequence[str], view_hw: tuple[int, int], source_hw: tuple[int, int], *,
+                 contact: Mapping | None = None, resolution: str = "model",
+                 max_walk_distance: float = DEFAULT_MAX_WALK_DISTANCE, device=None):
+        missing = [v for v in views if v not in rig.cameras]
+        if missing:
+            raise InputError(f"online controls: the rig has no camera(s) {missing} (has {rig.names})")
+        if resolution not in RESOLUTIONS:
+            raise InputError(f"rollout.resolution: must be one of {list(RESOLUTIONS)}, got {resolution!r}")
+        if not 0 < max_walk_distance:
+            raise InputError(f"rollout.max_walk_distance: must be > 0, got {max_walk_distance}")
+        cams = {v: rig.cameras[v] for v in views}
+        self.rig = Rig(rig.robot, cams, rig.controller, rig.state_names, rig.gripper_spacing, rig.threads,
+                       rig.workspace)
+        self.codec = codec
+        self.views = tuple(views)
+        self.view_hw = tuple(int(x) for x in view_hw)
+        self.source_hw = tuple(int(x) for x in source_hw)
+        self.contact_options = dict(contact or {})
+        self.resolution = resolution
+        self.max_walk_distance = float(max_walk_distance)
+        self.device = None if device is None else torch.device(device)
+
+    @classmethod
+    def from_dataset(cls, root: str | Path, spec, *, info: Mapping | None = None, resolution: str = "model",
+                     max_walk_distance: float = DEFAULT_MAX_WALK_DISTANCE, device=None) -> OnlineControls:
+        """The rebuilder of the dataset at ``root`` (its ``meta/info.json`` and the robot
+        description under ``meta/imac/robot/``) for a model of ``spec``
+        (:class:`~imac_model.config.ModelSpec`)."""
+        import json
+
+        root = Path(root)
+        if info is None:
+            path = root / "meta" / "info.json"
+            if not path.is_file():
+                raise InputError(f"{root} is not a LeRobot dataset ({path} is missing)")
+            info = json.loads(path.read_text())
+        rig = Rig.from_info(info, root)
+        block = info.get("imac", {})
+        augment = block.get("augment") or {}
+        if "height" not in augment or "width" not in augment:
+            raise InputError(f"{root}/meta/info.json imac.augment: no stream resolution recorded")
+        contact = {"cap": augment.get("contact_cap"), "percentile": float(augment.get("contact_percentile", 99.0)),
+                   "dilate_px": int(augment.get("robot_mask_dilate_px", 2))}
+        if augment.get("motion_source", "action") != "action":
+            import warnings
+
+            warnings.warn(f"{root}: motion images were drawn from the measured state; online motion images are "
+                          "drawn from the commanded configurations (no future state exists in a rollout)")
+        return cls(rig, dataset_meta.depth_codec(info), spec.views, (spec.view_height, spec.view_width),
+                   (int(augment["height"]), int(augment["width"])), contact=contact, resolution=resolution,
+                   max_walk_distance=max_walk_distance, device=device)
+
+    # ------------------------------------------------------------------ parts
+
+    @property
+    def compute_hw(self) -> tuple[int, int]:
+        """Where the controls are computed: the model's view size or the dataset's."""
+        return self.view_hw if self.resolution == "model" else self.source_hw
+
+    def cameras(self) -> dict:
+        """The cameras at the compute resolution (K rescaled as the mosaic resizes views)."""
+        return mosaic.rescale_cameras(self.rig.cameras, self.compute_hw)
+
+    def configurations(self, q_ref: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """phi: ``(B, H, D)`` configurations after each action of ``actions (B, H, D)`` from ``q_ref (B, D)``."""
+        q = self.rig.rollout(torch.as_tensor(q_ref).float().cpu(), torch.as_tensor(actions).float().cpu())
+        return q.float()
+
+    def _to_model_size(self, images_u8: torch.Tensor) -> torch.Tensor:
+        """uint8 ``(..., h, w, 3)`` at the compute resolution -> float ``(..., 3, h', w')`` at the
+        model's view size, quantised to 8 bits as stored controls are."""
+        n = images_u8.ndim
+        x = images_u8.permute(*range(n - 3), n - 1, n - 3, n - 2).float() / 255.0
+        if tuple(x.shape[-2:]) != self.view_hw:
+            x = mosaic.resize_frames(x, self.view_hw)
+            x = (x * 255.0).round() / 255.0
+        return x
+
+    def motion(self, q_future: torch.Tensor) -> torch.Tensor:
+        """Motion images ``(B, S, V, 3, h, w)`` in [0, 1] of configurations ``q_future (B, S, D)``."""
+        q = torch.as_tensor(q_future).float().cpu()
+        B, S = q.shape[:2]
+        views = self.rig.robot_views(q.reshape(B * S, -1), resolution=self.compute_hw, gripper=False)
+        return self._to_model_size(views.rgb).reshape(B, S, len(self.views), 3, *self.view_hw)
+
+    def contact(self, depth: torch.Tensor, q_ref: torch.Tensor, q_future: torch.Tensor, *,
+                include_reference_step: bool = False, device=None) -> ContactControls:
+        """Both contact streams of B chunks: reference depth ``(B, V, h, w)`` metres (any
+        resolution; resized nearest-pixel to the compute resolution), reference states
+        ``q_ref (B, D)`` (robot mask, camera poses) and future configurations ``q_future (B, S, D)``.
+
+        ``include_reference_step``: the chunk's reference is an episode's frame 0, whose chunk
+        the build gives one more step (the reference configuration itself, step k = 0) that
+        counts towards the caps; it is computed and dropped. All B x (1 + S) configurations
+        are rendered in one batched call; the contact queries run per chunk (each chunk has
+        its own scene cloud and caps), with :func:`contact_chunk`'s own CPU threads.
+        """
+        depth = torch.as_tensor(depth)
+        q_ref = torch.as_tensor(q_ref).float().cpu()
+        q_future = torch.as_tensor(q_future).float().cpu()
+        B, V = depth.shape[:2]
+        if depth.ndim != 4 or V != len(self.views):
+            raise InputError(f"online contact: depth must be (B, V={len(self.views)}, h, w), got {tuple(depth.shape)}")
+        if q_ref.shape[0] != B or q_future.shape[0] != B:
+            raise InputError(f"online contact: {B} depth maps but q_ref {tuple(q_ref.shape)}, "
+                             f"q_future {tuple(q_future.shape)}")
+        dev = torch.device(device) if device is not None else (self.device or depth.device)
+        hw = self.compute_hw
+        if tuple(depth.shape[-2:]) != hw:
+            depth = resize_depth(depth, hw, name="predicted depth")
+        if include_reference_step:
+            q_future = torch.cat([q_ref[:, None], q_future], dim=1)
+        S = q_future.shape[1]
+        cams = self.cameras()
+        K = self.rig.intrinsics(hw, device=dev)
+        # one batched FK + render for every item's reference and future configurations
+        ref = self.rig.robot_views(q_ref, resolution=hw, gripper=False)
+        fut = self.rig.robot_views(q_future.reshape(B * S, -1), resolution=hw)
+        assert list(cams) == self.rig.names
+        fut_depth = fut.depth.reshape(B, S, V, *hw)
+        fut_T = fut.T_world_cam.reshape(B, S, V, 4, 4)
+        grip = fut.gripper_points.reshape(B, S, -1, 3)
+        chunks = []
+        for b in range(B):
+            chunks.append(contact_chunk(depth[b].to(dev, torch.float32), K, ref.T_world_cam[b].to(dev),
+                                        ref.mask[b].to(dev), fut_depth[b].to(dev), fut_T[b].to(dev),
+                                        grip[b].to(dev), allow_empty_scene=True, device=dev,
+                                        **{"workspace": self.rig.workspace, **self.contact_options}))
+        first = 1 if include_reference_step else 0
+        r2s = torch.stack([c.r2s_rgb[first:] for c in chunks])  # (B, S', V, h, w, 3) uint8
+        s2g = torch.stack([c.s2g_rgb[first:] for c in chunks])
+        caps = torch.stack([c.caps for c in chunks])
+        return ContactControls(r2s=self._to_model_size(r2s), s2g=self._to_model_size(s2g), caps=caps,
+                               distances=chunks)
+
+    # ------------------------------------------------------------------ the whole step
+
+    def reference_depth(self, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Decoded depth ``(B, V, h, w)`` metres and the invalid mask of reference mosaics
+        ``(B, 3, 2h, V w)`` (:func:`decode_depth`)."""
+        _, colour = mosaic.split(reference, len(self.views))
+        return decode_depth(colour, self.codec, max_walk_distance=self.max_walk_distance)
+
+    def controls(self, reference: torch.Tensor, q_ref: torch.Tensor, actions: torch.Tensor,
+                 streams: Sequence[str] = ("motion",) + CONTACT_STREAMS, *, motion: torch.Tensor | None = None,
+                 include_reference_step: bool = False) -> OnlineChunkControls:
+        """The control mosaics of the chunks that start at ``reference`` ``(B, 3, 2h, V w)`` (a
+        generated or recorded mosaic frame in [0, 1]) from the reference states ``q_ref (B, D)``
+        and the chunk's actions ``(B, H, D)``: ``streams`` of ``motion``, ``contact_s2g``,
+        ``contact_r2s``. ``motion``: per-view motion images ``(B, H, V, 3, h, w)`` to use instead of
+        rendering them (e.g. a dataset's stored ones, which are the same function of the actions).
+        Outputs are on the reference's device."""
+        unknown = [s for s in streams if s not in ("motion",) + CONTACT_STREAMS]
+        if unknown:
+            raise InputError(f"online controls: unknown stream(s) {unknown}")
+        dev = reference.device
+        q_future = self.configurations(q_ref, actions)
+        out: dict[str, torch.Tensor] = {}
+        if "motion" in streams:
+            views = motion if motion is not None else self.motion(q_future)
+            out["motion"] = mosaic.controls(views.to(dev))
+        depth = invalid_fraction = caps = None
+        if any(s in streams for s in CONTACT_STREAMS):
+            depth, invalid = self.reference_depth(reference.detach())
+            invalid_fraction = invalid.flatten(1).float().mean(dim=1)
+            c = self.contact(depth, q_ref, q_future, include_reference_step=include_reference_step)
+            out["contact_s2g"] = mosaic.controls(c.s2g.to(dev))
+            out["contact_r2s"] = mosaic.controls(c.r2s.to(dev))
+            caps = c.caps
+        return OnlineChunkControls(controls={s: out[s] for s in streams}, configurations=q_future,
+                                   next_state=q_future[:, -1], depth=depth, invalid_fraction=invalid_fraction,
+                                   caps=caps)
