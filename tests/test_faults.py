@@ -91,11 +91,10 @@ def test_overwrite_never_deletes_the_calibration(sim_src, tmp_path, capsys):
 
 
 def test_augment_refuses_a_dataset_inside_its_raw_episodes(sim_src, tmp_path, capsys):
-    from imac_data.build.augment import main as augment_main
 
     src = copy_source(sim_src, tmp_path / "episodes")
     before = tree_digest(src)
-    rc = augment_main(["--repo", "local/x", "--root", str(src), "--recipe", str(recipe_file(tmp_path)),
+    rc = imac_main(["augment", "--repo", "local/x", "--root", str(src), "--recipe", str(recipe_file(tmp_path)),
                        "--source", str(src), "--no-progress"])
     assert rc == 2
     assert "raw episodes" in capsys.readouterr().err
@@ -391,8 +390,7 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
 
     The source also holds what is accepted and rescaled (items 2, 3): a calibration made at
     twice the images' resolution, and float depth at half of it in one episode."""
-    from imac_data.dataset import card as dataset_card
-    from imac_data.dataset import columns
+    from imac_data.build import from_episodes, streams
 
     src = copy_source(sim_src, tmp_path / "episodes")
     K = np.asarray(json.loads((src / "calibration.json").read_text())["cameras"]["cam_high"]["K"])
@@ -401,7 +399,7 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     recipe, root = recipe_file(tmp_path), tmp_path / "local" / "out"  # like $HF_LEROBOT_HOME/local/<name>
     staging, source = root.parent / ".out.staging", tree_digest(src)
 
-    monkeypatch.setattr(columns, "add_frame_column", fail_with(errno.ENOSPC, after=1)(columns.add_frame_column))
+    monkeypatch.setattr(streams, "add_frame_column", fail_with(errno.ENOSPC, after=1)(streams.add_frame_column))
     assert build_main(recipe, src, root) == 3
     err = capsys.readouterr().err
     assert "No space left on device (ENOSPC)" in err and len(err.strip().splitlines()) == 1, err
@@ -409,7 +407,7 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     assert sorted(p.name for p in root.parent.iterdir()) == [".out.staging"]  # no lock left behind
     monkeypatch.undo()
 
-    monkeypatch.setattr(dataset_card, "write_card", fail_with(errno.EROFS)(dataset_card.write_card))
+    monkeypatch.setattr(from_episodes, "write_card", fail_with(errno.EROFS)(from_episodes.write_card))
     assert build_main(recipe, src, root) == 3
     err = capsys.readouterr().err
     assert "Read-only file system (EROFS)" in err and len(err.strip().splitlines()) == 1, err

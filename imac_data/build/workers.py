@@ -31,8 +31,15 @@ from tqdm.auto import tqdm
 
 from imac_data.augment.timing import StageTimer
 from imac_data.build.streams import write_episode_dataset, write_timings
-from imac_data.console import (block_interrupts_in_this_thread, cpu_cores, interrupted, quiet_libraries, quiet_worker_interrupts,
-                               raise_if_interrupted, run_as_job)
+from imac_data.console import (
+    block_interrupts_in_this_thread,
+    cpu_cores,
+    interrupted,
+    quiet_libraries,
+    quiet_worker_interrupts,
+    raise_if_interrupted,
+    run_as_job,
+)
 from imac_data.core.rig import Rig
 from imac_data.dataset.hf_features import use_linear_features
 from imac_data.layout import INFO
