@@ -36,9 +36,10 @@ import numpy as np
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from imac_data.core.depth import DepthCodec, depth_stream_key  # noqa: E402
+from imac_data.core.depth import DepthCodec  # noqa: E402
 from imac_data.dataset.depth_streams import add_depth_streams  # noqa: E402
 from imac_data.dataset.videos import VideoEncoding, encode_video, read_video_frames  # noqa: E402
+from imac_data.layout import depth_key
 
 NEAR, FAR = 0.1, 1.2
 CAMS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
@@ -135,10 +136,10 @@ def through_dataset(src: Path, base: Path, root: Path, encoding: VideoEncoding, 
             item = ds[index]
             index += 1
             for cam in CAMS:
-                decoded.append(codec.decode(item[depth_stream_key(cam)], channel_axis=-3).numpy())
+                decoded.append(codec.decode(item[depth_key(cam)], channel_axis=-3).numpy())
                 truth.append(raw.depth_mm[cam][t].astype(np.float32) / 1000.0)
     t_load = time.perf_counter() - t0
-    size = sum(f.stat().st_size for cam in CAMS for f in (root / "videos" / depth_stream_key(cam)).rglob("*.mp4"))
+    size = sum(f.stat().st_size for cam in CAMS for f in (root / "videos" / depth_key(cam)).rglob("*.mp4"))
     rgb = sum(f.stat().st_size for cam in CAMS for f in (root / "videos" / f"observation.images.{cam}").rglob("*.mp4"))
     frames = len(truth)
     return {**error_stats(decoded, truth), "bytes": size, "kb_per_frame": size / frames / 1024, "frames": frames,

@@ -93,14 +93,18 @@ def is_added_stream(key: str) -> bool:
     return key.startswith((CONTROL_PREFIX, DEPTH_PREFIX))
 
 
+VIDEO_COLUMNS = "videos/"  # meta/episodes columns that locate an episode in a video feature's files
+STATS_COLUMNS = "stats/"  # meta/episodes columns of per-episode feature statistics
+
+
 def video_column(key: str, field: str) -> str:
     """A ``meta/episodes`` column locating an episode in a video feature's files
     (``chunk_index``, ``file_index``, ``from_timestamp``, ``to_timestamp``)."""
-    return f"videos/{key}/{field}"
+    return f"{VIDEO_COLUMNS}{key}/{field}"
 
 
 def stats_column(key: str, stat: str) -> str:
-    return f"stats/{key}/{stat}"
+    return f"{STATS_COLUMNS}{key}/{stat}"
 
 
 # ----------------------------------------------------------------------------- loading

@@ -77,6 +77,7 @@ from imac_data.core.contact.workspace import WorkspaceSettings
 from imac_data.core.depth import DepthCodec
 from imac_data.core.motion import Controller
 from imac_data.errors import InputError
+from imac_data.layout import ACTION, STATE
 
 RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
 PLATFORMS = ("aloha_sim",)
@@ -176,8 +177,8 @@ class SourceSection:
     episodes: int | None = None
     repo_id: str | None = None  # lerobot: a hub dataset, when no path is given
     cameras: dict[str, str] = field(default_factory=dict)  # lerobot: source video key -> camera name
-    state_key: str = "observation.state"  # lerobot: joint vectors, one robot.joint_map entry per index
-    action_key: str = "action"
+    state_key: str = STATE  # lerobot: joint vectors, one robot.joint_map entry per index
+    action_key: str = ACTION
     action_space: str = "joint"  # lerobot: "joint" | "ee" (end-effector actions are refused)
     metadata: str | None = None  # lerobot: CSV or JSON of episode metadata keyed by episode_index
     sim: SimSection = field(default_factory=SimSection)

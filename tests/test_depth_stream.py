@@ -22,7 +22,6 @@ from imac_data.core.cameras import load_calibration, rescale_intrinsics
 from imac_data.core.depth import (
     DepthCodec,
     depth_codec_of,
-    depth_stream_key,
     resize_depth,
 )
 from imac_data.core.rig import Rig
@@ -32,6 +31,7 @@ from imac_data.dataset.depth_streams import add_depth_streams
 from imac_data.dataset.ingest import IngestOptions
 from imac_data.dataset.videos import VideoEncoding
 from imac_data.errors import InputError
+from imac_data.layout import depth_key
 from imac_data.sources.depth import RecordedDepth, episode_views
 from imac_data.sources.hdf5 import episode_paths, read_episode
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
@@ -115,7 +115,7 @@ def test_depth_round_trip_is_bit_exact_through_lerobot(with_depth, sim):
             n += 1
             for cam in CAMS:
                 gt = gt_metres(raw, cam)[t]
-                frame = item[depth_stream_key(cam)]
+                frame = item[depth_key(cam)]
                 # lossless: the very colours the codec wrote
                 np.testing.assert_array_equal(colours(frame), CODEC.encode_uint8(gt))
                 got = codec.decode(frame, channel_axis=-3).numpy()  # what a user does
@@ -137,7 +137,7 @@ def test_metadata_records_codec_encoder_and_intrinsics(with_depth, sim):
     assert VideoEncoding.from_dict(block["encoding"]) == VideoEncoding.lossless_rgb()
     assert block["source"]["kind"] == "recorded"
     for cam in CAMS:
-        key = depth_stream_key(cam)
+        key = depth_key(cam)
         feature = info["features"][key]
         assert feature["shape"] == [64, 80, 3]
         assert feature["info"]["imac.depth_codec"] == CODEC.to_dict()
@@ -146,12 +146,12 @@ def test_metadata_records_codec_encoder_and_intrinsics(with_depth, sim):
         assert stream["key"] == key and (stream["height"], stream["width"]) == (64, 80)
         np.testing.assert_allclose(stream["K"], info["imac"]["cameras"][cam]["K"])
     stats = json.loads((root / "meta" / "stats.json").read_text())
-    assert np.array(stats[depth_stream_key("cam_high")]["mean"]).shape == (3, 1, 1)
+    assert np.array(stats[depth_key("cam_high")]["mean"]).shape == (3, 1, 1)
 
 
 def test_delta_timestamps_on_the_depth_key(with_depth, sim):
     root, _ = with_depth
-    key = depth_stream_key("cam_left_wrist")
+    key = depth_key("cam_left_wrist")
     ds = LeRobotDataset("local/depth", root=root, delta_timestamps={key: [-0.08, -0.04, 0.0]})
     raw = sim["raws"][1]
     item = ds[sim["raws"][0].num_frames + 1]  # episode 1, frame 1
@@ -163,14 +163,14 @@ def test_delta_timestamps_on_the_depth_key(with_depth, sim):
 def test_resized_streams_rescale_the_intrinsics(copy, sim, robot):
     add_depth_streams(copy, recorded(sim, robot), size={"cam_high": (32, 40)}, codec=CODEC)
     info = json.loads((copy / "meta" / "info.json").read_text())
-    assert info["features"][depth_stream_key("cam_high")]["shape"] == [32, 40, 3]
-    assert info["features"][depth_stream_key("cam_left_wrist")]["shape"] == [64, 80, 3]
+    assert info["features"][depth_key("cam_high")]["shape"] == [32, 40, 3]
+    assert info["features"][depth_key("cam_left_wrist")]["shape"] == [64, 80, 3]
     K = np.array(info["imac"]["cameras"]["cam_high"]["K"])
     np.testing.assert_allclose(info["imac"]["depth"]["streams"]["cam_high"]["K"],
                                rescale_intrinsics(K, (64, 80), (32, 40)))
     ds = LeRobotDataset("local/depth", root=copy)
     want = resize_depth(gt_metres(sim["raws"][0], "cam_high")[3], (32, 40))
-    np.testing.assert_array_equal(colours(ds[3][depth_stream_key("cam_high")]), CODEC.encode_uint8(want))
+    np.testing.assert_array_equal(colours(ds[3][depth_key("cam_high")]), CODEC.encode_uint8(want))
 
 
 def test_resize_depth_is_nearest_and_never_mixes_invalid():
@@ -189,7 +189,7 @@ def test_aggregate_datasets_with_depth_streams(with_depth, sim, tmp_path):
     aggregate_datasets(["local/a", "local/b"], "local/ab", roots=roots, aggr_root=tmp_path / "ab")
     ds = LeRobotDataset("local/ab", root=tmp_path / "ab")
     assert ds.meta.total_episodes == 4
-    key = depth_stream_key("cam_right_wrist")
+    key = depth_key("cam_right_wrist")
     assert ds.meta.features[key]["info"]["imac.depth_codec"] == CODEC.to_dict()  # survives; info["imac"] does not
     n0 = sum(r.num_frames for r in sim["raws"])
     raw = sim["raws"][1]
@@ -230,7 +230,7 @@ def test_nan_and_inf_depth_are_stored_as_invalid(copy, sim, robot):
     episodes[0]["cam_left_wrist"] = d
     add_depth_streams(copy, episodes)
     ds = LeRobotDataset("local/depth", root=copy)
-    got = CODEC.decode(ds[0][depth_stream_key("cam_left_wrist")], channel_axis=-3).numpy()
+    got = CODEC.decode(ds[0][depth_key("cam_left_wrist")], channel_axis=-3).numpy()
     assert (got[:10, :5] == 0).all()
     assert (got[10:][d[0, 10:] > 0] > 0).all()
 

@@ -35,6 +35,7 @@ import torch
 from imac_data.core.cameras import Camera
 from imac_data.core.masks import ground_truth_robot_mask
 from imac_data.errors import InputError
+from imac_data.layout import IMAGE_PREFIX, STATE, info_path
 from imac_data.sources.hdf5 import EpisodeReader, episode_paths
 
 __all__ = ["PIXEL_SOURCES", "EpisodeFrames", "DatasetFrames", "open_frames", "RobotPixels", "CameraFrames",
@@ -114,13 +115,13 @@ class DatasetFrames:
     segmentation, so its robot pixels are a mask directory or the edge cue."""
 
     has_segmentation = False
-    _PREFIX = "observation.images."
+    _PREFIX = IMAGE_PREFIX
 
     def __init__(self, root: str | Path):
         import json
 
         self.source = Path(root)
-        path = self.source / "meta" / "info.json"
+        path = info_path(self.source)
         if not path.is_file():
             raise InputError(f"{root} is not a LeRobot dataset ({path} is missing)")
         info = json.loads(path.read_text())
@@ -128,7 +129,7 @@ class DatasetFrames:
         keys = [k for k, f in features.items() if k.startswith(self._PREFIX) and f.get("dtype") in ("video", "image")]
         if not keys:
             raise InputError(f"{path}: no {self._PREFIX}<camera> image streams")
-        if "observation.state" not in features:
+        if STATE not in features:
             raise InputError(f"{path}: no observation.state feature (the joint vectors the images show)")
         self.cameras = sorted(k[len(self._PREFIX):] for k in keys)
         self._hw = {k[len(self._PREFIX):]: tuple(int(v) for v in features[k]["shape"][:2]) for k in keys}
@@ -149,7 +150,7 @@ class DatasetFrames:
         return self._hw[camera]
 
     def joints(self, episode: str) -> np.ndarray:
-        states = self._dataset(episode).hf_dataset["observation.state"]
+        states = self._dataset(episode).hf_dataset[STATE]
         return torch.stack(list(states)).numpy().astype(np.float64)
 
     def mask_folder(self, episode: str) -> str:
@@ -172,7 +173,7 @@ def open_frames(source: str | Path) -> EpisodeFrames | DatasetFrames:
     """The frames of ``source``: a LeRobot dataset (a directory with ``meta/info.json``), a
     directory of raw HDF5 episodes, or one episode file."""
     source = Path(source)
-    if (source / "meta" / "info.json").is_file():
+    if info_path(source).is_file():
         return DatasetFrames(source)
     return EpisodeFrames(source)
 

@@ -537,19 +537,7 @@ def depth_from_millimetres(depth_mm, *, name: str = "depth"):
     return metres
 
 
-# ------------------------------------------------------------------ stored depth stream
-# The depth of camera ``cam`` is stored as the video feature ``observation.depth.{cam}``
-# (written by ``imac_data.dataset.depth_streams``); codec, encoder settings and per-camera
-# intrinsics are recorded in ``meta/info.json["imac"]["depth"]``.
-
-DEPTH_KEY_PREFIX = "observation.depth."
-
-__all__ += ["DEPTH_KEY_PREFIX", "depth_codec_of", "depth_stream_key", "resize_depth", "walk_distance"]
-
-
-def depth_stream_key(camera: str) -> str:
-    """The dataset feature holding camera ``camera``'s depth: ``observation.depth.{camera}``."""
-    return DEPTH_KEY_PREFIX + camera
+__all__ += ["depth_codec_of", "resize_depth", "walk_distance"]
 
 
 def resize_depth(depth, size: tuple[int, int], *, name: str = "depth"):

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import jinja2
 
+from imac_data.layout import IMAGE_PREFIX, STATE, info_path
+
 TEMPLATE = Path(__file__).resolve().parents[2] / "dataset_cards" / "imac_dataset_card.md"
 
 
@@ -21,9 +23,9 @@ def policy_input_features(info: dict) -> dict[str, dict]:
     channel-first). LeRobot 0.4.4 would otherwise make every video feature, the added streams
     included, a visual input and crash on the first batch (KeyError on ``control.motion.*``)."""
     features = info["features"]
-    out = {"observation.state": {"type": "STATE", "shape": list(features["observation.state"]["shape"])}}
+    out = {STATE: {"type": "STATE", "shape": list(features[STATE]["shape"])}}
     for key, feature in features.items():
-        if key.startswith("observation.images.") and feature.get("dtype") == "video":
+        if key.startswith(IMAGE_PREFIX) and feature.get("dtype") == "video":
             h, w, c = feature["shape"]
             out[key] = {"type": "VISUAL", "shape": [c, h, w]}
     return out
@@ -50,7 +52,7 @@ def render_card(info: dict, repo_id: str, recipe) -> str:
 
 
 def write_card(root: Path, repo_id: str, recipe) -> Path:
-    info = json.loads((root / "meta" / "info.json").read_text())
+    info = json.loads(info_path(root).read_text())
     path = root / "README.md"
     path.write_text(render_card(info, repo_id, recipe))
     return path
@@ -59,7 +61,7 @@ def write_card(root: Path, repo_id: str, recipe) -> Path:
 def hub_card_kwargs(root: Path, repo_id: str, recipe) -> dict:
     """What ``LeRobotDataset.push_to_hub`` gets for its card: our card as the dataset
     description, plus tags. LeRobot renders and uploads the card itself."""
-    info = json.loads((root / "meta" / "info.json").read_text())
+    info = json.loads(info_path(root).read_text())
     return {
         "dataset_description": render_card(info, repo_id, recipe),
         "tags": ["imac", "world-model", "robotics", f"robot:{info['imac']['robot']['name']}"],

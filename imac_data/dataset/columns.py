@@ -25,6 +25,7 @@ import pyarrow.parquet as pq
 from imac_data.dataset.files import replace_files
 from imac_data.dataset.info import read_info
 from imac_data.errors import InputError
+from imac_data.layout import episodes_dir, info_path, stats_column, stats_path
 
 __all__ = ["add_frame_column", "add_episode_columns"]
 
@@ -71,25 +72,25 @@ def add_frame_column(root: Path, key: str, per_episode: list[np.ndarray], names:
             staged.append((out, file))
         # stats: per episode (meta/episodes columns) and global (meta/stats.json), as LeRobot computes them
         ep_stats = {ep: get_feature_stats(v, axis=0, keepdims=v.ndim == 1) for ep, v in values.items()}
-        for file in sorted((root / "meta" / "episodes").rglob("*.parquet")):
+        for file in sorted(episodes_dir(root).rglob("*.parquet")):
             table = pq.read_table(file)
             idx = table.column("episode_index").to_pylist()
             for stat in ep_stats[idx[0]]:
                 col = [np.asarray(ep_stats[i][stat]).reshape(-1).tolist() for i in idx]
-                table = table.append_column(f"stats/{key}/{stat}", pa.array(col))
+                table = table.append_column(stats_column(key, stat), pa.array(col))
             out = tmp / file.relative_to(root)
             out.parent.mkdir(parents=True, exist_ok=True)
             pq.write_table(table, out)
             staged.append((out, file))
-        stats_path = root / "meta" / "stats.json"
-        stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
+        stats_file = stats_path(root)
+        stats = json.loads(stats_file.read_text()) if stats_file.is_file() else {}
         total = aggregate_stats([{key: s} for s in ep_stats.values()])[key]
         stats[key] = {k: np.asarray(v).tolist() for k, v in total.items()}
         (tmp / "stats.json").write_text(json.dumps(stats, indent=4))
-        staged.append((tmp / "stats.json", stats_path))
+        staged.append((tmp / "stats.json", stats_file))
         info["features"][key] = {"dtype": "float32", "shape": [width], "names": names}
         (tmp / "info.json").write_text(json.dumps(info, indent=4))
-        staged.append((tmp / "info.json", root / "meta" / "info.json"))
+        staged.append((tmp / "info.json", info_path(root)))
         replace_files(staged, tmp / "backup")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -102,7 +103,7 @@ def add_episode_columns(root: Path, rows: list[dict], columns: dict[str, pa.Data
     tmp = _staging(root)
     try:
         staged = []
-        for file in sorted((root / "meta" / "episodes").rglob("*.parquet")):
+        for file in sorted(episodes_dir(root).rglob("*.parquet")):
             table = pq.read_table(file)
             index = table.column("episode_index").to_pylist()
             for name, typ in columns.items():

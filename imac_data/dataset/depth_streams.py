@@ -18,11 +18,12 @@ from typing import Any
 import numpy as np
 
 from imac_data.core.cameras import rescale_intrinsics
-from imac_data.core.depth import DepthCodec, _as_numpy_depth, depth_stream_key, resize_depth
+from imac_data.core.depth import DepthCodec, _as_numpy_depth, resize_depth
 from imac_data.dataset.info import read_info
 from imac_data.dataset.streams import StreamWriter
 from imac_data.dataset.videos import VideoEncoding, encoder_versions
 from imac_data.errors import InputError
+from imac_data.layout import depth_key
 
 __all__ = ["add_depth_streams", "depth_info_extra", "depth_imac_block"]
 
@@ -38,7 +39,7 @@ def depth_imac_block(features: Mapping[str, dict], cameras, calibration: Mapping
     and per camera the stream key, size and the intrinsics at that size."""
     streams = dict(existing.get("streams", {})) if existing else {}
     for cam in cameras:
-        key = depth_stream_key(cam)
+        key = depth_key(cam)
         h, w = features[key]["shape"][:2]
         entry: dict[str, Any] = {"key": key, "height": h, "width": w, "K": None}
         if cam in calibration:
@@ -108,7 +109,7 @@ def add_depth_streams(root, episodes, *, cameras=None, codec: DepthCodec | None 
         if (not isinstance(hw, (tuple, list)) or len(hw) != 2
                 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in hw)):
             raise InputError(f"add_depth_streams: size for {cam!r} must be (height, width) > 0, got {hw!r}")
-    keys = {cam: depth_stream_key(cam) for cam in cameras}
+    keys = {cam: depth_key(cam) for cam in cameras}
 
     def frames(ep: int, cam: str, depth):
         name = f"episode {ep} camera {cam!r}"

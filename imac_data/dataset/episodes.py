@@ -26,6 +26,7 @@ import numpy as np
 from imac_data.dataset.files import write_parquet_atomic
 from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter, quiet_libav
 from imac_data.errors import InputError
+from imac_data.layout import STATS_COLUMNS, episodes_dir
 
 __all__ = ["EpisodeWriter"]
 
@@ -162,10 +163,10 @@ class EpisodeWriter:
         import pyarrow.parquet as pq
 
         order = {k: i for i, k in enumerate(self.dataset.meta.features)}
-        for f in sorted((self.root / "meta" / "episodes").rglob("*.parquet")):
+        for f in sorted(episodes_dir(self.root).rglob("*.parquet")):
             table = pq.read_table(f)
             names = table.column_names
-            stats = [n for n in names if n.startswith("stats/")]
+            stats = [n for n in names if n.startswith(STATS_COLUMNS)]
             if not stats:
                 continue
             first = names.index(stats[0])

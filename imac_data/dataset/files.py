@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 
-from imac_data.layout import VIDEOS_DIR, episodes_dir, image_key, info_path, stats_path
+from imac_data.layout import STATS_COLUMNS, VIDEO_COLUMNS, VIDEOS_DIR, episodes_dir, image_key, info_path, stats_path
 
 __all__ = ["atomic_path", "atomic_write_text", "atomic_write_json", "write_parquet_atomic", "replace_files",
            "copy_for_edit", "copy_source"]
@@ -122,7 +122,7 @@ def copy_source(src, dst: Path, cameras: dict[str, str]) -> None:
     shutil.rmtree(aside)  # what is left: the dropped cameras' copies
 
     def rekey(name: str) -> str | None:
-        for prefix in ("videos/", "stats/"):
+        for prefix in (VIDEO_COLUMNS, STATS_COLUMNS):
             if name.startswith(prefix):
                 rest = name[len(prefix):]
                 for key in sorted([*rename, *drop], key=len, reverse=True):

@@ -45,6 +45,7 @@ from pathlib import Path
 from imac_data import __version__
 from imac_data.dataset.files import atomic_write_json
 from imac_data.errors import InputError
+from imac_data.layout import info_path, stats_path
 
 __all__ = ["SCHEMA_VERSION", "SUPPORTED_VERSIONS", "RIG_KEYS", "STREAM_KEYS", "read_info", "write_info",
            "update_imac_info", "imac_block", "order_stats", "base_block"]
@@ -57,7 +58,7 @@ ADDED_IN = {"workspace": 2}  # keys newer than version 1: required from that ver
 
 
 def read_info(root: str | Path) -> dict:
-    path = Path(root) / "meta" / "info.json"
+    path = info_path(root)
     if not path.is_file():
         raise InputError(f"{root} is not a LeRobot dataset: {path} is missing")
     try:
@@ -68,7 +69,7 @@ def read_info(root: str | Path) -> dict:
 
 def write_info(root: str | Path, info: Mapping) -> None:
     """``meta/info.json``, atomically, in LeRobot's layout (``indent=4``)."""
-    atomic_write_json(Path(root) / "meta" / "info.json", info)
+    atomic_write_json(info_path(root), info)
 
 
 def update_imac_info(root: str | Path, block: Mapping) -> dict:
@@ -109,7 +110,7 @@ def order_stats(root: str | Path) -> None:
     hashing; equal builds must be byte-identical."""
     root = Path(root)
     info = read_info(root)
-    path = root / "meta" / "stats.json"
+    path = stats_path(root)
     stats = json.loads(path.read_text())
     order = [k for k in info["features"] if k in stats] + sorted(k for k in stats if k not in info["features"])
     atomic_write_json(path, {k: stats[k] for k in order})

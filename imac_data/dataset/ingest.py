@@ -108,8 +108,9 @@ class BaseWriter:
     def begin_episode(self, length: int, info) -> None:
         self.writer.begin_episode(length, task=info.task or self.options.task)
         o = self.options
-        self.rows.append({"imac/source": info.source or o.source, "imac/policy_name": info.policy_name or o.policy_name,
-                          "imac/checkpoint": info.checkpoint or o.checkpoint, "imac/success": info.success})
+        values = (info.source or o.source, info.policy_name or o.policy_name, info.checkpoint or o.checkpoint,
+                  info.success)
+        self.rows.append(dict(zip(EPISODE_COLUMNS, values)))
 
     def add(self, state, action, qvel, images, poses) -> None:
         rows = {STATE: np.asarray(state, np.float64).astype(np.float32),

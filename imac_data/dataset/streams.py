@@ -55,11 +55,21 @@ from imac_data.dataset.videos import (
     quiet_libav,
 )
 from imac_data.errors import InputError
+from imac_data.layout import (
+    DEFAULT_VIDEO_PATH,
+    STATS_COLUMNS,
+    VIDEO_COLUMNS,
+    VIDEOS_DIR,
+    episodes_dir,
+    info_path,
+    stats_column,
+    stats_path,
+    video_column,
+)
 
 __all__ = ["StreamWriter", "add_video_streams", "add_video_stream", "video_info", "episode_lengths",
            "insert_columns_after", "STAT_KEYS"]
 
-DEFAULT_VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 STAT_KEYS = ("min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99")
 
 
@@ -74,7 +84,7 @@ def read_v3_info(root: Path) -> dict:
 
 
 def episode_files(root: Path) -> list[Path]:
-    files = sorted((Path(root) / "meta" / "episodes").glob("*/*.parquet"))
+    files = sorted(episodes_dir(root).glob("*/*.parquet"))
     if not files:
         raise InputError(f"{root}: no meta/episodes/*/*.parquet files")
     return files
@@ -126,7 +136,7 @@ def _check_key(key: str, info: dict, root: Path) -> None:
         raise InputError(f"video key {key!r}: must be a non-empty name without '/' (LeRobot's stats separator)")
     if key in info["features"]:
         raise InputError(f"{root}: feature {key!r} already exists")
-    if (root / "videos" / key).exists():
+    if (root / VIDEOS_DIR / key).exists():
         raise InputError(f"{root}: videos/{key} exists but {key!r} is not a feature (left over from an "
                          "interrupted run?); remove that directory first")
 
@@ -197,10 +207,10 @@ class _Stream:
             raise InputError(f"{self.where}: {self.n} frames, but the episode has {self.length}")
         self.episodes_in_file += 1
         self.rows[self.episode] = {
-            f"videos/{self.key}/chunk_index": self.chunk,
-            f"videos/{self.key}/file_index": self.file,
-            f"videos/{self.key}/from_timestamp": self.start / self.fps,
-            f"videos/{self.key}/to_timestamp": (self.start + self.length) / self.fps,
+            video_column(self.key, "chunk_index"): self.chunk,
+            video_column(self.key, "file_index"): self.file,
+            video_column(self.key, "from_timestamp"): self.start / self.fps,
+            video_column(self.key, "to_timestamp"): (self.start + self.length) / self.fps,
             "stats": self.stats.normalised(),
         }
         self.episode = None
@@ -348,7 +358,7 @@ class StreamWriter:
                 raise InputError(f"got frames for {self.episodes_done} episodes; the dataset has {n_episodes}")
             for s in self.streams.values():
                 for ep, row in s.rows.items():
-                    n = round((row[f"videos/{s.key}/to_timestamp"] - row[f"videos/{s.key}/from_timestamp"]) * s.fps)
+                    n = round((row[video_column(s.key, "to_timestamp")] - row[video_column(s.key, "from_timestamp")]) * s.fps)
                     if n != lengths[ep]:
                         raise InputError(f"episode {ep} {s.key!r}: {n} frames, but the episode has {lengths[ep]}")
             with quiet_libav():
@@ -371,8 +381,8 @@ class StreamWriter:
                 block = self.imac_info(features) if callable(self.imac_info) else self.imac_info
                 new_info.setdefault("imac", {}).update(json.loads(json.dumps(block)))
 
-            stats_path = root / "meta" / "stats.json"
-            stats = json.loads(stats_path.read_text()) if stats_path.is_file() else {}
+            stats_file = stats_path(root)
+            stats = json.loads(stats_file.read_text()) if stats_file.is_file() else {}
             for key, s in self.streams.items():
                 agg = aggregate_stats([{key: s.rows[i]["stats"]} for i in range(n_episodes)])
                 stats.update(serialize_dict(agg))
@@ -385,15 +395,15 @@ class StreamWriter:
                 pq.write_table(table, out)
                 staged.append((out, f))
             (tmp / "stats.json").write_text(json.dumps(stats, indent=4))
-            staged.append((tmp / "stats.json", stats_path))
+            staged.append((tmp / "stats.json", stats_file))
             (tmp / "info.json").write_text(json.dumps(new_info, indent=4))
-            staged.append((tmp / "info.json", root / "meta" / "info.json"))
+            staged.append((tmp / "info.json", info_path(root)))
 
             # 2. commit: new video dirs, then metadata (info.json last), with backups
             for key in self.keys:
-                dst = root / "videos" / key
+                dst = root / VIDEOS_DIR / key
                 dst.parent.mkdir(parents=True, exist_ok=True)
-                os.rename(tmp / "videos" / key, dst)
+                os.rename(tmp / VIDEOS_DIR / key, dst)
                 moved.append(dst)
             backup_dir = tmp / "backup"
             backup_dir.mkdir()
@@ -443,13 +453,13 @@ def _episode_table_with(table, streams: Sequence[_Stream]):
         rows = [s.rows[i] for i in ep]
         for suffix, typ in (("chunk_index", pa.int64()), ("file_index", pa.int64()),
                             ("from_timestamp", pa.float64()), ("to_timestamp", pa.float64())):
-            col = f"videos/{s.key}/{suffix}"
+            col = video_column(s.key, suffix)
             loc.append((col, pa.array([r[col] for r in rows], type=typ)))
         for name in STAT_KEYS:
             typ = pa.list_(pa.int64()) if name == "count" else pa.list_(pa.list_(pa.list_(pa.float64())))
-            stat.append((f"stats/{s.key}/{name}", pa.array([r["stats"][name].tolist() for r in rows], type=typ)))
-    table = insert_columns_after(table, "videos/", "dataset_to_index", loc)
-    return insert_columns_after(table, "stats/", "dataset_to_index", stat)
+            stat.append((stats_column(s.key, name), pa.array([r["stats"][name].tolist() for r in rows], type=typ)))
+    table = insert_columns_after(table, VIDEO_COLUMNS, "dataset_to_index", loc)
+    return insert_columns_after(table, STATS_COLUMNS, "dataset_to_index", stat)
 
 
 # ----------------------------------------------------------------------------- whole episodes

@@ -40,6 +40,7 @@ from imac_data.dataset.info import RIG_KEYS, STREAM_KEYS, imac_block, read_info
 from imac_data.dataset.streams import episode_files
 from imac_data.dataset.videos import read_video_frames
 from imac_data.errors import InputError
+from imac_data.layout import CAP_KEY, DEPTH_PREFIX, IMAGE_PREFIX, POSE_PREFIX, info_path, is_added_stream, video_column
 from imac_data.sources.lerobot_episodes import count_decodable_frames
 
 __all__ = ["validate_dataset", "Report", "CHECKS"]
@@ -172,7 +173,7 @@ def check_frame_counts(ctx: _Context) -> list[str]:
     fps = float(ctx.info["fps"])
     t = ctx.episodes
     for key in ctx.video_keys():
-        cols = [f"videos/{key}/{c}" for c in ("from_timestamp", "to_timestamp")]
+        cols = [video_column(key, c) for c in ("from_timestamp", "to_timestamp")]
         if any(c not in t.column_names for c in cols):
             problems.append(f"{key}: meta/episodes has no {cols[0]} / {cols[1]} columns")
             continue
@@ -191,8 +192,8 @@ def _video_files(ctx: _Context, key: str) -> dict[Path, int]:
     t = ctx.episodes
     path = ctx.info.get("video_path")
     out: dict[Path, int] = {}
-    for ep, c, f in zip(t.column("episode_index").to_pylist(), t.column(f"videos/{key}/chunk_index").to_pylist(),
-                        t.column(f"videos/{key}/file_index").to_pylist()):
+    for ep, c, f in zip(t.column("episode_index").to_pylist(), t.column(video_column(key, "chunk_index")).to_pylist(),
+                        t.column(video_column(key, "file_index")).to_pylist()):
         p = ctx.root / path.format(video_key=key, chunk_index=c, file_index=f)
         out[p] = out.get(p, 0) + ctx.lengths[ep]
     return out
@@ -215,7 +216,7 @@ def _count_video_frames(ctx: _Context) -> list[str]:
 
 
 def check_imac_block(ctx: _Context) -> list[str]:
-    streams = any(k.startswith("control.") or k.startswith("observation.depth.") for k in ctx.features)
+    streams = any(is_added_stream(k) for k in ctx.features)
     try:
         imac_block(ctx.info, "info.json", require=RIG_KEYS + (STREAM_KEYS if streams else ()))
     except InputError as e:
@@ -229,7 +230,7 @@ def check_rig(ctx: _Context) -> list[str]:
     except InputError as e:
         return [str(e)]
     cams = set(rig.names)
-    have = {k.split(".", 2)[2] for k in ctx.video_keys("observation.images.")}
+    have = {k.split(".", 2)[2] for k in ctx.video_keys(IMAGE_PREFIX)}
     return [] if not have or cams == have else [f"calibrated cameras {sorted(cams)} differ from the dataset's "
                                                    f"cameras {sorted(have)}"]
 
@@ -245,7 +246,7 @@ def check_calibration(ctx: _Context) -> list[str]:
         why = rigid_problem(c.get("T_world_cam", c.get("T_link_cam")), RIGID_TOL)  # stricter: written by us
         if why:
             problems.append(f"camera {name!r}: pose {why}")
-    for key in [k for k in ctx.features if k.startswith("camera_pose.")]:
+    for key in [k for k in ctx.features if k.startswith(POSE_PREFIX)]:
         _, poses = ctx.data_column(key)
         why = rigid_problem(poses if ctx.full else poses[:: max(1, len(poses) // 64)], RIGID_TOL)
         if why:
@@ -254,7 +255,7 @@ def check_calibration(ctx: _Context) -> list[str]:
 
 
 def check_caps(ctx: _Context) -> list[str]:
-    key = "control.contact_cap"
+    key = CAP_KEY
     if key not in ctx.features:
         return []
     _, caps = ctx.data_column(key)
@@ -276,7 +277,7 @@ def check_decode(ctx: _Context) -> list[str]:
             h, w, _ = ctx.features[key]["shape"]
             if key not in item or tuple(item[key].shape) != (3, h, w):
                 problems.append(f"frame {i}: {key} did not decode to (3, {h}, {w})")
-            elif key.startswith("observation.depth."):
+            elif key.startswith(DEPTH_PREFIX):
                 ctx.decoded_depth[(int(i), key)] = np.asarray(item[key])
     return problems
 
@@ -286,7 +287,7 @@ def _lossless(encoding: dict) -> bool:
 
 
 def check_depth(ctx: _Context) -> list[str]:
-    keys = ctx.video_keys("observation.depth.")
+    keys = ctx.video_keys(DEPTH_PREFIX)
     if not keys:
         return []
     try:
@@ -340,7 +341,7 @@ def validate_dataset(root: str | Path, *, full: bool = False, sample: int = 4,
     :class:`Report` (``report.ok``; ``report.raise_if_invalid()``)."""
     root = Path(root)
     report = Report(root=root, full=full)
-    if not (root / "meta" / "info.json").is_file():
+    if not info_path(root).is_file():
         report.results["metadata"] = [f"{root} is not a LeRobot dataset (no meta/info.json)"]
         return report
     ctx = _Context(root, full, sample)

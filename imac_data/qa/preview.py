@@ -36,14 +36,14 @@ import numpy as np
 from imac_data.core.depth import depth_codec_of
 from imac_data.dataset.videos import VideoEncoding, encode_video
 from imac_data.errors import InputError
+from imac_data.layout import DEPTH_PREFIX, IMAGE_PREFIX, MOTION, R2S, S2G, info_path
 
 __all__ = ["ROWS", "PreviewLayout", "preview_layout", "compose", "write_preview"]
 
 # (row label, feature-key prefix), top to bottom.
-ROWS = (("rgb", "observation.images."), ("depth", "observation.depth."), ("motion", "control.motion."),
-        ("contact r2s", "control.contact_r2s."), ("contact s2g", "control.contact_s2g."))
+ROWS = (("rgb", IMAGE_PREFIX), ("depth", DEPTH_PREFIX), ("motion", MOTION + "."), ("contact r2s", R2S + "."),
+        ("contact s2g", S2G + "."))
 LABEL_PX = 14  # height of the label strip above each tile
-_DEPTH_PREFIX = "observation.depth."
 
 
 @dataclass(frozen=True)
@@ -109,13 +109,13 @@ def compose(item: dict, layout: PreviewLayout, *, codec=None, depth_max: float =
         _label(out, cam, c * tw, 0, tw)
     for r, (label, prefix) in enumerate(layout.rows):
         y = LABEL_PX + r * (th + LABEL_PX)
-        text = f"{label} ({prefix}*)" + (f", 0-{depth_max:g} m" if prefix == _DEPTH_PREFIX else "")
+        text = f"{label} ({prefix}*)" + (f", 0-{depth_max:g} m" if prefix == DEPTH_PREFIX else "")
         _label(out, text, 0, y, out.shape[1])
         for c, cam in enumerate(layout.cameras):
             key = f"{prefix}{cam}"
             if key not in item:
                 continue
-            tile = _depth_tile(item[key], codec, depth_max) if prefix == _DEPTH_PREFIX else _to_uint8_hwc(item[key])
+            tile = _depth_tile(item[key], codec, depth_max) if prefix == DEPTH_PREFIX else _to_uint8_hwc(item[key])
             if tile.shape[:2] != (th, tw):
                 tile = cv2.resize(tile, (tw, th), interpolation=cv2.INTER_AREA)
             out[y + LABEL_PX:y + LABEL_PX + th, c * tw:(c + 1) * tw] = tile
@@ -123,7 +123,7 @@ def compose(item: dict, layout: PreviewLayout, *, codec=None, depth_max: float =
 
 
 def _read_info(root: Path) -> dict:
-    path = root / "meta" / "info.json"
+    path = info_path(root)
     if not path.is_file():
         raise InputError(f"{root}: not a LeRobot dataset (no meta/info.json)")
     return json.loads(path.read_text())
@@ -150,7 +150,7 @@ def write_preview(root: str | Path, episode: int, out: str | Path | None = None,
     if out.resolve().is_relative_to(root.resolve()):
         raise InputError(f"{out}: write the preview outside the dataset {root}")
     layout = preview_layout(info)
-    codec = depth_codec_of(info) if any(p == _DEPTH_PREFIX for _, p in layout.rows) else None
+    codec = depth_codec_of(info) if any(p == DEPTH_PREFIX for _, p in layout.rows) else None
 
     ds = LeRobotDataset(f"local/{root.name}", root=root, episodes=[episode])
 

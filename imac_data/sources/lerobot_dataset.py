@@ -30,9 +30,21 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from imac_data.console import cpu_cores
 from imac_data.errors import InputError
+from imac_data.layout import (
+    EPISODE_COLUMNS,
+    IMAGE_PREFIX,
+    POSE_PREFIX,
+    STATS_COLUMNS,
+    TASKS,
+    episodes_dir,
+    info_path,
+    is_added_stream,
+    video_column,
+)
 from imac_data.sources.hdf5 import parse_success
 from imac_data.sources.lerobot_episodes import count_decodable_frames
 
@@ -70,17 +82,17 @@ class SourceDataset:
         import pyarrow.parquet as pq
 
         root = Path(root)
-        info_path = root / "meta" / "info.json"
-        if not info_path.is_file():
-            raise InputError(f"{root} is not a LeRobot dataset ({info_path} is missing)")
-        info = _read_info(info_path)
+        info_file = info_path(root)
+        if not info_file.is_file():
+            raise InputError(f"{root} is not a LeRobot dataset ({info_file} is missing)")
+        info = _read_info(info_file)
         version = info.get("codebase_version")
         if version != "v3.0":
             raise InputError(f"{root}: LeRobot dataset version {version!r}; expected v3.0 (v2.1 is converted first)")
-        _check_info(info, info_path)
+        _check_info(info, info_file)
         rows = []
-        for f in sorted((root / "meta" / "episodes").rglob("*.parquet")):
-            cols = [c for c in pq.read_schema(f).names if not c.startswith("stats/")]
+        for f in sorted(episodes_dir(root).rglob("*.parquet")):
+            cols = [c for c in pq.read_schema(f).names if not c.startswith(STATS_COLUMNS)]
             rows += pq.read_table(f, columns=cols).to_pylist()
         rows.sort(key=lambda r: r["episode_index"])
         if [r["episode_index"] for r in rows] != list(range(len(rows))) or len(rows) != info["total_episodes"]:
@@ -98,13 +110,13 @@ class SourceDataset:
 
     def video_file(self, key: str, row: dict) -> Path:
         """The video file that holds episode ``row``'s frames of camera feature ``key``."""
-        return self.root / self.info["video_path"].format(video_key=key, chunk_index=row[f"videos/{key}/chunk_index"],
-                                                          file_index=row[f"videos/{key}/file_index"])
+        return self.root / self.info["video_path"].format(video_key=key, chunk_index=row[video_column(key, "chunk_index")],
+                                                          file_index=row[video_column(key, "file_index")])
 
     def check_files(self, video_keys: list[str]) -> None:
         """Every file the build reads is there: the tasks table, each episode's data file and
         its video files of ``video_keys`` (LeRobot would try to download a missing one)."""
-        tasks = self.root / "meta" / "tasks.parquet"
+        tasks = self.root / TASKS
         if not tasks.is_file():
             raise InputError(f"dataset {self.root}: {tasks} is missing")
         for row in self.episodes:
@@ -126,13 +138,11 @@ class SourceDataset:
         that frame is loaded."""
         from concurrent.futures import ThreadPoolExecutor
 
-        from tqdm.auto import tqdm
-
         spans: dict[Path, list[tuple[int, int, int, str]]] = {}  # file -> (first, end, episode, key) per episode
         for row in self.episodes:
             for key in video_keys:
                 try:
-                    first, end = (round(row[f"videos/{key}/{c}_timestamp"] * self.fps) for c in ("from", "to"))
+                    first, end = (round(row[video_column(key, f"{c}_timestamp")] * self.fps) for c in ("from", "to"))
                 except KeyError as e:
                     raise InputError(f"dataset {self.root}: meta/episodes has no column {e} for episode "
                                      f"{row['episode_index']}") from None
@@ -177,30 +187,30 @@ class SourceDataset:
 # ------------------------------------------------------------------------------ locate
 
 
-def _check_info(info: dict, info_path: Path) -> None:
+def _check_info(info: dict, info_file: Path) -> None:
     """The fields of a v3.0 ``info.json`` that reading a source needs, with their types."""
     for key, kind, what in (("fps", (int, float), "a number"), ("total_episodes", int, "an integer"),
                             ("features", dict, "an object"), ("data_path", str, "a path template"),
                             ("video_path", (str, type(None)), "a path template")):
         if key not in info or isinstance(info[key], bool) or not isinstance(info[key], kind):
             got = f"got {info[key]!r}" if key in info else "it is missing"
-            raise InputError(f"{info_path}: '{key}' must be {what}; {got}")
+            raise InputError(f"{info_file}: '{key}' must be {what}; {got}")
     if not (info["fps"] > 0 and float(info["fps"]).is_integer()):
-        raise InputError(f"{info_path}: 'fps' must be a positive whole number, got {info['fps']!r}")
+        raise InputError(f"{info_file}: 'fps' must be a positive whole number, got {info['fps']!r}")
 
 
-def _read_info(info_path: Path) -> dict:
+def _read_info(info_file: Path) -> dict:
     try:
-        info = json.loads(info_path.read_text())
+        info = json.loads(info_file.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{info_path}: not valid JSON ({e})") from None
+        raise InputError(f"{info_file}: not valid JSON ({e})") from None
     if not isinstance(info, dict):
-        raise InputError(f"{info_path}: expected a JSON object, got {type(info).__name__}")
+        raise InputError(f"{info_file}: expected a JSON object, got {type(info).__name__}")
     return info
 
 
 def _version(root: Path) -> str | None:
-    path = root / "meta" / "info.json"
+    path = info_path(root)
     return _read_info(path).get("codebase_version") if path.is_file() else None
 
 
@@ -257,7 +267,7 @@ def locate_source(path: Path | None, repo_id: str | None, staging: Path) -> tupl
         where = {"repo_id": repo_id}
     else:
         root = Path(path)
-        if not (root / "meta" / "info.json").is_file():
+        if not info_path(root).is_file():
             raise InputError(f"source.path {root}: not a LeRobot dataset (no meta/info.json)")
         where = {"path": str(root)}
     version = _version(root)
@@ -277,7 +287,7 @@ def camera_map(src: SourceDataset, mapping: dict[str, str], calibrated: list[str
     """``{source video key: camera name}``, checked against the source and the calibration."""
     videos = src.video_keys
     if not mapping:
-        mapping = {k: k.split(".", 2)[2] for k in videos if k.startswith("observation.images.")}
+        mapping = {k: k.removeprefix(IMAGE_PREFIX) for k in videos if k.startswith(IMAGE_PREFIX)}
     for key, cam in mapping.items():
         if key not in src.features:
             raise InputError(f"{where}: source.cameras: dataset {src.root} has no feature {key!r}; its camera "
@@ -295,7 +305,7 @@ def camera_map(src: SourceDataset, mapping: dict[str, str], calibrated: list[str
     if unmapped:
         raise InputError(f"{where}: the calibration has camera(s) {unmapped} that no source camera maps to; "
                          f"map them in source.cameras (the dataset {src.root} has {videos})")
-    clash = [k for k in src.features if k.startswith(("control.", "observation.depth.", "camera_pose."))]
+    clash = [k for k in src.features if is_added_stream(k) or k.startswith(POSE_PREFIX)]
     if clash:
         raise InputError(f"{where}: dataset {src.root} already has imac streams ({clash[:3]}...); "
                          "start from the dataset without them")
@@ -338,16 +348,15 @@ def check_joint_layout(src: SourceDataset, state_key: str, action_key: str, acti
 
 # ------------------------------------------------------------------------------ metadata
 
-META_FIELDS = {"success": "imac/success", "policy_name": "imac/policy_name", "checkpoint": "imac/checkpoint",
-               "source": "imac/source"}
+META_FIELDS = {name.removeprefix("imac/"): name for name in EPISODE_COLUMNS}  # metadata field -> column
 
 
 def episode_metadata(path: Path | None, n: int, defaults) -> list[dict]:
     """Per episode ``imac/source``, ``imac/policy_name``, ``imac/checkpoint``, ``imac/success``:
     from ``path`` (CSV with an ``episode_index`` column, or JSON: a list of objects with
     ``episode_index``, or an object keyed by episode index) over the recipe's defaults."""
-    rows = [{"imac/source": defaults.source, "imac/policy_name": defaults.policy_name,
-             "imac/checkpoint": defaults.checkpoint, "imac/success": None} for _ in range(n)]
+    values = (defaults.source, defaults.policy_name, defaults.checkpoint, None)
+    rows = [dict(zip(EPISODE_COLUMNS, values)) for _ in range(n)]
     if path is None:
         return rows
     path = Path(path)

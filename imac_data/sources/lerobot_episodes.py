@@ -26,6 +26,7 @@ import numpy as np
 
 from imac_data.core.depth import DepthCodec
 from imac_data.errors import InputError
+from imac_data.layout import video_column
 
 __all__ = ["LeRobotEpisodeReader", "DepthFeature"]
 
@@ -142,7 +143,7 @@ class LeRobotEpisodeReader:
         if key not in self._videos:
             r, info = self.row, self.src.info
             path = self.src.video_file(key, r)
-            self._videos[key] = _VideoFrames(path, float(r[f"videos/{key}/from_timestamp"]), float(info["fps"]),
+            self._videos[key] = _VideoFrames(path, float(r[video_column(key, "from_timestamp")]), float(info["fps"]),
                                              self.num_frames, f"{self.path} {key}")
         return self._videos[key]
 

@@ -27,6 +27,7 @@ import numpy as np
 from imac_data.console import run_command
 from imac_data.dataset.columns import add_episode_columns
 from imac_data.errors import InputError
+from imac_data.layout import info_path
 from imac_model.config import MODES
 from imac_model.data import mosaic
 from imac_model.evaluate.closed_loop import ClosedLoopConfig, run_closed_loop
@@ -163,7 +164,7 @@ def cmd_label(args) -> int:
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     root = Path(args.dataset)
-    if not (root / "meta" / "info.json").is_file():
+    if not info_path(root).is_file():
         raise InputError(f"{root} is not a LeRobot dataset (no meta/info.json)")
     meta = LeRobotDatasetMetadata(args.repo_id or f"local/{root.name}", root=root)
     table = meta.episodes

@@ -1,11 +1,7 @@
-"""The one place that reads an imac dataset's metadata (``meta/info.json``).
-
-``imac_data`` records everything needed to use its streams under the ``imac`` key
-of ``info.json`` (DESIGN section 3). The model needs a handful of those facts: the
-contact chunk size and its reference rule, the depth codec, the cameras (and their
-DESIGN order), and the feature keys of each stream. They are read here and nowhere
-else in ``imac_model``, so a change of that block's layout is adapted in this file.
-"""
+"""The one place in ``imac_model`` that reads an imac dataset's metadata (``meta/info.json``):
+the contact chunk and its reference rule, the depth codec, the cameras in view order, and the
+feature keys of each stream (``docs/dataset-format.md``). A change of that block's layout is
+adapted here."""
 
 from __future__ import annotations
 
@@ -15,18 +11,17 @@ from typing import Any
 from imac_data.core.cameras import Camera
 from imac_data.core.depth import depth_codec_of
 from imac_data.errors import InputError
+from imac_data.layout import ACTION, IMAGE_PREFIX, STATE, SUCCESS_COLUMN, control_key, depth_key, image_key
 
-RGB, DEPTH = "observation.images", "observation.depth"
-CONTROL_PREFIX = "control"
-STATE, ACTION = "observation.state", "action"
-SUCCESS_COLUMN = "imac/success"
+__all__ = ["ACTION", "STATE", "SUCCESS_COLUMN", "contact_chunk_size", "reference_rule", "depth_codec", "cameras",
+           "camera_names", "stream_key", "missing_features", "feature_dim", "fps"]
 
 
 def _imac(info: Mapping[str, Any]) -> Mapping[str, Any]:
     block = info.get("imac") if isinstance(info, Mapping) else None
     if not isinstance(block, Mapping):
         raise InputError("meta/info.json has no 'imac' block: this dataset was not built by imac_data "
-                         "(python -m imac_data.build)")
+                         "(imac build)")
     return block
 
 
@@ -55,8 +50,8 @@ def cameras(info: Mapping[str, Any]) -> dict:
 
 
 def camera_names(info: Mapping[str, Any]) -> tuple[str, ...]:
-    """Camera names in DESIGN order: fixed (head) cameras first, then mounted ones with
-    'left' before 'right' (each group by name)."""
+    """Camera names in view order: fixed (head) cameras first, then mounted ones with 'left'
+    before 'right' (each group by name)."""
     cams = _imac(info).get("cameras")
     if cams:
         def key(item):
@@ -67,7 +62,7 @@ def camera_names(info: Mapping[str, Any]) -> tuple[str, ...]:
 
         return tuple(name for name, _ in sorted(cams.items(), key=key))
     # no calibration block: derive from the RGB features (same rule, by name only)
-    names = [k[len(RGB) + 1:] for k in info.get("features", {}) if k.startswith(RGB + ".")]
+    names = [k.removeprefix(IMAGE_PREFIX) for k in info.get("features", {}) if k.startswith(IMAGE_PREFIX)]
     return tuple(sorted(names, key=lambda n: ("wrist" in n, 0 if "left" in n else 1 if "right" in n else 2, n)))
 
 
@@ -75,10 +70,10 @@ def stream_key(stream: str, camera: str) -> str:
     """Feature key of a stream for one camera: ``rgb``, ``depth`` or a control stream
     (``motion``, ``contact_s2g``, ``contact_r2s``)."""
     if stream == "rgb":
-        return f"{RGB}.{camera}"
+        return image_key(camera)
     if stream == "depth":
-        return f"{DEPTH}.{camera}"
-    return f"{CONTROL_PREFIX}.{stream}.{camera}"
+        return depth_key(camera)
+    return control_key(stream, camera)
 
 
 def missing_features(info: Mapping[str, Any], streams: Sequence[str], views: Sequence[str]) -> list[str]:

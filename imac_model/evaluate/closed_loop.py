@@ -59,9 +59,10 @@ from imac_data.dataset.episodes import EpisodeWriter
 from imac_data.dataset.info import update_imac_info
 from imac_data.dataset.output import refuse_overlap
 from imac_data.errors import InputError
+from imac_data.layout import ACTION, EPISODE_COLUMNS, SUCCESS_COLUMN, control_key, depth_key, image_key
 from imac_model.data import mosaic
 from imac_model.data.batch import ChunkBatch
-from imac_model.evaluate.policies import STATE_KEY, ActionQueue, image_key, policy_name, recorded_actions_policy
+from imac_model.evaluate.policies import STATE_KEY, ActionQueue, policy_name, recorded_actions_policy
 from imac_model.evaluate.success import EpisodeFrames
 from imac_model.pipelines.rollout import sample_rollout
 
@@ -193,20 +194,21 @@ def generated_features(spec, state_names: Sequence[str] | None = None) -> dict:
     video = {"dtype": "video", "shape": (h, w, 3), "names": ["height", "width", "channels"]}
     names = list(state_names) if state_names and len(state_names) == spec.action_dim else None
     features = {STATE_KEY: {"dtype": "float32", "shape": (spec.action_dim,), "names": names},
-                "action": {"dtype": "float32", "shape": (spec.action_dim,), "names": names}}
+                ACTION: {"dtype": "float32", "shape": (spec.action_dim,), "names": names}}
     for v in spec.views:
-        features[f"observation.images.{v}"] = dict(video)
+        features[image_key(v)] = dict(video)
     for v in spec.views:
-        features[f"observation.depth.{v}"] = dict(video)
+        features[depth_key(v)] = dict(video)
     for s in spec.conditioning.streams:
         for v in spec.views:
-            features[f"control.{s}.{v}"] = dict(video)
+            features[control_key(s, v)] = dict(video)
     return features
 
 
-EPISODE_COLUMNS = {"imac/source": "string", "imac/policy_name": "string", "imac/checkpoint": "string",
-                   "imac/success": "bool_", "imac/start_episode": "int64", "imac/start_frame": "int64",
-                   "imac/seed": "int64", "imac/invalid_depth": "float64"}
+# a built dataset's episode columns, and where each generated episode started
+GENERATED_COLUMNS = {**{k: "bool_" if k == SUCCESS_COLUMN else "string" for k in EPISODE_COLUMNS},
+                     "imac/start_episode": "int64", "imac/start_frame": "int64", "imac/seed": "int64",
+                     "imac/invalid_depth": "float64"}
 
 
 class GeneratedDatasetWriter:
@@ -232,15 +234,15 @@ class GeneratedDatasetWriter:
     def _rows(self, frames: torch.Tensor, states: torch.Tensor, actions: torch.Tensor,
               controls: Mapping[str, torch.Tensor] | None) -> dict:
         rgb, depth = mosaic.split(frames, len(self.views))  # (n, V, 3, h, w)
-        out = {STATE_KEY: states.float().numpy(), "action": actions.float().numpy()}
+        out = {STATE_KEY: states.float().numpy(), ACTION: actions.float().numpy()}
         for i, v in enumerate(self.views):
-            out[f"observation.images.{v}"] = _u8(rgb[:, i])
-            out[f"observation.depth.{v}"] = _u8(depth[:, i])
+            out[image_key(v)] = _u8(rgb[:, i])
+            out[depth_key(v)] = _u8(depth[:, i])
         n = len(frames)
         for s in self.streams:
             for i, v in enumerate(self.views):
                 c = controls[s][:, i] if controls is not None else torch.zeros(n, 3, *rgb.shape[-2:])
-                out[f"control.{s}.{v}"] = _u8(c)
+                out[control_key(s, v)] = _u8(c)
         return out
 
     def begin_episode(self, start: Start, columns: Mapping) -> None:
@@ -276,7 +278,7 @@ class GeneratedDatasetWriter:
         import pyarrow as pa
 
         self.writer.finish()
-        add_episode_columns(self.staging, self.rows, {k: getattr(pa, t)() for k, t in EPISODE_COLUMNS.items()})
+        add_episode_columns(self.staging, self.rows, {k: getattr(pa, t)() for k, t in GENERATED_COLUMNS.items()})
         if info_block:
             update_imac_info(self.staging, info_block)
         if self.root.exists():

@@ -43,16 +43,12 @@ import torch
 import torch.nn.functional as F
 
 from imac_data.errors import InputError
+from imac_data.layout import IMAGE_PREFIX, STATE, image_key
 
-IMAGE_PREFIX = "observation.images."
-STATE_KEY = "observation.state"
+STATE_KEY = STATE
 
 Observation = dict  # {"observation.images.<view>": (3, h, w), "observation.state": (D,), "task": str}
 Policy = Callable[[Observation], torch.Tensor]
-
-
-def image_key(view: str) -> str:
-    return f"{IMAGE_PREFIX}{view}"
 
 
 def policy_name(policy) -> str:

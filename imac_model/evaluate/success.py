@@ -39,9 +39,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from imac_data.errors import InputError
-
-SUCCESS_COLUMN = "imac/success"
-IMAGE_PREFIX = "observation.images."
+from imac_data.layout import IMAGE_PREFIX, SUCCESS_COLUMN, video_column
 
 
 @dataclass(frozen=True)
@@ -104,7 +102,7 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
         raise InputError(f"{dataset.root}: episodes {unknown} are not in the dataset "
                          f"(it has {len(index_of)} episodes)")
     tasks, lengths = table["tasks"], table["length"]
-    starts = {cam: table[f"videos/{cam}/from_timestamp"] for cam in cameras}
+    starts = {cam: table[video_column(cam, "from_timestamp")] for cam in cameras}
     out = []
     for ep in wanted:
         row = index_of[ep]

@@ -38,6 +38,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from imac_data.layout import info_path
 from imac_data.recipes import load_recipe
 from imac_model.config import CONTROL_STREAMS, load_run_config
 from imac_model.data.chunks import ChunkDataset, open_metadata, resolve_layout, split_episodes
@@ -182,7 +183,7 @@ def _run_all(commands: list[tuple[str, list[str], Path]], jobs: int) -> None:
 
 
 def stage_record(plan: Plan) -> None:
-    if (plan.dataset / "meta" / "info.json").is_file():
+    if info_path(plan.dataset).is_file():
         return  # built already
     sim = load_recipe(RECIPE).source.sim
     groups = [(g, min(GROUP, plan.episodes - g * GROUP)) for g in range((plan.episodes + GROUP - 1) // GROUP)]
@@ -222,7 +223,7 @@ def _quote(s: str) -> str:
 
 
 def stage_build(plan: Plan) -> None:
-    if (plan.dataset / "meta" / "info.json").is_file():
+    if info_path(plan.dataset).is_file():
         return  # the build moves a dataset into place only when it is complete
     argv = _python() + ["-m", "imac_data.build", "--repo", REPO, "--recipe", str(RECIPE),
                         "--source", str(plan.work / "sim" / "all"), "--root", str(plan.dataset),

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imac_data.layout import episodes_dir, info_path
 from imac_model.evaluate.pictures import label
 
 
@@ -168,11 +169,11 @@ def write_report(plan, settings) -> Path:
         logs[s.name] = [json.loads(x) for x in (plan.run_dir(s) / "log.jsonl").read_text().splitlines() if x.strip()]
     if not results:
         raise RuntimeError("no evaluated setting to report")
-    info = json.loads((plan.dataset / "meta" / "info.json").read_text())
+    info = json.loads(info_path(plan.dataset).read_text())
     H = int(info["imac"]["contact"]["chunk_size"])
     import pyarrow.parquet as pq
 
-    episodes = pq.read_table(sorted((plan.dataset / "meta" / "episodes").rglob("*.parquet"))).to_pydict()
+    episodes = pq.read_table(sorted(episodes_dir(plan.dataset).rglob("*.parquet"))).to_pydict()
     success = [bool(x) for x in episodes["imac/success"]]
     lengths = [int(x) for x in episodes["length"]]
     held = plan.held_out_episodes

@@ -65,6 +65,7 @@ from imac_data.core.contact.images import contact_chunk
 from imac_data.core.depth import resize_depth, walk_distance
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
+from imac_data.layout import info_path
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
 
@@ -170,7 +171,7 @@ class OnlineControls:
 
         root = Path(root)
         if info is None:
-            path = root / "meta" / "info.json"
+            path = info_path(root)
             if not path.is_file():
                 raise InputError(f"{root} is not a LeRobot dataset ({path} is missing)")
             info = json.loads(path.read_text())
