@@ -30,7 +30,7 @@ bench: setup
 # The small-scale comparison of docs/experiment (about 60-90 minutes on an idle 2-core machine; resumable:
 # every stage is cached under runs/experiment).
 experiment: setup
-	$(PY) -m imac_model.experiments.comparison --work runs/experiment --docs docs/experiment
+	$(PY) -m imac_model experiment --work runs/experiment --docs docs/experiment
 
 # Depth Anything 3's code (no weights): scripts/setup.sh installs it; this re-runs that install.
 da3: setup

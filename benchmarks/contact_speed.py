@@ -16,12 +16,12 @@ machine load):
   (every distance within [exact, exact + max(1 mm, 3 %)]), and exact per pixel
   (``tolerance=None``); everything included: scene cloud, KD-tree, both
   streams, percentile caps, hole filling, colour images;
-* the reference (what public code does, DESIGN.md's 720 ms/frame): per future frame,
+* the reference (what public code does, the 720 ms/frame reference of docs/verification.md): per future frame,
   pose every robot visual mesh and sample 3000 points on each with trimesh, build a
   scipy KD-tree (``workers=-1``) on the scene and query the robot samples, build one on
   the finger samples and query the scene points. It produces distances only, no
   images. Timed twice: with sliding-midpoint trees (``balanced_tree=False,
-  compact_nodes=False``; this reproduces DESIGN.md's 720 ms and is the headline
+  compact_nodes=False``; this reproduces that 720 ms and is the headline
   ``contact_ratio_vs_reference``, the conservative one) and with scipy's default
   balanced trees, which degrade badly on a flat table with an object on it (robot
   points far above the table query ~100 us each: each leaf's rectangle inherits the

@@ -10,7 +10,7 @@ of one channel) at a given depth, two ways:
   built here from the walk corners, not by the encoder) and difference them.
 
 It also measures the worst uint8 round-trip error in a +-1 % window around each
-depth (should be half a step), checks the steps DESIGN.md section 4 quotes for the
+depth (should be half a step), checks the steps docs/dataset-format.md quotes for the
 ``manipulation`` preset, and times encode/decode (numpy, torch CPU, CUDA if present).
 """
 
@@ -27,8 +27,8 @@ import torch
 from imac_data.core.depth import CORNERS, N_CODES, PRESETS, DepthCodec
 
 DEPTHS = [0.05, 0.1, 0.2, 0.5, 1.0, 1.2, 1.5, 2.0, 5.0, 10.0, 20.0]
-# DESIGN.md section 4, manipulation preset: depth (m) -> quoted 8-bit step (mm).
-DESIGN_CLAIMS_MM = {0.1: "0.4", 1.0: "2", 1.2: "2.8", 2.0: "13"}
+# docs/dataset-format.md, manipulation preset: depth (m) -> quoted 8-bit step (mm).
+QUOTED_STEPS_MM = {0.1: "0.4", 1.0: "2", 1.2: "2.8", 2.0: "13"}
 
 
 def code_colour(code: np.ndarray) -> np.ndarray:
@@ -79,9 +79,9 @@ def quantisation_table(codec: DepthCodec) -> tuple[list[str], list[list[str]]]:
 
 
 def claims_check(codec: DepthCodec) -> tuple[list[str], list[list[str]]]:
-    header = ["depth (m)", "DESIGN.md step (mm)", "measured step (mm)", "holds to quoted precision"]
+    header = ["depth (m)", "quoted step (mm)", "measured step (mm)", "holds to quoted precision"]
     body = []
-    for d, quoted in DESIGN_CLAIMS_MM.items():
+    for d, quoted in QUOTED_STEPS_MM.items():
         step_mm = float(codec.quantisation_step(d)) * 1e3
         decimals = len(quoted.split(".")[1]) if "." in quoted else 0
         holds = round(step_mm, decimals) == float(quoted)
@@ -154,7 +154,7 @@ def main(argv=None) -> None:
                 f"max depth {codec.max_depth:.4g} m (code 1784; deeper saturates to it). "
                 "code = 8-bit position along the walk (0 = black = invalid).")
         sections.append((f"8-bit quantisation step: {name}", note, quantisation_table(codec)))
-    sections.append(("DESIGN.md section 4 claims (manipulation)", "", claims_check(codecs["manipulation"])))
+    sections.append(("the quoted steps (manipulation)", "", claims_check(codecs["manipulation"])))
     sections.append(
         (f"Throughput ({args.frames} x {height}x{width} frames, best of {args.repeats})",
          f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads, "

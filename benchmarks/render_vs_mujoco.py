@@ -25,7 +25,7 @@ so both sides see the same machine load:
   without shadows / multisampling (what our simulator records), depth pass,
   segmentation pass; and the RGB pass with gym-aloha's shipped settings (4096 px
   shadow map, 4x MSAA) on a few frames;
-* Open3D with the posed robot's scene rebuilt every frame (DESIGN.md's reference;
+* Open3D with the posed robot's scene rebuilt every frame (the reference timing of docs/verification.md;
   FK + one batched vertex transform + BVH build + casting all views; hit distances
   only, no shading).
 

@@ -59,7 +59,7 @@ from benchmarks.run_report import STREAM_GROUPS, markdown, tag
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results"
-VIEWS = ("cam_high", "cam_left_wrist", "cam_right_wrist")  # DESIGN.md order: head, left, right wrist
+VIEWS = ("cam_high", "cam_left_wrist", "cam_right_wrist")  # view order: head, left, right wrist
 TASK = "transfer_cube"
 
 # The keys every latest.json has (numbers measured in that run; None + a reason in

@@ -1,65 +1,9 @@
-"""Recipes: YAML files that say where raw data is, which robot and cameras, and how to build.
+"""Recipes: YAML files that say where the raw data is, which robot and cameras, and how to build.
 
-A recipe is parsed into typed, frozen dataclasses and validated here, at the
-boundary: an unknown key, a wrong type or a bad value raises :class:`InputError`
-naming the file and the dotted field (``recipes/x.yaml: source.episodes: ...``).
-Paths in a recipe are relative to the recipe file unless absolute; ``~`` and
-environment variables are expanded.
-
-Schema (every section optional except ``name``, ``task``, ``robot`` and ``source``)::
-
-    name: aloha_sim_transfer_cube
-    task: "transfer the red cube to the other arm"   # language instruction
-    fps: 25                                          # dataset fps (sim: from the frame stride)
-    robot:
-      platform: aloha_sim            # built-in rig (URDF derived at run time), or:
-      urdf: path/to/robot.urdf       #   your own URDF with
-      joint_map: [joint_a, ..., {joint: finger_joint, scale: 0.04, offset: 0.0}, ...]
-                                     # per index: a URDF joint, or {joint, scale, offset} when the
-                                     # recorded unit is not the URDF's: q_urdf = offset + scale * value
-                                     # (the older {gripper: finger_joint, ...} form still reads)
-      gripper_links: [left_finger_link, ...]
-      package_dirs: {my_robot_description: path/to/pkg}
-      controller:                    # how actions become configurations (imac_data.core.motion.Controller)
-        mode: absolute               # joint-position targets, or delta
-        grippers: [{index: 6, scale: 1.0, offset: 0.0, low: null, high: null}]
-        absolute_indices: []         # delta mode: indices that are absolute targets anyway
-    cameras:
-      calibration: path/to/calibration.json   # not needed for aloha_sim
-    source:
-      type: aloha_sim | aloha_hdf5 | lerobot
-      path: path/to/episodes                  # aloha_sim: where to record (default: a cache dir);
-                                              # lerobot: the dataset's root directory
-      episodes: 2                             # how many (first N), null = all
-      repo_id: user/dataset                   # lerobot without path: downloaded through LeRobot
-      cameras: {observation.images.top: cam_high}  # lerobot: source video key -> calibrated camera
-      state_key: observation.state            # lerobot: the joint vectors (robot.joint_map: one
-      action_key: action                      #   entry per index of these)
-      action_space: joint                     # lerobot: joint (required) | ee (refused, clearly)
-      metadata: episodes.csv                  # lerobot: success, policy_name, checkpoint, source
-                                              #   per episode_index (CSV or JSON)
-      sim: {task: transfer_cube, noise: 0.3, seed: 0, height: 240, width: 320, frame_stride: 2,
-           segmentation: true}
-      episode_defaults: {source: teleop, policy_name: null, checkpoint: null}
-    augment:                                  # the added streams (see AugmentSettings)
-      height: 240
-      width: 320
-      motion_source: action                   # commanded configurations (phi) | state
-      depth_codec: manipulation               # or general
-      contact_chunk: 8                        # H; the reference is the chunk's first frame
-      contact_cap: null                       # metres; null = 99th percentile per chunk
-      contact_workspace:                      # scene points the contact streams use (imac_data.core.contact.workspace)
-        min: [-0.8, -0.6, -0.05]              # world box, metres; no min/max = the robot's reach + margin
-        max: [0.8, 0.6, 0.7]
-        depth_range: [0.1, 2.5]               # metres of z-depth; default [0, where the depth codec saturates)
-      empty_reference_scene: error            # a chunk start with no valid scene depth: error | no_contact
-    depth:                                    # where depth comes from (imac_data.sources.depth)
-      source: recorded                        # recorded | da3 | none (motion streams only)
-      model: depth-anything/DA3-BASE          # da3: hub id or local weights directory
-      monocular_model: null                   # da3 with < 3 posed views: DA3's metric model
-      feature: observation.depth.{cam}        # recorded, lerobot source: the depth feature
-      format: millimetres                     #   millimetres | metres | codec
-"""
+A recipe is parsed into typed, frozen dataclasses and validated here, at the boundary: an
+unknown key, a wrong type or a bad value raises :class:`InputError` naming the file and the
+dotted field. Paths are relative to the recipe file unless absolute; ``~`` and environment
+variables are expanded. The schema is in ``docs/building.md`` ("Recipes")."""
 
 from __future__ import annotations
 
@@ -316,7 +260,7 @@ def _validate(recipe: Recipe) -> None:
     if s.type == "aloha_sim" and r.platform != "aloha_sim":
         raise InputError(f"{f}: source.type aloha_sim records the simulated rig: set robot.platform: aloha_sim")
     if s.type != "aloha_sim" and recipe.cameras.calibration is None:
-        raise InputError(f"{f}: cameras.calibration: required for real data (a calibration JSON, see README)")
+        raise InputError(f"{f}: cameras.calibration: required for real data (a calibration JSON, see docs/calibration.md)")
     if s.episodes is not None and s.episodes <= 0:
         raise InputError(f"{f}: source.episodes: must be positive, got {s.episodes}")
     if recipe.fps is not None and not (0 < recipe.fps < math.inf and float(recipe.fps).is_integer()):
@@ -406,7 +350,7 @@ def missing_inputs(recipe: Recipe, source_path: Path | None = None) -> list[str]
             check(f"robot.package_dirs.{name}", value, f"the directory of package://{name}/", "where the meshes are",
                   is_dir=True)
     check("cameras.calibration", recipe.cameras.calibration, "the camera calibration JSON",
-          "format in the README, section 'Calibration file'")
+          "format in docs/calibration.md")
     if source_path is None and recipe.source.type == "lerobot":
         check("source.path", recipe.source.path, "the LeRobot dataset's root directory",
               "the directory holding meta/info.json", is_dir=True)

@@ -1,26 +1,12 @@
 """Typed configuration of the world model and its training, validated at the boundary.
 
-A run is described by one :class:`RunConfig` (YAML or JSON; every section optional)::
-
-    data:         {dataset: local/sim10, view_height: 48, held_out_episodes: [8, 9]}
-    backbone:     {kind: small, small: {dim: 192, depth: 6}}      # or kind: wan
-    conditioning: {mode: motion+contact}                           # none | motion | motion+contact | action-vector
-    flow:         {train_shift: 1.0, sample_steps: 20}
-    train:        {batch_size: 4, max_steps: 2000, output_dir: runs/sim10}
-    rollout:      {chunks: 4, warmup_epochs: 1, stage_one_epochs: 0}     # training-time rollout (R = 4)
-
-Parsing is strict: an unknown key, a wrong type or a bad value raises
-:class:`~imac_data.errors.InputError` naming the file and the dotted field. Every
-checkpoint stores the resolved :class:`ModelSpec` (the run's model sections plus the
-facts taken from the dataset: views, view size, chunk length, action dimension), so a
-model is rebuilt from its checkpoint alone, and ``RunConfig`` round-trips through
-:meth:`RunConfig.to_dict` / :func:`load_run_config`.
-
-Defaults follow the paper; the public iMaC release's choices are options, named where
-they differ (DESIGN section 8): ``conditioning.control_init: copy_patch_embedding``,
-``conditioning.control_on_reference: true``, ``flow.train_shift: 5``,
-``flow.reference_noise: 0.1``.
-"""
+A run is one :class:`RunConfig` (YAML or JSON; sections ``data``, ``backbone``,
+``conditioning``, ``flow``, ``train``, ``rollout``, each optional), parsed strictly: an unknown
+key, a wrong type or a bad value raises :class:`~imac_data.errors.InputError` naming the file
+and the dotted field. Every checkpoint stores the resolved :class:`ModelSpec` (the model
+sections plus the facts taken from the dataset), so a model is rebuilt from its checkpoint
+alone; both round-trip through ``to_dict`` and the loaders. Defaults follow the paper
+(``docs/world-model.md``, "Configuration")."""
 
 from __future__ import annotations
 
@@ -55,7 +41,7 @@ class DataConfig:
     view_height: int = 48  # per-view height at the model's resolution
     view_width: int | None = None  # None: keep the cameras' aspect ratio, rounded to the backbone's multiple
     chunk: int | None = None  # future frames per chunk; None = the dataset's contact chunk (must equal it)
-    views: tuple[str, ...] | None = None  # camera order; None = DESIGN order (head, left wrist, right wrist)
+    views: tuple[str, ...] | None = None  # camera order; None = head, left wrist, right wrist
     held_out_episodes: tuple[int, ...] = ()  # never trained on; the held-out loss is computed on them
     cache: Literal["memory", "none"] = "memory"  # keep decoded, resized chunks (uint8) in RAM
     cache_dir: str | None = None  # also persist that cache here (reused by later runs on the same data)

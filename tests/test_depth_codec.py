@@ -1,5 +1,5 @@
 """The depth colour codec (imac_data.core.depth) against independent oracles: the power
-transform written out here from DESIGN.md section 4, a brute-force nearest point on a
+transform written out here from docs/dataset-format.md, a brute-force nearest point on a
 densely sampled walk, and the analytic 8-bit quantisation step."""
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ DEVICES = [
 ]
 RNG = np.random.default_rng(20260421)
 
-# The walk, written out from DESIGN.md: black, red, yellow, green, cyan, blue, magenta, white.
+# The walk, written out from docs/dataset-format.md: black, red, yellow, green, cyan, blue, magenta, white.
 WALK = np.array(
     [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 1, 1], [0, 0, 1], [1, 0, 1], [1, 1, 1]], float
 )
@@ -127,7 +127,7 @@ def test_range_and_quantisation_step_match_the_definition(preset):
 
 
 def test_manipulation_steps_quoted_in_design_md():
-    # DESIGN.md section 4: 0.4 mm at 0.1 m, 2 mm at 1 m, 2.8 mm at 1.2 m, 13 mm at 2 m.
+    # docs/dataset-format.md: 0.4 mm at 0.1 m, 2 mm at 1 m, 2.8 mm at 1.2 m, 13 mm at 2 m.
     steps = DepthCodec.preset("manipulation").quantisation_step([0.1, 1.0, 1.2, 2.0])
     np.testing.assert_allclose(steps, [0.4e-3, 2e-3, 2.8e-3, 13e-3], rtol=0.11)
 

@@ -32,7 +32,7 @@ LAYERS = {
     "imac_model": [
         ("base", ["imac_model", "imac_model.config"]),
         ("data", ["imac_model.data.chunks"]),
-        ("models", ["imac_model.models"]),
+        ("models", ["imac_model.models", "imac_model.schedulers"]),
         ("pipelines", ["imac_model.pipelines"]),
         ("training", ["imac_model.training"]),
         ("evaluate", ["imac_model.evaluate"]),
@@ -93,7 +93,8 @@ def layer_of(mod: str) -> tuple[str, int]:
     best = None
     for rank, (name, prefixes) in enumerate(LAYERS[pkg]):
         for prefix in prefixes:
-            if (mod == prefix or mod.startswith(prefix + ".")) and (best is None or len(prefix) > best[2]):
+            inside = mod == prefix or (prefix != pkg and mod.startswith(prefix + "."))  # the root: itself only
+            if inside and (best is None or len(prefix) > best[2]):
                 best = (name, rank, len(prefix))
     assert best is not None, f"{mod} is in no layer: add it to LAYERS (tests/test_layers.py) and docs/architecture.md"
     return best[0], best[1]

@@ -1,7 +1,7 @@
 """A robot the project does not ship: the Franka Panda URDF of the ``pybullet`` package,
 through our Python API, with PyBullet as the independent oracle (its own URDF loader,
 forward kinematics, and TinyRenderer segmentation and depth). Figures at full size:
-``python -m benchmarks.panda_vs_pybullet``. Also runs the README's "A new robot" example."""
+``python -m benchmarks.panda_vs_pybullet``. Also runs the example of ``docs/new-robot.md``."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ pytest.importorskip("pybullet")  # a project dependency: present in CI
 from benchmarks.panda_vs_pybullet import PyBulletPanda, compare, panda_config, random_configs  # noqa: E402
 from imac_data.core.robot.model import RobotModel  # noqa: E402
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+PAGE = Path(__file__).resolve().parent.parent / "docs" / "new-robot.md"
 
 
 @pytest.fixture(scope="module")
@@ -54,16 +54,13 @@ def test_colours_match_pybullet():
         np.testing.assert_allclose(rgba, theirs[link], err_msg=link)
 
 
-def test_readme_new_robot_example_runs(tmp_path, monkeypatch):
-    """The Python block of the README's "A new robot" section, as written."""
-    text = README.read_text()
-    section = text[text.index("## A new robot"):]
-    section = section[:section.index("\n## ", 4)]
-    blocks = re.findall(r"```python\n(.*?)```", section, flags=re.S)
-    assert blocks, "no python block in the README's 'A new robot' section"
+def test_new_robot_page_example_runs(tmp_path, monkeypatch):
+    """The Python block of docs/new-robot.md, as written."""
+    blocks = re.findall(r"```python\n(.*?)```", PAGE.read_text(), flags=re.S)
+    assert len(blocks) == 1, "docs/new-robot.md should hold one python block"
     monkeypatch.chdir(tmp_path)
     scope: dict = {}
-    exec(compile("\n".join(blocks), "README.md: A new robot", "exec"), scope)
+    exec(compile(blocks[0], "docs/new-robot.md", "exec"), scope)
     views = scope["views"]
     assert views["cam_high"].mask.any() and views["cam_wrist"].mask.any()
     assert (tmp_path / "panda_cam_high.png").is_file()

@@ -49,27 +49,16 @@ __all__ = ["ShardJob", "build_shard", "run_jobs", "cpu_cores", "default_workers"
            "thread_env", "peak_rss_mb", "exit_with_parent", "limit_malloc_arenas"]
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
-# glibc gives each thread that allocates its own malloc arena and keeps freed memory in it;
-# with the pipeline's encoder and contact threads that alone added about 0.4 GB to a
-# 480x640 worker (measured: 3.16 -> 2.78 GB peak with 2 threads, two arenas). One arena,
-# set before the rig's threads first allocate, takes another 50-100 MB off (100- and
-# 400-frame episodes at 480x640) and costs no measurable time.
+# glibc gives every allocating thread its own malloc arena and keeps freed memory in it: one
+# arena, set before the rig's threads allocate, keeps a worker's peak down (docs/building.md).
 _MALLOC_ARENAS = 1
 _M_ARENA_MAX = -8  # mallopt parameter (glibc malloc.h)
 
 
 def default_workers(episodes: int, cores: int | None = None) -> int:
-    """``--workers`` when none is given: one worker per core, at most one per episode.
-
-    Why (measured on a 2-core machine with whole builds of the benchmark's 4 recorded
-    episodes, 498 frames, 1 and 2 workers alternated, 3 rounds each): the CPU per frame
-    is the same (211 vs 210 ms), and 2 workers had the higher frames/s in 2 of 3 rounds
-    (7.97 vs 7.56 mean). Threads inside one worker scale worse than whole episodes side
-    by side (the pipeline's serial numpy between the threaded calls: about 1.6 of 2 cores
-    busy vs 1.8), and that gain pays for a spawned worker's imports (about 7 CPU-seconds,
-    torch, LeRobot, Open3D), which larger builds amortise further. At 480x640, 2 workers
-    were 1.01-1.13x faster. More workers than cores only add memory.
-    """
+    """``--workers`` when none is given: one worker per core, at most one per episode. Whole
+    episodes side by side scale better than threads inside one worker, which pays for a
+    spawned worker's imports (``docs/building.md``, "Workers, memory and speed")."""
     cores = cores or cpu_cores()
     return max(1, min(int(episodes), cores))
 

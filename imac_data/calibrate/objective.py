@@ -1,35 +1,10 @@
 """The objective of a camera's refinement: how far the rendered robot lies from the robot's
 pixels, exactly (at a rendered pose) and differentiably (around it).
 
-Over a set of frames (:func:`imac_data.calibrate.frames.select_frames`: the robot covers
-much of the view, joint configurations far apart), with ``G`` the robot pixels (a
-probability map in [0, 1]):
-
-* **distance-field edge term**: at the rendered silhouette's boundary pixels, the distance
-  field of ``G``'s silhouette (:func:`distance_field`) must equal the rendered silhouette's
-  own field, i.e. boundary pixels land on boundary pixels. Comparing field with field (not
-  with zero) keeps the optimum unbiased at the pixel level: the true pose scores exactly 0.
-  Robust loss (``robust``, scale ``edge_scale_px``): Cauchy by default, so a rendered
-  boundary far from any observed one (an occluded finger, a wrong mask) stops pulling;
-* **silhouette IoU** between the rendered robot and ``G``, soft:
-  ``sum(ab) / (sum(a^2) + sum(b^2) - sum(ab))`` of the blurred silhouettes, which is the IoU
-  for binary ones and is maximal exactly when they agree.
-
-``E = iou_weight * (1 - IoU) + edge_weight * mean loss(residual px)``. Measured
-(``benchmarks/calibration_refine.py --ablation``): the IoU term only sees the robot where
-the silhouettes already overlap or touch, so alone it stalls from a few centimetres off,
-and added to the edge term it costs time without gaining accuracy; its default weight is
-0. The edge term reaches everywhere the distance field does.
-
-Coarse to fine: image scales ``levels`` (default 1/4, 1/2, 1; scales narrower than
-``min_level_width`` px are skipped), each rendered with a margin around the image (``pad``)
-so the robot just outside the view can move in. Both terms sample and splat with a
-quadratic B-spline kernel (C1: no kinks at pixel centres, where every rendered pixel sits
-at once when an iteration starts and where bilinear weights stall a line search).
-
-:func:`silhouette_agreement` is the report's measure (binary IoU, outline distance in px),
-independent of the objective's smoothing.
-"""
+The edge term compares distance fields at the rendered silhouette's boundary (robust loss:
+occluded or mis-segmented parts stop pulling), the optional soft-IoU term the silhouettes;
+both are evaluated coarse to fine with a quadratic B-spline kernel. :func:`silhouette_agreement`
+is the report's measure. ``docs/calibration.md`` has the method and its measurements."""
 
 from __future__ import annotations
 

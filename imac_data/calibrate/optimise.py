@@ -12,7 +12,7 @@
   exact render per evaluation (``10 * max_iterations`` per level).
 
 The measured comparison that picked the default is printed by
-``benchmarks/calibration_refine.py`` and summarised in the README ("Fixing a calibration").
+``benchmarks/calibration_refine.py`` and summarised in docs/calibration.md.
 
 With the built-in cue (:mod:`.frames`), :func:`refine_camera_edges` repeats
 :func:`refine_camera` against the image edges near the overlay, the search margin

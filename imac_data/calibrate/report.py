@@ -88,7 +88,7 @@ def format_report(result: dict) -> str:
 
 def write_outputs(out: Path, report: Path, cameras: dict[str, Camera], result: dict,
                   overlays: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
-    """Write the calibration ``out`` (the README's format, checked by loading it back) and the
+    """Write the calibration ``out`` (the format of docs/calibration.md, checked by loading it back) and the
     report directory. Both appear only complete: temporary names beside them, renamed at the end."""
     out, report = Path(out), Path(report)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Pinhole cameras: intrinsics, fixed and link-mounted extrinsics, projection.
 
-Conventions (DESIGN.md section 2):
+Conventions (docs/dataset-format.md):
 
 * Extrinsics are **camera-to-world** 4x4 matrices in the **OpenCV** camera frame
   (x right, y down, z forward). MuJoCo/OpenGL cameras (looking down -z, y up) are

@@ -1,68 +1,16 @@
-"""The depth colour codec: metric depth <-> RGB (Vision Banana, DESIGN.md section 4).
+"""The depth colour codec: metric depth <-> RGB (Vision Banana; ``docs/dataset-format.md``).
 
-Encoding is two steps:
-
-1. A power transform squashes depth ``d`` (metres, ``[0, inf)``) into ``[0, 1)``::
-
-       f(d) = 1 - (1 - d / (lam * c)) ** (lam + 1),     lam < -1, c > 0
-
-   (as ``lam -> -inf`` it tends to ``1 - exp(-d / c)``; ``c`` is roughly the depth
-   that lands at 63 % of the walk).
-2. ``s = 7 f`` is a position on a piecewise-linear walk through the RGB cube
-   corners black, red, yellow, green, cyan, blue, magenta, white
-   (:data:`CORNERS`): segment ``k = floor(s)`` goes from corner ``k`` to corner
-   ``k + 1``, and exactly one channel moves along each segment.
-
-Decoding projects a colour onto the nearest segment of the walk (so colours pushed
-off the walk, e.g. by video compression, still decode to a nearby depth) and
-inverts both steps; the inverse power transform is closed-form::
-
-       d = lam * c * (1 - (1 - f) ** (1 / (lam + 1)))
-
-**Black, invalid pixels and the representable range.** The walk starts at black,
-and black also means *invalid*. The two are kept apart by reserving black for
-invalid pixels: every valid depth is encoded at least one 8-bit code away from
-black. In 8-bit codes the walk has ``7 * 255 = 1785`` steps (:data:`N_CODES`);
-code 0 is black (invalid) and code 1785 is white (never written). Valid depth is
-clamped to ``[min_depth, max_depth]``, the depths of codes 1 and 1784, in the
-float codec as well as the 8-bit one, so both behave the same. ``min_depth`` is
-0.30 mm (``manipulation``) or 2.8 mm (``general``), far below any sensor's range;
-``max_depth`` is 4.0 m (``manipulation``) or 412 m (``general``). Depth beyond
-``max_depth`` *saturates* (decodes to ``max_depth``, and the 8-bit step there is
-already about 0.5 m for ``manipulation``); filter ``depth >= codec.max_depth``
-if saturated pixels must not count.
-
-Input rules (DESIGN.md section 2: planar z-depth in metres, 0 or non-finite =
-invalid):
-
-* ``0``, ``NaN``, ``+inf`` and ``-inf`` are invalid and encode to black;
-* negative finite depth is an :class:`~imac_data.errors.InputError`;
-* integer depth is an :class:`~imac_data.errors.InputError` (it is almost always
-  millimetres from a depth sensor): convert with :func:`depth_from_millimetres`.
-
-Decoding reads uint8 colours (0..255) or float colours (nominally ``[0, 1]``;
-values outside are clipped to the cube). A colour whose projection lies within
-``invalid_codes`` 8-bit codes of black (default 0.5: anything that rounds to
-black) decodes to 0 (invalid). Raise it when decoding lossy video whose black
-pixels come back as e.g. ``(2, 0, 1)``: that costs the depths below
-``codec.depth_of_code(invalid_codes)`` (about 0.3 mm per code for ``manipulation``,
-2.8 mm per code for ``general``).
-
-Backends: every function takes numpy arrays or torch tensors and returns the same
-kind (torch on the tensor's device, CPU or CUDA). The math is one backend-agnostic
-core (``_Backend``). Float inputs keep their precision (float64 stays float64;
-float16/bfloat16 are computed in float32); the torch path has no in-place ops or
-per-pixel loops, and gradients flow through ``encode`` and ``decode`` (zero where
-a value is clamped, e.g. off the cube or out of range).
-
-Typical use::
+A power transform ``f(d) = 1 - (1 - d / (lam c)) ** (lam + 1)`` squashes metres into
+``[0, 1)``, and ``7 f`` walks the RGB cube corners black, red, yellow, green, cyan, blue,
+magenta, white. Decoding projects a colour onto the nearest segment of the walk (so colours
+pushed off it still decode to a nearby depth) and inverts both steps. Black is reserved for
+invalid depth (0, NaN, inf), so valid depth is clamped to the depths of codes 1 and 1784.
+Every function takes numpy arrays or torch tensors and returns the same kind (any device,
+differentiable through ``encode`` and ``decode``)::
 
     codec = DepthCodec.preset("manipulation")         # the default
     frames = codec.encode_uint8(depth_m)              # (T, H, W, 3) uint8, for a video encoder
-    depth_back = codec.decode(frames)                 # (T, H, W) float32 metres, 0 = invalid
-    meta = codec.to_dict()                            # -> meta/info.json["imac"]["depth_codec"]
-    codec = DepthCodec.from_dict(meta)
-"""
+    depth_back = codec.decode(frames)                 # (T, H, W) float32 metres, 0 = invalid"""
 
 from __future__ import annotations
 

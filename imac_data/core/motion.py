@@ -1,28 +1,11 @@
-"""The controller map phi: which joint configuration a motion image shows.
+"""The controller map phi: which joint configuration a motion image shows,
+``q_{t+k} = phi(q_t, a_{t:t+k-1})`` (``docs/dataset-format.md``, "Motion images").
 
-DESIGN.md section 4: ``q_{t+k} = phi(q_t, a_{t:t+k-1})``.
-
-* **absolute** joint-position actions: ``q_{t+k}`` is the last commanded target
-  ``a_{t+k-1}`` (through the gripper mapping);
-* **delta** actions: ``q_{t+k} = q_t + sum_{i<k} a_{t+i}``; indices listed in
-  ``absolute_indices`` (typically the grippers, which stay absolute in most delta
-  action spaces) take the last command instead;
-* the **gripper mapping** is an explicit affine map from the action's gripper value
-  to the state's: ``state = offset + scale * action`` (identity for ALOHA, where both
-  are gym-aloha's normalised 0 = closed, 1 = open), optionally clipped to the range
-  the gripper can reach.
-
-All functions take and return arrays or tensors (numpy or torch, same kind out as
-in, any leading batch shape) and are pure: no robot model needed.
-
-Which configuration goes with which dataset frame (:func:`frame_configurations`):
-an ALOHA episode's ``action[t]`` is the command applied during ``[t, t+1)``, i.e.
-what drives the robot from frame ``t`` to ``t + 1``. So with source ``"action"``
-frame ``t >= 1`` shows ``phi(q_{t-1}, a_{t-1})`` (one step from the measured
-state) and frame 0, which no command precedes, shows the measured ``q_0``.
-With source ``"state"`` every frame shows its measured state. A world model
-working on a chunk (reference frame ``t``, future actions) calls :func:`rollout`.
-"""
+Absolute joint-position actions give the last commanded target, delta actions accumulate
+(``absolute_indices`` stay absolute), and gripper actions map to the state's units through an
+explicit affine map, optionally clipped. Frame ``t >= 1`` of an episode shows
+``phi(q_{t-1}, a_{t-1})`` and frame 0 the measured state (:func:`frame_configurations`). Pure
+functions over numpy arrays or torch tensors, any leading batch shape."""
 
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
-"""Motion images: the robot rendered from its URDF + forward kinematics into camera views.
+"""Motion images: the robot rendered from its URDF and forward kinematics into camera views.
 
-Interface
----------
-:class:`Renderer` is the small interface callers use (the world model online, the
-dataset builder offline, the QA overlay)::
+:class:`Renderer` is the interface (the build, the world model online, the overlay)::
 
     views = renderer.render(q, cameras)            # q (*B, D) dataset joint vectors
     views["cam_high"].rgb    # (*B, H, W, 3) uint8  URDF colours, Lambertian shading, black background
@@ -11,42 +8,9 @@ dataset builder offline, the QA overlay)::
     views["cam_high"].depth  # (*B, H, W)    float32 robot z-depth in metres, 0 = no robot
     views["cam_high"].link_id  # (*B, H, W)  int16  index into renderer.link_names, -1 = background
 
-Fixed cameras use their constant pose, mounted (wrist) cameras the pose of their link
-from FK at the same configuration. ``resolution=(H, W)`` renders every view at that
-size, rescaling K with :meth:`Camera.rescaled` (the one place K follows a resize).
-A backend implements :meth:`Renderer.render_link_poses` only; validation, FK and
-resizing live in the base class, so a GPU rasteriser can be added without
-touching callers. :func:`make_renderer` picks a backend by name.
-
-The CPU backend: :class:`RaycastRenderer`
------------------------------------------
-Open3D's ``RaycastingScene`` (Embree) on the CPU: no display, no GPU. Rebuilding
-its BVH for the posed robot every frame costs more than casting all three views
-(about 30 ms for the 60k-triangle ALOHA rig on 2 cores), so we never rebuild it.
-The scene is built **once**, with every link's visual meshes in that *link's own
-frame*, each link a separate geometry placed at its own far-apart offset (a
-"slot"). A camera ray is cast against a link by expressing it in the link frame
-(``T_link_cam = T_world_link^-1 T_world_cam``) and moving it into the link's
-slot; per pixel the nearest hit over all links wins (a z-buffer over links).
-Slots are spaced so that a ray cannot reach another slot before it has left its
-own link's reach, so a hit on a foreign geometry id is a miss of the intended link.
-
-Rays are only cast where a link can appear: inside the silhouette of the link's
-convex hull (clipped against the near plane, projected, filled and grown by one
-pixel), about 1.7x the robot's pixel area over the three ALOHA views. Per frame
-that is one small vectorised projection, a few numpy/OpenCV calls per visible
-link (footprint, ray block, z-buffer), never a loop over meshes, triangles or
-pixels, and a single multi-threaded Embree call for all frames, views and links
-of a chunk. Shading only touches the winning rays.
-
-Conventions: pixel centres at integer coordinates, rays through ``K^-1 [u, v, 1]``
-(so the hit parameter *is* z-depth). Open3D's own ``create_rays_pinhole`` casts
-through ``(u + 0.5, v + 0.5)`` (half-integer centres), half a pixel off from
-ours, so we never use it. ``near`` (metres, default 0) starts every ray on the
-plane ``z = near`` like an OpenGL near clip plane (used to compare with MuJoCo,
-which clips at ``znear * extent``); real cameras do not clip, hence the default.
-Faces are two-sided (the first surface hit counts, front or back).
-"""
+A backend implements :meth:`Renderer.render_link_poses` only. :class:`RaycastRenderer` casts
+rays with Open3D on the CPU against a scene built once, every link in its own frame
+(``docs/dataset-format.md``, "How the robot is rendered")."""
 
 from __future__ import annotations
 

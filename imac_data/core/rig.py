@@ -1,34 +1,16 @@
 """The rig: one robot with its cameras and controller, and what is derived from them.
 
-A :class:`Rig` turns joint vectors into pixels. It holds
-
-* the robot (:class:`~imac_data.core.robot.model.RobotModel`: URDF, joint map with per-entry affine
-  maps, mimic joints, batched FK),
-* the calibrated cameras (fixed or mounted on a link; view order = the dataset's),
-* the controller map phi (:class:`~imac_data.core.motion.Controller`),
-* the workspace the contact streams crop the scene to (:class:`~imac_data.core.contact.workspace.Workspace`:
-  a world box and a depth range; from the recipe, by default the robot's reach; None = no crop),
-* and, built on first use in each process, the renderer and the gripper surface samples.
-
-It is made in one of two ways, which give the same rig:
-
-* :meth:`Rig.from_recipe`: a recipe (``robot`` section, calibration). The only place that
-  knows a built-in platform by name (``robot.platform: aloha_sim``);
-* :meth:`Rig.from_info`: a built dataset, from its ``meta/info.json`` ``imac`` block and the
-  robot description it carries under ``meta/imac/robot/`` (URDF + meshes), with no other file.
-
-:meth:`to_info` writes the block :meth:`from_info` reads: ``Rig.from_info(...).to_info()``
-equals the block it was read from (tested), and the rig renders and measures the same.
-
-Everything after construction is tensors in, tensors out (torch, any leading batch shape,
-CPU; FK and contact also on CUDA), so the world model calls the same functions on its own
-predicted depth during rollouts as the dataset build does offline::
+A :class:`Rig` holds the robot (URDF, joint map, batched FK), the calibrated cameras (view
+order = the dataset's), the controller map phi, the workspace crop of the contact streams,
+and, built on first use in each process, the renderer and the gripper surface samples. It
+comes from a recipe (:meth:`Rig.from_recipe`) or from a built dataset alone
+(:meth:`Rig.from_info`), which give the same rig. After construction it is tensors in,
+tensors out, so the world model calls the same functions online as the build offline::
 
     rig = Rig.from_info(ds.meta.info, ds.root)
     q = rig.frame_configurations(state, action)                  # or rig.rollout(q_t, actions)
     views = rig.robot_views(q, resolution=(240, 320))            # rgb, mask, depth, poses, gripper points
-    chunk = rig.contact(ref_depth, q_ref, q_future)              # both contact streams of one chunk
-"""
+    chunk = rig.contact(ref_depth, q_ref, q_future)              # both contact streams of one chunk"""
 
 from __future__ import annotations
 
@@ -237,7 +219,7 @@ class Rig:
 
     @property
     def names(self) -> list[str]:
-        """View order (the order of ``cameras``; DESIGN: head, left wrist, right wrist)."""
+        """View order (the order of ``cameras``: head, left wrist, right wrist)."""
         return list(self.cameras)
 
     @property

@@ -6,8 +6,7 @@ recomputes the "requires decoding" flag of *all* columns. A built iMaC dataset's
 ``meta/episodes`` parquet has 343 columns (per-feature stats of 18 video streams), and
 ``datasets`` constructs ``Features`` hundreds of times per load, so every
 ``LeRobotDatasetMetadata`` / ``LeRobotDataset`` load of it took 0.85 s instead of 0.16 s
-(measured on the demo dataset; the build loads each shard at the merge, and the result
-twice more).
+(on the demo dataset).
 
 :func:`use_linear_features` replaces ``Features.__init__`` with one that does the same work once per
 column: the same values (old-style ``[feature]`` lists become ``List(feature)``) and the

@@ -1,40 +1,10 @@
-"""The ``imac`` block of ``meta/info.json``: everything needed to decode a dataset's added
-streams and to rebuild them, under one versioned key.
+"""The ``imac`` block of ``meta/info.json``: everything needed to decode a dataset's added streams
+and to rebuild them, under one versioned key (schema in ``docs/dataset-format.md``).
 
-Schema version 2 (``imac.schema_version``)::
-
-    imac:
-      schema_version: 2
-      builder_version: "0.1.0"                    # imac_data.__version__
-      robot:       {name, joint_map, gripper_links, state_names,
-                    description: {path, urdf_sha256, files: {meshes/...: sha256}, bytes}}
-      cameras:     {cam: {K, width, height, T_world_cam | link + T_link_cam}}   # at the image size
-      controller:  {mode, grippers, absolute_indices, delta_grippers, clip_low, clip_high}
-      gripper_surface: {links, spacing, seed}
-      workspace:   {min: [x, y, z], max: [x, y, z], depth_range: [near, far], source} | null
-                                                  # the contact streams' scene crop (imac_data.core.contact.workspace);
-                                                  # far null = no far limit; null = not cropped
-      camera_pose_convention: "camera-to-world, OpenCV axes, row-major 4x4"
-      augment:     AugmentSettings (resolution, motion source, codec, chunk, caps, ...)
-      motion:      {source, frame_rule}
-      depth:       {codec, encoding, encoder_versions, source, streams: {cam: {key, height, width, K}}, decode}
-      contact:     {chunk_size, reference_rule, cap, scene_crop, cap_column, colormap, tolerance}
-      build:       {recipe, command, episodes}      # built datasets only
-
-``robot`` + ``cameras`` + ``controller`` + ``gripper_surface`` + ``workspace`` are the rig
-(:meth:`imac_data.core.rig.Rig.to_info`); with the description under ``meta/imac/robot/``
-they rebuild it (:meth:`imac_data.core.rig.Rig.from_info`). A base dataset (ingest only) has
-the rig keys; an augmented one all but ``build``.
-
-Versions: 2 added ``workspace`` (and ``contact.scene_crop``). Version 1 datasets still
-read: they have no workspace, and their contact streams were built without a crop, so
-:meth:`~imac_data.core.rig.Rig.from_info` gives a rig without one and an online rebuild
-matches them. Code that only knows version 1 refuses version 2 rather than rebuilding
-contact images without the crop.
-
-LeRobot 0.4.4's ``aggregate_datasets`` drops this block (it rebuilds ``info.json``);
-:func:`imac_data.dataset.merge.merge_datasets` puts it back.
-"""
+The rig keys (``robot``, ``cameras``, ``controller``, ``gripper_surface``, ``workspace``) with
+the description under ``meta/imac/robot/`` rebuild the rig (:meth:`imac_data.core.rig.Rig.from_info`).
+Version 2 added ``workspace``; version 1 datasets still read, without a crop. LeRobot's
+``aggregate_datasets`` drops the block, so :func:`imac_data.dataset.merge.merge_datasets` puts it back."""
 
 from __future__ import annotations
 

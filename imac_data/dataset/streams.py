@@ -1,37 +1,13 @@
 """Add video streams to an existing LeRobot v3.0 dataset, chunk by chunk.
 
-LeRobot 0.4.4 can add parquet columns to a dataset but not a video stream. This module
-does it by hand, laid out exactly as LeRobot 0.4.4 itself writes video features
-(``lerobot_dataset.py`` ``_save_episode_video`` / ``save_episode``, ``compute_stats.py``),
-so ``LeRobotDataset`` (default decoder: torchcodec), ``delta_timestamps`` and
-``aggregate_datasets`` treat the new stream like any camera:
-
-* mp4 files under ``info["video_path"]`` (``videos/<key>/chunk-XXX/file-YYY.mp4``).
-  Consecutive episodes share a file (one continuous encoder session, frame ``i`` of the
-  file at ``pts = i / fps``); a new file starts when the next episode would push the file
-  past ``info["video_files_size_in_mb"]`` (predicted from the file's mean bytes per
-  episode so far), and a new chunk after ``info["chunks_size"]`` files, as LeRobot does;
-* per episode in ``meta/episodes/*.parquet``: ``videos/<key>/chunk_index``,
-  ``file_index``, ``from_timestamp``, ``to_timestamp`` (seconds in the file; the
-  episode's frame ``k`` is at ``from_timestamp + k / fps``) and the episode stats
-  ``stats/<key>/{min,max,mean,std,count,q01,q10,q50,q90,q99}``
-  (:class:`~imac_data.dataset.videos.ImageStats`);
-* ``meta/info.json``: the feature ``{"dtype": "video", "shape": [H, W, 3],
-  "names": ["height", "width", "channels"], "info": {...}}``; the ``info`` block is what
-  LeRobot's ``get_video_info`` reads from the first file, plus ``"imac.encoding"`` (our
-  encoder settings) and any caller keys;
-* ``meta/stats.json``: the stream's stats aggregated over episodes (``aggregate_stats``).
-
-:class:`StreamWriter` takes the frames as they are made: any key, any number of frames
-at a time, episode after episode; memory is the encoders' own buffers, never an episode.
-:func:`add_video_streams` is the same for whole episodes given as iterables.
-
-Safety: existing files are never opened for writing (the original camera streams stay
-byte-identical); everything is encoded into a temporary directory inside the dataset;
-the metadata files are replaced (``os.replace``) only after every episode was encoded and
-checked, ``meta/info.json`` last. On any error the temporary files are removed and
-replaced metadata is restored: the dataset is left as it was.
-"""
+LeRobot 0.4.4 adds parquet columns but no video stream, so this writes one by hand, laid out
+exactly as LeRobot writes a camera (mp4 files under ``info["video_path"]``, the episode's
+location and stats columns in ``meta/episodes``, the feature in ``info.json``, stats in
+``stats.json``), so ``LeRobotDataset``, ``delta_timestamps`` and ``aggregate_datasets`` treat
+it like any camera (``docs/dataset-format.md``, "How an added stream is stored").
+:class:`StreamWriter` takes frames as they are made (memory: the encoders' buffers). Existing
+files are never opened for writing, and the metadata is replaced only once every episode is
+encoded, ``meta/info.json`` last; on error the dataset is left as it was."""
 
 from __future__ import annotations
 

@@ -1,28 +1,10 @@
-"""Checks of a LeRobot dataset built by imac: one module for the build (run on the staged
-dataset before its final rename) and for ``python -m imac_data.cli.validate ROOT [--full]``.
+"""Checks of a dataset built by imac: the build's final check of its staged dataset, and
+``imac validate ROOT [--full]``.
 
-Each check is a function ``(ctx) -> [problem, ...]`` in :data:`CHECKS`, run in order;
-a check that cannot run because an earlier one failed says so. By default video frames
-are sampled (first, last and evenly between, per episode); ``full=True`` decodes every
-frame of every video file.
-
-* ``metadata``: ``info.json`` is LeRobot v3.0; total frames = the sum of the episode
-  lengths = the rows of the data files; episodes 0..N-1 listed once each;
-* ``frame_counts``: each episode's rows in the data files and its span in every video
-  stream equal its length (with ``full``: every video file holds exactly its episodes' frames);
-* ``imac_block``: the ``imac`` block is there, its ``schema_version`` known, its keys
-  complete (the rig; the stream settings once control streams exist);
-* ``rig``: the robot description under ``meta/imac/robot/`` is complete and unmodified
-  (sha256 of every file) and the rig loads from the dataset alone;
-* ``calibration``: every camera has fx, fy > 0 and its principal point inside the image,
-  and rigid poses (orthonormal rotation, det +1, last row 0 0 0 1), as have the
-  per-frame ``camera_pose.*`` columns;
-* ``caps``: the per-frame contact caps are finite and > 0;
-* ``decode``: frames of every video feature decode through ``LeRobotDataset`` at the
-  recorded size;
-* ``depth``: depth frames are colours of the codec's walk (within rounding for lossless
-  streams) and decode within the codec's range.
-"""
+Each check is a function ``(ctx) -> [problem, ...]`` in :data:`CHECKS`, run in order (a check
+whose prerequisite failed is skipped, saying so): ``metadata``, ``frame_counts``,
+``imac_block``, ``rig``, ``calibration``, ``caps``, ``decode``, ``depth``
+(``docs/building.md``, "Checking a dataset"). Video frames are sampled per episode unless ``full``."""
 
 from __future__ import annotations
 

@@ -95,20 +95,10 @@ class VideoEncoding:
 
     @classmethod
     def lossless_rgb(cls, gop: int = 10, preset: str = "medium", threads: int = 1) -> VideoEncoding:
-        """H.264 in RGB (libx264rgb, stored as planar GBR), qp 0: bit-exact RGB.
-
-        The depth and control streams' settings (chosen by measurement, see
-        ``benchmarks/depth_fidelity.py``): bit-exact through torchcodec and PyAV, about
-        4.5-5.3 KB per 240x320 depth frame at gop 10. ``threads`` is fixed because x264's
-        output depends on its thread count (not on the cores it runs on): with x264's
-        default (a function of the machine's core count) the same input gave different
-        bytes on different machines and in differently pinned workers. One thread per
-        stream because the pipeline already encodes its streams in parallel, one per
-        worker thread: x264's own frame threads only cost CPU (measured on the 12 control
-        streams of a 240x320 episode: 37 vs 49 CPU ms per frame with 2 threads, and 5 %
-        smaller files). Datasets written earlier with 2 threads decode to the same
-        pixels; their feature dicts record ``threads: 2``.
-        """
+        """H.264 in RGB (libx264rgb, stored as planar GBR), qp 0: bit-exact RGB, the depth and
+        control streams' settings (``benchmarks/depth_fidelity.py``). ``threads`` is fixed because
+        x264's bytes depend on its thread count; one, because the pipeline already encodes its
+        streams in parallel. Older datasets written with 2 threads decode to the same pixels."""
         return cls(codec="libx264rgb", pix_fmt="rgb24", qp=0, crf=None, preset=preset, gop=gop, threads=threads)
 
     @classmethod

@@ -1,25 +1,9 @@
-"""Preview: every stream of one built episode side by side, as one mp4.
+"""Preview: every stream of one built episode side by side, as one mp4 (``imac qa preview``).
 
-A user who has built a dataset should be able to look at what was built without
-writing a loader. This reads the episode through LeRobot's own ``LeRobotDataset``
-(so it shows what a training job will see) and writes one video whose frames are a
-mosaic: one row per stream kind, one column per camera, labelled (camera names on top,
-the stream kind above each row)::
-
-                 cam_high          cam_left_wrist      cam_right_wrist
-    rgb          observation.images.{cam}
-    depth        observation.depth.{cam}, decoded to metres, TURBO over [0, depth_max]
-    motion       control.motion.{cam}
-    contact r2s  control.contact_r2s.{cam}
-    contact s2g  control.contact_s2g.{cam}
-
-Rows whose streams the dataset does not have are left out; every tile is resized
-to the added streams' resolution. Frames are read, composed and encoded one at a
-time, so memory does not grow with the episode's length. The file is written
-beside its destination and renamed into place when complete.
-
-    imac qa preview ROOT --episode N [--out FILE.mp4] [--depth-max 2.0] [--overwrite]
-"""
+The episode is read through ``LeRobotDataset`` (what a training job sees); each frame is a
+mosaic with one row per stream kind (rgb, depth decoded to metres and coloured, motion, r2s,
+s2g) and one column per camera, labelled. Frames are read, composed and encoded one at a time,
+and the file is renamed into place when complete."""
 
 from __future__ import annotations
 

@@ -131,11 +131,9 @@ class SourceDataset:
                                  "missing")
 
     def check_videos(self, video_keys: list[str], *, progress: bool = False) -> None:
-        """Every frame the episodes use of ``video_keys`` decodes, checked before any work: each
-        video file is decoded once (threads over files; measured 1.3 / 4.9 CPU ms per AV1 frame
-        at 240x320 / 480x640, 2-3 % of a build). A damaged or short file is named with the
-        episode that needs it: the build would copy it as it is, and LeRobot fails only when
-        that frame is loaded."""
+        """Every frame the episodes use of ``video_keys`` decodes, checked before any work (each
+        file decoded once, threads over files: 2-3 % of a build). A damaged or short file is named
+        with the episode that needs it; LeRobot would fail only when that frame is loaded."""
         from concurrent.futures import ThreadPoolExecutor
 
         spans: dict[Path, list[tuple[int, int, int, str]]] = {}  # file -> (first, end, episode, key) per episode

@@ -1,4 +1,4 @@
-"""``python -m imac_model.evaluate``: evaluation from the command line.
+"""``imac-model evaluate``: evaluation from the command line.
 
 Subcommands (each writes a JSON with its protocol; ``--help`` on each lists its options):
 

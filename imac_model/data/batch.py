@@ -1,27 +1,11 @@
 """The typed batch the world model consumes: tensors only, never files.
 
-A :class:`ChunkBatch` is one chunk per sample, already laid out as mosaics at the
-model's resolution (:mod:`imac_model.data.mosaic`), float in [0, 1]:
-
-=================  ==========================  =============================================
-field              shape                       meaning
-=================  ==========================  =============================================
-``reference``      ``(B, 3, 2h, V w)``         the chunk's reference frame (RGB over depth)
-``controls``       ``{stream: (B, H, 3, 2h, V w)}``  control videos of the H future frames,
-                                               duplicated vertically (``motion``,
-                                               ``contact_s2g``, ``contact_r2s``)
-``actions``        ``(B, H, D)``               actions a_t .. a_{t+H-1}
-``future``         ``(B, H, 3, 2h, V w)``      recorded future frames (training; None to sample)
-``future_valid``   ``(B, H)`` bool             False where the episode ended (padding)
-``state``          ``(B, D)``                  state at the reference frame (optional)
-``success``        ``(B,)`` bool               the episode's success label (optional)
-``episode_index``  ``(B,)``, ``frame_index``  where the chunk comes from (optional)
-=================  ==========================  =============================================
-
-:mod:`imac_model.data.chunks` builds it from a LeRobot dataset; a rollout (issue 16) builds
-it from a generated reference and controls rebuilt online, with
-:func:`imac_model.data.mosaic.assemble` and :func:`imac_model.data.mosaic.controls`.
-"""
+A :class:`ChunkBatch` is one chunk per sample, laid out as mosaics at the model's resolution,
+float in [0, 1]: ``reference (B, 3, 2h, V w)``, ``controls {stream: (B, H, 3, 2h, V w)}``,
+``actions (B, H, D)``, ``future (B, H, 3, 2h, V w)`` (None to sample), ``future_valid (B, H)``
+and optionally ``state (B, D)``, ``success``, ``episode_index``, ``frame_index``.
+:mod:`imac_model.data.chunks` builds it from a dataset; a rollout from a generated reference and
+controls rebuilt online."""
 
 from __future__ import annotations
 

@@ -1,30 +1,10 @@
 """The model's image layout: per-view frames <-> the six-panel mosaic, and the resize.
 
-Layout (DESIGN section 2, paper section 3.3): views side by side in DESIGN order
-(head, left wrist, right wrist); the RGB row on top, the colour-depth row below::
-
-    +--------+--------+--------+
-    |  rgb 0 |  rgb 1 |  rgb 2 |      view_height
-    +--------+--------+--------+
-    | depth 0| depth 1| depth 2|      view_height
-    +--------+--------+--------+
-
-Control videos have one row per view and are duplicated vertically, so each
-control token sits on both the RGB and the depth token of its pixel.
-
-Resize: every view is resized to ``(view_height, view_width)`` without padding or
-cropping. :func:`view_size` keeps the cameras' aspect ratio, rounded so that the
-mosaic sides are multiples of the backbone's ``spatial_multiple`` (its spatial
-compression x patch: 32 for Wan2.2, 8 for the default small DiT). The rounding
-changes the aspect by at most a few per cent; :func:`rescale_K` rescales x and y
-independently, so the intrinsics stay exact. RGB and control frames are resized
-with antialiased bilinear filtering; colour depth with nearest-pixel sampling, so
-every output colour is a colour of the input (no blend across a depth edge, and
-the codec decodes it to a depth that was measured).
-
-All functions work on float tensors in [0, 1] with any leading shape
-``(..., 3, H, W)``; frames are channel-first as LeRobot returns them.
-"""
+Views side by side in view order (head, left wrist, right wrist), the RGB row over the
+colour-depth row; control videos have one row per view and are duplicated vertically.
+Views are resized without padding to sides the backbone can patchify, K rescaled per axis so
+it stays exact; colour depth is resized nearest-pixel, so every colour is one the codec wrote
+(``docs/world-model.md``, "Conventions"). Float tensors in [0, 1], ``(..., 3, H, W)``."""
 
 from __future__ import annotations
 

@@ -13,7 +13,7 @@
   generated and recorded future videos, per view, mosaic and task, with the protocol.
 * :mod:`imac_model.evaluate.success`: success judges behind one interface (a learned
   classifier trained on a dataset's ``imac/success`` labels, CSV labels, external callables).
-* :mod:`imac_model.cli.evaluate`: ``python -m imac_model.evaluate`` (closed-loop,
+* :mod:`imac_model.cli.evaluate`: ``imac-model evaluate`` (closed-loop,
   video-metrics, label, correlate).
 
 Submodules are imported on use; importing this package loads none of them.

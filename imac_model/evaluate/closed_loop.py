@@ -1,46 +1,12 @@
-"""Closed-loop policy evaluation inside the world model (paper section 4.1, issue 17).
+"""Closed-loop policy evaluation inside the world model (paper section 4.1).
 
-A policy (:mod:`imac_model.evaluate.policies`) is deployed in the learned world model: it
-predicts actions from the current generated observation, the world model predicts the next
-chunk of video from them, and the chunk's last generated frame becomes the next reference.
-
-**Starts** (:func:`episode_starts`) come from a real dataset's episodes: the recorded mosaic
-frame (RGB over colour depth) and the recorded robot state at an episode's first frame, the
-horizon (enough chunks to cover the recorded episode), the episode's task, and a seed
-(``seed + episode index``, so every policy meets the same noise from the same start).
-
-**One episode** (:func:`rollout_episode`), per chunk n:
-
-1. the policy sees the latest generated frame (its RGB views, at the model's view size) and the
-   robot state, and supplies the next H actions (:class:`~imac_model.evaluate.policies.ActionQueue`:
-   LeRobot's ``select_action`` semantics, the policy is asked again only when its queue is empty);
-2. the motion and contact images of the chunk are rebuilt online from those actions and the
-   reference's predicted depth, and the chunk is sampled: one call of
-   :func:`imac_model.pipelines.rollout.sample_rollout` (``first_controls="online"``, chunk noise from
-   ``seed + n``, so a policy that replays recorded actions reproduces the open-loop rollout
-   of those actions exactly);
-3. the next state is the last commanded configuration ``phi(q, a)[-1]``
-   (:meth:`OnlineControls.configurations`), the next reference the last generated frame.
-
-**Output** (:class:`GeneratedDatasetWriter`): a LeRobot v3.0 dataset written with LeRobot's
-own writer (:class:`imac_data.dataset.episodes.EpisodeWriter`), episode by episode, chunk by
-chunk (memory: one chunk), staged and moved into place at the end. Per frame:
-``observation.images.{view}`` (generated RGB; frame 0 is the recorded start frame),
-``observation.depth.{view}`` (generated colour depth, the source dataset's codec),
-``control.{stream}.{view}`` (the controls the model was given; black at frame 0, whose tokens
-get none), ``observation.state`` (frame 0: the recorded state; then the commanded
-configurations) and ``action`` (the executed actions; the last frame repeats the last one).
-Per episode (``meta/episodes``): ``imac/source = world_model``, ``imac/policy_name``,
-``imac/checkpoint``, ``imac/success`` (the judge's verdict, or null), ``imac/start_episode``,
-``imac/start_frame``, ``imac/seed``, ``imac/invalid_depth``. The protocol is stored in
-``meta/info.json`` under ``imac.closed_loop``; the source dataset's depth codec under
-``imac.depth``. Videos use LeRobot's default encoder (lossy; the depth stream is a record
-for viewing, not for exact decoding).
-
-**Success** is judged by any :class:`~imac_model.evaluate.success.SuccessJudge` on the last
-``judge_frames`` generated frames of every view (keys ``observation.images.{view}``), e.g. a
-:class:`SuccessClassifier` trained on the source dataset's own labels.
-"""
+A policy sees the latest generated frame and the robot state and supplies actions (LeRobot's
+``select_action`` queue semantics); the world model generates the next chunk from them, with
+its controls rebuilt online; the chunk's last frame is the next reference. Starts, seeds and
+horizons come from a real dataset's episodes, so every policy meets the same starts and noise.
+The generated episodes are written as a LeRobot dataset (:class:`GeneratedDatasetWriter`),
+judged by any :class:`~imac_model.evaluate.success.SuccessJudge`. ``docs/evaluation.md`` has
+the protocol and the dataset's columns."""
 
 from __future__ import annotations
 

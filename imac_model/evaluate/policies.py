@@ -1,37 +1,11 @@
-"""Policies that act inside the world model: a callable from an observation to an action chunk.
+"""Policies that act inside the world model: callables from an observation to an action chunk.
 
-A **policy** here is any callable ``policy(observation) -> actions`` where ``observation`` is a
-LeRobot-style dict of one (unbatched) time step:
-
-* ``observation.images.{view}``: ``(3, h, w)`` float in [0, 1], the world model's generated RGB
-  of that view (at the model's view size);
-* ``observation.state``: ``(D,)`` float, the robot state (in a closed loop: the last commanded
-  configuration);
-* ``task``: the task string of the episode;
-
-and ``actions`` is an ``(K, D)`` chunk (any K >= 1), executed in order. An optional ``reset()``
-is called at the start of every episode.
-
-:class:`ActionQueue` gives any such policy LeRobot's ``select_action`` semantics in a world
-model that advances H frames at a time: actions are taken from a queue, and the policy is
-asked for a new chunk only when the queue is empty, on the latest generated frame. A policy
-whose chunk is 24 actions long thus runs three world-model chunks of 8 before it sees a new
-frame (the public iMaC release's protocol); one that returns fewer than H actions is asked
-again within the chunk, on the same latest frame (the frames in between do not exist until
-the chunk is generated).
-
-:class:`LeRobotPolicy` adapts a LeRobot policy checkpoint (``save_pretrained`` directory):
-``PreTrainedConfig.from_pretrained`` + the policy class's ``from_pretrained`` (what LeRobot's
-``make_policy`` calls for a pretrained path) and ``make_pre_post_processors(config,
-pretrained_path=...)``. Generated views are passed under the policy's own camera keys
-(``camera_map``) and resized to the image shape its config declares. Each call runs the
-policy's own ``select_action`` ``n_action_steps`` times (its own action queue and observation
-history: ACT's chunk, Diffusion Policy's ``n_obs_steps``; temporal ensembling re-plans every
-step) and returns those actions, un-normalised by its post-processor.
-
-:func:`recorded_actions_policy` and :func:`hold_policy` are scripted policies (a replay of
-recorded actions; holding the start state), for baselines and tests.
-"""
+A policy is any ``policy(observation) -> (K, D) actions``, with ``observation`` a LeRobot-style
+dict of one time step (``observation.images.<view>`` ``(3, h, w)`` in [0, 1],
+``observation.state`` ``(D,)``, ``task``) and an optional ``reset()``. :class:`ActionQueue`
+gives it LeRobot's ``select_action`` semantics (asked again only when its queue is empty);
+:class:`LeRobotPolicy` adapts a LeRobot checkpoint with its own processors; the recorded
+replay and holding the start state are scripted baselines (``docs/evaluation.md``)."""
 
 from __future__ import annotations
 

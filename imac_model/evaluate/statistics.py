@@ -1,41 +1,11 @@
 """World-model vs real success: does the world model rank policies as reality does?
 
-The paper's policy evaluation (section 4, the correlation figure) runs each policy or
-checkpoint in one or more *groups* of episodes (e.g. 30 matched start configurations,
-repeated), both inside the world model and on the real robot, and compares the two
-success rates. This module turns per-episode outcomes into those comparisons:
-
-* :func:`pearson`, :func:`spearman`, :func:`kendall_tau_b` and :func:`mmrv` are plain
-  numpy functions over the last axis, vectorised over any leading axes, because the
-  bootstrap evaluates them on thousands of resampled rate vectors at once. Ties are
-  handled as scipy does (average ranks for Spearman, tau-b for Kendall); a statistic
-  that is undefined (constant input, NaN) is NaN.
-* MMRV is SIMPLER's mean maximum rank violation (``simpler_env/utils/metrics.py``):
-  ``MMRV = 1/N sum_i max_j 1[(V_i > V_j) != (R_i > R_j)] |R_i - R_j|`` with V the
-  world-model and R the real rates. Comparisons are strict, so a pair tied on one
-  side only is a violation (weighted by the real gap, which is 0 when the tie is on
-  the real side); lower is better.
-* :func:`policy_correlation` computes all four at two levels, one point per
-  (policy, group) and one per policy (its groups' episodes pooled), with bootstrap
-  confidence intervals. The bootstrap resamples *episodes* with replacement within
-  each (policy, group) cell, independently in the world model and in reality (or with
-  the same indices when the two are paired episode by episode), so the intervals
-  describe how much the comparison moves with the finite number of episodes, for this
-  fixed set of policies. The target is the statistic of the policies' true rates.
-* :func:`plot_policy_scatter` draws the figure: one colour and marker per policy,
-  shared by its repeated groups, with the per-point (percentile) bootstrap intervals.
-
-Which interval: correlations of rates measured with binomial noise are attenuated
-towards 0, and the bootstrap replicates attenuate once more, so the plain percentile
-interval misses when policies are close or the correlation high (coverage 0.13 for a
-nominal 0.9 in one measured case). The default is Efron's bias-corrected percentile
-interval (``bc``), the most even across the regimes measured by
-``benchmarks/evaluate_statistics.py`` (``benchmarks/results/evaluate_statistics.md``):
-0.87-0.90 with 6 policies x 2 groups x 30 episodes at rho = 0.5 (the test), 0.67-0.82 in
-the hardest cases (12 policies, rho 0.8-0.95), where every interval here undercovers
-because the true rates lie closer together than the episodes can resolve.
-``percentile`` and ``basic`` remain available.
-"""
+Per-episode outcomes of each policy (or checkpoint) in groups of episodes, in the world model
+and in reality, become Pearson, Spearman, Kendall tau-b and SIMPLER's MMRV (strict
+comparisons; lower is better), at the level of (policy, group) points and of pooled policies,
+with episode-bootstrap intervals (bias-corrected by default) and the scatter plot. The
+statistics are numpy functions over the last axis, vectorised for the bootstrap. Why the
+default interval: ``docs/evaluation.md``."""
 
 from __future__ import annotations
 

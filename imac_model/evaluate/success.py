@@ -1,27 +1,10 @@
 """Success judging behind one interface: did an episode succeed?
 
-A :class:`SuccessJudge` maps episodes (:class:`EpisodeFrames`: an episode index, its
-last frames per camera, its task) to one boolean each. Three judges:
-
-* :class:`SuccessClassifier`, a small CNN trained by :func:`train_success_classifier`
-  on a LeRobot dataset's own per-episode ``imac/success`` labels (the columns that
-  ``python -m imac_data.build`` writes into ``meta/episodes``; the simulated recorder
-  stores the simulator's own success). Input: the last ``last_frames`` frames of the
-  chosen cameras, downsampled and stacked along channels; an episode's score is the
-  mean probability over those frames. Episodes are split (stratified by outcome)
-  into training and held-out sets and the held-out accuracy is reported beside the
-  majority-class baseline. The same :meth:`SuccessJudge.judge` takes generated
-  episodes (:func:`evaluate_judge` reports accuracy against any labels), which is how
-  the closed-loop evaluation measures it on world-model rollouts.
-* :class:`CsvJudge`: labels scored by people, imported from a CSV
-  (``episode_index,success``); a CSV naming episodes the dataset does not have is
-  refused, naming them.
-* :class:`CallableJudge`: any external judge (a VLM, a script), a callable from
-  :class:`EpisodeFrames` to a bool or a probability.
-
-Frames are read with LeRobot's own metadata and video decoder
-(:func:`episode_frames`), only for the cameras and timestamps needed.
-"""
+A :class:`SuccessJudge` maps episodes (:class:`EpisodeFrames`: an index, its last frames per
+camera, its task) to booleans: :class:`SuccessClassifier` (a small CNN trained on a dataset's own
+``imac/success`` labels, held-out accuracy reported beside the majority baseline),
+:class:`CsvJudge` (labels scored by people) and :class:`CallableJudge` (any external judge).
+Frames are read with LeRobot's own metadata and decoder, only where needed."""
 
 from __future__ import annotations
 

@@ -1,34 +1,10 @@
 """Video metrics between generated and recorded future videos (the paper's Table 1).
 
-Inputs are, per camera view, the generated and the recorded videos of the same start
-frames and actions: ``(N, T, 3, H, W)`` tensors or arrays (uint8, or float in [0, 1]),
-channel-first as LeRobot returns frames, plus one task name per sample. Metrics are
-computed per view and on the *mosaic* (the views tiled row-major into
-``mosaic_rows`` rows, as the world model sees them), per task, pooled over all
-samples, and as mean +- std over tasks. The output JSON carries the protocol:
-frames, resolution, views, number of samples, sampler steps and seed.
-
-* **MSE, PSNR, SSIM** (torchmetrics, data range 1): computed per frame and averaged
-  over the frames of a task (so PSNR is the mean of per-frame PSNRs; identical
-  frames give +inf). SSIM is torchmetrics' Gaussian SSIM (11x11, sigma 1.5,
-  k1 0.01, k2 0.03, reflect padding, channels averaged).
-* **FID**: torchmetrics' ``NoTrainInceptionV3`` (torch-fidelity's port of the TF FID
-  Inception, 2048-d pool features, frames resized to 299x299) loaded from a LOCAL
-  weights file, on every ``fid_frame_stride``-th frame of every video; the Fréchet
-  distance is torchmetrics' formula (:func:`frechet_distance`), computed here from
-  stored features so that per-task and pooled values come from one pass.
-* **FVD**: the I3D of the ``cd-fvd`` package (Kinetics-400 logits, 400-d, its own
-  preprocessing: 224x224 bilinear, [-1, 1]) loaded from a LOCAL checkpoint, one
-  feature per video. I3D's temporal pooling needs at least 9 frames per video.
-
-Nothing downloads at run time: both extractors are built from their architectures
-and loaded from files (:func:`fid_weights_path`, :func:`fvd_weights_path`); a missing
-file raises :class:`MissingWeightsError` naming the URL and the place to put it.
-:func:`save_random_weights` writes randomly initialised weights of the exact
-architectures, which is how the computation is tested where no weights can be had.
-FID/FVD from few samples are biased upwards (the covariance is estimated from the
-samples), so compare them only at equal sample counts (the protocol records them).
-"""
+MSE, PSNR and SSIM (torchmetrics), FID (torchmetrics' Inception) and FVD (``cd-fvd``'s I3D, at
+least 9 frames per video), per view, on the mosaic and per task, pooled and as mean +- std over
+tasks, with the protocol in the result. The extractors' weights are loaded from local files,
+never downloaded (a missing file names its URL and place: ``docs/evaluation.md``); FID and FVD
+from few samples are biased upwards, so compare them only at equal sample counts."""
 
 from __future__ import annotations
 

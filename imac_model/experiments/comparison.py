@@ -1,30 +1,8 @@
-"""The paper's comparison at small scale, one command: ``make experiment`` or
-``python -m imac_model.experiments.comparison [--work runs/experiment] [--docs docs/experiment]``.
-
-Stages, each cached under ``--work`` so that an interrupted run resumes where it stopped:
-
-=============  ==================================================================================
-``record``     44 simulated cube-transfer episodes at 96x128 per view, noisy scripted policy
-               (``recipes/aloha_sim_transfer_cube_experiment.yaml``), in groups of 4 (a group is
-               redone if interrupted), two groups at a time
-``build``      ``python -m imac_data.build`` on them (it resumes from its finished episode shards)
-``decode``     every chunk decoded and resized once into the chunk cache all runs share
-``train``      five settings, each with the same fixed budget of process CPU time on one thread
-               (``train.max_cpu_minutes``; they resume from their checkpoints):
-               ``none``, ``action-vector``, ``motion``, ``motion+contact``, and ``motion+contact``
-               with training-time rollout (R = 4 after a warm-up of ordinary steps)
-``evaluate``   on the held-out episodes: 4-chunk rollouts from recorded references (chunk 1 with the
-               dataset's controls, later chunks with controls rebuilt online from the generated
-               depth), MSE / PSNR / SSIM per chunk, and the action-sensitivity check
-               (:mod:`imac_model.evaluate.open_loop`)
-``report``     ``docs/experiment/``: README.md (tables, command, budget, machine, commit, stage
-               timings), results.json, loss curves, error growth, rollout mosaics, sensitivity figure
-=============  ==================================================================================
-
-Wall time is contaminated on a shared machine; each stage's wall and CPU seconds and the load
-average are recorded (``--work/stages.json``) and reported. The training budget is CPU time per
-setting, so the comparison stays fair whatever the load.
-"""
+"""The paper's comparison at small scale (``make experiment``, ``imac-model experiment``):
+record 44 simulated episodes, build them, decode their chunks once, train five conditioning
+settings for the same CPU budget each, evaluate multi-chunk rollouts and action sensitivity
+on held-out episodes, and write ``docs/experiment/``. Every stage is cached under ``--work``
+and resumes where it stopped; each stage's wall and CPU seconds are recorded."""
 
 from __future__ import annotations
 

@@ -1,26 +1,14 @@
-"""How actions enter the model: control-image injection (paper eq. 2) and the
-action-vector baseline.
+"""How actions enter the model: control-image injection (paper eq. 2) and the action-vector
+baseline.
 
-**Control injection** (:class:`ControlInjector`). Each control stream (motion,
-scene-to-gripper, robot-to-scene) is a video of the chunk's future frames, given a
-black frame in the reference slot so it encodes to the same latent frames as the
-chunk, and encoded by the backbone's own encoder ``E``. One patchify layer per stream
-(``P_m``, ``P_s2g``, ``P_r2s``, shaped like the backbone's ``patch_embedding``,
-zero-initialised) maps it to tokens, and their sum is added to the patch-embedded
-latent tokens::
+:class:`ControlInjector`: each control video (a black frame in the reference slot) is encoded
+by the backbone's own encoder, patchified by its own zero-initialised layer shaped like
+``patch_embedding``, and added to the future tokens::
 
     h_tau = [P_v(z_ref) ; P_v(x_tau) + P_m(E(C_m)) + P_s2g(E(C_s2g)) + P_r2s(E(C_r2s))]
 
-Control tokens on the reference latent frame are zeroed (the reference stays clean).
-The public release adds them there too and initialises ``P_m`` as a copy of
-``patch_embedding``: both are options (``control_on_reference``,
-``control_init: copy_patch_embedding``).
-
-**Action-vector baseline** (:class:`ActionEncoder`). The chunk's raw actions
-``(B, H, D)`` go through an MLP (SiLU) to one context token per future step, plus a
-learned per-step embedding; the backbone cross-attends to them (the public release
-likewise writes its action MLP's output into Wan's text tokens).
-"""
+:class:`ActionEncoder`: the raw actions through an MLP to one context token per future step,
+cross-attended. The public release's choices are options (``docs/world-model.md``)."""
 
 from __future__ import annotations
 

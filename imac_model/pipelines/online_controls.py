@@ -1,57 +1,17 @@
 """Control videos rebuilt online from a predicted frame: what a rollout needs at a chunk boundary.
 
-At the end of a chunk the world model has generated its last mosaic frame (RGB row over
-colour-depth row). The next chunk needs a reference frame (that mosaic) and its control
-videos, which :mod:`imac_data` computed offline for recorded chunks. This module rebuilds
-them from tensors, with the same :class:`~imac_data.core.rig.Rig` and contact functions the
-dataset build used (:mod:`imac_data.augment.pipeline`), so a training-time rollout, the sampler's
-long rollouts and a closed-loop evaluation all call one function::
+The last generated mosaic frame becomes the next reference; its depth row is decoded with
+the dataset's codec (colours far from the codec's walk, black and non-finite colours are
+invalid depth, never an error), and the next chunk's motion and contact images are made from
+it and the chunk's actions with the same :class:`~imac_data.core.rig.Rig` and contact
+functions the build used, with the dataset's settings and workspace crop::
 
-    online = OnlineControls.from_dataset(root, spec)                 # the dataset's rig, codec, settings
+    online = OnlineControls.from_dataset(root, spec)
     out = online.controls(reference_mosaic, q_ref, actions, streams=spec.conditioning.streams)
     batch = ChunkBatch(reference=reference_mosaic, actions=actions, controls=out.controls)
-    q_next = out.next_state                                          # last commanded configuration
+    q_next = out.next_state                     # the last commanded configuration
 
-Steps (per batch item; every stage batched over the items and steps of a chunk):
-
-1. **Depth.** The depth row of the mosaic is split per view (:func:`imac_model.data.mosaic.split`)
-   and decoded with the dataset's colour codec (:class:`imac_data.core.depth.DepthCodec`). A
-   generated colour need not lie on the codec's colour walk; the codec projects it onto the
-   nearest point of the walk. A colour farther than ``max_walk_distance`` from the walk
-   (:func:`imac_data.core.depth.walk_distance`, Euclidean, RGB in [0, 1]; default
-   :data:`DEFAULT_MAX_WALK_DISTANCE` = 0.1, i.e. about 25 8-bit levels: a lossless stream
-   stays within 1/255 and the codec's own mosaic resize never leaves the walk) is not a depth
-   the codec wrote, and becomes **invalid depth** (0), as do black, near-black
-   (:data:`DEFAULT_INVALID_CODES`) and non-finite colours. Never a NaN, never an exception:
-   a chunk whose whole reference depth is invalid gets saturated robot-to-scene colours and
-   no scene-to-gripper values (``allow_empty_scene``).
-2. **Configurations.** The chunk's actions go through the controller map phi
-   (:meth:`Rig.rollout`): ``q_{t+k} = phi(q_t, a_{t:t+k-1})``, the configurations the motion
-   images show (DESIGN section 4; the build's ``frame t shows phi(state[t-1], action[t-1])``
-   is the same for absolute actions). ``next_state`` = the last of them: the state a
-   closed loop assumes at the next chunk boundary.
-3. **Motion images** from the actions and forward kinematics alone (:meth:`Rig.robot_views`).
-4. **Contact images** (:func:`imac_data.core.contact.images.contact_chunk`, the dataset's cap rule,
-   percentile and mask dilation from ``meta/info.json``) from the decoded depth, the robot
-   mask and camera poses at the reference state ``q_ref``, and the future configurations.
-   The scene is cropped to the dataset's workspace (``imac.workspace``, carried by the rig:
-   world box and depth range), as the build cropped it; the default depth range ends where
-   the codec saturates (:func:`imac_data.core.contact.workspace.saturation_depth`), so saturated decoded
-   depth is invalid online as the raw far depth was offline.
-
-Resolution (``resolution``): ``"model"`` computes at the model's view size, with the cameras
-rescaled exactly as the mosaic resizes the views (:func:`imac_model.data.mosaic.rescale_cameras`,
-the same :meth:`Camera.rescaled` that :meth:`Rig.stream_cameras` applies). ``"dataset"``
-computes at the dataset's stream resolution (the depth is upsampled nearest-pixel,
-:func:`imac_data.core.depth.resize_depth`) and resizes the colour images as the data loader
-resizes stored controls (:func:`imac_model.data.mosaic.resize_frames`, then 8-bit rounding), so
-the online controls come from the training distribution; it costs the pixel ratio more.
-
-Devices: forward kinematics and the nearest-distance queries run on ``device`` (CUDA where
-the model is; default: the depth's device). The robot renderer is Open3D ray casting and
-always runs on the CPU; its outputs are moved to ``device``. The CUDA path is unverified on
-these machines (no GPU).
-"""
+``docs/world-model.md`` ("Rollouts: controls rebuilt online") has the details and the checks."""
 
 from __future__ import annotations
 

@@ -1,32 +1,12 @@
 """Rollouts over consecutive chunks: training-time rollout (paper section 3.4) and long
-autoregressive sampling, both on :class:`~imac_model.pipelines.online_controls.OnlineControls`.
+autoregressive sampling, both with controls rebuilt online at every chunk boundary.
 
-**Training-time rollout** (:func:`rollout_loss`). A clip is R consecutive chunks of one
-episode (:class:`~imac_model.data.batch.ChunkBatch` each, recorded references, futures, stored
-controls, actions, reference states). Chunk 1 is trained as usual. For chunk r > 1 the
-reference is the **last frame of chunk r-1's one-step clean estimate**
-``x1_hat = x_tau + (1 - tau) v`` (:attr:`FlowOutput.clean_estimate`), decoded after its
-reference latent (:meth:`WorldModel.decode_future`) and detached: its RGB row and its depth
-row. From that predicted depth and the chunk's actions the contact images are rebuilt online
-(:meth:`OnlineControls.controls`); the motion images are a function of the actions and
-forward kinematics alone, so the clip's stored ones are used (the online renderer draws the
-same robot: ``tests/test_model_rollout.py``). The target stays the recorded future (paired
-supervision). The loss is ``(1/R) sum_r L_r``; each chunk's graph ends at its detached
-reference, so ``backward`` may be called per chunk (memory of one chunk).
-
-* ``clean_reference=True``: every chunk keeps its recorded reference and stored controls;
-  the clip is then R ordinary chunks (the trainer's clean-reference warm-up trains single
-  chunks instead, :class:`imac_model.training.train.RolloutSchedule`).
-* ``streams``: the active control streams (stage one: ``("motion",)``; nothing is rebuilt
-  when no contact stream is active).
-* Reference states: the recorded state at each chunk's reference frame (what the build
-  used for the robot mask), or, without one (or ``commanded_state=True``), the previous
-  chunk's last commanded configuration (what a closed loop knows).
-
-**Long rollouts** (:func:`sample_rollout`): N chunks sampled with the Euler sampler, each
-next reference = the last generated frame, controls rebuilt online from the generated depth
-and the next chunk's actions at each boundary.
-"""
+:func:`rollout_loss`: a clip of R consecutive chunks; chunk r > 1 starts from the last frame
+of chunk r-1's one-step clean estimate (decoded, detached), its contact images rebuilt from
+that frame's depth, its target the recorded future; the loss is the mean over chunks, and
+each chunk's graph ends at its detached reference, so backward may run per chunk.
+:func:`sample_rollout`: N chunks sampled with the Euler sampler, each from the last generated
+frame. ``docs/world-model.md`` ("Training-time rollout") has the details."""
 
 from __future__ import annotations
 

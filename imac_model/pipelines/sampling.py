@@ -1,5 +1,5 @@
 """Generate a future chunk for a dataset episode and show it beside the recording:
-``python -m imac_model.pipelines.sampling --checkpoint runs/x --episode 8 [--chunk 3] [--out sample.mp4]``.
+``imac-model sample --checkpoint runs/x --episode 8 [--chunk 3] [--out sample.mp4]``.
 
 ``--chunks N`` rolls out N chunks autoregressively (:func:`imac_model.pipelines.rollout.sample_rollout`):
 each next reference is the last generated frame, and the motion and contact images are
@@ -9,7 +9,7 @@ rebuilt online from the generated depth and the recorded actions at every chunk 
 The mp4 shows, per future frame, the generated mosaic, the recorded mosaic and the
 control images the model was given (one row per stream, views side by side).
 ``--png`` also writes a still: rows = future frames (first, middle, last), columns =
-generated | recorded | motion image (for the README).
+generated | recorded | motion image (for the docs).
 """
 
 from __future__ import annotations

@@ -1,30 +1,12 @@
-"""Train the world model: ``python -m imac_model.training.train --dataset local/<name> --config run.yaml``.
+"""Train the world model (``imac-model train``): on ``accelerate``, one process on the CPU or
+several GPUs (the global batch split over processes), bf16 where the device has it.
 
-On ``accelerate``: one process on the CPU, ``accelerate launch -m imac_model.training.train ...``
-for several GPUs (the global batch is split over processes), bf16 where the device
-has it (``train.mixed_precision: auto``).
-
-* Everything is checked before the first step: the config, the dataset's streams for
-  the conditioning mode, the chunk length against the dataset's contact chunk, the
-  view size against the backbone (:func:`imac_model.data.chunks.resolve_layout`).
-* Held-out episodes (``data.held_out_episodes``) are never trained on; their flow loss
-  is computed at fixed times and noise (so it is comparable across steps) every
-  ``train.eval_every`` steps.
-* Checkpoints (:mod:`imac_model.models.checkpoint`) every ``train.checkpoint_every`` steps, at
-  the end and when ``train.max_minutes`` runs out. ``--resume`` (default: automatic
-  when the output directory has checkpoints of the same model) continues exactly:
-  batches and noise are a function of (seed, step), and the optimizer, schedule and
-  EMA are restored, so an interrupted run ends with the same weights as an
-  uninterrupted one.
-* Training-time rollout (``rollout.chunks`` R > 1, paper section 3.4): after
-  ``rollout.warmup_epochs`` of ordinary steps, each step trains clips of R consecutive
-  chunks, chunk r > 1 from chunk r-1's one-step clean estimate with its contact images
-  rebuilt online (:func:`imac_model.pipelines.rollout.rollout_loss`, :class:`RolloutSchedule`).
-  ``rollout.stage_one_epochs``: motion images alone first (stage one), then contact added.
-* Logs: ``log.jsonl`` and ``log.csv`` in the output directory (loss, learning rate,
-  held-out loss, steps/s, wall and CPU seconds), an optional tracker
-  (``train.tracker``), a progress bar.
-"""
+Everything is checked before the first step (config, the dataset's streams, chunk length,
+view size). Held-out episodes are never trained on; their flow loss is measured at fixed
+times and noise. Checkpoints are written every ``train.checkpoint_every`` steps and at the
+end, and a resumed run ends with the same weights as an uninterrupted one (batches and noise
+are functions of (seed, step)). With ``rollout.chunks`` R > 1, steps train clips of R chunks
+(:mod:`imac_model.pipelines.rollout`). Logs: ``log.jsonl``, ``log.csv``, an optional tracker."""
 
 from __future__ import annotations
 

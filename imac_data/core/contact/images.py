@@ -1,70 +1,13 @@
-"""Contact images: the two robot-scene distance streams of iMaC (paper section 3.3,
-DESIGN.md section 4), as plain torch functions usable offline (dataset augmentation)
-and online (the world model rebuilding contact images from its own predicted depth).
+"""Contact images: the two robot-scene distance streams of iMaC (``docs/dataset-format.md``), as
+torch functions used offline (the build) and online (the world model rebuilding them from its
+own predicted depth).
 
-Streams (chunk size H, reference frame t = the chunk start)
-------------------------------------------------------------
-* The reference scene cloud ``P_s(t)``: every view's reference depth with the
-  (dilated) reference robot mask removed, back-projected to world points, cropped to the
-  workspace (:mod:`imac_data.core.contact.workspace`: depth outside its range is invalid, points outside
-  its world box are no scene), so that far background and saturated depth never enter it
-  or the caps.
-* ``r2s`` (robot -> scene): for each future step t+k, every *robot pixel* of view v
-  (the robot rendered at q_{t+k} into the camera pose of t+k) stores the distance of
-  its surface point to the nearest point of ``P_s(t)``. NaN where there is no robot.
-* ``s2g`` (scene -> gripper): every reference *scene pixel* of view v (camera pose of
-  t) stores the distance of its scene point to the nearest gripper point at t+k,
-  densified inside the scene mask (small holes of invalid depth are filled from
-  their neighbours, ``fill_px``). NaN outside the scene mask and in unfilled holes.
-* Normalisation: one cap per stream per chunk (default: the ``percentile`` (99th)
-  of that chunk's distances, over all its steps and views; or fixed caps in metres),
-  distances clipped to ``[0, cap]``, colour = JET of ``1 - d / cap`` (near = dark
-  red, at or beyond the cap = dark blue, no value = black), exactly matplotlib's
-  ``jet`` with 256 levels (:func:`colorize`).
-
-Distances are ``float32`` metres (within the certified tolerance, see below); ``+inf``
-means "nothing within reach": the other cloud is empty, or (with a fixed cap only) the
-point is farther than the cap, which the queries cull because it saturates anyway.
-
-Which surface points
---------------------
-* Robot points for r2s are the **back-projected rendered robot depth** of every view
-  at t+k (one point per robot pixel). Painting is then exact and trivial (each robot
-  pixel carries its own distance, no splatting/densifying), the points are the
-  surface the camera sees, and their count follows the image resolution.
-* Gripper points for s2g are **surface samples of the gripper links' meshes**
-  (:class:`GripperSurface`: sampled once in each link's frame, about ``spacing`` apart,
-  posed by forward kinematics per step). A camera sees only part of the gripper: the
-  head camera never sees the inner finger pads, and a wrist camera does not see the
-  other arm's fingers, so back-projected gripper pixels would make s2g miss exactly
-  the surfaces that touch objects. Mesh samples are complete, view-independent, a
-  fixed small count (about 11k points for ALOHA's four fingers at 2 mm) and cost one
-  small matrix product per step. Back-projected gripper pixels can be added
-  (``gripper_mask``); the low-level functions accept any gripper points.
-
-Chunk rule for an episode (:func:`chunk_plan`)
-----------------------------------------------
-Chunk c has reference frame ``r = c * H`` and covers frames ``r+1 .. r+H`` (steps
-k = 1..H; the last chunk may be shorter). Frame 0 of an episode is no chunk's future
-frame: it belongs to chunk 0 as its step **k = 0** (the robot at the reference
-configuration against the reference scene, i.e. the current contact state) and its
-distances count towards chunk 0's caps. Every frame stores the caps of its chunk.
-
-Nearest distances and the tolerance
------------------------------------
-Exact nearest distances (KD-tree or chunked brute force) and the certified
-tolerance over pixel tiles that makes painting every pixel affordable live in
-:mod:`imac_data.core.contact.nearest`: every painted distance d' satisfies
-``d <= d' <= d + max(abs, rel * d)`` for the exact d (default 1 mm / 3 %);
-``tolerance=None`` paints exact per-pixel distances.
-
-CPU execution: no per-point Python loops anywhere; per chunk the scene index is built
-once. The tensor work runs single-threaded in torch (``cpu_threads=1``: torch's OpenMP
-pool made chunks 3-10x slower on a shared 2-core machine) and the independent pieces
-(r2s of groups of steps, s2g of each step, each stream's colours) run on one Python
-thread per available core; KD-tree queries use ``workers`` threads. On CUDA everything
-stays on the device (brute-force queries per tile).
-"""
+Per chunk (reference frame t, steps k = 0..H): the reference scene cloud (every view's depth,
+the dilated robot mask removed, cropped to the workspace); r2s paints each future robot pixel
+with its distance to that cloud, s2g each reference scene pixel with its distance to the
+gripper's surface samples at t+k; one cap per stream and chunk, colours JET of ``1 - d/cap``.
+Distances are float32 metres within the certified tolerance of :mod:`~imac_data.core.contact.nearest`;
+``+inf`` means nothing within reach."""
 
 from __future__ import annotations
 

@@ -1,28 +1,10 @@
 """Exact nearest distances between point clouds, and certified distances over pixel tiles.
 
-The search behind the contact streams (:mod:`imac_data.core.contact.images`), usable on any points.
-
-Nearest distances and the tolerance
------------------------------------
-:class:`NearestNeighbours` / :func:`nearest_distances`: exact Euclidean nearest
-distances, either a pykdtree KD-tree (CPU; ``workers`` threads over blocks of queries;
-``distance_upper_bound``) or brute force over blocks of queries (CPU or CUDA: a float64
-matmul picks each query's nearest target, whose distance is then computed from the
-coordinate differences; float64, so no TF32). With a bound (a fixed cap), queries farther
-than it from the target's bounding box (and, for the torch path, targets farther than
-it from the queries' box) are culled first: they would come back as +inf anyway.
-
-Exact queries for every pixel cost ~150k KD-tree queries per future frame (3 views
-at 240x320), far from the frame rate we want on two CPU cores, and most of them are
-far from any contact, where the distance field is smooth. The images are therefore
-painted with a **certified tolerance** (``tolerance=(abs, rel)``, default 1 mm / 3 %):
-every painted distance d' satisfies ``d <= d' <= d + max(abs, rel * d)`` for the exact
-d (1-Lipschitz bound over pixel tiles, :func:`certified_distances`); contact regions
-(d < 3 cm) come out within 1 mm, depth edges exact, and typical errors are far below
-the bound (on our simulated grasps: mean 0.02 mm, p99 0.3 mm, >= 98.5 % of the colour
-pixels identical to the exact images). ``tolerance=None`` paints exact per-pixel
-distances (1.5-3x slower on the CPU).
-"""
+:func:`nearest_distances` uses a pykdtree KD-tree on the CPU or float64 brute force on CPU or
+CUDA, culling queries beyond a fixed bound. :func:`certified_distances` paints an image with a
+tolerance instead of one query per pixel: every painted distance d' satisfies
+``d <= d' <= d + max(abs, rel * d)`` (default 1 mm / 3 %) from a 1-Lipschitz bound over pixel
+tiles (``docs/dataset-format.md``, "Contact images")."""
 
 from __future__ import annotations
 

@@ -1,37 +1,11 @@
 """The workspace: the part of the world whose scene points enter the contact streams
-(DESIGN.md section 4, "Far and invalid depth").
+(``docs/dataset-format.md``, "Far and invalid depth").
 
-Why: real head cameras see floors and walls metres away, and raw sensor depth holds
-saturated values (65.535 m from uint16 millimetres). Such points are far from every robot
-and gripper point, so a chunk's percentile cap over them becomes metres (103 m measured on
-a saturated frame) and every distance under 5 cm falls in one colour level. Contact only
-happens where the robot can reach, so the scene cloud is cropped to
-
-* a **depth range** ``[near, far)`` in metres of planar z-depth: a reference pixel outside
-  it is *invalid depth*, exactly like 0 or NaN (no scene point; a small hole is filled from
-  its neighbours as any invalid pixel is);
-* a **box** ``[min, max]`` in the world frame (metres): a back-projected point outside it
-  is *outside the workspace* (no scene point, no value, black in s2g, never hole-filled).
-
-Both are plain functions on tensors (:func:`depth_in_range`, :func:`points_in_box`), used
-by :func:`imac_data.core.contact.clouds.scene_cloud` offline (dataset build) and online (a world model
-rebuilding contact images from its predicted depth), with the same :class:`Workspace`
-recorded in the dataset (``info["imac"]["workspace"]``, carried by
-:class:`~imac_data.core.rig.Rig`).
-
-Defaults, so that a recipe need not set anything (:func:`resolve_workspace`):
-
-* box: the robot's **reach** (:func:`reach_box`): forward kinematics at ``samples`` joint
-  vectors drawn uniformly within the URDF joint limits of the joints the dataset drives
-  (the others stay where FK holds them), the axis-aligned box of every visual mesh's
-  bounding-box corners at all of them, grown by ``margin`` (default 0.10 m) and rounded
-  outwards to the millimetre. Joint limits ignore collisions, so the box also holds the
-  table the robot stands on; a floor or wall beyond arm's length falls outside it.
-* depth range: ``[0, saturation)`` of the dataset's depth codec (:func:`saturation_depth`):
-  the codec's top code stands for every depth beyond ``max_depth``, so such depth is
-  saturated in the stored stream; neither the build nor an online rebuild from decoded depth
-  may use it (3.736 m for the ``manipulation`` preset, 306.869 m for ``general``).
-"""
+Far floors and walls, and saturated sensor depth, would make a chunk's percentile cap metres
+long, so the scene cloud is cropped to a depth range (outside it: invalid depth, hole-filled
+like 0) and a world box (outside it: no scene at all). By default the box is the robot's reach
+(FK at joint vectors drawn within the URDF limits, plus a margin) and the range ends where the
+depth codec saturates. Plain tensor functions, used offline and online alike."""
 
 from __future__ import annotations
 

@@ -1,28 +1,10 @@
-"""Export robot subtrees of a compiled MuJoCo model (``mujoco.MjModel``) to URDF.
+"""Export robot subtrees of a compiled MuJoCo model to URDF (simulated rigs ship only MJCF).
 
-Why: the renderer and FK work from a URDF (the format every real robot ships),
-while simulated rigs (gym-aloha) only ship MJCF. Exporting from the *compiled*
-model means MuJoCo has already resolved includes, defaults, ``euler``/``axisangle``
-and mesh processing, so the URDF describes exactly what MuJoCo simulates.
-
-Mapping (URDF link frames = MuJoCo body frames, link names = body names):
-
-* URDF root link ``world`` = MuJoCo world frame, fixed joints to the chosen roots.
-* hinge -> ``revolute`` (``continuous`` if unlimited), slide -> ``prismatic``,
-  a body without joints -> ``fixed``. MuJoCo applies a body's joints in order,
-  each about its anchor ``jnt_pos`` and relative to the reference ``qpos0``; when
-  a body has several joints, or an anchor/reference that a URDF joint cannot
-  express, intermediate links ``<body>__<joint>`` carry the extra transforms.
-  Ball and free joints are refused (no URDF equivalent).
-* Visual geometry: geoms in MuJoCo's default-visible groups 0-2 with non-zero
-  alpha. Meshes reference the original mesh files; MuJoCo re-centres every mesh
-  at compile time (``v_compiled = R(mesh_quat)^T (scale * v_file - mesh_pos)``)
-  and ``geom_pos/geom_quat`` refer to that compiled frame, so the visual origin
-  is ``T_geom @ inv(T_mesh)``. Box/sphere/cylinder map to URDF primitives;
-  other shapes are refused.
-* Colour: the geom's rgba, or its material's when the geom keeps MuJoCo's
-  default rgba (MuJoCo's own rendering rule).
-"""
+Working from the *compiled* model, MuJoCo has resolved includes, defaults and mesh
+processing, so the URDF describes what MuJoCo simulates: link frames are body frames, hinge
+and slide joints become revolute (continuous) and prismatic joints, intermediate links carry
+what a URDF joint cannot express, and visual origins undo MuJoCo's mesh re-centring
+(``docs/simulation.md``). Ball and free joints, and shapes without a URDF primitive, are refused."""
 
 from __future__ import annotations
 

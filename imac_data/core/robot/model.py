@@ -2,7 +2,7 @@
 
 A :class:`RobotConfig` says which URDF to use and how each index of the
 dataset's ``observation.state`` / ``action`` vector maps to a URDF joint
-(DESIGN.md section 2): each index names a URDF joint, through an explicit affine
+(docs/dataset-format.md, "Conventions"): each index names a URDF joint, through an explicit affine
 map where the recorded unit is not the URDF's (:class:`JointEntry`: a gripper's
 normalised opening to a finger slide, degrees to radians, ...), and URDF
 ``<mimic>`` joints (the second finger) follow their leader.
@@ -15,7 +15,7 @@ URDFs are read as the spec says where pytorch-kinematics does not (:func:`kinema
 a movable joint without ``<axis>`` turns about x; a ``floating`` joint off the root link is
 held fixed at its origin; ``planar`` joints and other floating joints are refused by name.
 A material defined inside one link's visual may be referred to by name from any other.
-``python -m imac_data.core.robot.model joints ROBOT.urdf`` lists what a recipe needs
+``imac robot joints ROBOT.urdf`` lists what a recipe needs
 (:mod:`imac_data.core.robot.urdf_summary`).
 """
 

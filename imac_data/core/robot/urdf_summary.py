@@ -6,7 +6,7 @@ spec's default axis, a floating root held fixed, unsupported joint types refused
 checks that every visual mesh resolves; :func:`recipe_block` turns that into a ``robot:``
 block to edit::
 
-    python -m imac_data.core.robot.model joints ROBOT.urdf [--package-dir NAME=PATH ...]
+    imac robot joints ROBOT.urdf [--package-dir NAME=PATH ...]
 
 The block lists every movable, non-mimic joint in URDF order, one ``joint_map`` entry per
 joint; the user reorders it to the dataset's ``observation.state`` / ``action`` order and
@@ -190,7 +190,7 @@ def format_summary(summary: UrdfSummary) -> str:
 
 def recipe_block(summary: UrdfSummary, gripper_links: Sequence[str] = ()) -> str:
     """A recipe ``robot:`` block to start from (YAML, with comments saying what to edit)."""
-    out = [f"# Recipe `robot:` block for {summary.name!r}, to start from (python -m imac_data.core.robot.model joints).",
+    out = [f"# Recipe `robot:` block for {summary.name!r}, to start from (imac robot joints).",
            "robot:",
            f"  urdf: {summary.path.resolve()}"]
     if summary.package_dirs:

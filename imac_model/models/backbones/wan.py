@@ -1,27 +1,11 @@
 """Wan2.2-TI2V as a backbone, through diffusers 0.35 (``WanTransformer3DModel`` +
 ``AutoencoderKLWan``), with no copy of diffusers' ``forward``.
 
-* **Latent:** the Wan2.2 VAE (48 channels, 16x spatial and 4x causal temporal
-  compression: 1 + 4k frames), normalised with the VAE config's ``latents_mean`` /
-  ``latents_std`` as diffusers' Wan pipelines do. The VAE is frozen by default.
-* **Tokens:** the transformer's own ``patch_embedding`` (patch (1, 2, 2)); control
-  tokens are added to its output by the :class:`~imac_model.models.backbones.base.Backbone`
-  forward hook.
-* **Timesteps:** one per token (Wan2.2 TI2V's ``expand_timesteps`` form), built from
-  the per-latent-frame timesteps: 0 on the reference frame.
-* **Velocity sign:** Wan is trained to predict ``noise - data`` (its sigma = 1 - tau);
-  the paper's velocity is ``data - noise``, so :meth:`WanBackbone._denoise` returns the
-  negated output. Real weights therefore start as a working denoiser in our convention.
-* **Text:** no T5 here. The cross-attention context is a learned "null prompt"
-  (``context_tokens`` x ``text_dim``, zero-initialised); the action-vector baseline
-  puts its action tokens in front of it.
-
-Real weights: ``WanConfig.pretrained`` = a local directory or hub id laid out as
-``Wan-AI/Wan2.2-TI2V-5B-Diffusers`` (``transformer/``, ``vae/``). Without it the
-modules are built from :data:`TI2V_TRANSFORMER` / :data:`TI2V_VAE` updated with the
-config's dicts (tests use tiny, randomly initialised ones). Weights cannot be
-downloaded on the build machines: only random initialisations were run here.
-"""
+The frozen Wan2.2 VAE (48 channels, 16x spatial, 4x causal temporal: 1 + 4k frames) gives the
+latent; control tokens are added to ``patch_embedding``'s output by the backbone's forward hook;
+timesteps are per token (0 on the reference); Wan predicts ``noise - data``, so the output is
+negated into the paper's velocity; a learned null prompt replaces T5. Real weights come from a
+local directory or hub id laid out as ``Wan-AI/Wan2.2-TI2V-5B-Diffusers`` (``docs/world-model.md``)."""
 
 from __future__ import annotations
 
