@@ -31,7 +31,7 @@ LAYERS = {
     ],
     "imac_model": [
         ("base", ["imac_model", "imac_model.config"]),
-        ("data", ["imac_model.data.chunks"]),
+        ("data", ["imac_model.data"]),
         ("models", ["imac_model.models", "imac_model.schedulers"]),
         ("pipelines", ["imac_model.pipelines"]),
         ("training", ["imac_model.training"]),
