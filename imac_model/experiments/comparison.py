@@ -28,8 +28,9 @@ from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.training.train import model_spec
 
 REPO = "local/imac_experiment"
-RECIPE = Path(__file__).resolve().parent.parent / "recipes" / "aloha_sim_transfer_cube_experiment.yaml"
-CONFIG = Path(__file__).resolve().parent / "configs" / "experiment.yaml"
+REPO_ROOT = Path(__file__).resolve().parents[2]
+RECIPE = REPO_ROOT / "recipes" / "aloha_sim_transfer_cube_experiment.yaml"
+CONFIG = REPO_ROOT / "imac_model" / "configs" / "experiment.yaml"
 STAGES = ("record", "build", "decode", "train", "evaluate", "report")
 GROUP = 4  # episodes recorded per resumable group
 ROLLOUT_CHUNKS = 4  # chunks per evaluated rollout
@@ -98,7 +99,7 @@ def _python() -> list[str]:
 
 def _env() -> dict:
     env = dict(os.environ)
-    root = str(Path(__file__).resolve().parent.parent)
+    root = str(REPO_ROOT)
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     env.setdefault("MUJOCO_GL", "egl")
     env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
