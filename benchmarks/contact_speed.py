@@ -57,7 +57,8 @@ from imac_data.core.contact.images import chunk_plan, contact_chunk, scene_cloud
 from imac_data.core.rig import Rig
 from imac_data.core.robot.aloha import robot_config
 from imac_data.core.robot.model import RobotModel
-from imac_data.sources.sim.recorder import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
+from imac_data.sources.sim.env import FrameRenderer, robot_mask, segmentation_labels
+from imac_data.sources.sim.recorder import simulate_episode
 from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 
 CHUNK = 8

@@ -145,7 +145,8 @@ def _workspace_configs(n: int, seed: int) -> np.ndarray:
 def _episode(task: str, seed: int, height: int, width: int) -> tuple[np.ndarray, dict | None, str]:
     """(qpos (T, 14), visible-robot masks {cam: (T, H, W)} or None, description)."""
     try:
-        from imac_data.sources.sim.recorder import FrameRenderer, robot_mask, segmentation_labels, simulate_episode
+        from imac_data.sources.sim.env import FrameRenderer, robot_mask, segmentation_labels
+        from imac_data.sources.sim.recorder import simulate_episode
     except ImportError:
         return _workspace_configs(120, seed), None, "random workspace configurations (no imac_data.sources.sim.recorder)"
     model = sim_rig.load_mujoco_model(task)

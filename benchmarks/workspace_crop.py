@@ -31,7 +31,8 @@ def main() -> None:
     from imac_data.core.rig import Rig
     from imac_data.core.robot.aloha import robot_config
     from imac_data.core.robot.model import RobotModel
-    from imac_data.sources.sim.recorder import FrameRenderer, simulate_episode
+    from imac_data.sources.sim.env import FrameRenderer
+    from imac_data.sources.sim.recorder import simulate_episode
     from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 
     class Capture(FrameRenderer):

@@ -18,16 +18,10 @@ from imac_data.core.cameras import load_calibration, project
 from imac_data.core.robot.aloha import STATE_NAMES
 from imac_data.errors import InputError
 from imac_data.sources.hdf5 import probe_episode, read_episode
-from imac_data.sources.sim.recorder import (
-    TASK_INSTRUCTIONS,
-    FrameRenderer,
-    SimConfig,
-    record_dataset,
-    robot_mask,
-    segmentation_labels,
-    simulate_episode,
-)
+from imac_data.sources.sim.env import FrameRenderer, robot_mask, segmentation_labels
+from imac_data.sources.sim.recorder import SimConfig, record_dataset, simulate_episode
 from imac_data.sources.sim.rig import CAMERA_NAMES, load_mujoco_model
+from imac_data.sources.sim.tasks import TASK_INSTRUCTIONS
 
 CAMS = sorted(CAMERA_NAMES.values())
 

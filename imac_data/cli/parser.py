@@ -19,7 +19,7 @@ COMMANDS = {
     "simulate": "imac_data.cli.simulate",
     "robot joints": "imac_data.cli.robot",
 }
-TASKS = ("transfer_cube", "insertion")
+TASKS = ("transfer_cube", "insertion", "lift")
 
 
 def _package_dir(text: str) -> tuple[str, str]:

@@ -16,113 +16,19 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
-from gym_aloha.constants import START_ARM_POSE
-from gym_aloha.utils import sample_box_pose, sample_insertion_pose
 from tqdm.auto import tqdm
 
 from imac_data.core.cameras import save_calibration
 from imac_data.core.mujoco_gl import mujoco
-from imac_data.core.robot.aloha import ARMS, TASKS
 from imac_data.errors import InputError
 from imac_data.layout import CALIBRATION
 from imac_data.sources.hdf5 import EpisodeInfo, RawEpisode, write_episode
-from imac_data.sources.sim.rig import CAMERA_NAMES, CONTROL_DT, camera_calibration, load_mujoco_model
+from imac_data.sources.sim.env import FrameRenderer, SimEnv, segmentation_labels
+from imac_data.sources.sim.rig import CONTROL_DT, camera_calibration, load_mujoco_model
 from imac_data.sources.sim.scripts import ScriptedPolicy
-from imac_data.sources.sim.tasks import TASK_INSTRUCTIONS, TaskLayout, task_reward, task_success
+from imac_data.sources.sim.tasks import TASK_INSTRUCTIONS, TASKS
 
-__all__ = ["SimConfig", "EpisodeResult", "FrameRenderer", "simulate_episode", "record_dataset", "robot_mask",
-           "segmentation_labels", "depth_to_mm", "TASK_INSTRUCTIONS"]
-
-ROBOT_PREFIXES = tuple(ARMS)  # bodies of the vx300s_left / vx300s_right subtrees
-
-
-class FrameRenderer:
-    """RGB / depth / segmentation of the three ALOHA cameras with one reused
-    :class:`mujoco.Renderer` (one resolution)."""
-
-    def __init__(self, model: mujoco.MjModel, width: int, height: int, *, depth: bool = True,
-                 segmentation: bool = False, shadows: bool = False, antialias: bool = False,
-                 cameras: dict[str, str] = CAMERA_NAMES):
-        # Render settings live in the model's visual options (read when the GL context
-        # is made); load_mujoco_model returns a private copy, so changing them is safe.
-        model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), width)
-        model.vis.global_.offheight = max(int(model.vis.global_.offheight), height)
-        if not shadows:
-            model.vis.quality.shadowsize = 0
-        if not antialias:
-            model.vis.quality.offsamples = 0
-        self.model = model
-        self.width, self.height = width, height
-        self.with_depth, self.with_segmentation = depth, segmentation
-        self.cameras = dict(cameras)
-        self.renderer = mujoco.Renderer(model, height=height, width=width)
-        self._option = mujoco.MjvOption()
-        self._option.sitegroup[:] = 0  # sites are invisible markers; keep them out of every pass
-        self.far = float(model.vis.map.zfar * model.stat.extent)
-
-    def render(self, data: mujoco.MjData) -> dict[str, dict[str, np.ndarray]]:
-        """``{"rgb": {cam: (H,W,3) uint8}, "depth_mm": {cam: (H,W) uint16}, "segmentation": {cam: (H,W) int16}}``."""
-        r = self.renderer
-        out = {"rgb": {}, "depth_mm": {}, "segmentation": {}}
-        for mj_cam, name in self.cameras.items():
-            r.update_scene(data, camera=mj_cam, scene_option=self._option)
-            out["rgb"][name] = r.render()
-            if self.with_depth:
-                r.enable_depth_rendering()
-                depth = r.render()
-                r.disable_depth_rendering()
-                out["depth_mm"][name] = depth_to_mm(depth, self.far)
-            if self.with_segmentation:
-                r.enable_segmentation_rendering()
-                seg = r.render()
-                r.disable_segmentation_rendering()
-                ids = np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)
-                out["segmentation"][name] = ids.astype(np.int16)
-        return out
-
-    def close(self) -> None:
-        self.renderer.close()
-
-    def __enter__(self) -> FrameRenderer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-def depth_to_mm(depth_m: np.ndarray, far: float) -> np.ndarray:
-    """Planar z-depth in metres -> uint16 millimetres; far-plane (no hit), non-finite and
-    beyond-range (> 65.535 m) pixels become 0 (invalid)."""
-    mm = np.rint(np.asarray(depth_m, dtype=np.float64) * 1000.0)
-    invalid = ~np.isfinite(mm) | (depth_m >= 0.999 * far) | (mm > 65535) | (mm <= 0)
-    mm[invalid] = 0
-    return mm.astype(np.uint16)
-
-
-def segmentation_labels(model: mujoco.MjModel) -> dict[int, tuple[str, str]]:
-    """{geom id: (geom name, body name)} of every geom of the model."""
-    return {g: (model.geom(g).name, model.body(model.geom_bodyid[g]).name) for g in range(model.ngeom)}
-
-
-def robot_mask(segmentation: np.ndarray, labels: dict[int, tuple[str, str]]) -> np.ndarray:
-    """Boolean mask of the pixels showing the robot: geoms whose body is ``vx300s_left`` /
-    ``vx300s_right`` or one of their descendants (gym-aloha names those ``vx300s_left/...``).
-
-    ``segmentation`` is any-shaped int geom ids (-1 = none); ``labels`` {geom id: (geom, body)}.
-    """
-    seg = np.asarray(segmentation)
-    robot_ids = [
-        int(g) for g, (_, body) in labels.items()
-        if any(body == p or body.startswith(p + "/") for p in ROBOT_PREFIXES)
-    ]
-    if not robot_ids:
-        return np.zeros(seg.shape, dtype=bool)
-    lut = np.zeros(max(max(robot_ids), int(seg.max(initial=-1))) + 2, dtype=bool)
-    lut[np.array(robot_ids) + 1] = True  # shift by one so -1 (background) indexes lut[0]
-    return lut[np.clip(seg.astype(np.int64), -1, None) + 1]
-
-
-# --------------------------------------------------------------------------- episodes
+__all__ = ["SimConfig", "EpisodeResult", "simulate_episode", "record_dataset"]
 
 
 @dataclass
@@ -143,67 +49,31 @@ class EpisodeResult:
         return int(self.qpos.shape[0])
 
 
-def _initial_object_poses(task: str, seed: int) -> np.ndarray:
-    if task == "transfer_cube":
-        return sample_box_pose(seed)
-    return np.concatenate(sample_insertion_pose(seed))
-
-
-def _reset(model: mujoco.MjModel, data: mujoco.MjData, layout: TaskLayout, task: str, seed: int) -> None:
-    """gym-aloha's episode start: START_ARM_POSE, ctrl = that pose, objects from its sampler."""
-    mujoco.mj_resetData(model, data)
-    start = np.asarray(START_ARM_POSE, dtype=np.float64)
-    data.qpos[:16] = start
-    data.ctrl[:16] = start
-    poses = _initial_object_poses(task, seed).reshape(-1, 7)
-    for (name, adr), pose in zip(layout.object_qadr.items(), poses):
-        data.qpos[adr: adr + 7] = pose
-    mujoco.mj_forward(model, data)
-
-
 def simulate_episode(task: str, seed: int, *, noise: float = 0.0, frame_stride: int = 2,
                      max_steps: int | None = None, renderer: FrameRenderer | None = None,
                      model: mujoco.MjModel | None = None) -> EpisodeResult:
     """Roll out the scripted policy once. Without ``renderer`` nothing is rendered (fast:
     physics + IK only); with one, every recorded frame gets RGB (+ depth, segmentation)."""
-    if task not in TASKS:
-        raise InputError(f"unknown task {task!r}; expected one of {TASKS}")
-    if renderer is not None:
-        if model is not None and model is not renderer.model:
-            raise InputError("simulate_episode: pass either model or renderer (which has its own model), not both")
-        model = renderer.model
-    elif model is None:
-        model = load_mujoco_model(task)
-    if frame_stride < 1:
-        raise InputError(f"frame_stride must be >= 1, got {frame_stride}")
-    data = mujoco.MjData(model)
-    layout = TaskLayout(model, task)
-    _reset(model, data, layout, task, seed)
+    env = SimEnv(task, frame_stride=frame_stride, renderer=renderer, model=model)
+    env.reset(seed)
     # The policy's noise stream is separate from the object-pose sampler (seeded with seed).
     rng = np.random.default_rng([int(seed), 0x51D])
-    policy = ScriptedPolicy(task, model, data, rng, noise)
+    policy = ScriptedPolicy(task, env.model, env.data, rng, noise)
     n_steps = int(round(policy.duration / CONTROL_DT))
     if max_steps is not None:
         n_steps = min(n_steps, int(max_steps))
     n_frames = n_steps // frame_stride
-    substeps = max(1, int(round(CONTROL_DT / model.opt.timestep)))  # 10, as gym-aloha
     qpos = np.empty((n_frames, 14))
     qvel = np.empty((n_frames, 14))
     action = np.empty((n_frames, 14))
     frames: list[dict] = []
-    max_reward = 0
     for k in range(n_frames):
-        qpos[k] = layout.qpos(data)
-        qvel[k] = layout.qvel(data)
+        qpos[k], qvel[k] = env.qpos(), env.qvel()
         if renderer is not None:
-            frames.append(renderer.render(data))
-        a = policy(k * frame_stride * CONTROL_DT, data)
-        action[k] = a
-        layout.apply(data, a)
-        for _ in range(frame_stride):
-            mujoco.mj_step(model, data, nstep=substeps)
-            max_reward = max(max_reward, task_reward(layout, data, task))
-    success = task_success(layout, data, task)
+            frames.append(env.render())
+        action[k] = policy(k * frame_stride * CONTROL_DT, env.data)
+        env.step(action[k])
+    layout, data = env.layout, env.data
 
     def stack(kind):
         if not frames or not frames[0][kind]:
@@ -211,7 +81,7 @@ def simulate_episode(task: str, seed: int, *, noise: float = 0.0, frame_stride: 
         return {cam: np.stack([f[kind][cam] for f in frames]) for cam in frames[0][kind]}
 
     return EpisodeResult(
-        qpos=qpos, qvel=qvel, action=action, success=bool(success), max_reward=max_reward,
+        qpos=qpos, qvel=qvel, action=action, success=env.success, max_reward=env.max_reward,
         fps=1.0 / (frame_stride * CONTROL_DT),
         images=stack("rgb"), depth_mm=stack("depth_mm"), segmentation=stack("segmentation"),
         final_object_pos={n: data.xpos[b].copy() for n, b in layout.object_bodies.items()},

@@ -16,12 +16,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from imac_data.core.mujoco_gl import mujoco
-from imac_data.core.robot.aloha import ARM_JOINTS, ARMS, TASKS, normalize_gripper
+from imac_data.core.robot.aloha import ARM_JOINTS, ARMS, normalize_gripper
 from imac_data.errors import InputError
 from imac_data.sources.sim.rig import CONTROL_DT
-from imac_data.sources.sim.tasks import REST_HEIGHT, TABLE_Z, TaskLayout
+from imac_data.sources.sim.tasks import REST_HEIGHT, TABLE_Z, TASKS, TaskLayout
 
-__all__ = ["ScriptedPolicy", "TCP_OFFSET"]
+__all__ = ["ScriptedPolicy", "ArmIK", "Waypoint", "Trajectory", "TCP_OFFSET", "PICK_PITCH", "home_rotations",
+           "lift_waypoints", "rot_x", "rot_y", "rot_z"]
 
 # Tool centre point in the gripper_link frame: between the finger pads, 2.4 cm
 # behind the finger tips (which reach x = 0.154). All waypoints target this point.
@@ -34,17 +35,17 @@ def _quat_from_mat(R: np.ndarray) -> np.ndarray:
     return q
 
 
-def _rot_x(deg: float) -> np.ndarray:
+def rot_x(deg: float) -> np.ndarray:
     c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
 
 
-def _rot_y(deg: float) -> np.ndarray:
+def rot_y(deg: float) -> np.ndarray:
     c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-def _rot_z(deg: float) -> np.ndarray:
+def rot_z(deg: float) -> np.ndarray:
     c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
 
@@ -68,7 +69,7 @@ def _min_jerk(u: float) -> float:
 # --------------------------------------------------------------------------- IK
 
 
-class _ArmIK:
+class ArmIK:
     """Damped-least-squares IK of one arm's tool centre point (position + orientation)."""
 
     def __init__(self, model: mujoco.MjModel, arm: str):
@@ -122,15 +123,15 @@ class _ArmIK:
 
 
 @dataclass
-class _Waypoint:
+class Waypoint:
     t: float  # seconds
     pos: np.ndarray  # TCP position (world)
     R: np.ndarray  # gripper_link rotation (world)
     grip: float  # normalised gripper command
 
 
-class _Trajectory:
-    def __init__(self, waypoints: list[_Waypoint]):
+class Trajectory:
+    def __init__(self, waypoints: list[Waypoint]):
         self.wps = waypoints
         self.quats = [_quat_from_mat(w.R) for w in waypoints]
         self.duration = waypoints[-1].t
@@ -151,18 +152,18 @@ class _Trajectory:
         return wps[-1].pos, self.quats[-1], wps[-1].grip
 
 
-def _home_rotations() -> dict[str, np.ndarray]:
+def home_rotations() -> dict[str, np.ndarray]:
     # Level grippers pointing at the centre of the table (+x for the left arm,
     # -x for the right arm, whose base is turned 180 degrees about z).
-    return {"vx300s_left": np.eye(3), "vx300s_right": _rot_z(180.0)}
+    return {"vx300s_left": np.eye(3), "vx300s_right": rot_z(180.0)}
 
 
 def _transfer_cube_script(objects: dict[str, np.ndarray], home: dict, rng: np.random.Generator,
-                          noise: float) -> dict[str, list[_Waypoint]]:
+                          noise: float) -> dict[str, list[Waypoint]]:
     """Right arm picks the cube, brings it to the meeting point; left arm takes it."""
-    H = _home_rotations()
-    pick_R = H["vx300s_right"] @ _rot_y(60.0)  # pitched 60 degrees down
-    meet_left_R = H["vx300s_left"] @ _rot_x(90.0)  # rolled: fingers close vertically
+    H = home_rotations()
+    pick_R = H["vx300s_right"] @ rot_y(60.0)  # pitched 60 degrees down
+    meet_left_R = H["vx300s_left"] @ rot_x(90.0)  # rolled: fingers close vertically
     cube = objects["box"] + rng.normal(0.0, 0.012 * noise, 3) * np.array([1.0, 1.0, 0.3])
     meet = np.array([0.0, 0.5, 0.25])
     meet_r = meet + rng.normal(0.0, 0.008 * noise, 3)
@@ -170,36 +171,70 @@ def _transfer_cube_script(objects: dict[str, np.ndarray], home: dict, rng: np.ra
     grasp_z = max(cube[2], TABLE_Z + 0.02)
     g0 = home["grip"]
     right = [
-        _Waypoint(0.0, home["vx300s_right"][0], home["vx300s_right"][1], g0),
-        _Waypoint(1.0, np.array([cube[0], cube[1], grasp_z + 0.08]), pick_R, 1.0),  # approach
-        _Waypoint(1.5, np.array([cube[0], cube[1], grasp_z]), pick_R, 1.0),  # descend
-        _Waypoint(1.9, np.array([cube[0], cube[1], grasp_z]), pick_R, 0.0),  # close
-        _Waypoint(2.1, np.array([cube[0], cube[1], grasp_z]), pick_R, 0.0),  # squeeze
-        _Waypoint(2.7, meet_r + np.array([0.05, 0.0, 0.0]), pick_R, 0.0),  # lift, approach meet
-        _Waypoint(3.0, meet_r, pick_R, 0.0),  # meet
-        _Waypoint(3.9, meet_r, pick_R, 0.0),  # hold while the left arm grasps
-        _Waypoint(4.2, meet_r, pick_R, 1.0),  # open
-        _Waypoint(4.6, meet_r + np.array([0.1, 0.0, 0.0]), pick_R, 1.0),  # retreat
-        _Waypoint(5.0, meet_r + np.array([0.1, 0.0, 0.0]), pick_R, 1.0),
+        Waypoint(0.0, home["vx300s_right"][0], home["vx300s_right"][1], g0),
+        Waypoint(1.0, np.array([cube[0], cube[1], grasp_z + 0.08]), pick_R, 1.0),  # approach
+        Waypoint(1.5, np.array([cube[0], cube[1], grasp_z]), pick_R, 1.0),  # descend
+        Waypoint(1.9, np.array([cube[0], cube[1], grasp_z]), pick_R, 0.0),  # close
+        Waypoint(2.1, np.array([cube[0], cube[1], grasp_z]), pick_R, 0.0),  # squeeze
+        Waypoint(2.7, meet_r + np.array([0.05, 0.0, 0.0]), pick_R, 0.0),  # lift, approach meet
+        Waypoint(3.0, meet_r, pick_R, 0.0),  # meet
+        Waypoint(3.9, meet_r, pick_R, 0.0),  # hold while the left arm grasps
+        Waypoint(4.2, meet_r, pick_R, 1.0),  # open
+        Waypoint(4.6, meet_r + np.array([0.1, 0.0, 0.0]), pick_R, 1.0),  # retreat
+        Waypoint(5.0, meet_r + np.array([0.1, 0.0, 0.0]), pick_R, 1.0),
     ]
     left = [
-        _Waypoint(0.0, home["vx300s_left"][0], home["vx300s_left"][1], g0),
-        _Waypoint(1.6, meet_l + np.array([-0.12, 0.0, 0.0]), meet_left_R, 1.0),  # approach meet
-        _Waypoint(3.0, meet_l + np.array([-0.12, 0.0, 0.0]), meet_left_R, 1.0),
-        _Waypoint(3.4, meet_l + np.array([0.0, 0.0, 0.0]), meet_left_R, 1.0),  # move in
-        _Waypoint(3.8, meet_l + np.array([0.0, 0.0, 0.0]), meet_left_R, 0.0),  # close
-        _Waypoint(4.2, meet_l + np.array([0.0, 0.0, 0.0]), meet_left_R, 0.0),  # hold while right opens
-        _Waypoint(4.7, meet_l + np.array([-0.1, 0.0, 0.02]), meet_left_R, 0.0),  # take it away
-        _Waypoint(5.0, meet_l + np.array([-0.1, 0.0, 0.02]), meet_left_R, 0.0),
+        Waypoint(0.0, home["vx300s_left"][0], home["vx300s_left"][1], g0),
+        Waypoint(1.6, meet_l + np.array([-0.12, 0.0, 0.0]), meet_left_R, 1.0),  # approach meet
+        Waypoint(3.0, meet_l + np.array([-0.12, 0.0, 0.0]), meet_left_R, 1.0),
+        Waypoint(3.4, meet_l + np.array([0.0, 0.0, 0.0]), meet_left_R, 1.0),  # move in
+        Waypoint(3.8, meet_l + np.array([0.0, 0.0, 0.0]), meet_left_R, 0.0),  # close
+        Waypoint(4.2, meet_l + np.array([0.0, 0.0, 0.0]), meet_left_R, 0.0),  # hold while right opens
+        Waypoint(4.7, meet_l + np.array([-0.1, 0.0, 0.02]), meet_left_R, 0.0),  # take it away
+        Waypoint(5.0, meet_l + np.array([-0.1, 0.0, 0.02]), meet_left_R, 0.0),
     ]
     return {"vx300s_left": left, "vx300s_right": right}
 
 
+PICK_PITCH = 60.0  # degrees the right gripper pitches down to pick the cube
+
+
+def lift_waypoints(cube: np.ndarray, home: tuple[np.ndarray, np.ndarray], grip0: float,
+                   lift: float = 0.10) -> list[Waypoint]:
+    """The right arm's pick of the cube at ``cube`` (its centre, resting) and lift by ``lift``
+    metres: the right-arm waypoints of the transfer script up to the lift, held to the end."""
+    pick_R = home_rotations()["vx300s_right"] @ rot_y(PICK_PITCH)
+    grasp_z = max(float(cube[2]), TABLE_Z + 0.02)
+    at = np.array([cube[0], cube[1], grasp_z])
+    return [
+        Waypoint(0.0, home[0], home[1], grip0),
+        Waypoint(1.0, at + [0.0, 0.0, 0.08], pick_R, 1.0),  # approach
+        Waypoint(1.5, at, pick_R, 1.0),  # descend
+        Waypoint(1.9, at, pick_R, 0.0),  # close
+        Waypoint(2.1, at, pick_R, 0.0),  # squeeze
+        Waypoint(2.7, at + [0.0, 0.0, lift], pick_R, 0.0),  # lift
+        Waypoint(LIFT_DURATION, at + [0.0, 0.0, lift], pick_R, 0.0),  # hold
+    ]
+
+
+LIFT_DURATION = 3.3  # seconds: 33 frames at 10 fps, a reference frame and four chunks of 8
+
+
+def _lift_script(objects: dict[str, np.ndarray], home: dict, rng: np.random.Generator,
+                 noise: float) -> dict[str, list[Waypoint]]:
+    """The right arm picks the cube and lifts it; the left arm stays home."""
+    cube = objects["box"] + rng.normal(0.0, 0.012 * noise, 3) * np.array([1.0, 1.0, 0.3])
+    left = home["vx300s_left"]
+    return {"vx300s_right": lift_waypoints(cube, home["vx300s_right"], home["grip"]),
+            "vx300s_left": [Waypoint(0.0, left[0], left[1], home["grip"]),
+                            Waypoint(LIFT_DURATION, left[0], left[1], home["grip"])]}
+
+
 def _insertion_script(objects: dict[str, np.ndarray], home: dict, rng: np.random.Generator,
-                      noise: float) -> dict[str, list[_Waypoint]]:
+                      noise: float) -> dict[str, list[Waypoint]]:
     """Right arm picks the peg, left arm the socket; they meet and the peg goes in."""
-    H = _home_rotations()
-    pick_R = {arm: H[arm] @ _rot_y(60.0) for arm in ARMS}
+    H = home_rotations()
+    pick_R = {arm: H[arm] @ rot_y(60.0) for arm in ARMS}
     scale = np.array([1.0, 1.0, 0.3])
     peg = objects["peg"] + rng.normal(0.0, 0.012 * noise, 3) * scale
     socket = objects["socket"] + rng.normal(0.0, 0.012 * noise, 3) * scale
@@ -216,29 +251,29 @@ def _insertion_script(objects: dict[str, np.ndarray], home: dict, rng: np.random
     r_in = meet_r + np.array([0.05, 0.0, peg_off - socket_off])
     l_in = meet_l + np.array([-0.05, 0.0, 0.0])
     right = [
-        _Waypoint(0.0, home["vx300s_right"][0], home["vx300s_right"][1], g0),
-        _Waypoint(1.2, np.array([peg[0], peg[1], peg_z + 0.08]), pick_R["vx300s_right"], 1.0),
-        _Waypoint(1.7, np.array([peg[0], peg[1], peg_z]), pick_R["vx300s_right"], 1.0),
-        _Waypoint(2.1, np.array([peg[0], peg[1], peg_z]), pick_R["vx300s_right"], 0.0),
-        _Waypoint(2.3, np.array([peg[0], peg[1], peg_z]), pick_R["vx300s_right"], 0.0),
-        _Waypoint(3.2, r_in + np.array([0.06, 0.0, 0.0]), pick_R["vx300s_right"], 0.0),
-        _Waypoint(4.2, r_in + np.array([-0.015, 0.0, 0.0]), pick_R["vx300s_right"], 0.0),
-        _Waypoint(4.6, r_in + np.array([-0.015, 0.0, 0.0]), pick_R["vx300s_right"], 0.0),
+        Waypoint(0.0, home["vx300s_right"][0], home["vx300s_right"][1], g0),
+        Waypoint(1.2, np.array([peg[0], peg[1], peg_z + 0.08]), pick_R["vx300s_right"], 1.0),
+        Waypoint(1.7, np.array([peg[0], peg[1], peg_z]), pick_R["vx300s_right"], 1.0),
+        Waypoint(2.1, np.array([peg[0], peg[1], peg_z]), pick_R["vx300s_right"], 0.0),
+        Waypoint(2.3, np.array([peg[0], peg[1], peg_z]), pick_R["vx300s_right"], 0.0),
+        Waypoint(3.2, r_in + np.array([0.06, 0.0, 0.0]), pick_R["vx300s_right"], 0.0),
+        Waypoint(4.2, r_in + np.array([-0.015, 0.0, 0.0]), pick_R["vx300s_right"], 0.0),
+        Waypoint(4.6, r_in + np.array([-0.015, 0.0, 0.0]), pick_R["vx300s_right"], 0.0),
     ]
     left = [
-        _Waypoint(0.0, home["vx300s_left"][0], home["vx300s_left"][1], g0),
-        _Waypoint(1.2, np.array([socket[0], socket[1], socket_z + 0.08]), pick_R["vx300s_left"], 1.0),
-        _Waypoint(1.7, np.array([socket[0], socket[1], socket_z]), pick_R["vx300s_left"], 1.0),
-        _Waypoint(2.1, np.array([socket[0], socket[1], socket_z]), pick_R["vx300s_left"], 0.0),
-        _Waypoint(2.3, np.array([socket[0], socket[1], socket_z]), pick_R["vx300s_left"], 0.0),
-        _Waypoint(3.2, l_in + np.array([-0.06, 0.0, 0.0]), pick_R["vx300s_left"], 0.0),
-        _Waypoint(4.2, l_in, pick_R["vx300s_left"], 0.0),
-        _Waypoint(4.6, l_in, pick_R["vx300s_left"], 0.0),
+        Waypoint(0.0, home["vx300s_left"][0], home["vx300s_left"][1], g0),
+        Waypoint(1.2, np.array([socket[0], socket[1], socket_z + 0.08]), pick_R["vx300s_left"], 1.0),
+        Waypoint(1.7, np.array([socket[0], socket[1], socket_z]), pick_R["vx300s_left"], 1.0),
+        Waypoint(2.1, np.array([socket[0], socket[1], socket_z]), pick_R["vx300s_left"], 0.0),
+        Waypoint(2.3, np.array([socket[0], socket[1], socket_z]), pick_R["vx300s_left"], 0.0),
+        Waypoint(3.2, l_in + np.array([-0.06, 0.0, 0.0]), pick_R["vx300s_left"], 0.0),
+        Waypoint(4.2, l_in, pick_R["vx300s_left"], 0.0),
+        Waypoint(4.6, l_in, pick_R["vx300s_left"], 0.0),
     ]
     return {"vx300s_left": left, "vx300s_right": right}
 
 
-_SCRIPTS = {"transfer_cube": _transfer_cube_script, "insertion": _insertion_script}
+_SCRIPTS = {"transfer_cube": _transfer_cube_script, "insertion": _insertion_script, "lift": _lift_script}
 
 
 class ScriptedPolicy:
@@ -252,7 +287,7 @@ class ScriptedPolicy:
         self.layout = layout = TaskLayout(model, task)
         self.noise = float(noise)
         self.rng = rng
-        self.ik = {arm: _ArmIK(model, arm) for arm in ARMS}
+        self.ik = {arm: ArmIK(model, arm) for arm in ARMS}
         self.q = {arm: data.qpos[self.ik[arm].qadr].copy() for arm in ARMS}
         home = {arm: self.ik[arm].fk(self.q[arm]) for arm in ARMS}
         home["grip"] = float(normalize_gripper(data.qpos[layout.finger_qadr[0]]))
@@ -264,7 +299,7 @@ class ScriptedPolicy:
         scripts = _SCRIPTS[task](objects, home, rng, self.noise)
         # Tempo jitter: a noisy operator is not uniformly paced.
         self.tempo = 1.0 + self.noise * rng.uniform(-0.1, 0.1)
-        self.traj = {arm: _Trajectory(wps) for arm, wps in scripts.items()}
+        self.traj = {arm: Trajectory(wps) for arm, wps in scripts.items()}
         self.duration = max(tr.duration for tr in self.traj.values()) * self.tempo
         self._ou = np.zeros(14)
         self._t_last: float | None = None

@@ -19,13 +19,19 @@ from imac_data.core.robot.aloha import (
 )
 from imac_data.errors import InputError
 
-__all__ = ["TASK_INSTRUCTIONS", "TABLE_Z", "REST_HEIGHT", "TaskLayout", "task_reward", "task_success"]
+__all__ = ["TASKS", "SCENES", "TASK_INSTRUCTIONS", "TABLE_Z", "REST_HEIGHT", "LIFT_HEIGHT", "TaskLayout",
+           "task_reward", "task_success"]
 
-# Instructions of LeRobot's aloha_sim datasets (lerobot/aloha_sim_*), which gym-aloha's tasks come from.
+TASKS = ("transfer_cube", "insertion", "lift")
+SCENES = {"transfer_cube": "transfer_cube", "insertion": "insertion", "lift": "transfer_cube"}  # task -> MJCF
+# Instructions of LeRobot's aloha_sim datasets (lerobot/aloha_sim_*), which gym-aloha's tasks come from;
+# lift is the first half of transfer_cube, the right arm alone.
 TASK_INSTRUCTIONS = {
     "transfer_cube": "Pick up the cube with the right arm and transfer it to the left arm.",
     "insertion": "Insert the peg into the socket.",
+    "lift": "Pick up the cube with the right arm and lift it.",
 }
+LIFT_HEIGHT = 0.04  # lift succeeds when the cube's bottom is at least this far above the table
 
 TABLE_Z = 0.0  # the table top (gym-aloha's tabletop mesh spans z in [-0.03, 0])
 
@@ -55,7 +61,7 @@ class TaskLayout:
         self.qpos14 = np.r_[self.arm_qadr[0], self.finger_qadr[0], self.arm_qadr[1], self.finger_qadr[1]]
         self.qvel14 = np.r_[self.arm_dadr[0], self.finger_dadr[0], self.arm_dadr[1], self.finger_dadr[1]]
         self.gripper_cols = np.array([6, 13])
-        names = {"transfer_cube": ("box",), "insertion": ("peg", "socket")}[task]
+        names = {"transfer_cube": ("box",), "lift": ("box",), "insertion": ("peg", "socket")}[task]
         self.object_bodies = {n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in names}
         if min(self.object_bodies.values()) < 0:
             raise InputError(f"the MuJoCo model is not gym-aloha's {task!r} model (no body {names})")
@@ -111,7 +117,7 @@ def task_reward(layout: TaskLayout, data: mujoco.MjData, task: str) -> int:
     a gripper counting as that gripper."""
     pairs = _contact_pairs(data)
     left, right = layout.fingers["vx300s_left"], layout.fingers["vx300s_right"]
-    if task == "transfer_cube":
+    if task in ("transfer_cube", "lift"):  # lift reaches levels 1 and 2 at most
         touch_right = _touch(pairs, layout.box, right)
         touch_left = _touch(pairs, layout.box, left)
         touch_table = _touch(pairs, layout.box, layout.table)
@@ -161,8 +167,18 @@ def task_success(layout: TaskLayout, data: mujoco.MjData, task: str) -> bool:
     insertion: neither object touches the table and the peg's end is at least 1 cm inside the
     socket tube, axes aligned within 20 degrees (gym-aloha's reward only asks for a
     peg-pin touch at some instant; we want the peg to *be* in the socket at the end).
+    lift: the cube touches a right-gripper finger, no left-gripper finger and not the table,
+    and its bottom is at least :data:`LIFT_HEIGHT` above the table top.
     """
     pairs = _contact_pairs(data)
+    if task == "lift":
+        box_z = data.xpos[layout.object_bodies["box"]][2]
+        return (
+            _touch(pairs, layout.box, layout.fingers["vx300s_right"])
+            and not _touch(pairs, layout.box, layout.fingers["vx300s_left"])
+            and not _touch(pairs, layout.box, layout.table)
+            and box_z >= TABLE_Z + REST_HEIGHT["box"] + LIFT_HEIGHT
+        )
     if task == "transfer_cube":
         box_z = data.xpos[layout.object_bodies["box"]][2]
         return (
