@@ -20,6 +20,7 @@ from imac_data.config import parse_dataclass
 from imac_data.core.contact.workspace import WorkspaceSettings
 from imac_data.core.depth import DepthCodec
 from imac_data.core.motion import Controller
+from imac_data.core.robot.aloha import SIM_TASKS
 from imac_data.errors import InputError
 from imac_data.layout import ACTION, STATE
 
@@ -268,8 +269,8 @@ def _validate(recipe: Recipe) -> None:
     if s.episode_defaults.source not in ("teleop", "policy"):
         raise InputError(f"{f}: source.episode_defaults.source: must be 'teleop' or 'policy'")
     sim = s.sim
-    if sim.task not in ("transfer_cube", "insertion"):
-        raise InputError(f"{f}: source.sim.task: must be 'transfer_cube' or 'insertion', got {sim.task!r}")
+    if sim.task not in SIM_TASKS:
+        raise InputError(f"{f}: source.sim.task: must be one of {list(SIM_TASKS)}, got {sim.task!r}")
     if not 0.0 <= sim.noise <= 1.0:
         raise InputError(f"{f}: source.sim.noise: must be in [0, 1], got {sim.noise}")
     if sim.height <= 0 or sim.width <= 0 or sim.frame_stride <= 0:

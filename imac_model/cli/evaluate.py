@@ -4,6 +4,8 @@ Subcommands (each writes a JSON with its protocol; ``--help`` on each lists its 
 
 * ``closed-loop``: run a policy in the world model from a real dataset's start frames and
   write the generated episodes as a LeRobot dataset (:mod:`imac_model.evaluate.closed_loop`);
+* ``simulator``: run a policy in MuJoCo under the same observation contract and write its
+  episodes, with MuJoCo's success labels, for ``imac build`` (:mod:`imac_model.evaluate.simulator`);
 * ``video-metrics``: MSE/PSNR/SSIM (and FID/FVD with local weights) of N-chunk rollouts of the
   recorded actions against the recording (:mod:`imac_model.evaluate.open_loop`,
   :mod:`imac_model.evaluate.video_metrics`);
@@ -18,6 +20,7 @@ JSON output is strict: a non-finite number (PSNR of identical frames is +inf) is
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -34,8 +37,9 @@ from imac_model.evaluate.closed_loop import ClosedLoopConfig, run_closed_loop
 from imac_model.evaluate.open_loop import rollout_starts, rollout_videos
 from imac_model.evaluate.policies import load_policy
 from imac_model.evaluate.results import read_outcomes, write_json
+from imac_model.evaluate.simulator import SimRunConfig, run_policy
 from imac_model.evaluate.statistics import plot_policy_scatter, policy_correlation
-from imac_model.evaluate.success import CsvJudge, SuccessClassifier
+from imac_model.evaluate.success import CsvJudge, SuccessClassifier, load_judge
 from imac_model.evaluate.video_metrics import VideoMetricsConfig, compute_video_metrics
 from imac_model.models.checkpoint import load_world_model, read_spec, resolve_checkpoint, run_config_of
 from imac_model.pipelines.online_controls import OnlineControls
@@ -100,13 +104,15 @@ def cmd_closed_loop(args) -> int:
                               sampler_steps=args.steps, seed=args.seed, judge_frames=args.judge_frames)
     policy = "recorded" if args.policy == "recorded" else load_policy(
         args.policy, camera_map=_camera_map(args.camera_map), device=args.device)
-    judge = None
-    if args.success_classifier:
-        judge = SuccessClassifier.load(args.success_classifier)
+    if args.success_classifier and args.judge:
+        raise InputError("give --judge or --success-classifier (the same as --judge classifier:DIR), not both")
+    spec_of_judge = f"classifier:{args.success_classifier}" if args.success_classifier else args.judge
+    judge = load_judge(spec_of_judge) if spec_of_judge else None
+    if isinstance(judge, SuccessClassifier):
         wanted = {f"observation.images.{v}" for v in spec.views}
         missing = [c for c in judge.config.cameras if c not in wanted]
         if missing:
-            raise InputError(f"{args.success_classifier}: the classifier reads cameras {missing}, which the world "
+            raise InputError(f"{spec_of_judge}: the classifier reads cameras {missing}, which the world "
                              f"model does not generate (views {list(spec.views)})")
     output = Path(args.output)
     result = run_closed_loop(model, chunks, _online(spec, chunks, run), policy, output, config=config,
@@ -116,6 +122,26 @@ def cmd_closed_loop(args) -> int:
     rate = result.to_dict()["success_rate"]
     print(f"wrote {len(result.episodes)} generated episodes to {output} and {out}"
           + ("" if rate is None else f"; success rate {rate:.3f} ({judge.name})"))
+    return 0
+
+
+def cmd_simulator(args) -> int:
+    config = SimRunConfig(task=args.task, chunks=args.chunks, chunk=args.chunk, view_height=args.view_size[0],
+                          view_width=args.view_size[1], render_height=args.render_size[0],
+                          render_width=args.render_size[1])
+    policy = load_policy(args.policy)
+    output = Path(args.output) if args.output else None
+    if output is not None and any(output.glob("episode_*.hdf5")):
+        raise InputError(f"--output {output} already holds episodes; choose an empty directory")
+    rows = run_policy(policy, args.seeds, output, config=config, progress=not args.no_progress)
+    rate = float(np.mean([r["success"] for r in rows]))
+    result = {"policy": args.policy, "protocol": {**dataclasses.asdict(config), "success": "read off MuJoCo"},
+              "episodes": rows, "success_rate": rate}
+    json_path = args.json or (output / "outcomes.json" if output is not None else None)
+    if json_path:
+        write_json(json_path, result)
+    print(f"{args.policy}: success {sum(r['success'] for r in rows)}/{len(rows)} ({rate:.3f})"
+          + (f"; episodes in {output}" if output is not None else ""))
     return 0
 
 
@@ -207,6 +233,6 @@ def cmd_correlate(args) -> int:
 
 
 def run(args) -> int:
-    body = {"closed-loop": cmd_closed_loop, "video-metrics": cmd_video_metrics, "label": cmd_label,
+    body = {"closed-loop": cmd_closed_loop, "simulator": cmd_simulator, "video-metrics": cmd_video_metrics, "label": cmd_label,
             "correlate": cmd_correlate}[args.evaluate_command]
     return run_command(lambda: body(args))

@@ -14,7 +14,6 @@ from imac_model.experiments.comparison import (
     SETTINGS,
     STAGES,
     Plan,
-    StageLog,
     decode_chunks,
     evaluate_setting,
     stage_build,
@@ -24,6 +23,7 @@ from imac_model.experiments.comparison import (
     stage_report,
     stage_train,
 )
+from imac_model.experiments.stages import StageLog
 
 
 def run(args: argparse.Namespace) -> int:

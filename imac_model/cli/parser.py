@@ -12,9 +12,11 @@ COMMANDS = {  # command -> the module whose run(args) carries it out
     "sample": "imac_model.cli.sample",
     "evaluate": "imac_model.cli.evaluate",
     "experiment": "imac_model.cli.experiment",
+    "ranking": "imac_model.cli.ranking",
 }
 MODES = ("none", "motion", "motion+contact", "action-vector")
 EXPERIMENT_STAGES = ("record", "build", "decode", "train", "evaluate", "report")
+RANKING_STAGES = ("simulate", "build", "decode", "train", "judges", "evaluate", "report")
 
 
 def _train(p: argparse.ArgumentParser) -> None:
@@ -83,8 +85,27 @@ def _evaluate(p: argparse.ArgumentParser) -> None:
     c.add_argument("--horizon-chunks", type=int,
                    help="world-model chunks per episode (default: enough to cover each recorded episode)")
     c.add_argument("--success-classifier", help="a saved SuccessClassifier directory: judges every episode")
+    c.add_argument("--judge", help="judges every episode: classifier:DIR or python:MODULE:NAME (a SuccessJudge, or "
+                                   "a function EpisodeFrames -> bool)")
     c.add_argument("--judge-frames", type=int, default=4, help="last frames per view the judge sees")
     c.add_argument("--json", help="result JSON (default <output>/closed_loop.json)")
+
+    m = sub.add_parser("simulator", help="run a policy in MuJoCo (the simulated ALOHA rig) under the closed loop's "
+                                         "observation contract; write HDF5 episodes with their success")
+    m.add_argument("--policy", required=True, help="hold or python:MODULE:NAME (as closed-loop)")
+    m.add_argument("--task", default="lift", help="simulated task (default lift)")
+    m.add_argument("--seeds", type=int, nargs="+", required=True,
+                   help="episode start seeds (gym-aloha's reset(seed)), one episode each")
+    m.add_argument("--chunks", type=int, default=4, help="policy chunks per episode (default 4)")
+    m.add_argument("--chunk", type=int, default=8, help="actions per chunk: the world model's H (default 8)")
+    m.add_argument("--view-size", type=int, nargs=2, default=(48, 64), metavar=("H", "W"),
+                   help="what the policy sees: the world model's view size (default 48 64)")
+    m.add_argument("--render-size", type=int, nargs=2, default=(96, 128), metavar=("H", "W"),
+                   help="what is rendered and recorded (default 96 128)")
+    m.add_argument("--output", help="directory for episode_<i>.hdf5 and calibration.json (build it with imac build "
+                                    "--recipe recipes/aloha_sim_lift.yaml --source DIR)")
+    m.add_argument("--json", help="outcomes JSON (default <output>/outcomes.json, or none without --output)")
+    m.add_argument("--no-progress", action="store_true")
 
     v = sub.add_parser("video-metrics", help="rollouts of the recorded actions against the recording")
     _model_args(v)
@@ -136,6 +157,23 @@ def _experiment(p: argparse.ArgumentParser) -> None:
     p.add_argument("--setting", help=argparse.SUPPRESS)
 
 
+def _ranking(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--work", default="runs/ranking", help="cache of every stage (resumable)")
+    p.add_argument("--docs", default="docs/ranking", help="where the report goes")
+    p.add_argument("--policies", nargs="+", metavar="SPEC",
+                   help="python:MODULE:NAME policies to rank (default: the benchmark's six lift policies)")
+    p.add_argument("--cpu-minutes", type=float, help="training budget per mode (default 18)")
+    p.add_argument("--steps", type=int, help="Euler steps at evaluation (default 10)")
+    p.add_argument("--jobs", type=int, help="processes at a time (default 2)")
+    p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "
+                                                       "2 chunks, 2 modes, 2 sampler steps")
+    p.add_argument("--stages", default=",".join(RANKING_STAGES),
+                   help=f"comma-separated subset of {','.join(RANKING_STAGES)}")
+    p.add_argument("--plan", help=argparse.SUPPRESS)
+    p.add_argument("--internal", choices=("train-rollouts", "decode", "judges", "evaluate"), help=argparse.SUPPRESS)
+    p.add_argument("internal_args", nargs="*", help=argparse.SUPPRESS)
+
+
 def build_parser(prog: str = "imac-model") -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, description="The iMaC world model: train, sample, evaluate. "
                                                             "docs/world-model.md has the details.")
@@ -145,6 +183,8 @@ def build_parser(prog: str = "imac-model") -> argparse.ArgumentParser:
     _evaluate(sub.add_parser("evaluate", help="closed-loop policy evaluation, video metrics, success labels, "
                                               "world-model vs real correlations"))
     _experiment(sub.add_parser("experiment", help="the small-scale comparison of docs/experiment (resumable)"))
+    _ranking(sub.add_parser("ranking", help="does the world model rank policies as MuJoCo does? (docs/ranking.md, "
+                                            "resumable)"))
     return parser
 
 

@@ -28,7 +28,13 @@ from imac_data.errors import InputError
 from imac_data.layout import ACTION, EPISODE_COLUMNS, SUCCESS_COLUMN, control_key, depth_key, image_key
 from imac_model.data import mosaic
 from imac_model.data.batch import ChunkBatch
-from imac_model.evaluate.policies import STATE_KEY, ActionQueue, policy_name, recorded_actions_policy
+from imac_model.evaluate.policies import (
+    STATE_KEY,
+    ActionQueue,
+    make_observation,
+    policy_name,
+    recorded_actions_policy,
+)
 from imac_model.evaluate.success import EpisodeFrames
 from imac_model.pipelines.rollout import sample_rollout
 
@@ -89,14 +95,14 @@ def episode_starts(chunks, episodes: Sequence[int], *, seed: int = 0, horizon_ch
 # --------------------------------------------------------------------------- one episode
 
 
-def observation_of(frame: torch.Tensor, state: torch.Tensor, views: Sequence[str], task: str = "") -> dict:
-    """A policy's observation of a mosaic frame ``(3, 2h, V w)``: each view's RGB
-    ``(3, h, w)`` under ``observation.images.{view}``, the state, the task."""
+def observation_of(frame: torch.Tensor, state: torch.Tensor, views: Sequence[str], task: str = "",
+                   online=None) -> dict:
+    """A policy's observation (:func:`~imac_model.evaluate.policies.make_observation`) of a
+    mosaic frame ``(3, 2h, V w)``: each view's RGB and, with ``online``
+    (:class:`OnlineControls`, which knows the depth codec), its decoded depth in metres."""
     rgb, _ = mosaic.split(frame, len(views))
-    obs = {image_key(v): rgb[i].clamp(0, 1) for i, v in enumerate(views)}
-    obs[STATE_KEY] = state.float().cpu()
-    obs["task"] = task
-    return obs
+    depth = None if online is None else online.reference_depth(frame[None])[0][0]
+    return make_observation(rgb, depth, state, views, task)
 
 
 @dataclass
@@ -115,10 +121,12 @@ class ChunkRecord:
 
 @torch.no_grad()
 def rollout_episode(model, online, policy, start: Start, *, steps: int | None = None,
-                    views: Sequence[str] | None = None) -> Iterator[ChunkRecord]:
+                    views: Sequence[str] | None = None, intervene=None) -> Iterator[ChunkRecord]:
     """Run ``policy`` in the world model from ``start`` for ``start.chunks`` chunks (see the
     module docstring), yielding each chunk as it is generated. ``policy``: a callable or an
-    :class:`ActionQueue`."""
+    :class:`ActionQueue`. ``intervene(reference, n) -> reference``, at each later chunk
+    boundary ``n`` before the policy looks, may replace the frame the world model goes on from
+    (an intervention test: the policy should act on what it is shown)."""
     base = getattr(model, "module", model)
     spec = base.spec
     views = tuple(views or spec.views)
@@ -131,7 +139,9 @@ def rollout_episode(model, online, policy, start: Start, *, steps: int | None = 
     q = start.state[None].float()
     H = spec.chunk
     for n in range(start.chunks):
-        actions = queue.take(observation_of(reference[0].cpu(), q[0], views, start.task), H)[None]  # (1, H, D)
+        if intervene is not None and n > 0:
+            reference = intervene(reference, n).to(device)
+        actions = queue.take(observation_of(reference[0].cpu(), q[0], views, start.task, online), H)[None]  # (1, H, D)
         first = ChunkBatch(reference=reference, actions=actions.to(device), state=q.to(device))
         out = sample_rollout(base, first, actions[:, None].to(device), online, q0=q.to(device), steps=steps,
                              seed=start.seed + n, first_controls="online",
@@ -298,6 +308,19 @@ class ClosedLoopResult:
                 "success_rate": (float(np.mean(judged)) if judged else None), "judged_episodes": len(judged)}
 
 
+def judged_frames(index: int, last: Sequence[tuple[torch.Tensor, torch.Tensor]], views: Sequence[str], task: str,
+                  online) -> EpisodeFrames:
+    """What a judge sees of a generated episode: its last ``(mosaic frame, configuration)``
+    pairs as RGB, decoded depth and states per view."""
+    frames = torch.stack([f for f, _ in last])
+    rgb, _ = mosaic.split(frames, len(views))
+    depth, _ = online.reference_depth(frames)
+    keys = [image_key(v) for v in views]
+    return EpisodeFrames(index, {k: rgb[:, j] for j, k in enumerate(keys)}, task,
+                         depth={k: depth[:, j] for j, k in enumerate(keys)},
+                         states=torch.stack([q for _, q in last]))
+
+
 def check_policy(policy, spec, state_dim: int | None) -> None:
     """Refuse a policy that declares a mismatch with the world model before any work."""
     check = getattr(policy, "check", None)
@@ -365,13 +388,12 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
             invalid = []
             for record in rollout_episode(model, online, queue, start, steps=config.sampler_steps):
                 writer.add_chunk(record)
-                last.extend(record.frames.unbind(0))
+                last.extend(zip(record.frames.unbind(0), record.configurations.unbind(0)))
                 if record.invalid_depth is not None:
                     invalid.append(record.invalid_depth)
             invalid_mean = float(np.mean(invalid)) if invalid else None
             writer.end_episode({"imac/invalid_depth": invalid_mean})
-            rgb, _ = mosaic.split(torch.stack(list(last)), len(spec.views))
-            verdicts.append(EpisodeFrames(i, {image_key(v): rgb[:, j] for j, v in enumerate(spec.views)}, start.task))
+            verdicts.append(judged_frames(i, last, spec.views, start.task, online))
             result.episodes.append({"episode_index": i, "start_episode": start.episode, "start_frame": start.frame,
                                     "seed": start.seed, "frames": 1 + start.chunks * spec.chunk,
                                     "chunks": start.chunks, "policy_calls": queue.calls,
@@ -394,4 +416,5 @@ def _depth_block(info: Mapping) -> dict:
 
 
 __all__ = ["ChunkRecord", "ClosedLoopConfig", "ClosedLoopResult", "GeneratedDatasetWriter", "Start",
-           "episode_starts", "generated_features", "observation_of", "rollout_episode", "run_closed_loop"]
+           "episode_starts", "generated_features", "judged_frames", "observation_of", "rollout_episode",
+           "run_closed_loop"]

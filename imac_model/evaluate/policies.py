@@ -1,14 +1,26 @@
-"""Policies that act inside the world model: callables from an observation to an action chunk.
+"""Policies that act in the world model and in the simulator: callables from an observation to
+an action chunk.
 
-A policy is any ``policy(observation) -> (K, D) actions``, with ``observation`` a LeRobot-style
-dict of one time step (``observation.images.<view>`` ``(3, h, w)`` in [0, 1],
-``observation.state`` ``(D,)``, ``task``) and an optional ``reset()``. :class:`ActionQueue`
-gives it LeRobot's ``select_action`` semantics (asked again only when its queue is empty);
-:class:`LeRobotPolicy` adapts a LeRobot checkpoint with its own processors; the recorded
-replay and holding the start state are scripted baselines (``docs/evaluation.md``)."""
+A policy is any ``policy(observation) -> (K, D) actions`` with an optional ``reset()``. Both
+runners (:mod:`imac_model.evaluate.closed_loop` in the world model,
+:mod:`imac_model.evaluate.simulator` in MuJoCo) give it the same observation
+(:func:`make_observation`, ``docs/evaluation.md``, "The observation"):
+
+* ``observation.images.<view>``: ``(3, h, w)`` float in [0, 1], at the world model's view size;
+* ``observation.depth.<view>``: ``(h, w)`` float32 metres, 0 where unknown (decoded from the
+  generated colour depth in the world model, rendered in MuJoCo);
+* ``observation.state``: ``(D,)`` the robot's measured configuration at the episode's first
+  frame, afterwards the last commanded configuration (phi of the actions so far);
+* ``task``: the instruction.
+
+:class:`ActionQueue` gives it LeRobot's ``select_action`` semantics (asked again only when its
+queue is empty, which both runners check at chunk boundaries); :class:`LeRobotPolicy` adapts a
+LeRobot checkpoint with its own processors; the recorded replay and holding the start state
+are scripted baselines."""
 
 from __future__ import annotations
 
+import importlib
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -17,12 +29,32 @@ import torch
 import torch.nn.functional as F
 
 from imac_data.errors import InputError
-from imac_data.layout import IMAGE_PREFIX, STATE, image_key
+from imac_data.layout import IMAGE_PREFIX, STATE, depth_key, image_key
 
 STATE_KEY = STATE
 
-Observation = dict  # {"observation.images.<view>": (3, h, w), "observation.state": (D,), "task": str}
+Observation = dict  # see the module docstring
 Policy = Callable[[Observation], torch.Tensor]
+
+
+def make_observation(rgb: torch.Tensor, depth: torch.Tensor | None, state, views: Sequence[str],
+                     task: str = "") -> Observation:
+    """The observation of one time step (the module docstring): ``rgb (V, 3, h, w)`` in [0, 1],
+    ``depth (V, h, w)`` metres (0 = unknown; None: no depth keys), ``state (D,)``."""
+    rgb = torch.as_tensor(rgb)
+    if rgb.ndim != 4 or rgb.shape[0] != len(views) or rgb.shape[1] != 3:
+        raise InputError(f"observation: expected RGB of shape ({len(views)}, 3, h, w), got {tuple(rgb.shape)}")
+    obs = {image_key(v): rgb[i].float().clamp(0, 1).cpu() for i, v in enumerate(views)}
+    if depth is not None:
+        depth = torch.as_tensor(depth)
+        if tuple(depth.shape) != (len(views), *rgb.shape[-2:]):
+            raise InputError(f"observation: expected depth of shape ({len(views)}, {rgb.shape[-2]}, {rgb.shape[-1]}), "
+                             f"got {tuple(depth.shape)}")
+        depth = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0).cpu()
+        obs.update({depth_key(v): depth[i] for i, v in enumerate(views)})
+    obs[STATE_KEY] = torch.as_tensor(state).float().cpu()
+    obs["task"] = task or ""
+    return obs
 
 
 def policy_name(policy) -> str:
@@ -209,12 +241,28 @@ class LeRobotPolicy:
         return self.postprocessor(actions)[0].float().cpu()  # (n_action_steps, D)
 
 
+def python_object(spec: str, what: str):
+    """``python:MODULE:NAME``: the callable ``NAME`` of module ``MODULE`` (importable from the
+    current directory or ``PYTHONPATH``); a class, or a function marked ``is_factory``,
+    is called once without arguments to make it."""
+    parts = spec[len("python:"):].split(":")
+    if not spec.startswith("python:") or len(parts) != 2 or not all(parts):
+        raise InputError(f"{what} {spec!r}: expected python:MODULE:NAME")
+    try:
+        obj = getattr(importlib.import_module(parts[0]), parts[1])
+    except (ImportError, AttributeError) as e:
+        raise InputError(f"{what} {spec!r}: {e}") from None
+    if isinstance(obj, type) or getattr(obj, "is_factory", False):
+        obj = obj()
+    if not callable(obj) and not hasattr(obj, "judge"):
+        raise InputError(f"{what} {spec!r} is not callable")
+    return obj
+
+
 def load_policy(spec: str, *, camera_map: Mapping[str, str] | None = None, device: str = "cpu") -> Policy:
     """A policy from a command-line spec: ``lerobot:DIR`` (a LeRobot checkpoint directory),
-    ``hold``, or ``python:MODULE:NAME`` (a callable; a class or factory taking no argument is
-    called once to make it). ``recorded`` is resolved per episode by the closed loop."""
-    import importlib
-
+    ``hold``, or ``python:MODULE:NAME`` (:func:`python_object`). ``recorded`` is resolved per
+    episode by the closed loop."""
     if spec.startswith("lerobot:"):
         return LeRobotPolicy.from_pretrained(spec[len("lerobot:"):], camera_map=camera_map, device=device)
     if camera_map:
@@ -222,20 +270,9 @@ def load_policy(spec: str, *, camera_map: Mapping[str, str] | None = None, devic
     if spec == "hold":
         return hold_policy
     if spec.startswith("python:"):
-        parts = spec[len("python:"):].split(":")
-        if len(parts) != 2:
-            raise InputError(f"policy {spec!r}: expected python:MODULE:NAME")
-        try:
-            obj = getattr(importlib.import_module(parts[0]), parts[1])
-        except (ImportError, AttributeError) as e:
-            raise InputError(f"policy {spec!r}: {e}") from None
-        if isinstance(obj, type) or getattr(obj, "is_policy_factory", False):
-            obj = obj()
-        if not callable(obj):
-            raise InputError(f"policy {spec!r} is not callable")
-        return obj
+        return python_object(spec, "policy")
     raise InputError(f"unknown policy {spec!r}: use recorded, hold, lerobot:DIR or python:MODULE:NAME")
 
 
 __all__ = ["ActionQueue", "LeRobotPolicy", "as_action_chunk", "hold_policy", "image_key", "load_policy",
-           "policy_name", "recorded_actions_policy"]
+           "make_observation", "policy_name", "python_object", "recorded_actions_policy"]

@@ -21,18 +21,24 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from imac_data.core.depth import depth_codec_of
 from imac_data.errors import InputError
-from imac_data.layout import IMAGE_PREFIX, SUCCESS_COLUMN, video_column
+from imac_data.layout import IMAGE_PREFIX, STATE, SUCCESS_COLUMN, depth_key, video_column
+from imac_model.evaluate.policies import python_object
+from imac_model.pipelines.online_controls import decode_depth
 
 
 @dataclass(frozen=True)
 class EpisodeFrames:
-    """What a judge sees of one episode: ``frames[camera]`` is ``(K, 3, H, W)``, float
-    in [0, 1], the episode's last K frames (real or generated)."""
+    """What a judge sees of one episode, its last K frames (real or generated):
+    ``frames[camera]`` ``(K, 3, H, W)`` float in [0, 1]; where asked for, ``depth[camera]``
+    ``(K, H, W)`` metres (0 = unknown) under the same camera keys and ``states`` ``(K, D)``."""
 
     episode_index: int
     frames: Mapping[str, torch.Tensor]
     task: str | None = None
+    depth: Mapping[str, torch.Tensor] | None = None
+    states: torch.Tensor | None = None
 
 
 class SuccessJudge(ABC):
@@ -64,9 +70,11 @@ def image_cameras(dataset) -> list[str]:
 
 
 def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequence[str] | None = None,
-                   last: int = 4) -> list[EpisodeFrames]:
+                   last: int = 4, *, geometry: bool = False) -> list[EpisodeFrames]:
     """The last ``last`` frames of each episode and camera, decoded by LeRobot's video
-    decoder from the dataset's own files (only these cameras and timestamps)."""
+    decoder from the dataset's own files (only these cameras and timestamps). With
+    ``geometry``, also each camera's depth in metres (its ``observation.depth.*`` colour video
+    through the dataset's depth codec) and the states."""
     from lerobot.datasets.video_utils import decode_video_frames
 
     meta = dataset.meta
@@ -75,6 +83,14 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
     if missing or not cameras:
         raise InputError(f"{dataset.root}: camera keys {missing or cameras} are not video features of the dataset "
                          f"(it has {meta.video_keys})")
+    depth_of = {c: depth_key(c[len(IMAGE_PREFIX):]) for c in cameras}
+    codec = None
+    if geometry:
+        absent = [k for k in depth_of.values() if k not in meta.video_keys] + \
+            ([STATE] if STATE not in meta.features else [])
+        if absent:
+            raise InputError(f"{dataset.root}: judging geometry needs {absent}, which the dataset does not have")
+        codec = depth_codec_of(meta.info)
     if not isinstance(last, int) or last < 1:
         raise InputError(f"last: must be a positive integer, got {last!r}")
     table = meta.episodes
@@ -85,20 +101,29 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
         raise InputError(f"{dataset.root}: episodes {unknown} are not in the dataset "
                          f"(it has {len(index_of)} episodes)")
     tasks, lengths = table["tasks"], table["length"]
-    starts = {cam: table[video_column(cam, "from_timestamp")] for cam in cameras}
+    videos = cameras + ([depth_of[c] for c in cameras] if geometry else [])
+    starts = {key: table[video_column(key, "from_timestamp")] for key in videos}
+
+    def decode(ep, row, key, times):
+        path = Path(dataset.root) / meta.get_video_file_path(ep, key)
+        start = float(starts[key][row])
+        return decode_video_frames(path, [start + t for t in times], dataset.tolerance_s, dataset.video_backend)
+
     out = []
     for ep in wanted:
         row = index_of[ep]
         length = int(lengths[row])
-        times = [i / meta.fps for i in range(max(0, length - last), length)]
-        frames = {}
-        for cam in cameras:
-            start = float(starts[cam][row])
-            path = Path(dataset.root) / meta.get_video_file_path(ep, cam)
-            frames[cam] = decode_video_frames(path, [start + t for t in times], dataset.tolerance_s,
-                                              dataset.video_backend)
+        first = max(0, length - last)
+        times = [i / meta.fps for i in range(first, length)]
+        frames = {cam: decode(ep, row, cam, times) for cam in cameras}
+        depth = states = None
+        if geometry:
+            depth = {cam: decode_depth(decode(ep, row, depth_of[cam], times), codec)[0] for cam in cameras}
+            lo = int(table["dataset_from_index"][row])
+            states = torch.stack([torch.as_tensor(x, dtype=torch.float32)
+                                  for x in dataset.hf_dataset.select(range(lo + first, lo + length))[STATE]])
         task = tasks[row][0] if tasks[row] else None
-        out.append(EpisodeFrames(ep, frames, task))
+        out.append(EpisodeFrames(ep, frames, task, depth, states))
     return out
 
 
@@ -429,3 +454,15 @@ class CallableJudge(SuccessJudge):
                 raise InputError(f"external judge {self.name!r} returned {v!r} for episode {ep.episode_index}; "
                                  "expected a bool or a finite probability")
         return np.array(out, dtype=bool)
+
+
+def load_judge(spec: str) -> SuccessJudge:
+    """A judge from a command-line spec: ``classifier:DIR`` (a saved :class:`SuccessClassifier`)
+    or ``python:MODULE:NAME`` (a :class:`SuccessJudge`, a class making one, or a function
+    ``EpisodeFrames -> bool or probability``)."""
+    if spec.startswith("classifier:"):
+        return SuccessClassifier.load(spec[len("classifier:"):])
+    if spec.startswith("python:"):
+        obj = python_object(spec, "judge")
+        return obj if isinstance(obj, SuccessJudge) else CallableJudge(obj, name=spec[len("python:"):])
+    raise InputError(f"unknown judge {spec!r}: use classifier:DIR or python:MODULE:NAME")

@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import shutil
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -22,13 +20,20 @@ from imac_model.config import CONTROL_STREAMS, load_run_config
 from imac_model.data.chunks import ChunkDataset, open_metadata, resolve_layout, split_episodes
 from imac_model.evaluate import open_loop
 from imac_model.experiments.comparison_report import write_report
+from imac_model.experiments.stages import (
+    MARK_TRAINED,
+    REPO_ROOT,
+    python,
+    quote,
+    run_all,
+    then_mark_done,
+)
 from imac_model.models.backbones.build import spatial_multiple, temporal_factor
 from imac_model.models.checkpoint import load_world_model
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.training.train import model_spec
 
 REPO = "local/imac_experiment"
-REPO_ROOT = Path(__file__).resolve().parents[2]
 RECIPE = REPO_ROOT / "recipes" / "aloha_sim_transfer_cube_experiment.yaml"
 CONFIG = REPO_ROOT / "imac_model" / "configs" / "experiment.yaml"
 STAGES = ("record", "build", "decode", "train", "evaluate", "report")
@@ -93,71 +98,6 @@ class Plan:
                 **({"rollout.warmup_epochs": self.warmup_epochs} if "rollout.chunks" in s.overrides else {})}
 
 
-def _python() -> list[str]:
-    return [sys.executable]
-
-
-def _env() -> dict:
-    env = dict(os.environ)
-    root = str(REPO_ROOT)
-    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env.setdefault("MUJOCO_GL", "egl")
-    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    return env
-
-
-# --------------------------------------------------------------------------- stage bookkeeping
-
-
-class StageLog:
-    """Wall and CPU seconds (this process and its children) and load averages per stage,
-    appended to ``stages.json`` (an interrupted-and-resumed stage has several entries)."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        self.entries = json.loads(path.read_text()) if path.is_file() else []
-
-    def run(self, stage: str, fn) -> None:
-        def cpu():
-            s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-            return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
-
-        w0, c0, load0 = time.time(), cpu(), os.getloadavg()
-        print(f"[experiment] {stage}: start (load average {load0[0]:.2f})", file=sys.stderr, flush=True)
-        fn()
-        entry = {"stage": stage, "wall_s": round(time.time() - w0, 2), "cpu_s": round(cpu() - c0, 2),
-                 "load_start": [round(x, 2) for x in load0], "load_end": [round(x, 2) for x in os.getloadavg()],
-                 "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
-        self.entries.append(entry)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.path.write_text(json.dumps(self.entries, indent=1))
-        print(f"[experiment] {stage}: done in {entry['wall_s']:.0f} s wall, {entry['cpu_s']:.0f} s CPU",
-              file=sys.stderr, flush=True)
-
-
-def _run_all(commands: list[tuple[str, list[str], Path]], jobs: int) -> None:
-    """Run ``(name, argv, log file)`` subprocesses, ``jobs`` at a time; raise if one fails."""
-    pending, running, failed = list(commands), [], []
-    while pending or running:
-        while pending and len(running) < jobs:
-            name, argv, log = pending.pop(0)
-            log.parent.mkdir(parents=True, exist_ok=True)
-            f = open(log, "a")
-            running.append((name, subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=_env()), f, log))
-            print(f"[experiment]   started {name} (log {log})", file=sys.stderr, flush=True)
-        time.sleep(2)
-        for item in list(running):
-            name, proc, f, log = item
-            if proc.poll() is not None:
-                f.close()
-                running.remove(item)
-                if proc.returncode:
-                    failed.append(f"{name} (exit {proc.returncode}, log {log})")
-                print(f"[experiment]   finished {name} (exit {proc.returncode})", file=sys.stderr, flush=True)
-    if failed:
-        raise RuntimeError("failed: " + "; ".join(failed))
-
-
 # --------------------------------------------------------------------------- stages
 
 
@@ -172,13 +112,12 @@ def stage_record(plan: Plan) -> None:
         if (out / ".done").is_file():
             continue
         shutil.rmtree(out, ignore_errors=True)  # a group interrupted mid-way is recorded again
-        argv = _python() + ["-m", "imac_data", "simulate", "--task", sim.task, "--episodes", str(n), "--out", str(out),
+        argv = python() + ["-m", "imac_data", "simulate", "--task", sim.task, "--episodes", str(n), "--out", str(out),
                             "--width", str(sim.width), "--height", str(sim.height), "--seed", str(sim.seed + g * GROUP),
                             "--noise", str(sim.noise), "--frame-stride", str(sim.frame_stride), "--quiet"]
         # the group is marked done only when the recorder exits cleanly
-        script = " ".join(map(_quote, argv)) + f" && touch {_quote(str(out / '.done'))}"
-        commands.append((f"record group {g}", ["bash", "-c", script], plan.work / "logs" / "record.log"))
-    _run_all(commands, 2)
+        commands.append((f"record group {g}", then_mark_done(argv, out / ".done"), plan.work / "logs" / "record.log"))
+    run_all(commands, 2)
     # one source directory: episode i = seed + i, in natural order
     src = plan.work / "sim" / "all"
     tmp = src.with_name("all.tmp")
@@ -195,20 +134,14 @@ def stage_record(plan: Plan) -> None:
     os.replace(tmp, src)
 
 
-def _quote(s: str) -> str:
-    import shlex
-
-    return shlex.quote(s)
-
-
 def stage_build(plan: Plan) -> None:
     if info_path(plan.dataset).is_file():
         return  # the build moves a dataset into place only when it is complete
-    argv = _python() + ["-m", "imac_data.build", "--repo", REPO, "--recipe", str(RECIPE),
+    argv = python() + ["-m", "imac_data.build", "--repo", REPO, "--recipe", str(RECIPE),
                         "--source", str(plan.work / "sim" / "all"), "--root", str(plan.dataset),
                         "--episodes", str(plan.episodes), "--workers", "2", "--no-progress",
                         "--timings", str(plan.work / "build_timings.json")]
-    _run_all([("build", argv, plan.work / "logs" / "build.log")], 1)
+    run_all([("build", argv, plan.work / "logs" / "build.log")], 1)
 
 
 def run_config(plan: Plan, s: Setting):
@@ -230,8 +163,8 @@ def decode_chunks(plan: Plan) -> None:
 
 
 def stage_decode(plan: Plan) -> None:
-    argv = _python() + ["-m", "imac_model", "experiment", *plan_args(plan), "--internal", "decode"]
-    _run_all([("decode", argv, plan.work / "logs" / "decode.log")], 1)
+    argv = python() + ["-m", "imac_model", "experiment", *plan_args(plan), "--internal", "decode"]
+    run_all([("decode", argv, plan.work / "logs" / "decode.log")], 1)
 
 
 def _done_file(plan: Plan, s: Setting) -> Path:
@@ -244,16 +177,11 @@ def stage_train(plan: Plan) -> None:
         if _done_file(plan, s).is_file():
             continue
         sets = [a for k, v in plan.overrides(s).items() for a in ("--set", f"{k}={json.dumps(v)}")]
-        script = (" ".join(map(_quote, _python() + ["-m", "imac_model", "train", "--config", str(CONFIG),
+        script = (" ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", str(CONFIG),
                                                      "--no-progress", *sets]))
-                  + f" && {_quote(sys.executable)} -c {_quote(_MARK_DONE)} {_quote(str(plan.run_dir(s)))}")
+                  + f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(plan.run_dir(s)))}")
         commands.append((f"train {s.name}", ["bash", "-c", script], plan.work / "logs" / f"train_{s.slug}.log"))
-    _run_all(commands, plan.jobs)
-
-
-_MARK_DONE = ("import json, sys, pathlib; d = pathlib.Path(sys.argv[1]); "
-              "rows = [json.loads(l) for l in (d / 'log.jsonl').read_text().splitlines() if l.strip()]; "
-              "(d / 'DONE.json').write_text(json.dumps(rows[-1]))")
+    run_all(commands, plan.jobs)
 
 
 def stage_evaluate(plan: Plan) -> None:
@@ -261,10 +189,10 @@ def stage_evaluate(plan: Plan) -> None:
     for s in SETTINGS:
         if plan.eval_file(s).is_file():
             continue
-        argv = _python() + ["-m", "imac_model", "experiment", *plan_args(plan), "--internal", "evaluate", "--setting",
+        argv = python() + ["-m", "imac_model", "experiment", *plan_args(plan), "--internal", "evaluate", "--setting",
                             s.slug]
         commands.append((f"evaluate {s.name}", argv, plan.work / "logs" / f"evaluate_{s.slug}.log"))
-    _run_all(commands, 2)
+    run_all(commands, 2)
 
 
 def evaluate_setting(plan: Plan, s: Setting) -> None:

@@ -7,9 +7,6 @@ from the experiment's work directory; nothing is typed in by hand.
 from __future__ import annotations
 
 import json
-import os
-import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -17,38 +14,7 @@ import numpy as np
 
 from imac_data.layout import episodes_dir, info_path
 from imac_model.evaluate.pictures import label
-
-
-def _git(*args: str) -> str:
-    try:
-        root = Path(__file__).resolve().parents[2]
-        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def machine() -> dict:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem = round(int(line.split()[1]) / 1024**2, 1)
-    except OSError:
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    import torch
-
-    return {"cores": cores, "cpu": cpu, "memory_gb": mem, "python": platform.python_version(),
-            "torch": torch.__version__, "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-            "load_average_at_report": [round(x, 2) for x in os.getloadavg()]}
+from imac_model.experiments.stages import git, machine
 
 
 def _fmt(x, digits=4):
@@ -181,7 +147,7 @@ def write_report(plan, settings) -> Path:
     build_t = (json.loads((plan.work / "build_timings.json").read_text())
                if (plan.work / "build_timings.json").is_file() else {})
     mach = machine()
-    commit, dirty = _git("rev-parse", "--short", "HEAD"), bool(_git("status", "--porcelain", "--untracked-files=no"))
+    commit, dirty = git("rev-parse", "--short", "HEAD"), bool(git("status", "--porcelain", "--untracked-files=no"))
 
     loss_figure(logs, docs / "loss_curves.png")
     growth_figure(results, docs / "error_growth.png")

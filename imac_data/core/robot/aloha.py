@@ -22,10 +22,12 @@ from imac_data.core.robot.model import GripperMap, RobotConfig
 from imac_data.errors import InputError
 from imac_data.layout import cache_home
 
-__all__ = ["TASKS", "ARM_JOINTS", "ARMS", "STATE_NAMES", "GRIPPER_CLOSE", "GRIPPER_OPEN", "mjcf_path",
+__all__ = ["TASKS", "SCENE_OF_TASK", "SIM_TASKS", "ARM_JOINTS", "ARMS", "STATE_NAMES", "GRIPPER_CLOSE", "GRIPPER_OPEN", "mjcf_path",
            "normalize_gripper", "unnormalize_gripper", "robot_config", "controller"]
 
-TASKS = ("transfer_cube", "insertion")
+TASKS = ("transfer_cube", "insertion")  # gym-aloha's scenes (one MJCF each)
+SCENE_OF_TASK = {"lift": "transfer_cube"}  # our tasks that reuse a gym-aloha scene
+SIM_TASKS = TASKS + tuple(SCENE_OF_TASK)  # what the simulator records
 ARM_JOINTS = ("waist", "shoulder", "elbow", "forearm_roll", "wrist_angle", "wrist_rotate")
 ARMS = ("vx300s_left", "vx300s_right")
 
@@ -48,8 +50,10 @@ def unnormalize_gripper(value):
 
 
 def mjcf_path(task: str, end_effector: bool = False) -> Path:
+    """gym-aloha's MJCF of ``task``'s scene."""
+    task = SCENE_OF_TASK.get(task, task)
     if task not in TASKS:
-        raise InputError(f"unknown ALOHA task {task!r}; expected one of {TASKS}")
+        raise InputError(f"unknown ALOHA task {task!r}; expected one of {SIM_TASKS}")
     kind = "end_effector_" if end_effector else ""
     return Path(ALOHA_ASSETS) / f"bimanual_viperx_{kind}{task}.xml"
 

@@ -27,7 +27,7 @@ def load_mujoco_model(task: str, end_effector: bool = False) -> mujoco.MjModel:
     """gym-aloha's model for ``task`` (lift: the cube-transfer scene) with every camera frozen to
     a rigid mount at the pose MuJoCo computes at the first keyframe (so images look as
     gym-aloha's do at the start)."""
-    spec = mujoco.MjSpec.from_file(str(mjcf_path({"lift": "transfer_cube"}.get(task, task), end_effector)))
+    spec = mujoco.MjSpec.from_file(str(mjcf_path(task, end_effector)))
     model = spec.compile()
     data = mujoco.MjData(model)
     if model.nkey:

@@ -14,16 +14,16 @@ from imac_data.core.robot.aloha import (
     ARMS,
     GRIPPER_CLOSE,
     GRIPPER_OPEN,
+    SIM_TASKS,
     normalize_gripper,
     unnormalize_gripper,
 )
 from imac_data.errors import InputError
 
-__all__ = ["TASKS", "SCENES", "TASK_INSTRUCTIONS", "TABLE_Z", "REST_HEIGHT", "LIFT_HEIGHT", "TaskLayout",
+__all__ = ["TASKS", "TASK_INSTRUCTIONS", "TABLE_Z", "REST_HEIGHT", "LIFT_HEIGHT", "TaskLayout",
            "task_reward", "task_success"]
 
-TASKS = ("transfer_cube", "insertion", "lift")
-SCENES = {"transfer_cube": "transfer_cube", "insertion": "insertion", "lift": "transfer_cube"}  # task -> MJCF
+TASKS = SIM_TASKS
 # Instructions of LeRobot's aloha_sim datasets (lerobot/aloha_sim_*), which gym-aloha's tasks come from;
 # lift is the first half of transfer_cube, the right arm alone.
 TASK_INSTRUCTIONS = {

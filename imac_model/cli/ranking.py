@@ -1,0 +1,63 @@
+"""``imac-model ranking``: the policy-ranking benchmark of ``docs/ranking.md`` (simulate, build,
+decode, train, judges, evaluate, report), every stage cached and resumable."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+from imac_data.console import run_command
+from imac_data.errors import InputError
+from imac_model.experiments.ranking.benchmark import STAGE_FUNCTIONS, decode_chunks, simulate_training_part
+from imac_model.experiments.ranking.evaluation import evaluate_mode, run_judges
+from imac_model.experiments.ranking.plan import STAGES, RankingPlan, toy_plan
+from imac_model.experiments.stages import StageLog
+
+
+def run(args: argparse.Namespace) -> int:
+    return run_command(lambda: _ranking(args))
+
+
+def _plan(args: argparse.Namespace) -> RankingPlan:
+    work, docs = Path(args.work).resolve(), Path(args.docs).resolve()
+    plan = toy_plan(work, docs) if args.toy else RankingPlan(work=work, docs=docs)
+    changes = {k: v for k, v in (("policies", tuple(args.policies or ()) or None), ("cpu_minutes", args.cpu_minutes),
+                                 ("steps", args.steps), ("jobs", args.jobs)) if v is not None}
+    plan = dataclasses.replace(plan, **changes)
+    saved = work / "plan.json"
+    if saved.is_file():
+        before = RankingPlan.load(saved)
+        if before.to_dict() != plan.to_dict():
+            differ = sorted(k for k, v in plan.to_dict().items() if before.to_dict().get(k) != v)
+            raise InputError(f"{saved}: the work directory holds a run with other settings ({', '.join(differ)}); "
+                             "choose another --work or delete it")
+    return plan
+
+
+def _ranking(args: argparse.Namespace) -> int:
+    if args.internal:
+        plan = RankingPlan.load(Path(args.plan))
+        {"train-rollouts": lambda: simulate_training_part(plan, int(args.internal_args[0])),
+         "decode": lambda: decode_chunks(plan), "judges": lambda: run_judges(plan),
+         "evaluate": lambda: evaluate_mode(plan, args.internal_args[0])}[args.internal]()
+        return 0
+    plan = _plan(args)
+    stages = [x.strip() for x in args.stages.split(",") if x.strip()]
+    bad = [x for x in stages if x not in STAGES]
+    if bad:
+        raise InputError(f"--stages: unknown {bad}; choose from {list(STAGES)}")
+    plan.work.mkdir(parents=True, exist_ok=True)
+    (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
+    log = StageLog(plan.work / "stages.json", tag="ranking")
+    try:
+        for stage in STAGES:
+            if stage in stages:
+                log.run(stage, lambda f=STAGE_FUNCTIONS[stage]: f(plan))
+    except RuntimeError as e:  # a stage's subprocess failed; its log says why
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    print(f"report: {plan.docs / 'README.md'}")
+    return 0

@@ -1,0 +1,198 @@
+"""Policy ranking in simulation (``make ranking``, ``imac-model ranking``): does the world model
+rank policies the way MuJoCo does?
+
+Stages, each cached under ``--work`` and resumed where it stopped, each timed (wall and CPU of
+this process and its children):
+
+1. ``simulate``: every policy in MuJoCo from the evaluation starts (``imac-model evaluate
+   simulator``), and the world model's training rollouts (a mix of policies, other starts);
+2. ``build``: both as LeRobot datasets with ``imac build`` (their success labels included);
+3. ``decode``: the training chunks, decoded once;
+4. ``train``: one world model per conditioning mode, the same CPU budget each;
+5. ``judges``: the learned classifier, and both judges' accuracy on the real evaluation episodes;
+6. ``evaluate``: every policy closed loop in every world model from the same starts and seeds
+   (``none`` once per start, after checking its frames are bit-identical across policies), the
+   recorded actions replayed for the judges' accuracy on generated frames, action sensitivity;
+7. ``report``: ``docs/ranking/``.
+
+``docs/ranking.md`` explains the protocol; the report holds the figures."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from imac_data.layout import info_path
+from imac_model.config import CONTROL_STREAMS
+from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
+from imac_model.evaluate.simulator import SimRunConfig, SimRunner, run_policy
+from imac_model.experiments.ranking.plan import (
+    CONFIG,
+    EVAL_REPO,
+    RECIPE,
+    TRAIN_REPO,
+    TRAIN_SEED0,
+    RankingPlan,
+    slug,
+)
+from imac_model.experiments.ranking.policies import HEAD, WRIST, LiftPolicy
+from imac_model.experiments.ranking.report import write_report
+from imac_model.experiments.stages import MARK_TRAINED, python, quote, run_all, then_mark_done
+from imac_model.training.train import model_spec
+
+
+def internal(plan: RankingPlan, what: str, *extra: str) -> list[str]:
+    """argv of one of this module's steps in a fresh process (LeRobot's decoders and MuJoCo's
+    GL context must not be forked after use)."""
+    return python() + ["-m", "imac_model", "ranking", "--plan", str(plan.work / "plan.json"), "--internal", what,
+                       *extra]
+
+
+# --------------------------------------------------------------------------- 1. simulate
+
+
+def stage_simulate(plan: RankingPlan) -> None:
+    commands = []
+    seeds = [str(s) for _, s in plan.eval_seeds()]
+    for spec, name in zip(plan.policies, plan.names):
+        out = plan.sim_dir(name)
+        if (out / ".done").is_file():
+            continue
+        shutil.rmtree(out, ignore_errors=True)
+        argv = python() + ["-m", "imac_model", "evaluate", "simulator", "--policy", spec, "--seeds", *seeds,
+                           "--chunks", str(plan.chunks), "--output", str(out), "--no-progress"]
+        commands.append((f"simulate {name}", then_mark_done(argv, out / ".done"), plan.work / "logs" / f"sim_{name}.log"))
+    parts = max(1, min(plan.jobs, plan.train_episodes))
+    for k in range(parts):
+        out = plan.work / "sim" / "train" / f"part_{k}"
+        if not (out / ".done").is_file():
+            shutil.rmtree(out, ignore_errors=True)
+            commands.append((f"simulate training part {k}", then_mark_done(internal(plan, "train-rollouts", str(k)),
+                                                                            out / ".done"),
+                             plan.work / "logs" / f"sim_train_{k}.log"))
+    run_all(commands, plan.jobs, tag="ranking")
+
+
+def training_policy(index: int):
+    """The training rollouts' policy of episode ``index``: closed or open loop, with a grasp
+    offset of up to 3.5 cm in a random direction (successes and failures near the boundary)."""
+    rng = np.random.default_rng([index, 0x7A11])
+    kind = index % 3
+    relocalise = ((HEAD, WRIST), (HEAD,), None)[kind]
+    angle, radius = rng.uniform(0, 2 * np.pi), 0.035 * np.sqrt(rng.uniform())
+    offset = (float(radius * np.cos(angle)), float(radius * np.sin(angle)))
+    return LiftPolicy(f"mix_{('closed_loop', 'closed_loop_head', 'open_loop')[kind]}", relocalise=relocalise,
+                      offset=offset)
+
+
+def simulate_training_part(plan: RankingPlan, part: int) -> None:
+    parts = max(1, min(plan.jobs, plan.train_episodes))
+    out = plan.work / "sim" / "train" / f"part_{part}"
+    with SimRunner(SimRunConfig(chunks=plan.chunks)) as runner:
+        rows = []
+        for i in range(part, plan.train_episodes, parts):
+            p = training_policy(i)
+            rows += run_policy(p, [TRAIN_SEED0 + i], out / f"ep_{i:05d}", runner=runner, progress=False)
+            rows[-1].update(index=i, policy=p.name, offset=p.offset.tolist())
+    (out / "outcomes.json").write_text(json.dumps(rows, indent=1))
+
+
+# --------------------------------------------------------------------------- 2. build
+
+
+def _link_episodes(sources: list[Path], dest: Path) -> None:
+    """One source directory of ``episode_<i>.hdf5`` links, in the given order."""
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for i, src in enumerate(sources):
+        (tmp / f"episode_{i}.hdf5").symlink_to(src.resolve())
+    calibration = next(p for p in (s.parent / "calibration.json" for s in sources) if p.is_file())
+    shutil.copy(calibration, tmp / "calibration.json")
+    shutil.rmtree(dest, ignore_errors=True)
+    os.replace(tmp, dest)
+
+
+def stage_build(plan: RankingPlan) -> None:
+    parts = max(1, min(plan.jobs, plan.train_episodes))
+    train = [plan.work / "sim" / "train" / f"part_{i % parts}" / f"ep_{i:05d}" / "episode_0.hdf5"
+             for i in range(plan.train_episodes)]
+    n_eval = len(plan.eval_seeds())
+    evals = [plan.sim_dir(name) / f"episode_{i}.hdf5" for name in plan.names for i in range(n_eval)]
+    commands = []
+    for repo, root, sources, src_dir in ((TRAIN_REPO, plan.train_dataset, train, plan.work / "sim" / "train_all"),
+                                         (EVAL_REPO, plan.eval_dataset, evals, plan.work / "sim" / "eval_all")):
+        if info_path(root).is_file():
+            continue  # the build moves a dataset into place only when it is complete
+        _link_episodes(sources, src_dir)
+        argv = python() + ["-m", "imac_data.build", "--repo", repo, "--recipe", str(RECIPE), "--source", str(src_dir),
+                           "--root", str(root), "--episodes", str(len(sources)), "--workers", "1", "--no-progress",
+                           "--overwrite", "--timings", str(plan.work / f"build_timings_{root.name}.json")]
+        commands.append((f"build {root.name}", argv, plan.work / "logs" / f"build_{root.name}.log"))
+    run_all(commands, plan.jobs, tag="ranking")
+
+
+# --------------------------------------------------------------------------- 3-4. decode, train
+
+
+def decode_chunks(plan: RankingPlan) -> None:
+    torch.set_num_threads(1)
+    run = plan.run_config("motion+contact")  # every stream: the other modes reuse its cache
+    meta = open_metadata(run.data)
+    _, layout = model_spec(run, meta)
+    assert set(layout.streams) >= set(CONTROL_STREAMS)
+    for eps in split_episodes(meta.total_episodes, run.data.held_out_episodes):
+        ds = ChunkDataset(TRAIN_REPO, layout, root=run.data.root, episodes=eps, cache="memory",
+                          cache_dir=run.data.cache_dir)
+        ds.preload(num_workers=1, progress=False)
+
+
+def stage_decode(plan: RankingPlan) -> None:
+    if any((plan.work / "chunkcache").glob("*")):
+        return
+    run_all([("decode", internal(plan, "decode"), plan.work / "logs" / "decode.log")], 1, tag="ranking")
+
+
+def stage_train(plan: RankingPlan) -> None:
+    commands = []
+    for mode in plan.modes:
+        if (plan.run_dir(mode) / "DONE.json").is_file():
+            continue
+        sets = [a for k, v in plan.mode_overrides(mode).items() for a in ("--set", f"{k}={json.dumps(v)}")]
+        script = (" ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", str(CONFIG),
+                                                   "--no-progress", *sets]))
+                  + f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(plan.run_dir(mode)))}")
+        commands.append((f"train {mode}", ["bash", "-c", script], plan.work / "logs" / f"train_{slug(mode)}.log"))
+    run_all(commands, plan.jobs, tag="ranking")
+
+
+# --------------------------------------------------------------------------- 5-6. judges, evaluate
+
+
+def stage_judges(plan: RankingPlan) -> None:
+    if (plan.work / "judges" / "real.json").is_file():
+        return
+    run_all([("judges", internal(plan, "judges"), plan.work / "logs" / "judges.log")], 1, tag="ranking")
+
+
+def stage_evaluate(plan: RankingPlan) -> None:
+    commands = []
+    for mode in plan.modes:
+        if not (plan.wm_dir(mode) / "outcomes.json").is_file():
+            commands.append((f"evaluate {mode}", internal(plan, "evaluate", mode),
+                             plan.work / "logs" / f"evaluate_{slug(mode.replace('+', '_'))}.log"))
+    run_all(commands, plan.jobs, tag="ranking")
+
+
+def stage_report(plan: RankingPlan) -> None:
+    write_report(plan)
+
+
+STAGE_FUNCTIONS = {"simulate": stage_simulate, "build": stage_build, "decode": stage_decode, "train": stage_train,
+                   "judges": stage_judges, "evaluate": stage_evaluate, "report": stage_report}

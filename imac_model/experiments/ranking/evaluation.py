@@ -1,0 +1,178 @@
+"""The benchmark's measuring steps, each run in its own process by :mod:`.benchmark`:
+
+* :func:`run_judges`: train the learned classifier on the training rollouts; both judges'
+  accuracy on the real evaluation episodes;
+* :func:`evaluate_mode`: every policy closed loop in one mode's world model from the
+  evaluation starts (``none``: once, after checking that two policies get bit-identical
+  frames), the recorded actions replayed (the judges' accuracy on generated frames), and the
+  mode's action sensitivity."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from imac_data.layout import image_key
+from imac_model.evaluate import open_loop
+from imac_model.evaluate.closed_loop import ClosedLoopConfig, episode_starts, rollout_episode, run_closed_loop
+from imac_model.evaluate.policies import load_policy
+from imac_model.evaluate.success import (
+    SuccessClassifier,
+    SuccessClassifierConfig,
+    dataset_success_labels,
+    episode_frames,
+    evaluate_judge,
+    train_success_classifier,
+)
+from imac_model.experiments.ranking.judge import LiftJudge
+from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan, slug
+from imac_model.models.checkpoint import load_world_model
+from imac_model.pipelines.online_controls import OnlineControls
+from imac_model.pipelines.sampling import open_chunks
+
+# the second action sequence of the sensitivity samples: the right arm's waist and shoulder
+SENSITIVITY_OFFSETS = {7: 0.3, 8: -0.25}
+CAMERAS = tuple(image_key(v) for v in ("cam_high", "cam_left_wrist", "cam_right_wrist"))
+JUDGE_COLUMNS = {"lift_geometry": "success", "classifier": "success_classifier"}  # judge -> its column in the rows
+
+
+def _write(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+
+def run_judges(plan: RankingPlan) -> None:
+    """-> ``judges/classifier/`` and ``judges/real.json``."""
+    torch.set_num_threads(1)
+    t0, c0 = time.time(), time.process_time()
+    train = LeRobotDataset(TRAIN_REPO, root=plan.train_dataset)
+    outcomes = set(dataset_success_labels(train).values()) - {None}
+    classifier = training = None
+    if outcomes == {True, False}:
+        classifier, training = train_success_classifier(train, SuccessClassifierConfig(cameras=CAMERAS,
+                                                                                        seed=plan.seed))
+        classifier.save(plan.work / "judges" / "classifier")
+    else:  # e.g. the toy run's two chunks end before any lift: no classifier, said so in the report
+        training = {"skipped": f"the training rollouts have only {sorted(outcomes)} outcomes"}
+    evaluation = LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
+    labels = dataset_success_labels(evaluation)
+    episodes = sorted(labels)
+    lift = LiftJudge()
+    frames = episode_frames(evaluation, episodes, CAMERAS, 4, geometry=True)
+    real = {name: evaluate_judge(j, frames, [labels[e] for e in episodes])
+            for name, j in (("lift_geometry", lift), ("classifier", classifier)) if j is not None}
+    _write(plan.work / "judges" / "real.json", {
+        "classifier_training": training, "real": real,
+        "heights": {int(f.episode_index): [None if np.isnan(h) else round(float(h), 4) for h in lift.heights(f)]
+                    for f in frames},
+        "labels": {int(e): bool(v) for e, v in labels.items()},
+        "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)})
+
+
+def recorded_episodes(plan: RankingPlan, labels: dict[int, bool]) -> list[int]:
+    """Evaluation episodes to replay in the world model: half successes where possible, taken
+    round-robin over the policies in a fixed shuffled order."""
+    rng = np.random.default_rng(plan.seed)
+    order = [int(e) for e in rng.permutation(sorted(labels))]
+    want = {True: (plan.recorded + 1) // 2, False: plan.recorded // 2}
+    picked = []
+    for outcome in (True, False):
+        picked += [e for e in order if labels[e] is outcome][:want[outcome]]
+    rest = [e for e in order if e not in picked]
+    return sorted(picked + rest[:plan.recorded - len(picked)])
+
+
+def _closed_loop(plan: RankingPlan, model, chunks, online, policy, out: Path, episodes: list[int], steps: int,
+                 judge, classifier, checkpoint: str) -> dict:
+    """One closed-loop evaluation (cached in ``out``), judged by both judges."""
+    done = out / "closed_loop.json"
+    if done.is_file():
+        return json.loads(done.read_text())
+    config = ClosedLoopConfig(episodes=tuple(episodes), horizon_chunks=plan.chunks, sampler_steps=steps,
+                              seed=plan.seed)
+    t0, c0 = time.time(), time.process_time()
+    result = run_closed_loop(model, chunks, online, policy, out, config=config, repo_id=f"local/{out.name}",
+                             judge=judge, checkpoint=checkpoint, overwrite=True, progress=False).to_dict()
+    if classifier is not None:
+        generated = LeRobotDataset(f"local/{out.name}", root=out)
+        verdicts = classifier.judge(episode_frames(generated, None, CAMERAS, 4))
+        for row, v in zip(result["episodes"], verdicts):
+            row["success_classifier"] = bool(v)
+    result.update(wall_s=round(time.time() - t0, 1), cpu_s=round(time.process_time() - c0, 1))
+    _write(done, result)
+    return result
+
+
+def none_is_policy_blind(plan: RankingPlan, model, online, chunks, start_episodes: list[int]) -> dict:
+    """From the same starts and seeds, two policies get bit-identical frames from ``none``."""
+    starts = episode_starts(chunks, start_episodes, seed=plan.seed, horizon_chunks=plan.chunks)
+    a, b = load_policy(plan.policies[0]), load_policy(plan.policies[1])
+    identical = []
+    for start in starts:
+        fa = torch.stack([r.frames for r in rollout_episode(model, online, a, start, steps=plan.steps)])
+        fb = torch.stack([r.frames for r in rollout_episode(model, online, b, start, steps=plan.steps)])
+        identical.append(bool(torch.equal(fa, fb)))
+    return {"policies": [slug(plan.policies[0]), slug(plan.policies[1])], "starts": start_episodes,
+            "bit_identical": identical}
+
+
+def evaluate_mode(plan: RankingPlan, mode: str) -> None:
+    """-> ``wm/<mode>/outcomes.json`` (and a dataset of generated episodes per policy)."""
+    torch.set_num_threads(1)
+    t0, c0 = time.time(), time.process_time()
+    out = plan.wm_dir(mode)
+    checkpoint = str(plan.run_dir(mode))
+    model, spec = load_world_model(plan.run_dir(mode), weights="ema")
+    evaluation = LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
+    labels = dataset_success_labels(evaluation)
+    starts = [plan.eval_episode(0, s) for s in plan.wm_starts()]
+    replay = recorded_episodes(plan, labels)
+    sens_episodes = replay[:4]
+    chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sorted(set(starts + replay)))
+    online = OnlineControls.from_dataset(plan.eval_dataset, spec, info=chunks.lerobot.meta.info)
+    judge = LiftJudge()
+    saved = plan.work / "judges" / "classifier"
+    classifier = SuccessClassifier.load(saved) if saved.is_dir() else None
+    result = {"mode": mode, "start_episodes": starts, "sampler_steps": plan.steps, "policies": {}}
+    policies = plan.policies[:1] if mode == "none" else plan.policies
+    if mode == "none":
+        result["none_check"] = none_is_policy_blind(plan, model, online, chunks, starts[:2])
+    for spec_p in policies:
+        r = _closed_loop(plan, model, chunks, online, load_policy(spec_p), out / slug(spec_p), starts, plan.steps,
+                         judge, classifier, checkpoint)
+        result["policies"][slug(spec_p)] = r
+    if mode != "none":
+        replays = {}
+        for steps in sorted({plan.steps, plan.check_steps} if mode == "motion+contact" else {plan.steps}):
+            r = _closed_loop(plan, model, chunks, online, "recorded", out / f"recorded_{steps}_steps", replay, steps,
+                             judge, classifier, checkpoint)
+            truth = [labels[e] for e in replay]
+            verdicts = {name: [ep[key] for ep in r["episodes"]] for name, key in JUDGE_COLUMNS.items()
+                        if all(key in ep for ep in r["episodes"])}
+            replays[str(steps)] = {"episodes": replay, "labels": truth, **verdicts,
+                                   "accuracy": {name: float(np.mean([p == t for p, t in zip(v, truth)]))
+                                                for name, v in verdicts.items()}}
+        result["recorded"] = replays
+    sens_chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sens_episodes)
+    sens_chunks.preload(progress=False)
+    sens_starts = [(e, c) for e in sens_episodes for c in (0, 1) if c < len(sens_chunks.episode_chunks(e))]
+    sens = open_loop.action_sensitivity(model, sens_chunks, sens_starts, online, offsets=SENSITIVITY_OFFSETS,
+                                        steps=plan.steps, seed=plan.seed)
+    result["sensitivity"] = {"inside": sens.inside, "outside": sens.outside, "ratio": sens.ratio,
+                             "region_share": sens.region_share, "samples": sens.samples,
+                             "offsets_rad": SENSITIVITY_OFFSETS}
+    torch.save(sens.example, out / "sensitivity_example.pt")
+    result.update(wall_s=round(time.time() - t0, 1), cpu_s=round(time.process_time() - c0, 1))
+    _write(out / "outcomes.json", result)
+
+
+__all__ = ["evaluate_mode", "recorded_episodes", "run_judges"]

@@ -1,0 +1,138 @@
+"""One run of the ranking benchmark: its sizes, budget, policies and where everything goes
+(``plan.json`` in the work directory, loadable back)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from imac_data.errors import InputError
+from imac_model.config import load_run_config
+from imac_model.experiments.ranking.policies import POLICIES
+from imac_model.experiments.stages import REPO_ROOT
+
+POLICY_MODULE = "imac_model.experiments.ranking.policies"
+JUDGE = "python:imac_model.experiments.ranking.judge:lift_judge"
+RECIPE = REPO_ROOT / "recipes" / "aloha_sim_lift.yaml"
+CONFIG = REPO_ROOT / "imac_model" / "configs" / "ranking.yaml"
+MODES = ("motion+contact", "motion", "action-vector", "none")
+STAGES = ("simulate", "build", "decode", "train", "judges", "evaluate", "report")
+EVAL_SEED0 = 100_000  # evaluation start of group g, episode i: EVAL_SEED0 + 1000 g + i
+TRAIN_SEED0 = 200_000  # the training rollouts' starts: never an evaluation start
+TRAIN_REPO, EVAL_REPO = "local/ranking_train", "local/ranking_eval"
+# the toy run of the CI test: the tiny backbone, a few steps
+TOY_MODEL = {"backbone.small.dim": 32, "backbone.small.depth": 1, "backbone.small.heads": 2,
+             "backbone.small.patch": 4, "train.max_steps": 6, "train.eval_every": 3, "train.checkpoint_every": 6,
+             "train.log_every": 3, "train.warmup_steps": 1}
+
+
+def slug(spec: str) -> str:
+    """A policy's name in tables and paths: ``python:M:NAME`` -> ``NAME``."""
+    return spec.rsplit(":", 1)[-1].replace("/", "_")
+
+
+@dataclass
+class RankingPlan:
+    """Everything one benchmark run is: sizes, budget, policies. Saved as ``plan.json``."""
+
+    work: Path
+    docs: Path
+    policies: tuple[str, ...] = tuple(f"python:{POLICY_MODULE}:{p}" for p in POLICIES)
+    groups: int = 2  # evaluation groups (the statistics' bootstrap resamples within each)
+    real_per_group: int = 25  # MuJoCo episodes per policy and group
+    wm_per_group: int = 15  # world-model episodes per policy and group (the group's first starts)
+    train_episodes: int = 96  # the world model's training rollouts
+    held_out: int = 8  # of them, held out of training (the held-out loss)
+    modes: tuple[str, ...] = MODES
+    cpu_minutes: float = 18.0  # training budget per mode (process CPU minutes)
+    chunks: int = 4  # world-model chunks per episode (8 frames each)
+    steps: int = 10  # Euler steps of the evaluation sampler
+    check_steps: int = 20  # the training default: the judges are checked at both
+    recorded: int = 24  # evaluation episodes replayed in the world model, half successes where possible
+    jobs: int = 2  # processes at a time
+    seed: int = 0
+    toy: bool = False  # the CI run: tiny backbone, a few training steps
+    overrides: dict = field(default_factory=dict)  # extra run-config overrides for every mode
+
+    def __post_init__(self) -> None:
+        self.work, self.docs = Path(self.work), Path(self.docs)
+        self.policies = tuple(self.policies)
+        names = [slug(p) for p in self.policies]
+        if len(self.policies) < 2 or len(set(names)) != len(names):
+            raise InputError(f"ranking: need at least two policies with distinct names, got {names}")
+        unknown = [m for m in self.modes if m not in MODES]
+        if unknown or not self.modes:
+            raise InputError(f"ranking: modes {unknown or list(self.modes)}; choose from {list(MODES)}")
+        if not 0 < self.wm_per_group <= self.real_per_group:
+            raise InputError("ranking: wm_per_group must be between 1 and real_per_group")
+        if not 0 <= self.held_out < self.train_episodes:
+            raise InputError("ranking: held_out must be below train_episodes")
+        for name in ("groups", "chunks", "steps", "check_steps", "jobs"):
+            if getattr(self, name) < 1:
+                raise InputError(f"ranking: {name} must be >= 1")
+
+    # ------------------------------------------------------------------ paths and indices
+    @property
+    def names(self) -> list[str]:
+        return [slug(p) for p in self.policies]
+
+    def eval_seeds(self) -> list[tuple[str, int]]:
+        """``(group, seed)`` of every evaluation start, in order."""
+        return [(f"g{g}", EVAL_SEED0 + 1000 * g + i) for g in range(self.groups) for i in range(self.real_per_group)]
+
+    def eval_episode(self, policy: int, start: int) -> int:
+        """The evaluation dataset's episode of ``policy`` (index) from ``start`` (index into eval_seeds)."""
+        return policy * self.groups * self.real_per_group + start
+
+    def wm_starts(self) -> list[int]:
+        """Indices into eval_seeds of the world model's starts: each group's first wm_per_group."""
+        return [g * self.real_per_group + i for g in range(self.groups) for i in range(self.wm_per_group)]
+
+    def sim_dir(self, name: str) -> Path:
+        return self.work / "sim" / "eval" / name
+
+    @property
+    def train_dataset(self) -> Path:
+        return self.work / "datasets" / "train"
+
+    @property
+    def eval_dataset(self) -> Path:
+        return self.work / "datasets" / "eval"
+
+    def run_dir(self, mode: str) -> Path:
+        return self.work / "runs" / mode.replace("+", "_").replace("-", "_")
+
+    def wm_dir(self, mode: str) -> Path:
+        return self.work / "wm" / mode.replace("+", "_").replace("-", "_")
+
+    def mode_overrides(self, mode: str) -> dict:
+        held = list(range(self.train_episodes - self.held_out, self.train_episodes))
+        out = {"data.dataset": TRAIN_REPO, "data.root": str(self.train_dataset),
+               "data.cache_dir": str(self.work / "chunkcache"), "data.held_out_episodes": held,
+               "train.max_cpu_minutes": self.cpu_minutes, "train.output_dir": str(self.run_dir(mode)),
+               "train.seed": self.seed, "conditioning.mode": mode}
+        return {**out, **(TOY_MODEL if self.toy else {}), **self.overrides}
+
+    def run_config(self, mode: str):
+        return load_run_config(CONFIG, self.mode_overrides(mode))
+
+    def to_dict(self) -> dict:
+        return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def load(cls, path: Path) -> RankingPlan:
+        data = json.loads(Path(path).read_text())
+        return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()})
+
+
+def toy_plan(work: Path, docs: Path) -> RankingPlan:
+    """The CI run: 2 policies, 4 episodes each, 2 chunks, 2 modes, 2 sampler steps."""
+    return RankingPlan(work=work, docs=docs, policies=tuple(f"python:{POLICY_MODULE}:{p}"
+                                                            for p in ("closed_loop", "open_loop_3cm")),
+                       groups=2, real_per_group=2, wm_per_group=1, train_episodes=4, held_out=1,
+                       modes=("motion+contact", "none"), cpu_minutes=1.0, chunks=2, steps=2, check_steps=2,
+                       recorded=2, toy=True)
+
+

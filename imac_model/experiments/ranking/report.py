@@ -1,0 +1,229 @@
+"""The ranking benchmark's report: ``README.md``, ``results.json`` and figures in ``--docs``,
+written from the work directory's outputs only; nothing is typed in by hand."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from imac_data.layout import image_key
+from imac_model.evaluate.pictures import label
+from imac_model.evaluate.statistics import STATISTICS, plot_policy_scatter, policy_correlation
+from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
+from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, slug
+from imac_model.experiments.stages import StageLog, git, machine
+
+SHOWN_VIEWS = ("cam_high", "cam_right_wrist")
+
+
+def _fmt(x, digits: int = 3) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{digits}f}"
+
+
+def _ci(ci) -> str:
+    return "" if not ci or ci[0] is None else f" [{_fmt(ci[0], 2)}, {_fmt(ci[1], 2)}]"
+
+
+def real_outcomes(plan: RankingPlan) -> dict[tuple[str, str], list[bool]]:
+    """MuJoCo's success per (policy, group), from the simulator runs."""
+    out: dict[tuple[str, str], list[bool]] = {}
+    groups = [g for g, _ in plan.eval_seeds()]
+    for name in plan.names:
+        rows = json.loads((plan.sim_dir(name) / "outcomes.json").read_text())["episodes"]
+        for g, row in zip(groups, rows):
+            out.setdefault((name, g), []).append(bool(row["success"]))
+    return out
+
+
+def world_model_outcomes(plan: RankingPlan, mode: str, judge: str) -> dict[tuple[str, str], list[bool]]:
+    """The world model's success per (policy, group) under ``judge``; ``none`` judged its one
+    run, which stands for every policy (its frames do not depend on the policy)."""
+    result = json.loads((plan.wm_dir(mode) / "outcomes.json").read_text())
+    groups = [plan.eval_seeds()[s][0] for s in plan.wm_starts()]
+    out = {}
+    for name in plan.names:
+        run = result["policies"].get(name) or next(iter(result["policies"].values()))
+        for g, row in zip(groups, run["episodes"]):
+            out.setdefault((name, g), []).append(bool(row[JUDGE_COLUMNS[judge]]))
+    return out
+
+
+def judges_of(plan: RankingPlan) -> list[str]:
+    """The judges that ran (the classifier needs training rollouts of both outcomes)."""
+    return [j for j in JUDGE_COLUMNS if j != "classifier" or (plan.work / "judges" / "classifier").is_dir()]
+
+
+def _correlations(plan: RankingPlan, real: dict) -> dict:
+    return {mode: {judge: policy_correlation(world_model_outcomes(plan, mode, judge), real, replicates=2000,
+                                             seed=plan.seed)
+                   for judge in judges_of(plan)} for mode in plan.modes}
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def _frames(root: Path, repo: str, episode: int, views, times) -> list[np.ndarray]:
+    """Frames ``times`` of ``episode`` as uint8 HWC, the views side by side."""
+    ds = LeRobotDataset(repo, root=root)
+    lo = int(ds.meta.episodes["dataset_from_index"][episode])
+    rows = []
+    for t in times:
+        item = ds[lo + t]
+        views_img = [item[image_key(v)] for v in views]
+        h = min(x.shape[-2] for x in views_img)
+        views_img = [torch.nn.functional.interpolate(x[None].float(), size=(h, int(x.shape[-1] * h / x.shape[-2])),
+                                                     mode="bilinear", antialias=True)[0] for x in views_img]
+        rows.append((torch.cat(views_img, -1).clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy())
+    return rows
+
+
+def side_by_side(plan: RankingPlan, mode: str, policy: str, start: int, path: Path, scale: int = 2) -> None:
+    """Real (MuJoCo) and generated frames of one start, every chunk's last frame."""
+    H = 8
+    times = [0] + [H * (n + 1) for n in range(plan.chunks)]
+    p = plan.names.index(policy)
+    real = _frames(plan.eval_dataset, EVAL_REPO, plan.eval_episode(p, plan.wm_starts()[start]), SHOWN_VIEWS, times)
+    gen_root = plan.wm_dir(mode) / policy
+    gen = _frames(gen_root, f"local/{gen_root.name}", start, SHOWN_VIEWS, times)
+    rows = []
+    for name, frames in (("MuJoCo", real), (f"world model ({mode})", gen)):
+        cells = [label(cv2.resize(f, (f.shape[1] * scale, f.shape[0] * scale), interpolation=cv2.INTER_NEAREST),
+                       f"{name} t={t}") for f, t in zip(frames, times)]
+        rows.append(np.concatenate(cells, axis=1))
+    img = np.concatenate(rows, axis=0)
+    cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+
+
+def _examples(plan: RankingPlan, real: dict, mode: str) -> dict[str, tuple[str, int]]:
+    """One start where the first policy that has both outcomes in MuJoCo succeeded, one where it failed."""
+    starts = plan.wm_starts()
+    groups = [g for g, _ in plan.eval_seeds()]
+    for name in plan.names:
+        per_start = []
+        for s in starts:
+            g = groups[s]
+            per_start.append(real[(name, g)][s - groups.index(g)])
+        if any(per_start) and not all(per_start):
+            return {"success": (name, per_start.index(True)), "failure": (name, per_start.index(False))}
+    return {}
+
+
+# --------------------------------------------------------------------------- the report
+
+
+def write_report(plan: RankingPlan) -> Path:
+    docs = plan.docs
+    docs.mkdir(parents=True, exist_ok=True)
+    real = real_outcomes(plan)
+    stats = _correlations(plan, real)
+    judges = json.loads((plan.work / "judges" / "real.json").read_text())
+    evaluations = {m: json.loads((plan.wm_dir(m) / "outcomes.json").read_text()) for m in plan.modes}
+    stages = StageLog(plan.work / "stages.json").totals()
+    for mode in plan.modes:
+        plot_policy_scatter(stats[mode]["lift_geometry"], docs / f"scatter_{slug(mode.replace('+', '_'))}.png",
+                            title=f"{mode}: world model vs MuJoCo (lift judge)")
+    shown = next((m for m in ("motion+contact", "motion", "action-vector") if m in plan.modes), plan.modes[0])
+    examples = _examples(plan, real, shown)
+    for outcome, (policy, start) in examples.items():
+        side_by_side(plan, shown, policy, start, docs / f"rollout_{outcome}.png")
+    results = {"plan": plan.to_dict(), "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
+               "dirty": bool(git("status", "--porcelain")), "written": time.strftime("%Y-%m-%d %H:%M"),
+               "real": {f"{p}/{g}": v for (p, g), v in real.items()}, "statistics": stats, "judges": judges,
+               "evaluations": evaluations, "stages": stages, "examples": examples}
+    (docs / "results.json").write_text(json.dumps(results, indent=1, default=str))
+    (docs / "README.md").write_text(_markdown(plan, results))
+    return docs / "README.md"
+
+
+def _markdown(plan: RankingPlan, r: dict) -> str:
+    m = r["machine"]
+    cpu_total = sum(s["cpu_s"] for s in r["stages"].values())
+    wall_total = sum(s["wall_s"] for s in r["stages"].values())
+    lines = [
+        "# Policy ranking in simulation: does the world model rank policies the way MuJoCo does?", "",
+        "Generated by `make ranking`, i.e.", "", "```bash",
+        f"python -m imac_model ranking --work {plan.work.name if plan.work.is_absolute() else plan.work} "
+        f"--docs {plan.docs.name if plan.docs.is_absolute() else plan.docs}" + (" --toy" if plan.toy else ""), "```", "",
+        f"(every stage cached under the work directory; a rerun resumes). Written {r['written']}, commit "
+        f"`{r['commit']}`{' (with uncommitted changes)' if r['dirty'] else ''}. Protocol: `docs/ranking.md`.", "",
+        f"**Machine.** {m['cores']} cores ({m['cpu']}), {m['memory_gb']} GB, "
+        f"{'GPU ' + m['gpu'] if m['gpu'] else 'no GPU'}; Python {m['python']}, torch {m['torch']}.", "",
+        f"**Budget.** {cpu_total / 60:.1f} CPU-minutes in all (process and children), {wall_total / 60:.1f} minutes "
+        f"wall; per stage at the end. Training: {plan.cpu_minutes:g} CPU-minutes per mode.", "",
+        f"**Sizes.** {len(plan.policies)} policies; in MuJoCo {plan.groups} groups of {plan.real_per_group} starts "
+        f"each; in the world model the first {plan.wm_per_group} starts of each group, {plan.chunks} chunks of 8 "
+        f"frames (10 fps), {plan.steps} Euler steps; {plan.train_episodes} training rollouts.", "",
+    ]
+    lines += ["## Success per policy", "",
+              "MuJoCo's success (all starts) and the world model's (lift judge), with 95 % bootstrap intervals.", ""]
+    header = "| policy | MuJoCo | " + " | ".join(plan.modes) + " |"
+    lines += [header, "|" + "---|" * (2 + len(plan.modes))]
+    first = r["statistics"][plan.modes[0]]["lift_geometry"]
+    for name in plan.names:
+        real = [p for p in first["points"] if p["policy"] == name]
+        n_real = sum(p["n_real"] for p in real)
+        rate_real = sum(p["real"] * p["n_real"] for p in real) / n_real
+        cells = [f"{rate_real:.2f} ({n_real})"]
+        for mode in plan.modes:
+            pts = [p for p in r["statistics"][mode]["lift_geometry"]["points"] if p["policy"] == name]
+            n = sum(p["n_world_model"] for p in pts)
+            cells.append(f"{sum(p['world_model'] * p['n_world_model'] for p in pts) / n:.2f} ({n})")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", "## Rank agreement", "",
+              "Per mode and judge, over (policy, group) points; bootstrap 95 % intervals (bias-corrected), "
+              "episodes resampled within each point. MMRV: SIMPLER's mean maximum rank violation (0 is a perfect "
+              "ranking).", "", "| mode | judge | points | " + " | ".join(STATISTICS) + " |",
+              "|" + "---|" * (3 + len(STATISTICS))]
+    for mode in plan.modes:
+        for judge in r["statistics"][mode]:
+            g = r["statistics"][mode][judge]["levels"]["group"]
+            cells = [f"{_fmt(g[s]['value'])}{_ci(g[s]['ci'])}" for s in STATISTICS]
+            lines.append(f"| {mode} | {judge} | {g['n_points']} | " + " | ".join(cells) + " |")
+    for mode in plan.modes:
+        lines += ["", f"![{mode}](scatter_{slug(mode.replace('+', '_'))}.png)"]
+    j = r["judges"]
+    lines += ["", "## Judges", "", "Accuracy against MuJoCo's labels.", "",
+              "| judge | real evaluation episodes | classifier's own held-out split |", "|---|---|---|",
+              f"| lift_geometry | {_fmt(j['real']['lift_geometry']['accuracy'])} "
+              f"({j['real']['lift_geometry']['n']}) | |",
+              (f"| classifier | {_fmt(j['real']['classifier']['accuracy'])} ({j['real']['classifier']['n']}) | "
+               f"{_fmt(j['classifier_training']['heldout']['accuracy'])} "
+               f"({j['classifier_training']['heldout']['n']} training rollouts) |" if "classifier" in j["real"]
+               else f"| classifier | not trained: {j['classifier_training']['skipped']} | |"), "",
+              "On generated rollouts of the recorded actions (real episodes replayed in the world model, judged on "
+              "the generated frames):", "", "| mode | Euler steps | episodes | lift_geometry | classifier |",
+              "|---|---|---|---|---|"]
+    for mode, ev in r["evaluations"].items():
+        for steps, rec in (ev.get("recorded") or {}).items():
+            lines.append(f"| {mode} | {steps} | {len(rec['episodes'])} ({sum(rec['labels'])} successes) | "
+                         f"{_fmt(rec['accuracy'].get('lift_geometry'))} | {_fmt(rec['accuracy'].get('classifier'))} |")
+    none = r["evaluations"].get("none", {}).get("none_check")
+    if none:
+        lines += ["", f"**Negative control.** `none` from the same starts and seeds gives bit-identical frames to "
+                      f"{' and '.join(none['policies'])}: {none['bit_identical']} (starts {none['starts']}); it is run "
+                      "once per start and its verdicts stand for every policy."]
+    lines += ["", "## Action sensitivity", "",
+              "Mean |difference| of two samples that differ only in the right arm's waist and shoulder actions, "
+              "inside the region where their motion images differ and outside both robots (same noise).", "",
+              "| mode | inside | outside | ratio | samples |", "|---|---|---|---|---|"]
+    for mode, ev in r["evaluations"].items():
+        s = ev["sensitivity"]
+        lines.append(f"| {mode} | {_fmt(s['inside'], 4)} | {_fmt(s['outside'], 4)} | {_fmt(s['ratio'], 2)} | "
+                     f"{s['samples']} |")
+    if r["examples"]:
+        lines += ["", "## Rollouts side by side", ""]
+        for outcome, (policy, start) in r["examples"].items():
+            lines += [f"A start where `{policy}` {'succeeded' if outcome == 'success' else 'failed'} in MuJoCo "
+                      f"(start {start}): top MuJoCo, bottom the world model; head and right wrist views.", "",
+                      f"![{outcome}](rollout_{outcome}.png)", ""]
+    lines += ["", "## Time per stage", "", "| stage | CPU min | wall min |", "|---|---|---|"]
+    for stage, t in r["stages"].items():
+        lines.append(f"| {stage} | {t['cpu_s'] / 60:.1f} | {t['wall_s'] / 60:.1f} |")
+    lines.append(f"| total | {cpu_total / 60:.1f} | {wall_total / 60:.1f} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,143 @@
+"""What the experiments share: each stage's wall and CPU seconds, subprocesses run a few at a
+time with their logs, a marker file for finished work. A stage that finds its outputs skips
+its work, so an interrupted experiment resumes where it stopped."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import shlex
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def python() -> list[str]:
+    """The interpreter of this process, for subprocesses."""
+    return [sys.executable]
+
+
+def quote(s: str) -> str:
+    return shlex.quote(str(s))
+
+
+def subprocess_env() -> dict:
+    """This environment with the repository importable and MuJoCo on EGL (unless set)."""
+    env = dict(os.environ)
+    root = str(REPO_ROOT)
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.setdefault("MUJOCO_GL", "egl")
+    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    return env
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process and its finished children."""
+    s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+
+
+class StageLog:
+    """Wall and CPU seconds (this process and its children) and load averages per stage,
+    appended to a JSON file (an interrupted-and-resumed stage has several entries)."""
+
+    def __init__(self, path: Path, tag: str = "experiment"):
+        self.path, self.tag = path, tag
+        self.entries = json.loads(path.read_text()) if path.is_file() else []
+
+    def run(self, stage: str, fn: Callable[[], None]) -> None:
+        w0, c0, load0 = time.time(), cpu_seconds(), os.getloadavg()
+        print(f"[{self.tag}] {stage}: start (load average {load0[0]:.2f})", file=sys.stderr, flush=True)
+        fn()
+        entry = {"stage": stage, "wall_s": round(time.time() - w0, 2), "cpu_s": round(cpu_seconds() - c0, 2),
+                 "load_start": [round(x, 2) for x in load0], "load_end": [round(x, 2) for x in os.getloadavg()],
+                 "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
+        self.entries.append(entry)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.path.write_text(json.dumps(self.entries, indent=1))
+        print(f"[{self.tag}] {stage}: done in {entry['wall_s']:.0f} s wall, {entry['cpu_s']:.0f} s CPU",
+              file=sys.stderr, flush=True)
+
+    def totals(self) -> dict[str, dict[str, float]]:
+        """Per stage: wall and CPU seconds summed over its entries."""
+        out: dict[str, dict[str, float]] = {}
+        for e in self.entries:
+            t = out.setdefault(e["stage"], {"wall_s": 0.0, "cpu_s": 0.0})
+            t["wall_s"] += e["wall_s"]
+            t["cpu_s"] += e["cpu_s"]
+        return out
+
+
+def run_all(commands: list[tuple[str, list[str], Path]], jobs: int, tag: str = "experiment") -> None:
+    """Run ``(name, argv, log file)`` subprocesses, ``jobs`` at a time; raise if one fails."""
+    pending, running, failed = list(commands), [], []
+    while pending or running:
+        while pending and len(running) < jobs:
+            name, argv, log = pending.pop(0)
+            log.parent.mkdir(parents=True, exist_ok=True)
+            f = open(log, "a")
+            proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=subprocess_env())
+            running.append((name, proc, f, log))
+            print(f"[{tag}]   started {name} (log {log})", file=sys.stderr, flush=True)
+        time.sleep(0.5)
+        for item in list(running):
+            name, proc, f, log = item
+            if proc.poll() is not None:
+                f.close()
+                running.remove(item)
+                if proc.returncode:
+                    failed.append(f"{name} (exit {proc.returncode}, log {log})")
+                print(f"[{tag}]   finished {name} (exit {proc.returncode})", file=sys.stderr, flush=True)
+    if failed:
+        raise RuntimeError("failed: " + "; ".join(failed))
+
+
+def then_mark_done(argv: list[str], marker: Path) -> list[str]:
+    """``argv``, and on success a marker file: the work is counted as done only then."""
+    return ["bash", "-c", " ".join(map(quote, argv)) + f" && touch {quote(marker)}"]
+
+
+
+def git(*args: str) -> str:
+    """``git ARGS`` in the repository ("unknown" outside a clone)."""
+    try:
+        return subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def machine() -> dict:
+    """Cores, CPU, memory and versions: what a report's figures were measured on."""
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                mem = round(int(line.split()[1]) / 1024**2, 1)
+    except OSError:
+        pass
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cores": cores, "cpu": cpu, "memory_gb": mem, "python": platform.python_version(),
+            "torch": torch.__version__, "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+            "load_average_at_report": [round(x, 2) for x in os.getloadavg()]}
+
+
+# after `imac-model train`: the run's last log row, marking the run as finished
+MARK_TRAINED = ("import json, sys, pathlib; d = pathlib.Path(sys.argv[1]); "
+                "rows = [json.loads(l) for l in (d / 'log.jsonl').read_text().splitlines() if l.strip()]; "
+                "(d / 'DONE.json').write_text(json.dumps(rows[-1]))")
