@@ -22,7 +22,7 @@ from imac_data.core.cameras import save_calibration
 from imac_data.core.depth import resize_depth
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
-from imac_data.layout import CALIBRATION
+from imac_data.layout import CALIBRATION, depth_key, image_key
 from imac_data.sources.hdf5 import EpisodeInfo, RawEpisode, write_episode
 from imac_data.sources.sim.env import FrameRenderer, SimEnv
 from imac_data.sources.sim.rig import CAMERA_NAMES, camera_calibration, load_mujoco_model
@@ -120,6 +120,14 @@ class SimRunner:
         depth = np.stack([rendered["depth_mm"][v] for v in c.views]).astype(np.float32) / 1000.0
         return make_observation(mosaic.resize_frames(rgb, hw), torch.from_numpy(resize_depth(depth, hw)), state,
                                 c.views, TASK_INSTRUCTIONS[c.task])
+
+    def reference(self, rendered: dict, codec) -> torch.Tensor:
+        """A rendered frame as the world model's reference mosaic ``(3, 2h, V w)``: the
+        observation's RGB over its depth in ``codec``'s colours (an intervention's frame)."""
+        obs = self.observe(rendered, torch.zeros(ACTION_DIM))
+        rgb = torch.stack([obs[image_key(v)] for v in self.config.views])
+        depth = torch.stack([codec.encode(obs[depth_key(v)], channel_axis=0).float() for v in self.config.views])
+        return mosaic.assemble(rgb, depth)
 
     def run_episode(self, policy, seed: int, *, intervene: Intervention | None = None,
                     keep_observations: bool = False) -> SimEpisode:

@@ -1,10 +1,12 @@
 """The deterministic success judge of the lift: is the cube up in the air?
 
 From the right wrist view, where a held cube fills a good part of the image, the red pixels are
-lifted to the world with their depth and the camera's pose at the frame's state; the cube is
-lifted when the median height of those points is at least the success height (the cube's
-centre 4 cm above its resting height). A frame votes; the majority of the judged frames
-decides. The same judge reads real frames (depth rendered, recorded) and generated ones
+lifted to the world with their depth and the camera's pose at the frame's state (edge pixels,
+which mix the cube's colour with a finger's depth, left out). The cube is
+held up when enough of those points lie near the right gripper's tool centre point (forward
+kinematics of the same state) and their median height is at least the success height (the
+cube's centre 4 cm above its resting height); red drawn anywhere else does not count. A frame
+votes; the majority of the judged frames decides. The same judge reads real frames (depth rendered, recorded) and generated ones
 (depth decoded from the generated colour depth), at the depth's size."""
 
 from __future__ import annotations
@@ -16,13 +18,16 @@ import torch
 
 from imac_data.errors import InputError
 from imac_data.layout import image_key
+from imac_data.sources.sim.scripts import TCP_OFFSET
 from imac_data.sources.sim.tasks import LIFT_HEIGHT, REST_HEIGHT, TABLE_Z
 from imac_model.data import mosaic
 from imac_model.evaluate.success import EpisodeFrames, SuccessJudge
 from imac_model.experiments.ranking.perception import red_points
 from imac_model.experiments.ranking.policies import WRIST, lift_rig
 
-MIN_POINTS = 10  # red points with depth a frame needs before it can vote "lifted"
+MIN_POINTS = 10  # red points near the gripper a frame needs before it can vote "lifted"
+NEAR = 0.06  # metres from the tool centre point: a held cube's surface (half side 2 cm, grasped up to 2 cm off centre)
+GRIPPER_LINK = "vx300s_right/gripper_link"
 
 
 class LiftJudge(SuccessJudge):
@@ -30,16 +35,22 @@ class LiftJudge(SuccessJudge):
 
     name = "lift_geometry"
 
-    def __init__(self, view: str = WRIST, *, min_points: int = MIN_POINTS,
+    def __init__(self, view: str = WRIST, *, min_points: int = MIN_POINTS, near: float = NEAR,
                  lifted_z: float = TABLE_Z + REST_HEIGHT["box"] + LIFT_HEIGHT):
         self.rig = lift_rig()
         self.views = list(self.rig.cameras)
         if view not in self.views:
             raise InputError(f"LiftJudge: view {view!r} is not one of the rig's cameras {self.views}")
-        self.view, self.min_points, self.lifted_z = view, int(min_points), float(lifted_z)
+        self.view, self.min_points, self.near, self.lifted_z = view, int(min_points), float(near), float(lifted_z)
+
+    def tool_centre(self, states: torch.Tensor) -> torch.Tensor:
+        """``(K, 3)`` the right gripper's tool centre point at ``states (K, 14)``."""
+        T = self.rig.link_poses(states)[GRIPPER_LINK]
+        return T[:, :3, :3] @ torch.as_tensor(TCP_OFFSET, dtype=T.dtype) + T[:, :3, 3]
 
     def heights(self, episode: EpisodeFrames) -> np.ndarray:
-        """Per judged frame: the median height (m) of the cube's points, NaN with too few."""
+        """Per judged frame: the median height (m) of the cube's points near the gripper, NaN
+        with too few."""
         key = image_key(self.view)
         if key not in episode.frames or not episode.depth or key not in episode.depth or episode.states is None:
             raise InputError(f"episode {episode.episode_index}: the lift judge needs {key}, its depth and the "
@@ -49,9 +60,11 @@ class LiftJudge(SuccessJudge):
         i = self.views.index(self.view)
         K = self.rig.intrinsics(tuple(rgb.shape[-2:]))[i]
         poses = self.rig.camera_poses(states)[:, i]
+        tcp = self.tool_centre(states)
         out = np.full(len(rgb), np.nan)
         for k in range(len(rgb)):
-            points, _ = red_points(rgb[k], depth[k], K, poses[k])
+            points, _ = red_points(rgb[k], depth[k], K, poses[k], edges=False)
+            points = points[(points - tcp[k]).norm(dim=-1) <= self.near]
             if len(points) >= self.min_points:
                 out[k] = float(points[:, 2].median())
         return out

@@ -15,11 +15,24 @@ def redness(rgb: torch.Tensor) -> torch.Tensor:
     return rgb[0] - torch.maximum(rgb[1], rgb[2])
 
 
+def interior(mask: torch.Tensor) -> torch.Tensor:
+    """``mask`` without its edge pixels (those with a 4-neighbour outside it): at an object's
+    edge a resized pixel mixes its colour with the depth of whatever lies in front or behind."""
+    m = mask.clone()
+    m[1:] &= mask[:-1]
+    m[:-1] &= mask[1:]
+    m[:, 1:] &= mask[:, :-1]
+    m[:, :-1] &= mask[:, 1:]
+    return m
+
+
 def red_points(rgb: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
-               threshold: float = RED_THRESHOLD) -> tuple[torch.Tensor, torch.Tensor]:
-    """World points ``(N, 3)`` of the red pixels with known depth, and their redness ``(N,)``."""
+               threshold: float = RED_THRESHOLD, *, edges: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """World points ``(N, 3)`` of the red pixels with known depth, and their redness ``(N,)``;
+    without ``edges``, of the red region's :func:`interior` only."""
     r = redness(rgb.float())
-    keep = (r > threshold) & (depth > 0)
+    red = r > threshold
+    keep = (red if edges else interior(red)) & (depth > 0)
     points = backproject(depth.float(), K.float(), T_world_cam.float())
     return points[keep], r[keep]
 
