@@ -16,7 +16,13 @@ from pathlib import Path
 
 import torch
 import torch.distributed as dist
-from torch.distributed.fsdp import CPUOffloadPolicy, MixedPrecisionPolicy, OffloadPolicy, fully_shard
+from torch.distributed.fsdp import (
+    CPUOffloadPolicy,
+    MixedPrecisionPolicy,
+    OffloadPolicy,
+    fully_shard,
+    register_fsdp_forward_method,
+)
 from torch.distributed.tensor import DTensor, Shard
 
 from imac_data.errors import InputError
@@ -61,6 +67,7 @@ def shard_world_model(model: WorldModel, mesh, *, bf16: bool, reshard_after_forw
         torch.device(mesh.device_type)
     backbone.vae.to(device, dtype=torch.bfloat16 if bf16 else None)  # ignored parameters are not moved by FSDP2
     fully_shard(model, ignored_params=set(backbone.vae.parameters()), **kw)
+    register_fsdp_forward_method(model, "sample")  # sampling gathers the root group's weights as forward does
     if bf16:
         backbone.compute_dtype = torch.bfloat16
 
