@@ -20,6 +20,7 @@ bench: setup
 	$(PY) -m benchmarks.run
 	$(PY) -m benchmarks.model_train --json benchmarks/results/model_train.json
 	$(PY) -m benchmarks.model_rollout --json benchmarks/results/model_rollout.json
+	$(PY) -m benchmarks.model_plan --json benchmarks/results/model_plan.json
 	$(PY) -m benchmarks.evaluate_closed_loop --json benchmarks/results/evaluate_closed_loop.json
 	$(PY) -m benchmarks.evaluate_video_metrics --samples 2
 	$(PY) -m benchmarks.evaluate_statistics --markdown benchmarks/results/evaluate_statistics.md

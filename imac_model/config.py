@@ -94,6 +94,8 @@ class WanConfig:
     context_tokens: int = 16  # learned null text context (no T5 here): tokens of width text_dim
     gradient_checkpointing: bool = False
     train_vae: bool = False  # the VAE stays frozen unless asked
+    vae_slicing: bool = False  # encode / decode one sample at a time (diffusers' slicing): the VAE's peak
+    # memory stops growing with the micro-batch
 
     def __post_init__(self) -> None:
         if self.num_layers is not None:
@@ -152,11 +154,28 @@ class FlowConfig:
 
 
 @dataclass(frozen=True)
+class ShardingConfig:
+    """Sharded data-parallel training (``imac_model/training/sharding.py``, ``docs/scale.md``)."""
+
+    strategy: Literal["none", "fsdp2"] = "none"  # fsdp2: torch's fully_shard per transformer block
+    reshard_after_forward: bool = True  # false: parameters stay gathered from forward to backward (ZeRO-2-like)
+    cpu_offload: bool = False  # fsdp2 on CUDA: weights, gradients and optimizer states live in host memory
+
+    def __post_init__(self) -> None:
+        if self.strategy == "none" and (self.cpu_offload or not self.reshard_after_forward):
+            raise InputError("train.sharding.cpu_offload / reshard_after_forward: need train.sharding.strategy "
+                             "fsdp2")
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     output_dir: str = "runs/imac"
     seed: int = 0
-    batch_size: int = 4  # global batch (split over processes under `accelerate launch`)
+    batch_size: int = 4  # global batch (split over processes under `accelerate launch` / `torchrun`)
+    optimizer: Literal["adamw"] = "adamw"  # torch.optim.AdamW over the trainable weights
     lr: float = 3e-4
+    adam_betas: tuple[float, ...] = (0.9, 0.999)
+    adam_eps: float = 1e-8
     weight_decay: float = 0.0
     warmup_steps: int = 50
     grad_clip: float = 1.0
@@ -172,8 +191,13 @@ class TrainConfig:
     mixed_precision: Literal["auto", "no", "bf16"] = "auto"  # auto: bf16 on a CUDA device that has it
     tracker: Literal["tensorboard", "wandb"] | None = None  # besides the CSV/JSONL log
     cpu_threads: int | None = None  # torch intra-op threads (None: torch's default; 1 is fastest on a busy CPU)
+    sharding: ShardingConfig = field(default_factory=ShardingConfig)
 
     def __post_init__(self) -> None:
+        if len(self.adam_betas) != 2 or not all(0 <= b < 1 for b in self.adam_betas):
+            raise InputError(f"train.adam_betas: two numbers in [0, 1) (got {list(self.adam_betas)})")
+        if not self.adam_eps > 0:
+            raise InputError(f"train.adam_eps: must be > 0 (got {self.adam_eps})")
         for name in ("batch_size", "max_steps", "log_every", "eval_every", "eval_batches", "checkpoint_every",
                      "keep_checkpoints"):
             _positive(self, name, "train")
@@ -229,6 +253,13 @@ class RunConfig:
         if self.rollout.stage_one_epochs > 0 and self.conditioning.mode != "motion+contact":
             raise InputError(f"rollout.stage_one_epochs: stage one (motion only, then contact added) needs "
                              f"conditioning.mode motion+contact (got {self.conditioning.mode!r})")
+        if self.train.sharding.strategy != "none":
+            if self.backbone.kind != "wan":
+                raise InputError(f"train.sharding.strategy: {self.train.sharding.strategy} shards the Wan "
+                                 f"transformer's blocks; backbone.kind is {self.backbone.kind!r} (train it unsharded)")
+            if self.backbone.wan.train_vae:
+                raise InputError("backbone.wan.train_vae: the VAE is replicated, not sharded, under "
+                                 "train.sharding.strategy fsdp2; train it unsharded or keep it frozen")
 
     def to_dict(self) -> dict:
         return to_dict(self)

@@ -13,6 +13,7 @@ COMMANDS = {  # command -> the module whose run(args) carries it out
     "evaluate": "imac_model.cli.evaluate",
     "experiment": "imac_model.cli.experiment",
     "ranking": "imac_model.cli.ranking",
+    "plan": "imac_model.cli.plan",
 }
 MODES = ("none", "motion", "motion+contact", "action-vector")
 EXPERIMENT_STAGES = ("record", "build", "decode", "train", "evaluate", "report")
@@ -174,8 +175,21 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("internal_args", nargs="*", help=argparse.SUPPRESS)
 
 
+def _plan(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, help="run config (YAML/JSON); it must set data.view_width and data.chunk")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="override any field, as in train")
+    p.add_argument("--gpus", type=int, nargs="+", default=[1, 8], help="GPU counts to plan for (default 1 8)")
+    p.add_argument("--gpu-gb", type=float, default=80.0, help="memory of one GPU in GB of 1e9 bytes (default 80)")
+    p.add_argument("--reserve-gb", type=float, default=4.0,
+                   help="kept free for the CUDA context, NCCL buffers and fragmentation (default 4)")
+    p.add_argument("--micro-batch", type=int, help="samples per GPU per step (default: train.batch_size / GPUs)")
+    p.add_argument("--views", type=int, help="camera views (default: data.views, else 3)")
+    p.add_argument("--action-dim", type=int, default=14, help="action dimension (action-vector mode; default 14)")
+    p.add_argument("--json", help="also write the plan here as JSON")
+
+
 def build_parser(prog: str = "imac-model") -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description="The iMaC world model: train, sample, evaluate. "
+    parser = argparse.ArgumentParser(prog=prog, description="The iMaC world model: train, sample, evaluate, plan. "
                                                             "docs/world-model.md has the details.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _train(sub.add_parser("train", help="train the world model on an imac dataset"))
@@ -185,6 +199,8 @@ def build_parser(prog: str = "imac-model") -> argparse.ArgumentParser:
     _experiment(sub.add_parser("experiment", help="the small-scale comparison of docs/experiment (resumable)"))
     _ranking(sub.add_parser("ranking", help="does the world model rank policies as MuJoCo does? (docs/ranking.md, "
                                             "resumable)"))
+    _plan(sub.add_parser("plan", help="memory and compute plan of a run config on the meta device (no GPU, no "
+                                      "weights): parameters, bytes per GPU, activations, tokens, FLOPs, what fits"))
     return parser
 
 

@@ -31,6 +31,8 @@ def run(args: argparse.Namespace) -> int:
     def body() -> int:
         result = train(load_run_config(args.config, overrides_of(args)), resume=args.resume,
                        progress=not args.no_progress)
+        if not result.main:  # another process of a distributed run: rank 0 reports
+            return 0
         last = [r for r in result.log if "heldout_loss" in r]
         summary = f"trained to step {result.step} ({result.stopped}); checkpoint {result.checkpoint}"
         if len(last) >= 2:

@@ -235,7 +235,7 @@ class ChunkDataset(Dataset):
             self.cache[i] = item
         if self.cache_file is not None:
             self.cache_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self.cache_file.with_suffix(".tmp")
+            tmp = self.cache_file.with_suffix(f".{os.getpid()}.tmp")  # processes of one run may write it at once
             torch.save(self.cache, tmp)
             os.replace(tmp, self.cache_file)
 

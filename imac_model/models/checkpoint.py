@@ -9,6 +9,11 @@
         ema.safetensors      EMA of the trainable weights (when EMA is on)
         trainer_state.pt     optimizer, LR schedule, step (exact resume)
 
+A sharded run (``train.sharding.strategy: fsdp2``) writes, instead of the last three, ``state/``:
+one ``torch.distributed.checkpoint`` of the weights, the optimizer, the EMA and the trainer
+(step, schedule), each rank writing its own shards. It loads on any number of ranks, or into
+a plain model in one process (:func:`load_world_model`).
+
 Every write goes to a temporary directory that is renamed into place, so a killed run
 never leaves a half-written checkpoint. :func:`load_world_model` raises
 :class:`~imac_data.errors.InputError` naming the file for anything unreadable.
@@ -30,14 +35,19 @@ from imac_model.models.world_model import WorldModel
 
 SPEC, CONFIG, WEIGHTS, EMA, STATE = "model.json", "config.yaml", "model.safetensors", "ema.safetensors", \
     "trainer_state.pt"
+SHARDED = "state"  # the torch.distributed.checkpoint directory of a sharded run
 _STEP_DIR = re.compile(r"^step_(\d+)$")
 
 
-def weights_to_save(model, spec: ModelSpec) -> dict[str, torch.Tensor]:
-    state = model.state_dict()
+def _kept(state: dict, spec: ModelSpec) -> dict:
+    """The weights a checkpoint holds: all but a frozen pretrained Wan VAE (it comes from ``pretrained``)."""
     if spec.backbone.kind == "wan" and spec.backbone.wan.pretrained and not spec.backbone.wan.train_vae:
-        state = {k: v for k, v in state.items() if not k.startswith("backbone.vae.")}
-    return {k: v.detach().contiguous().cpu() for k, v in state.items()}
+        return {k: v for k, v in state.items() if not k.startswith("backbone.vae.")}
+    return state
+
+
+def weights_to_save(model, spec: ModelSpec) -> dict[str, torch.Tensor]:
+    return {k: v.detach().contiguous().cpu() for k, v in _kept(model.state_dict(), spec).items()}
 
 
 def save_checkpoint(directory: str | Path, *, model, spec: ModelSpec, run: RunConfig | None = None,
@@ -62,6 +72,93 @@ def save_checkpoint(directory: str | Path, *, model, spec: ModelSpec, run: RunCo
     return directory
 
 
+def is_sharded(path: Path) -> bool:
+    return (Path(path) / SHARDED).is_dir()
+
+
+def save_sharded_checkpoint(directory: str | Path, *, model, optimizer, spec: ModelSpec, run: RunConfig,
+                            ema: dict[str, torch.Tensor] | None, trainer: dict) -> Path:
+    """A sharded run's checkpoint (``state/``): every rank calls this, each writes its shards.
+    ``trainer``: ``{"step": ..., "scheduler": ...}``."""
+    import torch.distributed as dist
+    import torch.distributed.checkpoint as dcp
+    from torch.distributed.checkpoint.state_dict import get_state_dict
+
+    directory = Path(directory)
+    tmp = directory.with_name(directory.name + ".tmp")
+    main = dist.get_rank() == 0
+    if main:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        save_config(spec, tmp / SPEC)
+        save_config(run, tmp / CONFIG)
+    dist.barrier()
+    weights, optim = get_state_dict(model, optimizer)
+    state = {"model": _kept(weights, spec), "optim": optim, "trainer": trainer}
+    if ema is not None:
+        state["ema"] = ema
+    dcp.save(state, checkpoint_id=tmp / SHARDED)
+    dist.barrier()
+    if main:
+        if directory.exists():
+            shutil.rmtree(directory)
+        os.replace(tmp, directory)
+    dist.barrier()
+    return directory
+
+
+def _sharded_keys(path: Path) -> set[str]:
+    import torch.distributed.checkpoint as dcp
+
+    try:
+        return set(dcp.FileSystemReader(str(path / SHARDED)).read_metadata().state_dict_metadata)
+    except (OSError, ValueError, RuntimeError, EOFError) as e:
+        raise InputError(f"{path / SHARDED}: unreadable sharded checkpoint: {e}") from None
+
+
+def _dcp_load(state: dict, path: Path) -> None:
+    import torch.distributed.checkpoint as dcp
+    from torch.distributed.checkpoint.api import CheckpointException
+
+    try:
+        dcp.load(state, checkpoint_id=path / SHARDED)
+    except (CheckpointException, OSError, ValueError, RuntimeError, KeyError) as e:
+        raise InputError(f"{path / SHARDED}: the sharded checkpoint does not fit the model its {SPEC} describes, "
+                         f"or is damaged: {type(e).__name__}: {str(e)[:500]}") from None
+
+
+def load_sharded_checkpoint(path: Path, *, model, optimizer, spec: ModelSpec, ema: dict[str, torch.Tensor] | None,
+                            trainer: dict) -> tuple[dict, bool]:
+    """Resume a sharded run (every rank calls this): weights and optimizer into ``model`` /
+    ``optimizer`` (sharded or not), the EMA into ``ema``'s tensors, and ``(trainer state,
+    whether the checkpoint had an EMA)``; ``trainer`` is the template (``{"step": 0,
+    "scheduler": scheduler.state_dict()}``)."""
+    from torch.distributed.checkpoint.state_dict import StateDictOptions, get_state_dict, set_state_dict
+
+    path = Path(path)
+    has_ema = any(k.startswith("ema.") for k in _sharded_keys(path))
+    weights, optim = get_state_dict(model, optimizer)  # also creates the optimizer states to load into
+    state = {"model": _kept(weights, spec), "optim": optim, "trainer": trainer}
+    if ema is not None and has_ema:
+        state["ema"] = ema
+    _dcp_load(state, path)
+    set_state_dict(model, optimizer, model_state_dict=state["model"], optim_state_dict=state["optim"],
+                   options=StateDictOptions(strict=False))
+    return state["trainer"], has_ema
+
+
+def _load_sharded_weights(model, path: Path, *, ema: bool) -> None:
+    """A sharded checkpoint's weights (or EMA) into a plain model, in one process."""
+    if ema:
+        template = {k: torch.empty(p.shape, dtype=torch.float32) for k, p in model.named_parameters()
+                    if p.requires_grad}
+    else:
+        template = {k: torch.empty_like(v) for k, v in _kept(model.state_dict(), model.spec).items()}
+    state = {"ema" if ema else "model": template}
+    _dcp_load(state, path)
+    model.load_state_dict(state["ema" if ema else "model"], strict=False)
+
+
 def list_checkpoints(output_dir: str | Path) -> list[Path]:
     """Complete checkpoints under ``output_dir/checkpoints``, oldest first."""
     root = Path(output_dir) / "checkpoints"
@@ -79,7 +176,7 @@ def resolve_checkpoint(path: str | Path) -> Path:
     found = list_checkpoints(path)
     if found:  # a run directory
         return found[-1]
-    if (path / SPEC).is_file() or (path / WEIGHTS).is_file():
+    if (path / SPEC).is_file() or (path / WEIGHTS).is_file() or is_sharded(path):
         return path
     raise InputError(f"{path}: not a checkpoint (no {SPEC} / {WEIGHTS}) and no checkpoints/step_* inside")
 
@@ -126,12 +223,17 @@ def load_world_model(path: str | Path, *, weights: str = "ema", device=None):
     latest checkpoint). ``weights``: ``ema`` (if saved, else the raw weights) or ``raw``."""
     path = resolve_checkpoint(path)
     spec = read_spec(path)
-    model = WorldModel(spec)
-    load_weights_into(model, path / WEIGHTS)
-    if weights == "ema" and (path / EMA).is_file():
-        load_weights_into(model, path / EMA, ema=True)
-    elif weights not in ("ema", "raw"):
+    if weights not in ("ema", "raw"):
         raise ValueError(f"weights must be 'ema' or 'raw', got {weights!r}")
+    model = WorldModel(spec)
+    if is_sharded(path):
+        _load_sharded_weights(model, path, ema=False)
+        if weights == "ema" and any(k.startswith("ema.") for k in _sharded_keys(path)):
+            _load_sharded_weights(model, path, ema=True)
+    else:
+        load_weights_into(model, path / WEIGHTS)
+        if weights == "ema" and (path / EMA).is_file():
+            load_weights_into(model, path / EMA, ema=True)
     model.eval()
     return (model.to(device) if device is not None else model), spec
 

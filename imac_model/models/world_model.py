@@ -155,24 +155,29 @@ class WorldModel(nn.Module):
 
     def forward(self, batch: ChunkBatch, *, generator: torch.Generator | None = None,
                 tau: torch.Tensor | None = None, noise: torch.Tensor | None = None,
-                streams: tuple[str, ...] | None = None) -> FlowOutput:
+                streams: tuple[str, ...] | None = None, rows: tuple[int, int] = (0, 1)) -> FlowOutput:
         """The flow-matching loss of a batch (training). ``tau`` / ``noise`` default to
         draws from ``generator`` (``tau ~ U(0, 1)``, shifted by ``flow.train_shift``).
-        ``streams``: the active control streams (default all; stage one: motion only)."""
+        ``streams``: the active control streams (default all; stage one: motion only).
+        ``rows = (r, n)``: this batch is rows ``r::n`` of a global batch of ``n x B`` rows
+        (data-parallel rank r of n); the draws are those of the global batch, sliced, so
+        they do not depend on how the global batch is split."""
         if batch.future is None:
             raise ValueError("ChunkBatch.future is needed for the loss")
         z_ref, x1, controls, context = self._inputs(batch, with_future=True, streams=streams)
         B, dev = x1.shape[0], x1.device
+        r, n = rows
+        Bg = B * n
         gen_dev = generator.device if generator is not None else dev
         if tau is None:
-            tau = flow.sample_tau(B, shift=self.spec.flow.train_shift, generator=generator, device=gen_dev)
+            tau = flow.sample_tau(Bg, shift=self.spec.flow.train_shift, generator=generator, device=gen_dev)[r::n]
         tau = tau.to(dev, torch.float32)
         if noise is None:
-            noise = torch.randn(x1.shape, generator=generator, device=gen_dev)
+            noise = torch.randn((Bg, *x1.shape[1:]), generator=generator, device=gen_dev)[r::n]
         x0 = noise.to(dev, x1.dtype)
         if self.training and self.spec.flow.reference_noise > 0:  # release option: jitter the clean reference
-            scale = torch.rand(B, generator=generator, device=gen_dev).to(dev) * self.spec.flow.reference_noise
-            eps = torch.randn(z_ref.shape, generator=generator, device=gen_dev).to(dev, z_ref.dtype)
+            scale = torch.rand(Bg, generator=generator, device=gen_dev)[r::n].to(dev) * self.spec.flow.reference_noise
+            eps = torch.randn((Bg, *z_ref.shape[1:]), generator=generator, device=gen_dev)[r::n].to(dev, z_ref.dtype)
             z_ref = z_ref + scale.view(B, 1, 1, 1, 1) * eps
         x_tau = flow.interpolate(x0, x1, tau)
         v = self.velocity(x_tau, tau, reference_latent=z_ref, control_latents=controls, context=context)

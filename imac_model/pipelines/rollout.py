@@ -48,10 +48,13 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
                  streams: Sequence[str] | None = None, commanded_state: bool = False,
                  backward: Callable[[torch.Tensor], None] | None = None,
                  taus: Sequence[torch.Tensor] | None = None, noises: Sequence[torch.Tensor] | None = None,
-                 autocast=None) -> RolloutOutput:
+                 autocast=None, rows: tuple[int, int] = (0, 1),
+                 loss_of: Callable | None = None) -> RolloutOutput:
     """The training-time rollout loss of a batch of clips: ``clip[r]`` is chunk r of every
     clip. See the module docstring. ``backward(loss_r / R)`` is called per chunk when given
-    (then the returned loss is detached). ``taus``/``noises`` fix each chunk's draws (tests)."""
+    (then the returned loss is detached). ``taus``/``noises`` fix each chunk's draws (tests).
+    ``rows``: the data-parallel slice of :meth:`WorldModel.forward`; ``loss_of(out)``: the
+    chunk's loss to train on (default ``out.loss``; data-parallel training rebalances it)."""
     import contextlib
 
     R = len(clip)
@@ -83,9 +86,9 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
                 result.invalid_depth.append(float(rebuilt.invalid_fraction.mean()))
             chunk = replace(batch, reference=reference, controls=controls)
         with autocast():
-            out = model(chunk, generator=generator, streams=streams,
+            out = model(chunk, generator=generator, streams=streams, rows=rows,
                         tau=None if taus is None else taus[r], noise=None if noises is None else noises[r])
-        loss_r = out.loss / R
+        loss_r = (out.loss if loss_of is None else loss_of(out)) / R
         if backward is not None:
             backward(loss_r)
             loss_r = loss_r.detach()

@@ -10,7 +10,7 @@ from __future__ import annotations
 from imac_model.config import BackboneConfig
 from imac_model.models.backbones.base import Backbone
 from imac_model.models.backbones.small_dit import SmallVideoDiT
-from imac_model.models.backbones.wan import TI2V_VAE, WanBackbone, wan_spatial_multiple
+from imac_model.models.backbones.wan import WanBackbone, wan_configs, wan_spatial_multiple
 
 
 def build_backbone(config: BackboneConfig, *, with_context: bool = False) -> Backbone:
@@ -35,7 +35,7 @@ def temporal_factor(config: BackboneConfig) -> int:
     if config.kind == "small":
         return 1
 
-    return int({**TI2V_VAE, **config.wan.vae}.get("scale_factor_temporal", 4))
+    return int(wan_configs(config.wan)[1].get("scale_factor_temporal", 4))
 
 
 __all__ = ["Backbone", "build_backbone", "spatial_multiple", "temporal_factor"]

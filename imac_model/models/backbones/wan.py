@@ -31,18 +31,35 @@ TI2V_VAE = dict(
 )
 
 
-def wan_spatial_multiple(config: WanConfig) -> int:
-    """Spatial compression x patch of the configured Wan (32 for Wan2.2 TI2V), without
-    building it (read from the pretrained directory's configs when local)."""
+def wan_configs(config: WanConfig) -> tuple[dict, dict]:
+    """The constructor arguments of the configured transformer and VAE, without building
+    them: the TI2V shapes, a local pretrained directory's ``config.json`` files over them, the
+    config's own values over those (as ``from_pretrained`` applies them). Keys a class does not
+    take (the Hub VAE's ``clip_output``, diffusers' ``_class_name``) are dropped, as
+    ``from_pretrained`` drops them. A hub id is not fetched: the config's values stand."""
+    import inspect
     import json
     from pathlib import Path
 
-    tr, vae = {**TI2V_TRANSFORMER, **config.transformer}, {**TI2V_VAE, **config.vae}
-    if config.pretrained and Path(config.pretrained).is_dir():
-        for sub, target in (("transformer", tr), ("vae", vae)):
-            path = Path(config.pretrained) / sub / "config.json"
-            if path.is_file():
-                target.update(json.loads(path.read_text()))
+    from diffusers import AutoencoderKLWan, WanTransformer3DModel
+
+    out = []
+    for sub, cls, base, own in (("transformer", WanTransformer3DModel, TI2V_TRANSFORMER, config.transformer),
+                                ("vae", AutoencoderKLWan, TI2V_VAE, config.vae)):
+        values = dict(base)
+        path = Path(config.pretrained) / sub / "config.json" if config.pretrained else None
+        if path is not None and path.is_file():
+            values.update(json.loads(path.read_text()))
+        values.update(own)
+        accepted = set(inspect.signature(cls.__init__).parameters) - {"self"}
+        out.append({k: v for k, v in values.items() if k in accepted})
+    return out[0], out[1]
+
+
+def wan_spatial_multiple(config: WanConfig) -> int:
+    """Spatial compression x patch of the configured Wan (32 for Wan2.2 TI2V), without
+    building it (read from the pretrained directory's configs when local)."""
+    tr, vae = wan_configs(config)
     return int(vae["scale_factor_spatial"]) * int(tr["patch_size"][1])
 
 
@@ -70,6 +87,9 @@ class WanBackbone(Backbone):
                              persistent=False)
         self.train_vae = train_vae
         vae.requires_grad_(train_vae)
+        # the transformer's compute dtype; None: its parameters' dtype. Sharded training with a bf16
+        # policy keeps fp32 parameters between steps and computes in bf16 (training/sharding.py)
+        self.compute_dtype: torch.dtype | None = None
         self._install_control_hook()
 
     @property
@@ -102,6 +122,8 @@ class WanBackbone(Backbone):
             transformer.register_to_config(num_layers=config.num_layers)
         if config.gradient_checkpointing:
             transformer.enable_gradient_checkpointing()
+        if config.vae_slicing:
+            vae.enable_slicing()
         return cls(transformer, vae, context_tokens=config.context_tokens, with_context=with_context,
                    train_vae=config.train_vae)
 
@@ -128,7 +150,7 @@ class WanBackbone(Backbone):
         ctx = self.null_context.expand(B, -1, -1)
         if context is not None:
             ctx = torch.cat([context.to(ctx.dtype), ctx], dim=1)
-        dtype = self.transformer.dtype
+        dtype = self.compute_dtype or self.transformer.dtype
         out = self.transformer(latents.to(dtype), timestep=t, encoder_hidden_states=ctx.to(dtype),
                                return_dict=False)[0]
         return -out.float()  # Wan predicts noise - data; the paper's velocity is data - noise
