@@ -13,7 +13,7 @@ from imac_data.console import run_command
 from imac_data.errors import InputError
 from imac_model.experiments.ranking.benchmark import STAGE_FUNCTIONS, decode_chunks, simulate_training_part
 from imac_model.experiments.ranking.evaluation import evaluate_mode, run_judges
-from imac_model.experiments.ranking.plan import STAGES, RankingPlan, toy_plan
+from imac_model.experiments.ranking.plan import STAGES, RankingPlan, gpu_plan, toy_plan
 from imac_model.experiments.stages import StageLog
 
 
@@ -23,7 +23,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _plan(args: argparse.Namespace) -> RankingPlan:
     work, docs = Path(args.work).resolve(), Path(args.docs).resolve()
-    plan = toy_plan(work, docs) if args.toy else RankingPlan(work=work, docs=docs)
+    if args.toy and args.preset == "gpu":
+        raise InputError("--toy and --preset gpu are two sizes; choose one")
+    plan = toy_plan(work, docs) if args.toy else gpu_plan(work, docs) if args.preset == "gpu" else \
+        RankingPlan(work=work, docs=docs)
     changes = {k: v for k, v in (("policies", tuple(args.policies or ()) or None), ("cpu_minutes", args.cpu_minutes),
                                  ("steps", args.steps), ("jobs", args.jobs)) if v is not None}
     plan = dataclasses.replace(plan, **changes)

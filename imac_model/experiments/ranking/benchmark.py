@@ -33,7 +33,6 @@ from imac_model.config import CONTROL_STREAMS
 from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner, run_policy
 from imac_model.experiments.ranking.plan import (
-    CONFIG,
     EVAL_REPO,
     RECIPE,
     TRAIN_REPO,
@@ -66,7 +65,8 @@ def stage_simulate(plan: RankingPlan) -> None:
             continue
         shutil.rmtree(out, ignore_errors=True)
         argv = python() + ["-m", "imac_model", "evaluate", "simulator", "--policy", spec, "--seeds", *seeds,
-                           "--chunks", str(plan.chunks), "--output", str(out), "--no-progress"]
+                           "--chunks", str(plan.chunks), "--view-size", *map(str, plan.view_size), "--output", str(out),
+                           "--no-progress"]
         commands.append((f"simulate {name}", then_mark_done(argv, out / ".done"), plan.work / "logs" / f"sim_{name}.log"))
     parts = max(1, min(plan.jobs, plan.train_episodes))
     for k in range(parts):
@@ -94,7 +94,7 @@ def training_policy(index: int):
 def simulate_training_part(plan: RankingPlan, part: int) -> None:
     parts = max(1, min(plan.jobs, plan.train_episodes))
     out = plan.work / "sim" / "train" / f"part_{part}"
-    with SimRunner(SimRunConfig(chunks=plan.chunks)) as runner:
+    with SimRunner(SimRunConfig(chunks=plan.chunks, view_height=plan.view_size[0], view_width=plan.view_size[1])) as runner:
         rows = []
         for i in range(part, plan.train_episodes, parts):
             p = training_policy(i)
@@ -165,7 +165,7 @@ def stage_train(plan: RankingPlan) -> None:
         if (plan.run_dir(mode) / "DONE.json").is_file():
             continue
         sets = [a for k, v in plan.mode_overrides(mode).items() for a in ("--set", f"{k}={json.dumps(v)}")]
-        script = (" ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", str(CONFIG),
+        script = (" ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", plan.config,
                                                    "--no-progress", *sets]))
                   + f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(plan.run_dir(mode)))}")
         commands.append((f"train {mode}", ["bash", "-c", script], plan.work / "logs" / f"train_{slug(mode)}.log"))

@@ -131,7 +131,7 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     t0, c0 = time.time(), time.process_time()
     out = plan.wm_dir(mode)
     checkpoint = str(plan.run_dir(mode))
-    model, spec = load_world_model(plan.run_dir(mode), weights="ema")
+    model, spec = load_world_model(plan.run_dir(mode), weights="ema", device=plan.device)
     evaluation = LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
     labels = dataset_success_labels(evaluation)
     starts = [plan.eval_episode(0, s) for s in plan.wm_starts()]

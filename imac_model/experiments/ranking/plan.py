@@ -17,6 +17,7 @@ POLICY_MODULE = "imac_model.experiments.ranking.policies"
 JUDGE = "python:imac_model.experiments.ranking.judge:lift_judge"
 RECIPE = REPO_ROOT / "recipes" / "aloha_sim_lift.yaml"
 CONFIG = REPO_ROOT / "imac_model" / "configs" / "ranking.yaml"
+GPU_CONFIG = REPO_ROOT / "imac_model" / "configs" / "ranking_gpu.yaml"
 MODES = ("motion+contact", "motion", "action-vector", "none")
 STAGES = ("simulate", "build", "decode", "train", "judges", "evaluate", "report")
 EVAL_SEED0 = 100_000  # evaluation start of group g, episode i: EVAL_SEED0 + 1000 g + i
@@ -53,6 +54,9 @@ class RankingPlan:
     recorded: int = 24  # evaluation episodes replayed in the world model, half successes where possible
     jobs: int = 2  # processes at a time
     seed: int = 0
+    view_size: tuple[int, int] = (48, 64)  # what the policies, the judges and the world model see
+    config: str = str(CONFIG)  # the world models' run config
+    device: str = "cpu"  # where the world models sample ("cuda" in the GPU preset)
     toy: bool = False  # the CI run: tiny backbone, a few training steps
     overrides: dict = field(default_factory=dict)  # extra run-config overrides for every mode
 
@@ -69,6 +73,9 @@ class RankingPlan:
             raise InputError("ranking: wm_per_group must be between 1 and real_per_group")
         if not 0 <= self.held_out < self.train_episodes:
             raise InputError("ranking: held_out must be below train_episodes")
+        self.view_size = tuple(int(x) for x in self.view_size)
+        if len(self.view_size) != 2 or min(self.view_size) < 8:
+            raise InputError(f"ranking: view_size must be (height, width) of at least 8, got {self.view_size}")
         for name in ("groups", "chunks", "steps", "check_steps", "jobs"):
             if getattr(self, name) < 1:
                 raise InputError(f"ranking: {name} must be >= 1")
@@ -112,11 +119,12 @@ class RankingPlan:
         out = {"data.dataset": TRAIN_REPO, "data.root": str(self.train_dataset),
                "data.cache_dir": str(self.work / "chunkcache"), "data.held_out_episodes": held,
                "train.max_cpu_minutes": self.cpu_minutes, "train.output_dir": str(self.run_dir(mode)),
-               "train.seed": self.seed, "conditioning.mode": mode}
+               "train.seed": self.seed, "conditioning.mode": mode, "data.view_height": self.view_size[0],
+               "data.view_width": self.view_size[1]}
         return {**out, **(TOY_MODEL if self.toy else {}), **self.overrides}
 
     def run_config(self, mode: str):
-        return load_run_config(CONFIG, self.mode_overrides(mode))
+        return load_run_config(self.config, self.mode_overrides(mode))
 
     def to_dict(self) -> dict:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
@@ -125,6 +133,13 @@ class RankingPlan:
     def load(cls, path: Path) -> RankingPlan:
         data = json.loads(Path(path).read_text())
         return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()})
+
+
+def gpu_plan(work: Path, docs: Path) -> RankingPlan:
+    """The GPU preset: views at the recorded 96x128, a wider and deeper model trained longer,
+    every start in the world model, the training default of sampler steps."""
+    return RankingPlan(work=work, docs=docs, view_size=(96, 128), config=str(GPU_CONFIG), device="cuda",
+                       wm_per_group=25, cpu_minutes=120.0, steps=20, recorded=50)
 
 
 def toy_plan(work: Path, docs: Path) -> RankingPlan:
