@@ -21,6 +21,7 @@ from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
+from imac_data import lerobot_compat as lr
 from imac_data.dataset.info import read_info
 from imac_data.dataset.videos import (
     SUBSAMPLED_CHROMA,
@@ -141,15 +142,13 @@ class _Stream:
                                                       file_index=self.file)
 
     def begin(self, ep_index: int, length: int) -> None:
-        from lerobot.datasets.utils import update_chunk_file_indices
-
         w = self.writer
         if w is not None and self.episodes_in_file > 0:
             predicted = w.bytes + w.bytes / self.episodes_in_file
             if predicted >= self.max_file_bytes:
                 w.close()
                 self.writer = None
-                self.chunk, self.file = update_chunk_file_indices(self.chunk, self.file, self.chunks_size)
+                self.chunk, self.file = lr.update_chunk_file_indices(self.chunk, self.file, self.chunks_size)
         self.episode, self.length, self.n = ep_index, int(length), 0
         self.start = self.writer.frames if self.writer is not None else 0
         self.stats = ImageStats(self.length)
@@ -314,8 +313,6 @@ class StreamWriter:
         """Register the streams in the dataset (metadata replaced atomically, ``info.json``
         last). Returns the feature dicts written."""
         import pyarrow.parquet as pq
-        from lerobot.datasets.compute_stats import aggregate_stats
-        from lerobot.datasets.utils import serialize_dict
 
         if self._episode_open:
             raise RuntimeError("commit() while an episode is open")
@@ -360,8 +357,8 @@ class StreamWriter:
             stats_file = stats_path(root)
             stats = json.loads(stats_file.read_text()) if stats_file.is_file() else {}
             for key, s in self.streams.items():
-                agg = aggregate_stats([{key: s.rows[i]["stats"]} for i in range(n_episodes)])
-                stats.update(serialize_dict(agg))
+                agg = lr.aggregate_stats([{key: s.rows[i]["stats"]} for i in range(n_episodes)])
+                stats.update(lr.serialize_dict(agg))
 
             staged: list[tuple[Path, Path]] = []  # (new file in tmp, destination)
             for f in episode_files(root):

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imac_data import lerobot_compat as lr
 from imac_data.core.cameras import camera_from_dict, rigid_problem
 from imac_data.core.depth import depth_codec_of, walk_distance
 from imac_data.core.rig import Rig
@@ -106,9 +107,7 @@ class _Context:
     @property
     def dataset(self):
         if self._dataset is None:
-            from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-            self._dataset = LeRobotDataset(f"local/{self.root.name}", root=self.root)
+            self._dataset = lr.LeRobotDataset(f"local/{self.root.name}", root=self.root)
         return self._dataset
 
     def sample_indices(self) -> list[int]:

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
 
 __all__ = ["VideoEncoding", "VideoWriter", "ImageStats", "encode_video", "read_video_frames", "encoder_versions",
@@ -324,35 +325,30 @@ class ImageStats:
     """
 
     def __init__(self, length: int):
-        from lerobot.datasets.compute_stats import sample_indices
-
         self.length = int(length)
-        self.wanted = set(sample_indices(self.length)) if self.length > 0 else set()
+        self.wanted = set(lr.sample_indices(self.length)) if self.length > 0 else set()
         self.counts = np.zeros((3, 256), dtype=np.int64)
         self.samples = 0
         self.seen = 0
 
     def update(self, batch: np.ndarray) -> None:
         """The next frames ``(n, H, W, 3)`` uint8 of the episode, in order."""
-        from lerobot.datasets.compute_stats import auto_downsample_height_width
-
         for i in range(len(batch)):
             if self.seen + i in self.wanted:
-                img = auto_downsample_height_width(batch[i].transpose(2, 0, 1))  # (3, h, w), as LeRobot
+                img = lr.auto_downsample_height_width(batch[i].transpose(2, 0, 1))  # (3, h, w), as LeRobot
                 for c in range(3):
                     self.counts[c] += np.bincount(img[c].reshape(-1), minlength=256)
                 self.samples += 1
         self.seen += len(batch)
 
     def stats(self) -> dict[str, np.ndarray]:
-        from lerobot.datasets.compute_stats import DEFAULT_QUANTILES, RunningQuantileStats
-
+        quantile_list = lr.DEFAULT_QUANTILES
         if self.seen != self.length:
             raise InputError(f"image stats: {self.seen} frames seen, the episode has {self.length}")
         values = np.arange(256, dtype=np.float64)
         n = self.counts.sum(axis=1)[0]
         out = {k: [] for k in ("min", "max", "mean", "std")}
-        quantiles = [[] for _ in DEFAULT_QUANTILES]
+        quantiles = [[] for _ in quantile_list]
         for c in range(3):
             cnt = self.counts[c]
             present = np.flatnonzero(cnt)
@@ -364,16 +360,16 @@ class ImageStats:
             out["mean"].append(mean)
             out["std"].append(np.sqrt(np.maximum(0, mean_sq - mean ** 2)))
             # LeRobot's histogram quantiles over the same bins (RunningQuantileStats)
-            rq = RunningQuantileStats()
+            rq = lr.RunningQuantileStats()
             edges = np.linspace(lo - 1e-10, hi + 1e-10, rq._num_quantile_bins + 1)
             hist, _ = np.histogram(values[present], bins=edges, weights=cnt[present].astype(np.float64))
-            for k, q in enumerate(DEFAULT_QUANTILES):
+            for k, q in enumerate(quantile_list):
                 quantiles[k].append(rq._compute_single_quantile(hist, edges, q * n))
         stats = {k: np.asarray(v, dtype=np.float64).reshape(1, 3, 1, 1) for k, v in out.items()}
         stats["count"] = np.array([self.samples])
-        for k, q in enumerate(DEFAULT_QUANTILES):
+        for k, q in enumerate(quantile_list):
             stats[f"q{int(q * 100):02d}"] = np.asarray(quantiles[k], dtype=np.float64).reshape(1, 3, 1, 1)
-        order = ("min", "max", "mean", "std", "count", *(f"q{int(q * 100):02d}" for q in DEFAULT_QUANTILES))
+        order = ("min", "max", "mean", "std", "count", *(f"q{int(q * 100):02d}" for q in quantile_list))
         return {k: stats[k] for k in order}
 
     def normalised(self) -> dict[str, np.ndarray]:

@@ -5,10 +5,13 @@ dict of one time step (``observation.images.<view>`` ``(3, h, w)`` in [0, 1],
 ``observation.state`` ``(D,)``, ``task``) and an optional ``reset()``. :class:`ActionQueue`
 gives it LeRobot's ``select_action`` semantics (asked again only when its queue is empty);
 :class:`LeRobotPolicy` adapts a LeRobot checkpoint with its own processors; the recorded
-replay and holding the start state are scripted baselines (``docs/evaluation.md``)."""
+replay and holding the start state are scripted baselines (``docs/evaluation.md``). LeRobot's
+policy names come from :func:`lerobot_name`, the policy code's one place for LeRobot
+(``docs/lerobot.md``)."""
 
 from __future__ import annotations
 
+import importlib
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -23,6 +26,23 @@ STATE_KEY = STATE
 
 Observation = dict  # {"observation.images.<view>": (3, h, w), "observation.state": (D,), "task": str}
 Policy = Callable[[Observation], torch.Tensor]
+
+
+# LeRobot's policy-side names and their modules (the same in 0.4.4 and 0.6.x)
+LEROBOT_POLICY_NAMES = {
+    "FeatureType": "lerobot.configs.types",
+    "PolicyFeature": "lerobot.configs.types",
+    "PreTrainedConfig": "lerobot.configs.policies",
+    "get_policy_class": "lerobot.policies.factory",
+    "make_pre_post_processors": "lerobot.policies.factory",
+    "ACTConfig": "lerobot.policies.act.configuration_act",
+    "ACTPolicy": "lerobot.policies.act.modeling_act",
+}
+
+
+def lerobot_name(name: str):
+    """LeRobot's policy-side ``name``, imported on first use (LeRobot's policies take seconds to import)."""
+    return getattr(importlib.import_module(LEROBOT_POLICY_NAMES[name]), name)
 
 
 def policy_name(policy) -> str:
@@ -113,8 +133,7 @@ class LeRobotPolicy:
 
     def __init__(self, policy, preprocessor, postprocessor, *, camera_map: Mapping[str, str] | None = None,
                  name: str | None = None):
-        from lerobot.configs.types import FeatureType
-
+        FeatureType = lerobot_name("FeatureType")
         self.policy, self.preprocessor, self.postprocessor = policy, preprocessor, postprocessor
         self.config = policy.config
         self.name = name or f"lerobot:{self.config.type}"
@@ -134,9 +153,9 @@ class LeRobotPolicy:
                         name: str | None = None) -> LeRobotPolicy:
         """Load a local checkpoint directory (``config.json``, ``model.safetensors`` and the
         processors' files, as ``save_pretrained`` writes them). Nothing is downloaded."""
-        from lerobot.configs.policies import PreTrainedConfig
-        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-
+        PreTrainedConfig = lerobot_name("PreTrainedConfig")
+        get_policy_class, make_pre_post_processors = (lerobot_name(n) for n in ("get_policy_class",
+                                                                                "make_pre_post_processors"))
         path = Path(path)
         for f in ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
             if not (path / f).is_file():

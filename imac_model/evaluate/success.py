@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
 from imac_data.layout import IMAGE_PREFIX, SUCCESS_COLUMN, video_column
 
@@ -67,8 +68,6 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
                    last: int = 4) -> list[EpisodeFrames]:
     """The last ``last`` frames of each episode and camera, decoded by LeRobot's video
     decoder from the dataset's own files (only these cameras and timestamps)."""
-    from lerobot.datasets.video_utils import decode_video_frames
-
     meta = dataset.meta
     cameras = list(cameras) if cameras is not None else image_cameras(dataset)
     missing = [c for c in cameras if c not in meta.video_keys]
@@ -95,8 +94,8 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
         for cam in cameras:
             start = float(starts[cam][row])
             path = Path(dataset.root) / meta.get_video_file_path(ep, cam)
-            frames[cam] = decode_video_frames(path, [start + t for t in times], dataset.tolerance_s,
-                                              dataset.video_backend)
+            frames[cam] = lr.decode_video_frames(path, [start + t for t in times], dataset.tolerance_s,
+                                                 lr.video_backend(dataset))
         task = tasks[row][0] if tasks[row] else None
         out.append(EpisodeFrames(ep, frames, task))
     return out
