@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 
 from imac_data import lerobot_compat as lr
 from imac_data.console import cpu_cores
+from imac_data.core.depth_map import depth_marker
 from imac_data.errors import InputError
 from imac_data.layout import (
     EPISODE_COLUMNS,
@@ -165,6 +166,13 @@ class SourceDataset:
     def video_keys(self) -> list[str]:
         return [k for k, f in self.features.items() if f["dtype"] == "video"]
 
+    def is_depth_map(self, key: str) -> bool:
+        """Whether feature ``key`` is a LeRobot depth map (any marker; conflicting markers count)."""
+        try:
+            return bool(depth_marker(self.features[key]))
+        except ValueError:
+            return True
+
     def image_hw(self, key: str) -> tuple[int, int]:
         f = self.features[key]
         names = list(f.get("names") or [])
@@ -281,13 +289,16 @@ def locate_source(path: Path | None, repo_id: str | None, staging: Path) -> tupl
 
 def camera_map(src: SourceDataset, mapping: dict[str, str], calibrated: list[str], where: str) -> dict[str, str]:
     """``{source video key: camera name}``, checked against the source and the calibration."""
-    videos = src.video_keys
+    videos = [k for k in src.video_keys if not src.is_depth_map(k)]  # colour cameras
     if not mapping:
         mapping = {k: k.removeprefix(IMAGE_PREFIX) for k in videos if k.startswith(IMAGE_PREFIX)}
     for key, cam in mapping.items():
         if key not in src.features:
             raise InputError(f"{where}: source.cameras: dataset {src.root} has no feature {key!r}; its camera "
                              f"features are {videos}")
+        if src.is_depth_map(key):
+            raise InputError(f"{where}: source.cameras: {key!r} of dataset {src.root} is a depth map, not a colour "
+                             "camera; name it in depth.feature instead")
         if key not in videos:
             raise InputError(f"{where}: source.cameras: {key!r} of dataset {src.root} is a "
                              f"{src.features[key]['dtype']} feature, not a camera video")
