@@ -322,6 +322,10 @@ def test_formats_that_do_not_fit_the_feature_are_refused():
     with pytest.raises(InputError, match=r"'observation.images.cam_depth' is not flagged as a depth map"):
         DepthFeature("observation.images.{cam}_depth", "lerobot").check(
             SourceDataset(Path("/d"), {"features": unflagged}, []), ["cam"], "r.yaml")
+    with pytest.raises(InputError, match=r"is a video that is not flagged as a LeRobot depth map; if it holds our "
+                                         r"colour codec, set depth.format: codec"):
+        DepthFeature("observation.images.{cam}_depth", None).check(
+            SourceDataset(Path("/d"), {"features": unflagged}, []), ["cam"], "r.yaml")
     feature = DepthFeature("observation.images.{cam}_depth", "lerobot")
     feature.check(SourceDataset(Path("/d"), {"features": flagged}, []), ["cam"], "r.yaml")
     assert feature.params["cam"] == DepthMapParams()

@@ -49,7 +49,7 @@ def render_card(info: dict, repo_id: str, recipe) -> str:
     template = env.from_string(TEMPLATE.read_text())
     imac = info["imac"]
     return template.render(repo_id=repo_id, recipe=recipe, info=info, imac=imac, cameras=list(imac["cameras"]),
-                           lerobot_train=lerobot_train_command(info, repo_id))
+                           lerobot_train=lerobot_train_command(info, repo_id), lerobot_version=lr.version())
 
 
 def write_card(root: Path, repo_id: str, recipe) -> Path:

@@ -70,6 +70,9 @@ class DepthFeature:
                                  "set depth.format: lerobot or leave it out")
             if fmt == "lerobot":
                 self.params[cam] = params_of_feature(feature, f"{where}: depth.feature: {at}")
+            elif self.format is None and dtype == "video":
+                raise InputError(f"{where}: {at} is a video that is not flagged as a LeRobot depth map; if it holds "
+                                 "our colour codec, set depth.format: codec")
             elif (fmt == "codec") != (dtype == "video"):
                 raise InputError(f"{where}: depth.format {fmt!r} does not fit {at} (dtype {dtype}): the codec is a "
                                  "video, millimetres/metres are arrays or images")
