@@ -103,8 +103,7 @@ def record(workdir: Path, episodes: int, width: int, height: int, max_steps: int
 
 def through_dataset(src: Path, base: Path, root: Path, encoding: VideoEncoding, codec: DepthCodec) -> dict:
     """add_depth_streams -> LeRobotDataset (default decoder) -> decode; errors and sizes."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
+    from imac_data import lerobot_compat as lr
     from imac_data.core.cameras import load_calibration
     from imac_data.core.rig import Rig
     from imac_data.core.robot import aloha
@@ -126,7 +125,7 @@ def through_dataset(src: Path, base: Path, root: Path, encoding: VideoEncoding, 
     add_depth_streams(root, episodes(), cameras=list(CAMS), codec=codec, encoding=encoding,
                       source=source.describe())
     t_add = time.perf_counter() - t0
-    ds = LeRobotDataset("local/depth_fidelity", root=root)
+    ds = lr.LeRobotDataset("local/depth_fidelity", root=root)
     decoded, truth = [], []
     t0 = time.perf_counter()
     index = 0

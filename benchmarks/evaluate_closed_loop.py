@@ -54,10 +54,11 @@ class _Clock:
 
 def _act(directory: Path, hw, stats) -> Path:
     import torch
-    from lerobot.configs.types import FeatureType, PolicyFeature
-    from lerobot.policies.act.configuration_act import ACTConfig
-    from lerobot.policies.act.modeling_act import ACTPolicy
-    from lerobot.policies.factory import make_pre_post_processors
+
+    from imac_model.evaluate.policies import lerobot_name
+
+    FeatureType, PolicyFeature, ACTConfig, ACTPolicy, make_pre_post_processors = (
+        lerobot_name(n) for n in ("FeatureType", "PolicyFeature", "ACTConfig", "ACTPolicy", "make_pre_post_processors"))
 
     inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (14,)),
               "observation.images.cam_high": PolicyFeature(FeatureType.VISUAL, (3, *hw))}

@@ -59,9 +59,9 @@ def main(argv=None) -> int:
         ingest_episodes(sorted(src.glob("episode_*.hdf5")), rig=Rig(RobotModel(aloha.robot_config()), load_calibration(src / "calibration.json")),
                         repo_id="local/success_bench", root=root,
                         options=IngestOptions(fps=25, task="transfer the cube", source="policy"), progress=True)
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from imac_data import lerobot_compat as lr
 
-    dataset = LeRobotDataset("local/success_bench", root=root)
+    dataset = lr.LeRobotDataset("local/success_bench", root=root)
     labels = dataset_success_labels(dataset)
     print(f"data: {len(labels)} episodes, {sum(v is True for v in labels.values())} successes; "
           f"{time.perf_counter() - t:.1f} s wall, {time.process_time() - c:.1f} s CPU", flush=True)

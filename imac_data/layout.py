@@ -52,6 +52,7 @@ ACTION = "action"
 VELOCITY = "observation.velocity"
 IMAGE_PREFIX = "observation.images."
 DEPTH_PREFIX = "observation.depth."
+DEPTH_MAP_PREFIX = "observation.depth_map."  # LeRobot 0.6 depth maps (augment.lerobot_depth_map)
 CONTROL_PREFIX = "control."
 MOTION = "control.motion"
 R2S = "control.contact_r2s"
@@ -71,6 +72,10 @@ def depth_key(camera: str) -> str:
     return DEPTH_PREFIX + camera
 
 
+def depth_map_key(camera: str) -> str:
+    return DEPTH_MAP_PREFIX + camera
+
+
 def pose_key(camera: str) -> str:
     return POSE_PREFIX + camera
 
@@ -80,17 +85,19 @@ def control_key(stream: str, camera: str) -> str:
     return f"{CONTROL_PREFIX}{stream}.{camera}"
 
 
-def stream_keys(cameras: Iterable[str], *, depth: bool = True) -> list[str]:
-    """The added video streams in the dataset's order: depth per camera, then per camera
-    motion, robot-to-scene, scene-to-gripper (``depth=False``: motion only)."""
+def stream_keys(cameras: Iterable[str], *, depth: bool = True, depth_maps: bool = False) -> list[str]:
+    """The added video streams in the dataset's order: depth per camera (then, with
+    ``depth_maps``, LeRobot depth maps per camera), then per camera motion, robot-to-scene,
+    scene-to-gripper (``depth=False``: motion only)."""
     cameras = list(cameras)
     if not depth:
         return [f"{MOTION}.{c}" for c in cameras]
-    return [depth_key(c) for c in cameras] + [f"{k}.{c}" for c in cameras for k in (MOTION, R2S, S2G)]
+    maps = [depth_map_key(c) for c in cameras] if depth_maps else []
+    return [depth_key(c) for c in cameras] + maps + [f"{k}.{c}" for c in cameras for k in (MOTION, R2S, S2G)]
 
 
 def is_added_stream(key: str) -> bool:
-    return key.startswith((CONTROL_PREFIX, DEPTH_PREFIX))
+    return key.startswith((CONTROL_PREFIX, DEPTH_PREFIX, DEPTH_MAP_PREFIX))
 
 
 VIDEO_COLUMNS = "videos/"  # meta/episodes columns that locate an episode in a video feature's files

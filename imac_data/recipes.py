@@ -19,6 +19,7 @@ import yaml
 from imac_data.config import parse_dataclass
 from imac_data.core.contact.workspace import WorkspaceSettings
 from imac_data.core.depth import DepthCodec
+from imac_data.core.depth_map import DepthMapParams
 from imac_data.core.motion import Controller
 from imac_data.core.robot.aloha import SIM_TASKS
 from imac_data.errors import InputError
@@ -28,7 +29,7 @@ RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
 PLATFORMS = ("aloha_sim",)
 SOURCE_TYPES = ("aloha_sim", "aloha_hdf5", "lerobot")
 DEPTH_SOURCES = ("recorded", "da3", "none")
-DEPTH_FORMATS = ("millimetres", "metres", "codec")
+DEPTH_FORMATS = ("millimetres", "metres", "codec", "lerobot")
 
 
 @dataclass(frozen=True)
@@ -131,6 +132,26 @@ class SourceSection:
 
 
 @dataclass(frozen=True)
+class DepthMapOutput:
+    """``augment.lerobot_depth_map``: also write each camera's depth as a LeRobot 0.6 depth map,
+    ``observation.depth_map.{cam}`` (12-bit codes of the quantiser below, lossless HEVC)."""
+
+    enabled: bool = False
+    depth_min: float = 0.01  # metres at code 0 (LeRobot's defaults)
+    depth_max: float = 10.0  # metres at code 4095
+    shift: float = 3.5  # metres, log quantisation's offset
+    use_log: bool = True  # log (finer near the camera) or linear
+
+    def __post_init__(self) -> None:
+        problem = self.params().problem()
+        if problem:
+            raise InputError(f"augment.lerobot_depth_map: {problem.replace('video.', '')}")
+
+    def params(self) -> DepthMapParams:
+        return DepthMapParams(self.depth_min, self.depth_max, self.shift, self.use_log)
+
+
+@dataclass(frozen=True)
 class AugmentSettings:
     """How the control streams are made (the recipe's ``augment`` section; recorded in
     ``info["imac"]["augment"]``)."""
@@ -148,6 +169,7 @@ class AugmentSettings:
     # first frames): "error" stops the build, "no_contact" builds it without contact
     # (r2s saturated on the robot, s2g black, caps contact.EMPTY_CAP)
     empty_reference_scene: str = "error"
+    lerobot_depth_map: DepthMapOutput = field(default_factory=DepthMapOutput)  # off: see docs/lerobot.md
 
     def __post_init__(self) -> None:
         if self.height <= 0 or self.width <= 0:
@@ -183,7 +205,9 @@ class DepthSection:
     model: str | None = None  # da3: hub id or local weights directory (default DA3-BASE)
     monocular_model: str | None = None  # da3, fewer than 3 posed views: DA3's monocular metric model
     feature: str | None = None  # recorded from a LeRobot source: feature key, "{cam}" = camera name
-    format: str = "millimetres"  # recorded LeRobot feature: millimetres | metres | codec
+    # recorded LeRobot feature: millimetres | metres | codec | lerobot (a LeRobot depth map);
+    # None: lerobot for a feature flagged as a depth map, else millimetres
+    format: str | None = None
     codec: str = "manipulation"  # format codec: the DepthCodec preset the feature was encoded with
     device: str | None = None  # da3: cuda, cpu, ... (default: CUDA when available)
     batch_size: int = 4  # da3: timesteps per forward pass
@@ -249,7 +273,7 @@ def _validate(recipe: Recipe) -> None:
     d = recipe.depth
     if d.source not in DEPTH_SOURCES:
         raise InputError(f"{f}: depth.source: must be one of {DEPTH_SOURCES}, got {d.source!r}")
-    if d.format not in DEPTH_FORMATS:
+    if d.format is not None and d.format not in DEPTH_FORMATS:
         raise InputError(f"{f}: depth.format: must be one of {DEPTH_FORMATS}, got {d.format!r}")
     if d.feature is not None and (s.type != "lerobot" or d.source != "recorded"):
         raise InputError(f"{f}: depth.feature: only for depth.source recorded with source.type lerobot")

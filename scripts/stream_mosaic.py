@@ -7,7 +7,8 @@ import argparse
 
 import cv2
 import numpy as np
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from imac_data import lerobot_compat as lr
 
 ROWS = ("observation.images", "observation.depth", "control.motion", "control.contact_r2s", "control.contact_s2g")
 
@@ -19,7 +20,7 @@ def main() -> None:
     p.add_argument("--frame", type=int, default=60)
     p.add_argument("--out", default="docs/streams.png")
     args = p.parse_args()
-    ds = LeRobotDataset(args.repo, root=args.root)
+    ds = lr.LeRobotDataset(args.repo, root=args.root)
     item = ds[args.frame]
     cams = [k.split(".", 2)[2] for k in ds.meta.video_keys if k.startswith("observation.images.")]
     rows = []

@@ -19,7 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # Lowest first; a module may import its own layer and the ones before it.
 LAYERS = {
     "imac_data": [
-        ("base", ["imac_data", "imac_data.errors", "imac_data.config", "imac_data.layout", "imac_data.console"]),
+        ("base", ["imac_data", "imac_data.errors", "imac_data.config", "imac_data.layout", "imac_data.console",
+                  "imac_data.lerobot_compat"]),
         ("core", ["imac_data.core"]),
         ("recipes", ["imac_data.recipes"]),
         ("sources", ["imac_data.sources"]),

@@ -3,7 +3,8 @@
 A chunk is a reference frame plus the up to H frames after it. Each goes through ``read``
 (RGB, recorded depth), ``fk`` (configurations, camera poses), ``render`` (the robot at the
 drawn configurations, and at the reference's measured state for its mask), ``depth``
-(metres, stream size, colour codec) and ``contact`` (both streams and the chunk's caps), and
+(metres, stream size, colour codec; LeRobot depth-map codes when asked for) and ``contact``
+(both streams and the chunk's caps), and
 comes out as a :class:`ChunkOutput`. Nothing is written here (the build writes the outputs,
 :mod:`imac_data.build.streams`), and only one chunk is alive at a time, so memory does not
 grow with the episode's length.
@@ -22,7 +23,7 @@ from imac_data.console import raise_if_interrupted
 from imac_data.core.contact.images import chunk_plan, contact_chunk
 from imac_data.core.depth import DepthCodec, resize_depth
 from imac_data.errors import InputError
-from imac_data.layout import CAP_KEY, MOTION, R2S, S2G, depth_key, stream_keys
+from imac_data.layout import CAP_KEY, MOTION, R2S, S2G, depth_key, depth_map_key, stream_keys
 from imac_data.sources.depth import EpisodeViews, RecordedDepth
 
 __all__ = ["ChunkOutput", "EpisodePipeline"]
@@ -34,7 +35,7 @@ class ChunkOutput:
 
     start: int
     stop: int
-    streams: dict[str, np.ndarray]  # key -> (n, h, w, 3) uint8, keys as stream_keys()
+    streams: dict[str, np.ndarray]  # key -> (n, h, w, 3) uint8 (depth maps: (n, h, w) uint16), keys as stream_keys()
     caps: np.ndarray | None  # (n, 2) float32 metres: (r2s, s2g) of the chunk; None without depth
     images: dict[str, np.ndarray]  # cam -> (n, H, W, 3) uint8 recorded RGB ({} unless asked for)
     poses: dict[str, np.ndarray]  # cam -> (n, 4, 4) float64 camera-to-world at the measured state
@@ -57,11 +58,13 @@ class EpisodePipeline:
         self.threads = max(1, int(threads))
         self.codec = DepthCodec.preset(settings.depth_codec)
         self.with_depth = getattr(self.depth_source, "describe", dict)().get("kind") != "none"
+        output = getattr(settings, "lerobot_depth_map", None)  # LeRobot depth maps: their quantiser, or None
+        self.depth_map = output.params() if output is not None and output.enabled and self.with_depth else None
         rig.set_threads(self.threads)
 
     @property
     def keys(self) -> list[str]:
-        return stream_keys(self.rig.names, depth=self.with_depth)
+        return stream_keys(self.rig.names, depth=self.with_depth, depth_maps=self.depth_map is not None)
 
     def chunks(self, reader, *, state=None, action=None, images: bool = False) -> Iterator[ChunkOutput]:
         """Stream the episode of ``reader`` (an :class:`~imac_data.sources.episode.EpisodeSource`).
@@ -121,6 +124,9 @@ class EpisodePipeline:
                                      f"frames {lo}:{hi}")
                 streams = {depth_key(c): self.codec.encode_uint8(depth_hw[:, v], name=f"depth of {c}")
                            for v, c in enumerate(names)}
+                if self.depth_map is not None:
+                    streams.update({depth_map_key(c): self.depth_map.quantize(depth_hw[:, v])
+                                    for v, c in enumerate(names)})
                 ref_depth = depth_hw[ref - lo] if ref >= lo else carry
                 carry = depth_hw[-1]
             with timer("contact"):

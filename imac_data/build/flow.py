@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from imac_data import lerobot_compat as lr
 from imac_data.build.from_episodes import build_from_episodes, cpu_seconds
 from imac_data.build.from_lerobot import build_from_lerobot
 from imac_data.build.staging import BuildRequest
@@ -44,10 +45,7 @@ def build_dataset(req: BuildRequest, *, executor: str = "local", workers: int | 
     else:
         build_from_episodes(req, robot, executor=executor, workers=workers, ray_address=ray_address,
                             t_start=t_start, usage_start=usage_start)
-    # Imported only now: LeRobot's import takes over a second, and pool workers spawn sooner without it.
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    return LeRobotDataset(req.repo_id, root=req.root)
+    return lr.LeRobotDataset(req.repo_id, root=req.root)
 
 
 def input_paths(req: BuildRequest) -> dict[str, Path | None]:

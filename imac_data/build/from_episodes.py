@@ -13,10 +13,10 @@ from dataclasses import asdict
 from pathlib import Path
 
 import torch
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm.auto import tqdm
 
 import imac_data
+from imac_data import lerobot_compat as lr
 from imac_data.augment.timing import StageTimer
 from imac_data.build.staging import BuildRequest, staged_output
 from imac_data.build.workers import ShardJob, default_workers, run_jobs, threads_per_worker
@@ -186,7 +186,7 @@ def ingest_episodes(paths: Sequence[str | Path], *, rig, repo_id: str, root: str
         except BaseException:
             writer.abort()
             raise
-    return LeRobotDataset(repo_id, root=root)
+    return lr.LeRobotDataset(repo_id, root=root)
 
 
 def cpu_seconds() -> float:

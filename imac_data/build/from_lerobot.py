@@ -68,8 +68,10 @@ def build_from_lerobot(req: BuildRequest, robot) -> None:
         if recipe.depth.source == "recorded":
             depth_feature = DepthFeature(recipe.depth.feature, recipe.depth.format, recipe.depth.codec)
             depth_feature.check(src, rig.names, where)
-        depth_videos = [depth_feature.key(c) for c in rig.names] if depth_feature and depth_feature.codec else []
+        depth_videos = [depth_feature.key(c) for c in rig.names] if depth_feature and depth_feature.is_video else []
         src.check_files([*cameras, *depth_videos])  # before any work: LeRobot would try the hub for a missing file
+        if depth_feature:
+            depth_feature.check_streams(src, rig.names, where)
         src.check_videos([*cameras, *depth_videos], progress=req.progress)
         meta_rows = episode_metadata(recipe.resolve_path(src_cfg.metadata), len(src.episodes),
                                      src_cfg.episode_defaults)

@@ -12,13 +12,13 @@ from tqdm.auto import tqdm
 from imac_data.augment.pipeline import EpisodePipeline
 from imac_data.augment.timing import StageTimer
 from imac_data.dataset.columns import add_frame_column
-from imac_data.dataset.depth_streams import depth_imac_block, depth_info_extra
+from imac_data.dataset.depth_streams import depth_imac_block, depth_info_extra, depth_map_imac_block
 from imac_data.dataset.files import atomic_write_text
 from imac_data.dataset.info import read_info, update_imac_info
 from imac_data.dataset.ingest import BaseWriter
 from imac_data.dataset.streams import StreamWriter
 from imac_data.dataset.videos import VideoEncoding
-from imac_data.layout import CAP_KEY, depth_key
+from imac_data.layout import CAP_KEY, depth_key, depth_map_key
 from imac_data.sources.hdf5 import EpisodeReader
 
 __all__ = ["stream_writer", "write_episode_dataset", "add_episode_streams", "write_timings"]
@@ -30,13 +30,22 @@ def stream_writer(pipe: EpisodePipeline, root: Path, calibration: dict) -> Strea
     encoding = VideoEncoding.lossless_rgb()
     names = pipe.rig.names
     depth_keys = [depth_key(c) for c in names]
+    maps = {depth_map_key(c): pipe.depth_map for c in names} if pipe.depth_map is not None else {}
     extra = {k: depth_info_extra(pipe.codec) if k in depth_keys else {"imac.stream": k.rsplit(".", 1)[0]}
-             for k in pipe.keys}
+             for k in pipe.keys if k not in maps}
+    encodings = {k: VideoEncoding.depth_map() if k in maps else encoding for k in pipe.keys}
     source = pipe.depth_source.describe()
     if not pipe.with_depth:
         return StreamWriter(root, pipe.keys, encoding, info_extra=extra, threads=pipe.threads)
-    return StreamWriter(root, pipe.keys, encoding, info_extra=extra, threads=pipe.threads,
-                        imac_info=lambda f: depth_imac_block(f, names, calibration, pipe.codec, encoding, source))
+
+    def imac_info(features):
+        block = depth_imac_block(features, names, calibration, pipe.codec, encoding, source)
+        if maps:
+            block["depth"]["depth_maps"] = depth_map_imac_block(names, pipe.depth_map, VideoEncoding.depth_map())
+        return block
+
+    return StreamWriter(root, pipe.keys, encodings, info_extra=extra, threads=pipe.threads, depth_maps=maps,
+                        imac_info=imac_info)
 
 
 def write_episode_dataset(path: Path, root: Path, repo_id: str, rig, settings, options, *,

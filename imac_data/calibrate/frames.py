@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 import torch
 
+from imac_data import lerobot_compat as lr
 from imac_data.core.cameras import Camera
 from imac_data.core.masks import ground_truth_robot_mask
 from imac_data.errors import InputError
@@ -140,10 +141,8 @@ class DatasetFrames:
 
     def _dataset(self, episode: str):
         if self._open is None or self._open[0] != episode:
-            from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-            self._open = (episode, LeRobotDataset(f"local/{self.source.name}", root=self.source,
-                                                  episodes=[int(episode)]))
+            self._open = (episode, lr.LeRobotDataset(f"local/{self.source.name}", root=self.source,
+                                                     episodes=[int(episode)]))
         return self._open[1]
 
     def image_hw(self, camera: str) -> tuple[int, int]:

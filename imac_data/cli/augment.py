@@ -6,7 +6,7 @@ import argparse
 
 from imac_data.build.augment import augment_existing
 from imac_data.console import quiet_libraries, run_command, silence_progress_bars
-from imac_data.dataset.lerobot import default_root
+from imac_data.lerobot_compat import default_root
 from imac_data.recipes import find_recipe, load_recipe
 
 

@@ -9,8 +9,8 @@ from imac_data.build.flow import build_dataset
 from imac_data.build.staging import BuildRequest
 from imac_data.console import quiet_libraries, run_command, silence_progress_bars
 from imac_data.dataset.card import push_to_hub
-from imac_data.dataset.lerobot import default_root
 from imac_data.errors import InputError
+from imac_data.lerobot_compat import default_root
 from imac_data.recipes import find_recipe, load_recipe
 
 

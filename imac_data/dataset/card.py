@@ -12,6 +12,7 @@ from pathlib import Path
 
 import jinja2
 
+from imac_data import lerobot_compat as lr
 from imac_data.layout import IMAGE_PREFIX, STATE, info_path
 
 TEMPLATE = Path(__file__).resolve().parents[2] / "dataset_cards" / "imac_dataset_card.md"
@@ -48,7 +49,7 @@ def render_card(info: dict, repo_id: str, recipe) -> str:
     template = env.from_string(TEMPLATE.read_text())
     imac = info["imac"]
     return template.render(repo_id=repo_id, recipe=recipe, info=info, imac=imac, cameras=list(imac["cameras"]),
-                           lerobot_train=lerobot_train_command(info, repo_id))
+                           lerobot_train=lerobot_train_command(info, repo_id), lerobot_version=lr.version())
 
 
 def write_card(root: Path, repo_id: str, recipe) -> Path:
@@ -71,6 +72,4 @@ def hub_card_kwargs(root: Path, repo_id: str, recipe) -> dict:
 
 def push_to_hub(root: Path, repo_id: str, recipe, *, private: bool = False) -> None:
     """Upload with LeRobot's own ``push_to_hub`` (needs a hub token and network)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    LeRobotDataset(repo_id, root=root).push_to_hub(private=private, **hub_card_kwargs(root, repo_id, recipe))
+    lr.LeRobotDataset(repo_id, root=root).push_to_hub(private=private, **hub_card_kwargs(root, repo_id, recipe))

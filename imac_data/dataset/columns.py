@@ -22,6 +22,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from imac_data import lerobot_compat as lr
 from imac_data.dataset.files import replace_files
 from imac_data.dataset.info import read_info
 from imac_data.errors import InputError
@@ -39,8 +40,6 @@ def _staging(root: Path) -> Path:
 def add_frame_column(root: Path, key: str, per_episode: list[np.ndarray], names: list[str]) -> None:
     """Add a float32 per-frame feature ``key`` (values ``(T_e, N)`` per episode, in episode
     order) to the data parquet files, ``info.json`` and the stats."""
-    from lerobot.datasets.compute_stats import aggregate_stats, get_feature_stats
-
     root = Path(root)
     info = read_info(root)
     if key in info["features"]:
@@ -71,7 +70,7 @@ def add_frame_column(root: Path, key: str, per_episode: list[np.ndarray], names:
             pq.write_table(table.append_column(key, arr), out)
             staged.append((out, file))
         # stats: per episode (meta/episodes columns) and global (meta/stats.json), as LeRobot computes them
-        ep_stats = {ep: get_feature_stats(v, axis=0, keepdims=v.ndim == 1) for ep, v in values.items()}
+        ep_stats = {ep: lr.get_feature_stats(v, axis=0, keepdims=v.ndim == 1) for ep, v in values.items()}
         for file in sorted(episodes_dir(root).rglob("*.parquet")):
             table = pq.read_table(file)
             idx = table.column("episode_index").to_pylist()
@@ -84,7 +83,7 @@ def add_frame_column(root: Path, key: str, per_episode: list[np.ndarray], names:
             staged.append((out, file))
         stats_file = stats_path(root)
         stats = json.loads(stats_file.read_text()) if stats_file.is_file() else {}
-        total = aggregate_stats([{key: s} for s in ep_stats.values()])[key]
+        total = lr.aggregate_stats([{key: s} for s in ep_stats.values()])[key]
         stats[key] = {k: np.asarray(v).tolist() for k, v in total.items()}
         (tmp / "stats.json").write_text(json.dumps(stats, indent=4))
         staged.append((tmp / "stats.json", stats_file))

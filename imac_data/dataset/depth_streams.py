@@ -23,9 +23,9 @@ from imac_data.dataset.info import read_info
 from imac_data.dataset.streams import StreamWriter
 from imac_data.dataset.videos import VideoEncoding, encoder_versions
 from imac_data.errors import InputError
-from imac_data.layout import depth_key
+from imac_data.layout import depth_key, depth_map_key
 
-__all__ = ["add_depth_streams", "depth_info_extra", "depth_imac_block"]
+__all__ = ["add_depth_streams", "depth_info_extra", "depth_imac_block", "depth_map_imac_block"]
 
 
 def depth_info_extra(codec: DepthCodec) -> dict:
@@ -55,6 +55,15 @@ def depth_imac_block(features: Mapping[str, dict], cameras, calibration: Mapping
         "decode": "DepthCodec.from_dict(codec).decode(frame, channel_axis=-3) on LeRobot's float (3, H, W) "
                   "colours -> metres, 0 = invalid",
     }}
+
+
+def depth_map_imac_block(cameras, params, encoding) -> dict:
+    """``imac.depth.depth_maps``: where each camera's LeRobot depth map is, its quantiser and
+    encoding (the same in each feature's ``info``), and how code 0 reads."""
+    return {"keys": {cam: depth_map_key(cam) for cam in cameras}, "quantiser": params.info(),
+            "encoding": encoding.to_dict(),
+            "decode": "the same metres as observation.depth (size, intrinsics: imac.depth.streams); LeRobot 0.6 "
+                      "decodes it itself; code 0 = invalid depth (LeRobot reads it as video.depth_min)"}
 
 
 def add_depth_streams(root, episodes, *, cameras=None, codec: DepthCodec | None = None, encoding=None,

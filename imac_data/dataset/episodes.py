@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imac_data import lerobot_compat as lr
 from imac_data.dataset.files import write_parquet_atomic
 from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter, quiet_libav
 from imac_data.errors import InputError
@@ -44,7 +45,9 @@ class _FrameEncoder:
         self._dirs: dict[str, Path] = {}
         self._temp_dir: Path | None = None
 
-    def start_episode(self, video_keys: list[str], temp_dir: Path) -> None:
+    def start_episode(self, video_keys: list[str], temp_dir: Path, depth_video_keys=None) -> None:
+        if depth_video_keys:  # LeRobot >= 0.6 passes its depth-map keys; these writers take RGB only
+            raise InputError(f"EpisodeWriter: depth-map video features {list(depth_video_keys)} are not written here")
         if self._writers:
             self.cancel_episode()
         if self.length is None:
@@ -107,16 +110,14 @@ class EpisodeWriter:
 
     def __init__(self, root: str | Path, repo_id: str, *, fps: int, features: Mapping[str, dict],
                  robot_type: str | None = None, encoding: VideoEncoding | None = None, threads: int | None = None):
-        from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
         encoding = encoding or VideoEncoding.lerobot_default()
         if threads is not None:
             encoding = encoding.with_threads(threads)
         self.root = Path(root)
-        self.dataset = LeRobotDataset.create(repo_id=repo_id, fps=int(fps), features=dict(features), root=self.root,
-                                             robot_type=robot_type, use_videos=True, vcodec=encoding.codec)
+        self.dataset = lr.create_dataset(repo_id, fps=int(fps), features=dict(features), root=self.root,
+                                         robot_type=robot_type, encoding=encoding)
         self.encoder = _FrameEncoder(int(fps), encoding)
-        self.dataset._streaming_encoder = self.encoder  # LeRobot routes video frames here (add_frame)
+        lr.set_streaming_encoder(self.dataset, self.encoder)  # LeRobot routes video frames here (add_frame)
         self.video_keys = [k for k, f in features.items() if f["dtype"] == "video"]
         self._length: int | None = None
         self._n = 0
@@ -181,5 +182,4 @@ class EpisodeWriter:
         try:
             self.encoder.cancel_episode()
         finally:
-            self.dataset._close_writer()
-            self.dataset.meta._close_writer()
+            lr.close_writers(self.dataset)

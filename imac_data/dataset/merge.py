@@ -23,6 +23,7 @@ import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from imac_data import lerobot_compat as lr
 from imac_data.core.robot.description import DESCRIPTION_DIR, check_description
 from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info
 from imac_data.errors import InputError
@@ -52,8 +53,6 @@ def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *
     """Merge the datasets ``roots`` (in order) into a new dataset at ``out`` (must not
     exist). ``imac_extra`` is merged into the restored ``imac`` block; the robot
     description is copied from ``description_dir`` (default: the first input's)."""
-    from lerobot.datasets.aggregate import aggregate_datasets
-
     roots = [Path(r) for r in roots]
     out = Path(out)
     if not roots:
@@ -67,7 +66,7 @@ def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *
     tmp = out.with_name(f".{out.name}.merging")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        aggregate_datasets([repo_id] * len(roots), repo_id, roots=roots, aggr_root=tmp)
+        lr.aggregate_datasets([repo_id] * len(roots), repo_id, roots=roots, aggr_root=tmp)
         order_stats(tmp)
         update_imac_info(tmp, {**block, **dict(imac_extra or {})})
         if "robot" in block:

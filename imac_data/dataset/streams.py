@@ -4,7 +4,8 @@ LeRobot 0.4.4 adds parquet columns but no video stream, so this writes one by ha
 exactly as LeRobot writes a camera (mp4 files under ``info["video_path"]``, the episode's
 location and stats columns in ``meta/episodes``, the feature in ``info.json``, stats in
 ``stats.json``), so ``LeRobotDataset``, ``delta_timestamps`` and ``aggregate_datasets`` treat
-it like any camera (``docs/dataset-format.md``, "How an added stream is stored").
+it like any camera (``docs/dataset-format.md``, "How an added stream is stored"); a LeRobot 0.6
+depth map (12-bit codes, :mod:`imac_data.core.depth_map`) is stored as LeRobot 0.6 writes one.
 :class:`StreamWriter` takes frames as they are made (memory: the encoders' buffers). Existing
 files are never opened for writing, and the metadata is replaced only once every episode is
 encoded, ``meta/info.json`` last; on error the dataset is left as it was."""
@@ -21,12 +22,16 @@ from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
+from imac_data import lerobot_compat as lr
+from imac_data.core.depth_map import PIX_FMT as DEPTH_MAP_PIX_FMT
+from imac_data.core.depth_map import DepthMapParams
 from imac_data.dataset.info import read_info
 from imac_data.dataset.videos import (
     SUBSAMPLED_CHROMA,
     ImageStats,
     VideoEncoding,
     VideoWriter,
+    code_batches,
     frame_batches,
     quiet_libav,
 )
@@ -43,8 +48,8 @@ from imac_data.layout import (
     video_column,
 )
 
-__all__ = ["StreamWriter", "add_video_streams", "add_video_stream", "video_info", "episode_lengths",
-           "insert_columns_after", "STAT_KEYS"]
+__all__ = ["StreamWriter", "add_video_streams", "add_video_stream", "video_info", "depth_map_video_info",
+           "episode_lengths", "insert_columns_after", "STAT_KEYS"]
 
 STAT_KEYS = ("min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99")
 
@@ -96,6 +101,29 @@ def video_info(path: Path) -> dict[str, Any]:
         }
 
 
+def depth_map_video_info(path: Path, encoding: VideoEncoding, params: DepthMapParams) -> dict[str, Any]:
+    """A LeRobot depth map's ``info`` block, key for key as LeRobot 0.6.1 writes it
+    (``get_video_info(path, DepthEncoderConfig)`` plus ``depth_unit``): the stream's own
+    fields, the encoder's settings, the quantiser, the marker. Its stats are in metres."""
+    import av
+
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        info = {
+            "video.height": stream.height,
+            "video.width": stream.width,
+            "video.codec": stream.codec.canonical_name,
+            "video.pix_fmt": stream.pix_fmt,
+            "video.fps": int(stream.base_rate),
+            "video.channels": 1,
+            "has_audio": len(container.streams.audio) > 0,
+        }
+    info.update({"video.g": encoding.gop, "video.crf": encoding.crf, "video.preset": encoding.preset,
+                 "video.fast_decode": 0, "video.video_backend": "pyav", "video.extra_options": dict(encoding.options),
+                 **params.info(), "is_depth_map": True, "depth_unit": "m"})
+    return info
+
+
 def insert_columns_after(table, after_prefix: str, fallback: str, columns: list[tuple[str, Any]]):
     """Insert columns after the last column starting with ``after_prefix`` (else after
     ``fallback``, else at the end), keeping LeRobot's column order."""
@@ -124,8 +152,9 @@ class _Stream:
     """Everything written for one key: files, per-episode location and stats."""
 
     def __init__(self, key: str, encoding: VideoEncoding, fps: int, tmp_root: Path, video_path: str,
-                 chunks_size: int, max_file_bytes: float):
+                 chunks_size: int, max_file_bytes: float, depth_map: DepthMapParams | None = None):
         self.key, self.encoding, self.fps = key, encoding, fps
+        self.depth_map = depth_map  # a LeRobot depth map's quantiser: frames are its 12-bit codes
         self.tmp_root, self.video_path = tmp_root, video_path
         self.chunks_size, self.max_file_bytes = chunks_size, max_file_bytes
         self.hw: tuple[int, int] | None = None
@@ -141,24 +170,23 @@ class _Stream:
                                                       file_index=self.file)
 
     def begin(self, ep_index: int, length: int) -> None:
-        from lerobot.datasets.utils import update_chunk_file_indices
-
         w = self.writer
         if w is not None and self.episodes_in_file > 0:
             predicted = w.bytes + w.bytes / self.episodes_in_file
             if predicted >= self.max_file_bytes:
                 w.close()
                 self.writer = None
-                self.chunk, self.file = update_chunk_file_indices(self.chunk, self.file, self.chunks_size)
+                self.chunk, self.file = lr.update_chunk_file_indices(self.chunk, self.file, self.chunks_size)
         self.episode, self.length, self.n = ep_index, int(length), 0
         self.start = self.writer.frames if self.writer is not None else 0
-        self.stats = ImageStats(self.length)
+        self.stats = ImageStats(self.length, None if self.depth_map is None else self.depth_map.code_values())
         self.where = f"episode {ep_index} {self.key!r}"
 
     def write(self, frames) -> None:
         if self.episode is None:
             raise RuntimeError(f"stream {self.key!r}: write() outside an episode")
-        for batch in frame_batches(frames, self.where):
+        batches = frame_batches if self.depth_map is None else code_batches
+        for batch in batches(frames, self.where):
             hw = (int(batch.shape[1]), int(batch.shape[2]))
             if self.hw is None:
                 self.hw = hw
@@ -170,7 +198,8 @@ class _Stream:
             if self.n + len(batch) > self.length:
                 raise InputError(f"{self.where}: more frames than the episode's {self.length}")
             if self.writer is None:
-                self.writer = VideoWriter(self._path(), self.encoding, self.fps, *self.hw)
+                self.writer = VideoWriter(self._path(), self.encoding, self.fps, *self.hw,
+                                          frame_format="rgb24" if self.depth_map is None else DEPTH_MAP_PIX_FMT)
                 self.first_file = self.first_file or self.writer.path
                 self.episodes_in_file = 0
                 self.start = 0
@@ -216,7 +245,9 @@ class StreamWriter:
             features = streams.commit()
 
     ``encodings``: one :class:`VideoEncoding` for all keys or one per key (default
-    :meth:`VideoEncoding.lossless_rgb`). ``info_extra[key]`` is merged into that feature's
+    :meth:`VideoEncoding.lossless_rgb`). ``depth_maps[key]``: the quantiser of a key that is a
+    LeRobot depth map (frames ``(n, H, W)`` uint16 codes, encoding in ``gray12le``, e.g.
+    :meth:`VideoEncoding.depth_map`). ``info_extra[key]`` is merged into that feature's
     ``info`` block. ``imac_info`` (a mapping, or a function of the features written) is
     merged into ``info.json["imac"]`` in the same write. ``threads``: keys encoded in
     parallel by :meth:`write` (each encoder's own output does not depend on it).
@@ -226,7 +257,7 @@ class StreamWriter:
     def __init__(self, root: str | Path, keys: Sequence[str], encodings=None, *,
                  info_extra: Mapping[str, Mapping[str, Any]] | None = None,
                  imac_info: Mapping[str, Any] | Callable[[dict[str, dict]], Mapping[str, Any]] | None = None,
-                 threads: int = 1):
+                 threads: int = 1, depth_maps: Mapping[str, DepthMapParams] | None = None):
         self.root = Path(root)
         info = read_v3_info(self.root)
         keys = list(keys)
@@ -243,6 +274,13 @@ class StreamWriter:
         missing = [k for k in keys if not isinstance(encodings.get(k), VideoEncoding)]
         if missing:
             raise InputError(f"add_video_streams: no VideoEncoding for {missing}")
+        depth_maps = dict(depth_maps or {})
+        for key, params in depth_maps.items():
+            if key not in keys or not isinstance(params, DepthMapParams):
+                raise InputError(f"add_video_streams: depth_maps[{key!r}] must be a DepthMapParams of an added key")
+            if encodings[key].pix_fmt != DEPTH_MAP_PIX_FMT:
+                raise InputError(f"add_video_streams: depth map {key!r} needs a {DEPTH_MAP_PIX_FMT} encoding, got "
+                                 f"{encodings[key].pix_fmt}")
         self.info_extra = dict(info_extra or {})
         unknown = sorted(set(self.info_extra) - set(keys))
         if unknown:
@@ -254,8 +292,8 @@ class StreamWriter:
         chunks_size = int(info.get("chunks_size", 1000))
         self.tmp = self.root / f".imac-tmp-{uuid.uuid4().hex[:12]}"
         self.tmp.mkdir()
-        self.streams = {k: _Stream(k, encodings[k], self.fps, self.tmp, self.video_path, chunks_size, max_bytes)
-                        for k in keys}
+        self.streams = {k: _Stream(k, encodings[k], self.fps, self.tmp, self.video_path, chunks_size, max_bytes,
+                                   depth_maps.get(k)) for k in keys}
         self.episodes_done = 0
         self._lengths: dict[int, int] | None = None
         self._pool = ThreadPoolExecutor(max_workers=threads) if threads > 1 else None
@@ -289,7 +327,8 @@ class StreamWriter:
         self._episode_open = True
 
     def write(self, frames: Mapping[str, Any]) -> None:
-        """Frames of the open episode for some keys: ``{key: (n, H, W, 3) uint8}`` (numpy or torch)."""
+        """Frames of the open episode for some keys: ``{key: (n, H, W, 3) uint8}`` (numpy or torch;
+        depth maps ``(n, H, W)`` uint16 codes)."""
         unknown = sorted(set(frames) - set(self.keys))
         if unknown:
             raise InputError(f"episode {self.episodes_done}: keys {unknown} are not streams of this writer "
@@ -314,8 +353,6 @@ class StreamWriter:
         """Register the streams in the dataset (metadata replaced atomically, ``info.json``
         last). Returns the feature dicts written."""
         import pyarrow.parquet as pq
-        from lerobot.datasets.compute_stats import aggregate_stats
-        from lerobot.datasets.utils import serialize_dict
 
         if self._episode_open:
             raise RuntimeError("commit() while an episode is open")
@@ -345,11 +382,14 @@ class StreamWriter:
             features = {}
             for key, s in self.streams.items():
                 h, w = s.hw
-                block = video_info(s.first_file)
-                block["imac.encoding"] = s.encoding.to_dict()
+                if s.depth_map is not None:  # exactly LeRobot 0.6's form, so that its tools read it
+                    block = depth_map_video_info(s.first_file, s.encoding, s.depth_map)
+                else:
+                    block = video_info(s.first_file)
+                    block["imac.encoding"] = s.encoding.to_dict()
                 block.update(self.info_extra.get(key, {}))
-                features[key] = {"dtype": "video", "shape": [h, w, 3], "names": ["height", "width", "channels"],
-                                 "info": block}
+                features[key] = {"dtype": "video", "shape": [h, w, 1 if s.depth_map is not None else 3],
+                                 "names": ["height", "width", "channels"], "info": block}
             new_info = json.loads(json.dumps(info))
             new_info["features"].update(features)
             new_info["video_path"] = self.video_path
@@ -360,8 +400,8 @@ class StreamWriter:
             stats_file = stats_path(root)
             stats = json.loads(stats_file.read_text()) if stats_file.is_file() else {}
             for key, s in self.streams.items():
-                agg = aggregate_stats([{key: s.rows[i]["stats"]} for i in range(n_episodes)])
-                stats.update(serialize_dict(agg))
+                agg = lr.aggregate_stats([{key: s.rows[i]["stats"]} for i in range(n_episodes)])
+                stats.update(lr.serialize_dict(agg))
 
             staged: list[tuple[Path, Path]] = []  # (new file in tmp, destination)
             for f in episode_files(root):

@@ -15,15 +15,27 @@ from pathlib import Path
 
 import numpy as np
 
+from imac_data import lerobot_compat as lr
 from imac_data.core.cameras import camera_from_dict, rigid_problem
 from imac_data.core.depth import depth_codec_of, walk_distance
+from imac_data.core.depth_map import PIX_FMT as DEPTH_MAP_PIX_FMT
+from imac_data.core.depth_map import params_of_feature
 from imac_data.core.rig import Rig
 from imac_data.dataset.info import RIG_KEYS, STREAM_KEYS, imac_block, read_info
 from imac_data.dataset.streams import episode_files
 from imac_data.dataset.videos import read_video_frames
 from imac_data.errors import InputError
-from imac_data.layout import CAP_KEY, DEPTH_PREFIX, IMAGE_PREFIX, POSE_PREFIX, info_path, is_added_stream, video_column
-from imac_data.sources.lerobot_episodes import count_decodable_frames
+from imac_data.layout import (
+    CAP_KEY,
+    DEPTH_MAP_PREFIX,
+    DEPTH_PREFIX,
+    IMAGE_PREFIX,
+    POSE_PREFIX,
+    info_path,
+    is_added_stream,
+    video_column,
+)
+from imac_data.sources.lerobot_episodes import count_decodable_frames, stream_pix_fmt
 
 __all__ = ["validate_dataset", "Report", "CHECKS"]
 
@@ -106,9 +118,7 @@ class _Context:
     @property
     def dataset(self):
         if self._dataset is None:
-            from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-            self._dataset = LeRobotDataset(f"local/{self.root.name}", root=self.root)
+            self._dataset = lr.LeRobotDataset(f"local/{self.root.name}", root=self.root)
         return self._dataset
 
     def sample_indices(self) -> list[int]:
@@ -256,9 +266,11 @@ def check_decode(ctx: _Context) -> list[str]:
             problems.append(f"frame {i}: LeRobotDataset cannot load it ({type(e).__name__}: {e})")
             continue
         for key in keys:
-            h, w, _ = ctx.features[key]["shape"]
-            if key not in item or tuple(item[key].shape) != (3, h, w):
-                problems.append(f"frame {i}: {key} did not decode to (3, {h}, {w})")
+            h, w, c = ctx.features[key]["shape"]
+            # a depth map: (1, H, W) millimetres from LeRobot 0.6, grey (3, H, W) from 0.4.4, which has no depth maps
+            shapes = [(c, h, w), (3, h, w)] if key.startswith(DEPTH_MAP_PREFIX) else [(3, h, w)]
+            if key not in item or tuple(item[key].shape) not in shapes:
+                problems.append(f"frame {i}: {key} did not decode to {' or '.join(map(str, shapes))}")
             elif key.startswith(DEPTH_PREFIX):
                 ctx.decoded_depth[(int(i), key)] = np.asarray(item[key])
     return problems
@@ -268,10 +280,27 @@ def _lossless(encoding: dict) -> bool:
     return encoding.get("qp") == 0 and encoding.get("pix_fmt") in ("rgb24", "gbrp")
 
 
+def check_depth_maps(ctx: _Context) -> list[str]:
+    """LeRobot depth maps: a quantiser LeRobot reads as written, and gray12le files (all of them
+    with ``full``, else each feature's first)."""
+    problems = []
+    for key in ctx.video_keys(DEPTH_MAP_PREFIX):
+        try:
+            params_of_feature(ctx.features[key], f"info.json feature {key!r}")
+        except InputError as e:
+            problems.append(str(e))
+        files = list(_video_files(ctx, key))
+        for path in files if ctx.full else files[:1]:
+            got = stream_pix_fmt(path) if path.is_file() else "missing"
+            if got != DEPTH_MAP_PIX_FMT:
+                problems.append(f"{key}: {path.relative_to(ctx.root)} is {got}, not {DEPTH_MAP_PIX_FMT}")
+    return problems
+
+
 def check_depth(ctx: _Context) -> list[str]:
     keys = ctx.video_keys(DEPTH_PREFIX)
     if not keys:
-        return []
+        return check_depth_maps(ctx)
     try:
         codec = depth_codec_of(ctx.info)
     except InputError as e:
@@ -300,7 +329,7 @@ def check_depth(ctx: _Context) -> list[str]:
             check_decode(ctx)
         for (i, key), frame in ctx.decoded_depth.items():  # the frames check_decode decoded
             judge(f"frame {i} {key}", frame)
-    return problems
+    return problems + check_depth_maps(ctx)
 
 
 CHECKS: list[tuple[str, Callable[[_Context], list[str]]]] = [

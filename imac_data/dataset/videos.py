@@ -9,10 +9,11 @@
 * :class:`ImageStats`: LeRobot's per-episode image statistics (``compute_episode_stats``:
   frames at ``sample_indices``, downsampled by ``auto_downsample_height_width``, per channel
   min/max/mean/std/count and the q01..q99 of its 5000-bin histogram) computed exactly from
-  per-channel value counts as the frames stream past, in float64. Two differences from
-  LeRobot, both deliberate: constant memory (LeRobot keeps every sampled frame), and a
-  correct ``std`` (LeRobot 0.4.4 squares uint8 pixels in uint8, so the ``std`` it writes
-  for its own cameras overflows, often to 0).
+  per-channel value counts as the frames stream past, in float64; for a LeRobot depth map,
+  of the metres its 12-bit codes decode to. Two differences from LeRobot, both deliberate:
+  constant memory (LeRobot keeps every sampled frame), and a correct ``std`` (LeRobot 0.4.4
+  squares uint8 pixels in uint8, so the ``std`` it writes for its own cameras overflows,
+  often to 0).
 """
 
 from __future__ import annotations
@@ -27,10 +28,13 @@ from typing import Any
 
 import numpy as np
 
+from imac_data import lerobot_compat as lr
+from imac_data.core.depth_map import PIX_FMT as DEPTH_MAP_PIX_FMT
+from imac_data.core.depth_map import QMAX
 from imac_data.errors import InputError
 
 __all__ = ["VideoEncoding", "VideoWriter", "ImageStats", "encode_video", "read_video_frames", "encoder_versions",
-           "frame_batches", "quiet_libav", "SUBSAMPLED_CHROMA"]
+           "frame_batches", "code_batches", "quiet_libav", "SUBSAMPLED_CHROMA"]
 
 SUBSAMPLED_CHROMA = ("420", "422", "411", "410", "nv12", "nv21", "nv16")
 
@@ -100,6 +104,15 @@ class VideoEncoding:
         x264's bytes depend on its thread count; one, because the pipeline already encodes its
         streams in parallel. Older datasets written with 2 threads decode to the same pixels."""
         return cls(codec="libx264rgb", pix_fmt="rgb24", qp=0, crf=None, preset=preset, gop=gop, threads=threads)
+
+    @classmethod
+    def depth_map(cls) -> VideoEncoding:
+        """LeRobot 0.6's depth-map encoder (``DepthEncoderConfig``: HEVC, gray12le, gop 2, crf 30
+        (unused when lossless), x265's default preset, ``lossless=1``) without B-frames (LeRobot
+        0.4.4's torchcodec seeks them a frame off), on one x265 thread (bytes independent of the
+        machine), x265's log at errors only."""
+        return cls(codec="libx265", pix_fmt=DEPTH_MAP_PIX_FMT, crf=30, qp=None, preset=None, gop=2,
+                   options={"x265-params": "lossless=1:bframes=0:pools=none:frame-threads=1:log-level=error"})
 
     @classmethod
     def lerobot_default(cls) -> VideoEncoding:
@@ -192,6 +205,21 @@ def frame_batches(frames, where: str) -> Iterator[np.ndarray]:
         yield as_batch(item)
 
 
+def code_batches(frames, where: str) -> Iterator[np.ndarray]:
+    """Depth-map frames as ``(n, H, W)`` uint16 12-bit codes: one array ``(T, H, W)`` or an
+    iterable of frames ``(H, W)`` and/or chunks ``(n, H, W)``."""
+    items = [frames] if isinstance(frames, np.ndarray) or _is_torch(frames) else frames
+    for x in items:
+        if _is_torch(x):
+            x = x.detach().cpu().numpy()
+        if not isinstance(x, np.ndarray) or x.dtype != np.uint16 or x.ndim not in (2, 3):
+            raise InputError(f"{where}: depth-map frames must be uint16 (H, W) or (T, H, W) codes, got "
+                             f"{getattr(x, 'dtype', type(x).__name__)} {getattr(x, 'shape', '')}")
+        if x.size and x.max() > QMAX:
+            raise InputError(f"{where}: depth-map codes must be 0..{QMAX}, got {x.max()}")
+        yield x[None] if x.ndim == 2 else x
+
+
 
 # ------------------------------------------------------------------------------ encoding
 @contextmanager
@@ -210,18 +238,19 @@ def quiet_libav():
 
 class VideoWriter:
     """One mp4 being written: a continuous encoder session fed frame batches ``(n, H, W, 3)``
-    uint8 RGB. ``style``: ``"imac"`` (frame ``i`` at ``pts = i / fps``, ``faststart``) or
+    uint8 RGB (or, for a LeRobot depth map, ``(n, H, W)`` uint16 codes: ``frame_format``
+    ``gray12le``). ``style``: ``"imac"`` (frame ``i`` at ``pts = i / fps``, ``faststart``) or
     ``"lerobot"`` (LeRobot 0.4.4's ``encode_video_frames`` call for call)."""
 
     def __init__(self, path: Path, encoding: VideoEncoding, fps: int, height: int, width: int, *,
-                 style: str = "imac"):
+                 style: str = "imac", frame_format: str = "rgb24"):
         import av
 
         if style not in ("imac", "lerobot"):
             raise InputError(f"VideoWriter style must be 'imac' or 'lerobot', got {style!r}")
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        self.path, self.style = path, style
+        self.path, self.style, self.frame_format = path, style, frame_format
         if style == "lerobot":
             self.container = av.open(str(path), "w")
         else:
@@ -250,7 +279,7 @@ class VideoWriter:
         import av
 
         for frame in batch:
-            vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
+            vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format=self.frame_format)
             if self.style == "imac":
                 vf.pts = self.frames
                 vf.time_base = self.time_base
@@ -311,6 +340,9 @@ def read_video_frames(path: str | Path) -> np.ndarray:
 class ImageStats:
     """LeRobot's per-episode statistics of an image/video feature, exact, in constant memory.
 
+    ``values``: what each stored level means, default the 256 pixel values of 3 RGB channels;
+    for a LeRobot depth map the metres of the 4096 codes (one channel, not divided by 255).
+
     LeRobot (``compute_episode_stats``) samples the frames at ``sample_indices(length)``,
     downsamples each with ``auto_downsample_height_width`` and runs ``get_feature_stats``
     over their pixels per channel: min, max, mean, std (from the mean of squares), count
@@ -323,37 +355,36 @@ class ImageStats:
     (divided by 255, shape (3, 1, 1)). ``tests/test_dataset.py`` checks it against LeRobot.
     """
 
-    def __init__(self, length: int):
-        from lerobot.datasets.compute_stats import sample_indices
-
+    def __init__(self, length: int, values: np.ndarray | None = None):
         self.length = int(length)
-        self.wanted = set(sample_indices(self.length)) if self.length > 0 else set()
-        self.counts = np.zeros((3, 256), dtype=np.int64)
+        self.wanted = set(lr.sample_indices(self.length)) if self.length > 0 else set()
+        self.rgb = values is None
+        self.values = np.arange(256, dtype=np.float64) if values is None else np.asarray(values, np.float64)
+        self.channels = 3 if self.rgb else 1
+        self.counts = np.zeros((self.channels, len(self.values)), dtype=np.int64)
         self.samples = 0
         self.seen = 0
 
     def update(self, batch: np.ndarray) -> None:
-        """The next frames ``(n, H, W, 3)`` uint8 of the episode, in order."""
-        from lerobot.datasets.compute_stats import auto_downsample_height_width
-
+        """The next frames ``(n, H, W, 3)`` uint8 (depth map: ``(n, H, W)`` codes) of the episode, in order."""
         for i in range(len(batch)):
             if self.seen + i in self.wanted:
-                img = auto_downsample_height_width(batch[i].transpose(2, 0, 1))  # (3, h, w), as LeRobot
-                for c in range(3):
-                    self.counts[c] += np.bincount(img[c].reshape(-1), minlength=256)
+                frame = batch[i].transpose(2, 0, 1) if self.rgb else batch[i][None]
+                img = lr.auto_downsample_height_width(frame)  # (C, h, w), as LeRobot
+                for c in range(self.channels):
+                    self.counts[c] += np.bincount(img[c].reshape(-1), minlength=len(self.values))
                 self.samples += 1
         self.seen += len(batch)
 
     def stats(self) -> dict[str, np.ndarray]:
-        from lerobot.datasets.compute_stats import DEFAULT_QUANTILES, RunningQuantileStats
-
+        quantile_list = lr.DEFAULT_QUANTILES
         if self.seen != self.length:
             raise InputError(f"image stats: {self.seen} frames seen, the episode has {self.length}")
-        values = np.arange(256, dtype=np.float64)
+        values = self.values
         n = self.counts.sum(axis=1)[0]
         out = {k: [] for k in ("min", "max", "mean", "std")}
-        quantiles = [[] for _ in DEFAULT_QUANTILES]
-        for c in range(3):
+        quantiles = [[] for _ in quantile_list]
+        for c in range(self.channels):
             cnt = self.counts[c]
             present = np.flatnonzero(cnt)
             lo, hi = values[present[0]], values[present[-1]]
@@ -364,18 +395,20 @@ class ImageStats:
             out["mean"].append(mean)
             out["std"].append(np.sqrt(np.maximum(0, mean_sq - mean ** 2)))
             # LeRobot's histogram quantiles over the same bins (RunningQuantileStats)
-            rq = RunningQuantileStats()
+            rq = lr.RunningQuantileStats()
             edges = np.linspace(lo - 1e-10, hi + 1e-10, rq._num_quantile_bins + 1)
             hist, _ = np.histogram(values[present], bins=edges, weights=cnt[present].astype(np.float64))
-            for k, q in enumerate(DEFAULT_QUANTILES):
+            for k, q in enumerate(quantile_list):
                 quantiles[k].append(rq._compute_single_quantile(hist, edges, q * n))
-        stats = {k: np.asarray(v, dtype=np.float64).reshape(1, 3, 1, 1) for k, v in out.items()}
+        stats = {k: np.asarray(v, dtype=np.float64).reshape(1, self.channels, 1, 1) for k, v in out.items()}
         stats["count"] = np.array([self.samples])
-        for k, q in enumerate(DEFAULT_QUANTILES):
-            stats[f"q{int(q * 100):02d}"] = np.asarray(quantiles[k], dtype=np.float64).reshape(1, 3, 1, 1)
-        order = ("min", "max", "mean", "std", "count", *(f"q{int(q * 100):02d}" for q in DEFAULT_QUANTILES))
+        for k, q in enumerate(quantile_list):
+            stats[f"q{int(q * 100):02d}"] = np.asarray(quantiles[k], dtype=np.float64).reshape(1, self.channels, 1, 1)
+        order = ("min", "max", "mean", "std", "count", *(f"q{int(q * 100):02d}" for q in quantile_list))
         return {k: stats[k] for k in order}
 
     def normalised(self) -> dict[str, np.ndarray]:
-        """As stored in ``meta/episodes`` and ``stats.json``: /255, shape (3, 1, 1); ``count`` as is."""
-        return {k: v if k == "count" else np.squeeze(v / 255.0, axis=0) for k, v in self.stats().items()}
+        """As stored in ``meta/episodes`` and ``stats.json``: RGB /255, shape (3, 1, 1); a depth
+        map in metres, shape (1, 1, 1) (LeRobot 0.6 does not divide depth); ``count`` as is."""
+        scale = 255.0 if self.rgb else 1.0
+        return {k: v if k == "count" else np.squeeze(v / scale, axis=0) for k, v in self.stats().items()}

@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from imac_data import lerobot_compat as lr
 from imac_data.core.depth import depth_codec_of
 from imac_data.dataset.videos import VideoEncoding, encode_video
 from imac_data.errors import InputError
@@ -117,8 +118,6 @@ def write_preview(root: str | Path, episode: int, out: str | Path | None = None,
                   overwrite: bool = False, progress: bool = True) -> Path:
     """Write the mosaic mp4 of episode ``episode`` of the dataset at ``root``; returns its path
     (default ``./{root name}_episode_{episode}.mp4``)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
     root = Path(root)
     info = _read_info(root)
     total = int(info.get("total_episodes", 0))
@@ -136,7 +135,7 @@ def write_preview(root: str | Path, episode: int, out: str | Path | None = None,
     layout = preview_layout(info)
     codec = depth_codec_of(info) if any(p == DEPTH_PREFIX for _, p in layout.rows) else None
 
-    ds = LeRobotDataset(f"local/{root.name}", root=root, episodes=[episode])
+    ds = lr.LeRobotDataset(f"local/{root.name}", root=root, episodes=[episode])
 
     def frames() -> Iterator[np.ndarray]:
         from tqdm import tqdm

@@ -6,9 +6,8 @@ downloaded through LeRobot into the build's staging directory). It is only read:
 * a v3.0 dataset is copied file by file into the staging directory, so its camera videos
   land in the output byte-identical;
 * a v2.1 dataset is first copied into staging and converted there by LeRobot's own
-  converter (``lerobot.datasets.v30.convert_dataset_v21_to_v30.convert_dataset``, with
-  ``push_to_hub=False``); its videos are then the converter's (it concatenates the episode
-  files without re-encoding).
+  converter (``convert_dataset``, with ``push_to_hub=False``); its videos are then the
+  converter's (it concatenates the episode files without re-encoding).
 
 The recipe maps the source's camera keys to calibrated camera names (``source.cameras``,
 default ``observation.images.<cam> -> <cam>``); mapped cameras are renamed to
@@ -32,7 +31,9 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from imac_data import lerobot_compat as lr
 from imac_data.console import cpu_cores
+from imac_data.core.depth_map import depth_marker
 from imac_data.errors import InputError
 from imac_data.layout import (
     EPISODE_COLUMNS,
@@ -165,6 +166,13 @@ class SourceDataset:
     def video_keys(self) -> list[str]:
         return [k for k, f in self.features.items() if f["dtype"] == "video"]
 
+    def is_depth_map(self, key: str) -> bool:
+        """Whether feature ``key`` is a LeRobot depth map (any marker; conflicting markers count)."""
+        try:
+            return bool(depth_marker(self.features[key]))
+        except ValueError:
+            return True
+
     def image_hw(self, key: str) -> tuple[int, int]:
         f = self.features[key]
         names = list(f.get("names") or [])
@@ -215,16 +223,13 @@ def _version(root: Path) -> str | None:
 def _download(repo_id: str, into: Path) -> Path:
     """The hub dataset ``repo_id`` downloaded by LeRobot (v3.0) or, for a v2.1 dataset, by
     the hub client at its v2.1 revision, into ``into`` (a staging directory)."""
-    from lerobot.datasets.backward_compatibility import BackwardCompatibilityError
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
     root = into / repo_id
     how = ("download it where there is network access (e.g. `hf download --repo-type dataset "
            f"{repo_id} --local-dir DIR`) and set source.path: DIR")
     try:
-        LeRobotDataset(repo_id, root=root)
+        lr.LeRobotDataset(repo_id, root=root)
         return root
-    except BackwardCompatibilityError:
+    except lr.BackwardCompatibilityError:
         from huggingface_hub import snapshot_download
 
         try:
@@ -238,10 +243,9 @@ def _download(repo_id: str, into: Path) -> Path:
                          f"({type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}); {how}") from e
 
 
-def _convert_v21(root: Path, staging: Path, repo_id: str) -> Path:
-    """A staged v3.0 copy of the v2.1 dataset at ``root``, converted by LeRobot's converter."""
-    from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
-
+def _convert_v21(root: Path, staging: Path, repo_id: str) -> tuple[Path, str]:
+    """A staged v3.0 copy of the v2.1 dataset at ``root``, converted by LeRobot's converter,
+    and the converter's module."""
     base = staging / "v21"
     work = base / repo_id
     if work.exists():
@@ -249,10 +253,12 @@ def _convert_v21(root: Path, staging: Path, repo_id: str) -> Path:
     shutil.copytree(root, work)
     print(f"[build] converting the v2.1 dataset {root} to v3.0 (LeRobot's converter, on a staged copy)")
     try:
-        convert_dataset(repo_id, root=str(base), push_to_hub=False, force_conversion=True)
+        module = lr.convert_v21(work, repo_id)
+    except InputError:
+        raise
     except Exception as e:  # noqa: BLE001 - the converter's own errors
         raise InputError(f"{root}: LeRobot's v2.1 -> v3.0 converter failed ({type(e).__name__}: {e})") from e
-    return work
+    return work, module
 
 
 def locate_source(path: Path | None, repo_id: str | None, staging: Path) -> tuple[Path, dict]:
@@ -271,8 +277,8 @@ def locate_source(path: Path | None, repo_id: str | None, staging: Path) -> tupl
     version = _version(root)
     where["codebase_version"] = version
     if version == "v2.1":
-        root = _convert_v21(root, staging, repo_id or f"local/{root.name}")
-        where["converted"] = "v2.1 -> v3.0 by lerobot.datasets.v30.convert_dataset_v21_to_v30"
+        root, module = _convert_v21(root, staging, repo_id or f"local/{root.name}")
+        where["converted"] = f"v2.1 -> v3.0 by {module}"
     elif version != "v3.0":
         raise InputError(f"{root}: LeRobot dataset version {version!r}; this build reads v3.0 and v2.1")
     return root, where
@@ -283,13 +289,16 @@ def locate_source(path: Path | None, repo_id: str | None, staging: Path) -> tupl
 
 def camera_map(src: SourceDataset, mapping: dict[str, str], calibrated: list[str], where: str) -> dict[str, str]:
     """``{source video key: camera name}``, checked against the source and the calibration."""
-    videos = src.video_keys
+    videos = [k for k in src.video_keys if not src.is_depth_map(k)]  # colour cameras
     if not mapping:
         mapping = {k: k.removeprefix(IMAGE_PREFIX) for k in videos if k.startswith(IMAGE_PREFIX)}
     for key, cam in mapping.items():
         if key not in src.features:
             raise InputError(f"{where}: source.cameras: dataset {src.root} has no feature {key!r}; its camera "
                              f"features are {videos}")
+        if src.is_depth_map(key):
+            raise InputError(f"{where}: source.cameras: {key!r} of dataset {src.root} is a depth map, not a colour "
+                             "camera; name it in depth.feature instead")
         if key not in videos:
             raise InputError(f"{where}: source.cameras: {key!r} of dataset {src.root} is a "
                              f"{src.features[key]['dtype']} feature, not a camera video")

@@ -11,8 +11,10 @@ timestamp (``from_timestamp + index / fps``, as LeRobot's loader does).
 
 Recorded depth of the source (``depth.feature`` with ``{cam}``) is read in the recipe's
 ``depth.format``: ``millimetres`` or ``metres`` for a per-frame array or image feature in
-the data files, or ``codec`` for a video in our colour codec (decoded with the recipe's
-``depth.codec`` preset). It is returned in millimetres for
+the data files, ``codec`` for a video in our colour codec (decoded with the recipe's
+``depth.codec`` preset), or ``lerobot`` for LeRobot's native depth map (12-bit ``gray12le``
+codes, :mod:`imac_data.core.depth_map`); without a format, a feature flagged as a depth map
+is read as ``lerobot`` and an array as ``millimetres``. It is returned in millimetres for
 :class:`~imac_data.sources.depth.RecordedDepth`.
 """
 
@@ -25,6 +27,7 @@ import av
 import numpy as np
 
 from imac_data.core.depth import DepthCodec
+from imac_data.core.depth_map import PIX_FMT, DepthMapParams, depth_marker, params_of_feature
 from imac_data.errors import InputError
 from imac_data.layout import video_column
 
@@ -33,33 +36,75 @@ __all__ = ["LeRobotEpisodeReader", "DepthFeature"]
 
 class DepthFeature:
     """A source dataset's recorded depth: feature ``pattern`` (``{cam}`` = camera name) in
-    ``format`` (millimetres | metres | codec; ``codec``: the DepthCodec preset)."""
+    ``format`` (millimetres | metres | codec | lerobot, or None: from the feature;
+    ``codec``: the DepthCodec preset). :meth:`check` settles the format and, for LeRobot's
+    depth maps, each camera's quantiser (:attr:`params`)."""
 
-    def __init__(self, pattern: str, format: str, codec: str = "manipulation"):
+    def __init__(self, pattern: str, format: str | None, codec: str = "manipulation"):
         self.pattern, self.format = pattern, format
         self.codec = DepthCodec.preset(codec) if format == "codec" else None
+        self.params: dict[str, DepthMapParams] = {}
+        self.src = None  # the dataset the feature was checked in: depth is read from it
 
     def key(self, cam: str) -> str:
         return self.pattern.replace("{cam}", cam)
 
     def check(self, src, cameras: list[str], where: str) -> None:
+        """Everything about the feature that can be checked from ``info.json``, before any work."""
+        self.src = src
+        formats = {}
         for cam in cameras:
             key = self.key(cam)
             if key not in src.features:
                 raise InputError(f"{where}: depth.feature: dataset {src.root} has no feature {key!r} for camera "
                                  f"{cam!r}")
-            dtype = src.features[key]["dtype"]
-            if (self.format == "codec") != (dtype == "video"):
-                raise InputError(f"{where}: depth.format {self.format!r} does not fit feature {key!r} of dataset "
-                                 f"{src.root} (dtype {dtype}): the codec is a video, millimetres/metres are arrays "
-                                 "or images")
+            feature, at = src.features[key], f"dataset {src.root}: feature {key!r}"
+            try:
+                marked = bool(depth_marker(feature))
+            except ValueError as e:
+                raise InputError(f"{where}: depth.feature: {at}: {e}") from None
+            dtype = feature["dtype"]
+            fmt = self.format or ("lerobot" if marked else "millimetres")
+            if marked and fmt != "lerobot":
+                raise InputError(f"{where}: depth.format {fmt!r}, but {at} is a LeRobot depth map (info.is_depth_map): "
+                                 "set depth.format: lerobot or leave it out")
+            if fmt == "lerobot":
+                self.params[cam] = params_of_feature(feature, f"{where}: depth.feature: {at}")
+            elif self.format is None and dtype == "video":
+                raise InputError(f"{where}: {at} is a video that is not flagged as a LeRobot depth map; if it holds "
+                                 "our colour codec, set depth.format: codec")
+            elif (fmt == "codec") != (dtype == "video"):
+                raise InputError(f"{where}: depth.format {fmt!r} does not fit {at} (dtype {dtype}): the codec is a "
+                                 "video, millimetres/metres are arrays or images")
+            formats[cam] = fmt
+        if len(set(formats.values())) > 1:
+            raise InputError(f"{where}: depth.feature: the cameras' depth features have different formats {formats}")
+        self.format = next(iter(formats.values()), self.format)
+
+    @property
+    def is_video(self) -> bool:
+        return self.format in ("codec", "lerobot")
+
+    def check_streams(self, src, cameras: list[str], where: str) -> None:
+        """LeRobot depth maps: every video file of the feature really holds ``gray12le`` frames
+        (12-bit codes; anything else would decode to other numbers)."""
+        if self.format != "lerobot":
+            return
+        for cam in cameras:
+            key = self.key(cam)
+            for path in sorted({src.video_file(key, row) for row in src.episodes}):
+                got = stream_pix_fmt(path)
+                if got != PIX_FMT:
+                    raise InputError(f"{where}: depth.feature: dataset {src.root}: {path} ({key}) is {got}, not "
+                                     f"{PIX_FMT}: it does not hold LeRobot depth-map codes")
 
 
 class _VideoFrames:
     """Sequential frames ``0..T-1`` of one episode in one video file (PyAV)."""
 
-    def __init__(self, path: Path, start_s: float, fps: float, length: int, where: str):
+    def __init__(self, path: Path, start_s: float, fps: float, length: int, where: str, pix_fmt: str = "rgb24"):
         self.path, self.start_s, self.fps, self.length, self.where = path, start_s, fps, length, where
+        self.pix_fmt = pix_fmt  # rgb24: (H, W, 3) uint8; gray12le: (H, W) uint16 codes
         self._iter: Iterator[tuple[int, np.ndarray]] | None = None
         self._next = 0  # index of the next frame the iterator yields
         self._container = None
@@ -70,6 +115,8 @@ class _VideoFrames:
         self._container = container = av.open(str(self.path))
         stream = container.streams.video[0]
         stream.thread_type = "AUTO"
+        if self.pix_fmt == PIX_FMT and stream.codec_context.pix_fmt != PIX_FMT:
+            raise InputError(f"{self.where}: {self.path} is {stream.codec_context.pix_fmt}, not {PIX_FMT}")
         container.seek(int(self.start_s / stream.time_base), stream=stream, backward=True, any_frame=False)
         tol = 0.5 / self.fps
         for frame in container.decode(stream):
@@ -78,7 +125,7 @@ class _VideoFrames:
                 continue
             if index >= self.length:
                 break
-            yield index, frame.to_ndarray(format="rgb24")
+            yield index, frame.to_ndarray(format=self.pix_fmt)
 
     def read(self, lo: int, hi: int) -> np.ndarray:
         if self._iter is None or lo < self._next:
@@ -139,12 +186,13 @@ class LeRobotEpisodeReader:
             v.close()
         self._videos.clear()
 
-    def _video(self, key: str) -> _VideoFrames:
+    def _video(self, key: str, pix_fmt: str = "rgb24", src=None) -> _VideoFrames:
         if key not in self._videos:
-            r, info = self.row, self.src.info
-            path = self.src.video_file(key, r)
+            src = src or self.src
+            r, info = src.episodes[self.index], src.info
+            path = src.video_file(key, r)
             self._videos[key] = _VideoFrames(path, float(r[video_column(key, "from_timestamp")]), float(info["fps"]),
-                                             self.num_frames, f"{self.path} {key}")
+                                             self.num_frames, f"{self.path} {key}", pix_fmt)
         return self._videos[key]
 
     def images(self, cam: str, start: int, stop: int) -> np.ndarray:
@@ -163,17 +211,21 @@ class LeRobotEpisodeReader:
         if self.depth is None:
             return None
         key = self.depth.key(cam)
+        src = self.depth.src or self.src  # the source's own depth: a copy may have dropped the feature
+        if self.depth.format == "lerobot":
+            codes = self._video(key, PIX_FMT, src).read(start, stop)
+            return self.depth.params[cam].dequantize(codes) * np.float32(1000.0)
         if self.depth.format == "codec":
-            rgb = self._video(key).read(start, stop)
+            rgb = self._video(key, "rgb24", src).read(start, stop)
             return np.asarray(self.depth.codec.decode(rgb, channel_axis=-1), dtype=np.float32) * 1000.0
-        values = self._array_rows(key, start, stop)
+        values = self._array_rows(src, key, start, stop)
         return values * 1000.0 if self.depth.format == "metres" else values
 
-    def _array_rows(self, key: str, start: int, stop: int) -> np.ndarray:
-        """Frames ``start:stop`` of an array or image feature from the episode's data file."""
+    def _array_rows(self, src, key: str, start: int, stop: int) -> np.ndarray:
+        """Frames ``start:stop`` of an array or image feature from the episode's data file in ``src``."""
         import pyarrow.parquet as pq
 
-        path = self.src.data_file(self.row)
+        path = src.data_file(src.episodes[self.index])
         table = pq.read_table(path, columns=["frame_index", key],
                               filters=[("episode_index", "=", self.index), ("frame_index", ">=", start),
                                        ("frame_index", "<", stop)])
@@ -181,7 +233,7 @@ class LeRobotEpisodeReader:
         column = table.column(key).to_pylist()
         if len(column) != stop - start:
             raise InputError(f"{self.path}: {key!r} has {len(column)} rows for frames {start}:{stop}")
-        if self.src.features[key]["dtype"] == "image":
+        if src.features[key]["dtype"] == "image":
             import cv2
 
             frames = [cv2.imdecode(np.frombuffer(column[i]["bytes"], np.uint8), cv2.IMREAD_UNCHANGED) for i in order]
@@ -196,6 +248,15 @@ class LeRobotEpisodeReader:
         if values.ndim != 3:
             raise InputError(f"{self.path}: {key!r} must be (H, W) depth per frame, got {values.shape[1:]}")
         return values
+
+
+def stream_pix_fmt(path: str | Path) -> str | None:
+    """The pixel format of the first video stream of ``path`` (None: unreadable)."""
+    try:
+        with av.open(str(path)) as container:
+            return container.streams.video[0].codec_context.pix_fmt
+    except Exception:  # noqa: BLE001 - any demuxer error: the file is not what it should be
+        return None
 
 
 def count_decodable_frames(path: str | Path) -> tuple[int, str | None]:

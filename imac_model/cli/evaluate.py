@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imac_data import lerobot_compat as lr
 from imac_data.console import run_command
 from imac_data.dataset.columns import add_episode_columns
 from imac_data.errors import InputError
@@ -78,7 +79,7 @@ def default_episodes(chunks, run: Mapping) -> list[int]:
 
 def _online(spec, chunks, run):
     return online_controls_for(spec, chunks, run) or OnlineControls.from_dataset(
-        chunks.lerobot.root, spec, info=chunks.lerobot.meta.info)
+        chunks.lerobot.root, spec, info=lr.dataset_info(chunks.lerobot.meta))
 
 
 def _camera_map(items) -> dict[str, str] | None:
@@ -187,12 +188,10 @@ def cmd_video_metrics(args) -> int:
 
 
 def cmd_label(args) -> int:
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-
     root = Path(args.dataset)
     if not info_path(root).is_file():
         raise InputError(f"{root} is not a LeRobot dataset (no meta/info.json)")
-    meta = LeRobotDatasetMetadata(args.repo_id or f"local/{root.name}", root=root)
+    meta = lr.LeRobotDatasetMetadata(args.repo_id or f"local/{root.name}", root=root)
     table = meta.episodes
     episodes = [int(e) for e in table["episode_index"]]
     sources = table["imac/source"] if "imac/source" in table.column_names else [None] * len(episodes)

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
 from imac_model.config import CONTROL_STREAMS, DataConfig
 from imac_model.data import meta as dataset_meta
@@ -53,12 +54,10 @@ class ChunkLayout:
 
 def open_metadata(data: DataConfig):
     """LeRobot's metadata of the run's dataset (reads ``meta/`` only)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-
     if not data.dataset:
         raise InputError("data.dataset: name the dataset to train on (e.g. --dataset local/aloha_sim_transfer_cube)")
     try:
-        return LeRobotDatasetMetadata(data.dataset, root=data.root)
+        return lr.LeRobotDatasetMetadata(data.dataset, root=data.root)
     except Exception as e:  # LeRobot raises hub/HTTP/OS errors for a missing local dataset
         where = data.root or f"$HF_LEROBOT_HOME/{data.dataset}"
         raise InputError(f"data.dataset: cannot open LeRobot dataset {data.dataset!r} at {where}: "
@@ -130,8 +129,6 @@ class ChunkDataset(Dataset):
 
     def __init__(self, repo_id: str, layout: ChunkLayout, *, root=None, episodes: Sequence[int] | None = None,
                  cache: str = "memory", cache_dir=None, video_backend: str | None = None):
-        from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
         self.layout = layout
         H, fps = layout.chunk, layout.fps
         frames = [k / fps for k in range(H + 1)]
@@ -141,7 +138,7 @@ class ChunkDataset(Dataset):
             delta[dataset_meta.stream_key("depth", v)] = frames
             for s in layout.streams:
                 delta[dataset_meta.stream_key(s, v)] = frames[1:]
-        self.lerobot = LeRobotDataset(repo_id, root=root, delta_timestamps=delta, video_backend=video_backend)
+        self.lerobot = lr.LeRobotDataset(repo_id, root=root, delta_timestamps=delta, video_backend=video_backend)
         meta = self.lerobot.meta
         self.has_state = dataset_meta.STATE in meta.features
         eps = list(range(meta.total_episodes)) if episodes is None else list(episodes)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from imac_data import lerobot_compat as lr
 from imac_data.dataset.columns import add_episode_columns
 from imac_data.dataset.episodes import EpisodeWriter
 from imac_data.dataset.info import update_imac_info
@@ -402,7 +403,7 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
             success = [bool(s) for s in judge.judge(verdicts)]
             for row, ep, s in zip(writer.rows, result.episodes, success):
                 row["imac/success"] = ep["success"] = s
-        writer.finish({"closed_loop": protocol, **_depth_block(meta.info)})
+        writer.finish({"closed_loop": protocol, **_depth_block(lr.dataset_info(meta))})
     except BaseException:
         writer.abort()
         raise

@@ -16,7 +16,8 @@ runners (:mod:`imac_model.evaluate.closed_loop` in the world model,
 :class:`ActionQueue` gives it LeRobot's ``select_action`` semantics (asked again only when its
 queue is empty, which both runners check at chunk boundaries); :class:`LeRobotPolicy` adapts a
 LeRobot checkpoint with its own processors; the recorded replay and holding the start state
-are scripted baselines."""
+are scripted baselines. LeRobot's policy names come from :func:`lerobot_name`, the policy
+code's one place for LeRobot (``docs/lerobot.md``)."""
 
 from __future__ import annotations
 
@@ -55,6 +56,23 @@ def make_observation(rgb: torch.Tensor, depth: torch.Tensor | None, state, views
     obs[STATE_KEY] = torch.as_tensor(state).float().cpu()
     obs["task"] = task or ""
     return obs
+
+
+# LeRobot's policy-side names and their modules (the same in 0.4.4 and 0.6.x)
+LEROBOT_POLICY_NAMES = {
+    "FeatureType": "lerobot.configs.types",
+    "PolicyFeature": "lerobot.configs.types",
+    "PreTrainedConfig": "lerobot.configs.policies",
+    "get_policy_class": "lerobot.policies.factory",
+    "make_pre_post_processors": "lerobot.policies.factory",
+    "ACTConfig": "lerobot.policies.act.configuration_act",
+    "ACTPolicy": "lerobot.policies.act.modeling_act",
+}
+
+
+def lerobot_name(name: str):
+    """LeRobot's policy-side ``name``, imported on first use (LeRobot's policies take seconds to import)."""
+    return getattr(importlib.import_module(LEROBOT_POLICY_NAMES[name]), name)
 
 
 def policy_name(policy) -> str:
@@ -145,8 +163,7 @@ class LeRobotPolicy:
 
     def __init__(self, policy, preprocessor, postprocessor, *, camera_map: Mapping[str, str] | None = None,
                  name: str | None = None):
-        from lerobot.configs.types import FeatureType
-
+        FeatureType = lerobot_name("FeatureType")
         self.policy, self.preprocessor, self.postprocessor = policy, preprocessor, postprocessor
         self.config = policy.config
         self.name = name or f"lerobot:{self.config.type}"
@@ -166,9 +183,9 @@ class LeRobotPolicy:
                         name: str | None = None) -> LeRobotPolicy:
         """Load a local checkpoint directory (``config.json``, ``model.safetensors`` and the
         processors' files, as ``save_pretrained`` writes them). Nothing is downloaded."""
-        from lerobot.configs.policies import PreTrainedConfig
-        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-
+        PreTrainedConfig = lerobot_name("PreTrainedConfig")
+        get_policy_class, make_pre_post_processors = (lerobot_name(n) for n in ("get_policy_class",
+                                                                                "make_pre_post_processors"))
         path = Path(path)
         for f in ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
             if not (path / f).is_file():

@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from imac_data import lerobot_compat as lr
 from imac_data.core.depth import depth_codec_of
 from imac_data.errors import InputError
 from imac_data.layout import IMAGE_PREFIX, STATE, SUCCESS_COLUMN, depth_key, video_column
@@ -75,8 +76,6 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
     decoder from the dataset's own files (only these cameras and timestamps). With
     ``geometry``, also each camera's depth in metres (its ``observation.depth.*`` colour video
     through the dataset's depth codec) and the states."""
-    from lerobot.datasets.video_utils import decode_video_frames
-
     meta = dataset.meta
     cameras = list(cameras) if cameras is not None else image_cameras(dataset)
     missing = [c for c in cameras if c not in meta.video_keys]
@@ -90,7 +89,7 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
             ([STATE] if STATE not in meta.features else [])
         if absent:
             raise InputError(f"{dataset.root}: judging geometry needs {absent}, which the dataset does not have")
-        codec = depth_codec_of(meta.info)
+        codec = depth_codec_of(lr.dataset_info(meta))
     if not isinstance(last, int) or last < 1:
         raise InputError(f"last: must be a positive integer, got {last!r}")
     table = meta.episodes
@@ -107,7 +106,7 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
     def decode(ep, row, key, times):
         path = Path(dataset.root) / meta.get_video_file_path(ep, key)
         start = float(starts[key][row])
-        return decode_video_frames(path, [start + t for t in times], dataset.tolerance_s, dataset.video_backend)
+        return lr.decode_video_frames(path, [start + t for t in times], dataset.tolerance_s, lr.video_backend(dataset))
 
     out = []
     for ep in wanted:

@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from imac_data import lerobot_compat as lr
 from imac_data.layout import info_path
 from imac_data.recipes import load_recipe
 from imac_model.config import CONTROL_STREAMS, load_run_config
@@ -204,12 +205,13 @@ def evaluate_setting(plan: Plan, s: Setting) -> None:
     model, spec = load_world_model(plan.run_dir(s), weights="ema")
     run = run_config(plan, s)
     meta = open_metadata(run.data)
-    layout = resolve_layout(meta.info, run.data, CONTROL_STREAMS, spatial_multiple=spatial_multiple(spec.backbone),
+    info = lr.dataset_info(meta)
+    layout = resolve_layout(info, run.data, CONTROL_STREAMS, spatial_multiple=spatial_multiple(spec.backbone),
                             temporal_factor=temporal_factor(spec.backbone), mode="motion+contact")
     held = plan.held_out_episodes
     ds = ChunkDataset(REPO, layout, root=run.data.root, episodes=held, cache="memory", cache_dir=run.data.cache_dir)
     ds.preload(progress=False)
-    online = OnlineControls.from_dataset(plan.dataset, spec, info=meta.info, resolution=run.rollout.resolution,
+    online = OnlineControls.from_dataset(plan.dataset, spec, info=info, resolution=run.rollout.resolution,
                                          max_walk_distance=run.rollout.max_walk_distance)
     starts = open_loop.rollout_starts(ds, held, ROLLOUT_CHUNKS, ROLLOUT_CHUNKS)
     videos = open_loop.rollout_videos(model, ds, starts, ROLLOUT_CHUNKS, online, steps=plan.steps, seed=plan.seed)

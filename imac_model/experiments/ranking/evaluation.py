@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from imac_data import lerobot_compat as lr
 from imac_data.layout import image_key
 from imac_model.evaluate import open_loop
 from imac_model.evaluate.closed_loop import ClosedLoopConfig, episode_starts, rollout_episode, run_closed_loop
@@ -54,7 +54,7 @@ def run_judges(plan: RankingPlan) -> None:
     """-> ``judges/classifier/`` and ``judges/real.json``."""
     torch.set_num_threads(1)
     t0, c0 = time.time(), time.process_time()
-    train = LeRobotDataset(TRAIN_REPO, root=plan.train_dataset)
+    train = lr.LeRobotDataset(TRAIN_REPO, root=plan.train_dataset)
     outcomes = set(dataset_success_labels(train).values()) - {None}
     classifier = training = None
     if outcomes == {True, False}:
@@ -63,7 +63,7 @@ def run_judges(plan: RankingPlan) -> None:
         classifier.save(plan.work / "judges" / "classifier")
     else:  # e.g. the toy run's two chunks end before any lift: no classifier, said so in the report
         training = {"skipped": f"the training rollouts have only {sorted(outcomes)} outcomes"}
-    evaluation = LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
+    evaluation = lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
     labels = dataset_success_labels(evaluation)
     episodes = sorted(labels)
     lift = LiftJudge()
@@ -103,7 +103,7 @@ def _closed_loop(plan: RankingPlan, model, chunks, online, policy, out: Path, ep
     result = run_closed_loop(model, chunks, online, policy, out, config=config, repo_id=f"local/{out.name}",
                              judge=judge, checkpoint=checkpoint, overwrite=True, progress=False).to_dict()
     if classifier is not None:
-        generated = LeRobotDataset(f"local/{out.name}", root=out)
+        generated = lr.LeRobotDataset(f"local/{out.name}", root=out)
         verdicts = classifier.judge(episode_frames(generated, None, CAMERAS, 4))
         for row, v in zip(result["episodes"], verdicts):
             row["success_classifier"] = bool(v)
@@ -132,13 +132,13 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     out = plan.wm_dir(mode)
     checkpoint = str(plan.run_dir(mode))
     model, spec = load_world_model(plan.run_dir(mode), weights="ema", device=plan.device)
-    evaluation = LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
+    evaluation = lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
     labels = dataset_success_labels(evaluation)
     starts = [plan.eval_episode(0, s) for s in plan.wm_starts()]
     replay = recorded_episodes(plan, labels)
     sens_episodes = replay[:4]
     chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sorted(set(starts + replay)))
-    online = OnlineControls.from_dataset(plan.eval_dataset, spec, info=chunks.lerobot.meta.info)
+    online = OnlineControls.from_dataset(plan.eval_dataset, spec, info=lr.dataset_info(chunks.lerobot.meta))
     judge = LiftJudge()
     saved = plan.work / "judges" / "classifier"
     classifier = SuccessClassifier.load(saved) if saved.is_dir() else None

@@ -10,8 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from imac_data import lerobot_compat as lr
 from imac_data.layout import image_key
 from imac_model.evaluate.pictures import label
 from imac_model.evaluate.statistics import STATISTICS, plot_policy_scatter, policy_correlation
@@ -70,7 +70,7 @@ def _correlations(plan: RankingPlan, real: dict) -> dict:
 
 def _frames(root: Path, repo: str, episode: int, views, times) -> list[np.ndarray]:
     """Frames ``times`` of ``episode`` as uint8 HWC, the views side by side."""
-    ds = LeRobotDataset(repo, root=root)
+    ds = lr.LeRobotDataset(repo, root=root)
     lo = int(ds.meta.episodes["dataset_from_index"][episode])
     rows = []
     for t in times:

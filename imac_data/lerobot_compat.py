@@ -1,0 +1,173 @@
+"""LeRobot in one place: every LeRobot name that imac_data and imac_model use comes from here.
+
+Supported: LeRobot 0.4.4 (run by the tests) and 0.5.1 to 0.6.x (read against their source);
+``docs/lerobot.md`` has the audit. Names load on first use (``lerobot_compat.LeRobotDataset``):
+LeRobot's dataset modules take over a second to import, and most commands never need them.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import json
+from pathlib import Path
+from typing import Any
+
+from imac_data.errors import InputError
+from imac_data.layout import info_path
+
+__all__ = ["NAMES", "default_root", "version", "dataset_info", "create_dataset", "set_streaming_encoder",
+           "close_writers", "video_backend", "convert_v21"]
+
+# name -> the modules that define it, newest layout first
+NAMES: dict[str, tuple[str, ...]] = {
+    "HF_LEROBOT_HOME": ("lerobot.utils.constants",),
+    "LeRobotDataset": ("lerobot.datasets.lerobot_dataset",),
+    "LeRobotDatasetMetadata": (
+        "lerobot.datasets.dataset_metadata",  # >= 0.5.1
+        "lerobot.datasets.lerobot_dataset",  # 0.4.4
+    ),
+    # defined here from 0.5.1; 0.4.4 defines it in datasets.backward_compatibility and imports it here
+    "BackwardCompatibilityError": ("lerobot.datasets.utils",),
+    "aggregate_datasets": ("lerobot.datasets.aggregate",),
+    "aggregate_stats": ("lerobot.datasets.compute_stats",),
+    "get_feature_stats": ("lerobot.datasets.compute_stats",),
+    "sample_indices": ("lerobot.datasets.compute_stats",),
+    "auto_downsample_height_width": ("lerobot.datasets.compute_stats",),
+    "DEFAULT_QUANTILES": ("lerobot.datasets.compute_stats",),
+    "RunningQuantileStats": ("lerobot.datasets.compute_stats",),
+    "serialize_dict": ("lerobot.datasets.utils",),
+    "update_chunk_file_indices": ("lerobot.datasets.utils",),
+    "decode_video_frames": ("lerobot.datasets.video_utils",),
+    "convert_dataset": (
+        "lerobot.scripts.convert_dataset_v21_to_v30",  # >= 0.5.1
+        "lerobot.datasets.v30.convert_dataset_v21_to_v30",  # 0.4.4 and 0.5.0
+    ),
+}
+
+
+def _find(name: str) -> tuple[Any, str]:
+    """LeRobot's ``name`` and the module it came from (the first of ``NAMES[name]`` that has it)."""
+    tried = []
+    for module in NAMES[name]:
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError as e:
+            if e.name is None or not module.startswith(e.name):  # a dependency missing inside LeRobot: say so
+                raise
+            tried.append(f"{module} (no such module)")
+            continue
+        if hasattr(mod, name):
+            return getattr(mod, name), module
+        tried.append(f"{module} (no {name})")
+    raise ImportError(f"LeRobot {version()} has no {name}: tried {', '.join(tried)} (docs/lerobot.md lists the "
+                      "supported versions)")
+
+
+def __getattr__(name: str):
+    if name in NAMES:
+        value = globals()[name] = _find(name)[0]
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def version() -> str:
+    """The installed LeRobot's version string."""
+    from importlib.metadata import version as dist_version
+
+    return dist_version("lerobot")
+
+
+def _at_least(v: str, major: int, minor: int) -> bool:
+    parts = [int(p) for p in v.split(".")[:2] if p.isdigit()]
+    return tuple(parts) >= (major, minor)
+
+
+def default_root(repo_id: str) -> Path:
+    """Where LeRobot looks for ``repo_id``: ``$HF_LEROBOT_HOME/<repo_id>``."""
+    return Path(_find("HF_LEROBOT_HOME")[0]) / repo_id
+
+
+def dataset_info(meta_or_root) -> dict:
+    """``meta/info.json`` of a dataset as a plain dict, our ``imac`` block included.
+    ``meta_or_root``: a dataset root, a ``LeRobotDatasetMetadata`` or a ``LeRobotDataset``
+    (from 0.5.1 ``meta.info`` is a ``DatasetInfo`` that drops unknown keys such as ``imac``,
+    so the file is read itself)."""
+    if isinstance(meta_or_root, (str, Path)):
+        root = Path(meta_or_root)
+    else:
+        root = Path(getattr(meta_or_root, "root"))
+    path = info_path(root)
+    try:
+        info = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{root} is not a LeRobot dataset: {path} is missing") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(info, dict):
+        raise InputError(f"{path}: expected a JSON object, got {type(info).__name__}")
+    return info
+
+
+def create_dataset(repo_id: str, *, fps: int, features: dict, root: Path, robot_type: str | None, encoding):
+    """An empty ``LeRobotDataset`` for writing, its camera encoder set to ``encoding`` (a
+    :class:`~imac_data.dataset.videos.VideoEncoding`)."""
+    cls = _find("LeRobotDataset")[0]
+    kwargs: dict[str, Any] = dict(repo_id=repo_id, fps=int(fps), features=features, root=root,
+                                  robot_type=robot_type, use_videos=True)
+    params = inspect.signature(cls.create).parameters
+    if "vcodec" in params:  # 0.4.4
+        kwargs["vcodec"] = encoding.codec
+    elif "rgb_encoder" in params:  # >= 0.5.1: the settings go into the first episode's video info
+        config = importlib.import_module("lerobot.configs.video").RGBEncoderConfig
+        kwargs["rgb_encoder"] = config(vcodec=encoding.codec, pix_fmt=encoding.pix_fmt, g=encoding.gop,
+                                       crf=encoding.crf, preset=encoding.preset)
+    return cls.create(**kwargs)
+
+
+def _writer_of(ds):
+    """The object that holds LeRobot's streaming-encoder slot and writers: the dataset
+    (0.4.4) or its ``DatasetWriter`` (>= 0.5.1)."""
+    if hasattr(ds, "_streaming_encoder"):  # 0.4.4
+        return ds
+    writer = getattr(ds, "writer", None)
+    if writer is not None and hasattr(writer, "_streaming_encoder"):  # >= 0.5.1
+        return writer
+    raise RuntimeError(f"LeRobot {version()}: the dataset has no streaming-encoder slot (docs/lerobot.md)")
+
+
+def set_streaming_encoder(ds, encoder) -> None:
+    """Plug ``encoder`` into LeRobot's streaming-encoder slot (``add_frame`` feeds it)."""
+    _writer_of(ds)._streaming_encoder = encoder
+
+
+def close_writers(ds) -> None:
+    """Stop LeRobot's writers of a dataset being written, without finishing it, so nothing
+    writes into its root after the caller removes it."""
+    holder = _writer_of(ds)
+    if holder is ds:  # 0.4.4
+        ds._close_writer()
+    else:  # >= 0.5.1; its finalize() would run again at garbage collection
+        holder.cancel_pending_videos()
+        holder.close_writer()
+        holder._finalized = True
+    ds.meta._close_writer()
+
+
+def video_backend(ds) -> str | None:
+    """The video decoder a ``LeRobotDataset`` reads with (public in 0.4.4, private from 0.5.1)."""
+    return getattr(ds, "video_backend", None) or getattr(ds, "_video_backend", None)
+
+
+def convert_v21(dataset_root: Path, repo_id: str) -> str:
+    """Convert the v2.1 dataset at ``dataset_root`` to v3.0 in place with LeRobot's own
+    converter; returns the converter's module (for the provenance record)."""
+    convert, module = _find("convert_dataset")
+    # the converter's ``root``: the dataset itself from 0.5.0, the folder that holds ``<repo_id>`` before
+    root = dataset_root
+    if not _at_least(version(), 0, 5):
+        root = dataset_root.parents[len(Path(repo_id).parts) - 1]
+        if root / repo_id != dataset_root:
+            raise InputError(f"{dataset_root}: LeRobot {version()} converts <root>/{repo_id} only")
+    convert(repo_id, root=str(root), push_to_hub=False, force_conversion=True)
+    return module
