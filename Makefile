@@ -3,7 +3,7 @@
 PY := .venv/bin/python
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test bench experiment da3 clean
+.PHONY: setup demo test bench experiment ranking da3 clean
 
 setup:
 	@bash scripts/setup.sh
@@ -32,6 +32,11 @@ bench: setup
 # every stage is cached under runs/experiment).
 experiment: setup
 	$(PY) -m imac_model experiment --work runs/experiment --docs docs/experiment
+
+# Policy ranking in simulation (docs/ranking.md): does the world model rank policies as MuJoCo does?
+# At most 150 CPU-minutes; resumable, every stage cached under runs/ranking.
+ranking: setup
+	$(PY) -m imac_model ranking --work runs/ranking --docs docs/ranking
 
 # Depth Anything 3's code (no weights): scripts/setup.sh installs it; this re-runs that install.
 da3: setup

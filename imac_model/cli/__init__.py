@@ -1,5 +1,5 @@
 """The ``imac-model`` command line (``python -m imac_model <command>``): train, sample, evaluate,
-experiment, plan. One parser (:mod:`imac_model.cli.parser`), one module per command."""
+experiment, ranking, plan. One parser (:mod:`imac_model.cli.parser`), one module per command."""
 
 from __future__ import annotations
 

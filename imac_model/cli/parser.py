@@ -192,8 +192,8 @@ def _plan(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser(prog: str = "imac-model") -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description="The iMaC world model: train, sample, evaluate, plan. "
-                                                            "docs/world-model.md has the details.")
+    parser = argparse.ArgumentParser(prog=prog, description="The iMaC world model: train, sample, evaluate, plan; "
+                                                            "the experiments. docs/world-model.md has the details.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _train(sub.add_parser("train", help="train the world model on an imac dataset"))
     _sample(sub.add_parser("sample", help="generate chunks of a dataset episode and show them beside the recording"))
