@@ -4,8 +4,8 @@
   accuracy on the real evaluation episodes;
 * :func:`evaluate_mode`: every policy closed loop in one mode's world model from the
   evaluation starts (``none``: once, after checking that two policies get bit-identical
-  frames), the recorded actions replayed (the judges' accuracy on generated frames), and the
-  mode's action sensitivity."""
+  frames), the recorded actions replayed (the judges' accuracy on generated frames and the
+  error per chunk), and the mode's action sensitivity."""
 
 from __future__ import annotations
 
@@ -20,8 +20,14 @@ import torch
 from imac_data import lerobot_compat as lr
 from imac_data.layout import image_key
 from imac_model.evaluate import open_loop
-from imac_model.evaluate.closed_loop import ClosedLoopConfig, episode_starts, rollout_episode, run_closed_loop
-from imac_model.evaluate.policies import load_policy
+from imac_model.evaluate.closed_loop import (
+    ClosedLoopConfig,
+    episode_starts,
+    judged_frames,
+    rollout_episode,
+    run_closed_loop,
+)
+from imac_model.evaluate.policies import load_policy, recorded_actions_policy
 from imac_model.evaluate.success import (
     SuccessClassifier,
     SuccessClassifierConfig,
@@ -112,6 +118,41 @@ def _closed_loop(plan: RankingPlan, model, chunks, online, policy, out: Path, ep
     return result
 
 
+def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int], labels: dict[int, bool],
+                    steps: int, judge, classifier) -> dict:
+    """Real evaluation episodes replayed in the world model (their recorded actions, closed
+    loop): both judges on the generated frames against MuJoCo's labels, and the RGB error of
+    every chunk against the recording (the mosaic's RGB row, [0, 1])."""
+    t0, c0 = time.time(), time.process_time()
+    spec = model.spec
+    rows, mse = [], []
+    for start in episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks):
+        records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,
+                                       steps=steps))
+        items = chunks.episode_chunks(start.episode)
+        errors = []
+        for n, record in enumerate(records):
+            recorded = chunks[items[n]]["future"].float()
+            recorded = recorded / 255.0 if chunks[items[n]]["future"].dtype == torch.uint8 else recorded
+            h = spec.view_height
+            errors.append(float(((record.frames[:, :, :h] - recorded[:, :, :h]) ** 2).mean()))
+        mse.append(errors)
+        last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
+        seen = judged_frames(start.episode, last, spec.views, start.task, online)
+        row = {"episode": start.episode, "label": labels[start.episode], "lift_geometry": bool(judge.judge([seen])[0]),
+               "mse_per_chunk": errors}
+        if classifier is not None:
+            row["classifier"] = bool(classifier.judge([seen])[0])
+        rows.append(row)
+    judges = [j for j in JUDGE_COLUMNS if all(j in r for r in rows)]
+    return {"episodes": episodes, "labels": [r["label"] for r in rows], "rows": rows,
+            "accuracy": {j: float(np.mean([r[j] == r["label"] for r in rows])) for j in judges},
+            "mse_per_chunk": np.mean(mse, axis=0).tolist(),
+            "mse_per_chunk_by_label": {str(o): np.mean([m for m, r in zip(mse, rows) if r["label"] is o], axis=0).tolist()
+                                       for o in (True, False) if any(r["label"] is o for r in rows)},
+            "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
+
+
 def none_is_policy_blind(plan: RankingPlan, model, online, chunks, start_episodes: list[int]) -> dict:
     """From the same starts and seeds, two policies get bit-identical frames from ``none``."""
     starts = episode_starts(chunks, start_episodes, seed=plan.seed, horizon_chunks=plan.chunks)
@@ -151,17 +192,9 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
                          judge, classifier, checkpoint)
         result["policies"][slug(spec_p)] = r
     if mode != "none":
-        replays = {}
-        for steps in sorted({plan.steps, plan.check_steps} if mode == "motion+contact" else {plan.steps}):
-            r = _closed_loop(plan, model, chunks, online, "recorded", out / f"recorded_{steps}_steps", replay, steps,
-                             judge, classifier, checkpoint)
-            truth = [labels[e] for e in replay]
-            verdicts = {name: [ep[key] for ep in r["episodes"]] for name, key in JUDGE_COLUMNS.items()
-                        if all(key in ep for ep in r["episodes"])}
-            replays[str(steps)] = {"episodes": replay, "labels": truth, **verdicts,
-                                   "accuracy": {name: float(np.mean([p == t for p, t in zip(v, truth)]))
-                                                for name, v in verdicts.items()}}
-        result["recorded"] = replays
+        steps_list = sorted({plan.steps, plan.check_steps} if mode == "motion+contact" else {plan.steps})
+        result["recorded"] = {str(k): replay_recorded(plan, model, chunks, online, replay, labels, k, judge, classifier)
+                              for k in steps_list}
     sens_chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sens_episodes)
     sens_chunks.preload(progress=False)
     sens_starts = [(e, c) for e in sens_episodes for c in (0, 1) if c < len(sens_chunks.episode_chunks(e))]

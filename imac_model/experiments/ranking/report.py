@@ -30,6 +30,18 @@ def _ci(ci) -> str:
     return "" if not ci or ci[0] is None else f" [{_fmt(ci[0], 2)}, {_fmt(ci[1], 2)}]"
 
 
+def wilson(k: float, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval (95 %) of a success rate k / n."""
+    p = k / n
+    centre, half = (p + z * z / (2 * n)) / (1 + z * z / n), z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def _rate(k: float, n: int) -> str:
+    lo, hi = wilson(k, n)
+    return f"{k / n:.2f} [{lo:.2f}, {hi:.2f}] ({n})"
+
+
 def real_outcomes(plan: RankingPlan) -> dict[tuple[str, str], list[bool]]:
     """MuJoCo's success per (policy, group), from the simulator runs."""
     out: dict[tuple[str, str], list[bool]] = {}
@@ -161,7 +173,8 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
         f"frames (10 fps), {plan.steps} Euler steps; {plan.train_episodes} training rollouts.", "",
     ]
     lines += ["## Success per policy", "",
-              "MuJoCo's success (all starts) and the world model's (lift judge), with 95 % bootstrap intervals.", ""]
+              "MuJoCo's success (all starts) and the world model's (lift judge), with 95 % Wilson intervals and the "
+              "number of episodes.", ""]
     header = "| policy | MuJoCo | " + " | ".join(plan.modes) + " |"
     lines += [header, "|" + "---|" * (2 + len(plan.modes))]
     first = r["statistics"][plan.modes[0]]["lift_geometry"]
@@ -169,11 +182,11 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
         real = [p for p in first["points"] if p["policy"] == name]
         n_real = sum(p["n_real"] for p in real)
         rate_real = sum(p["real"] * p["n_real"] for p in real) / n_real
-        cells = [f"{rate_real:.2f} ({n_real})"]
+        cells = [_rate(rate_real * n_real, n_real)]
         for mode in plan.modes:
             pts = [p for p in r["statistics"][mode]["lift_geometry"]["points"] if p["policy"] == name]
             n = sum(p["n_world_model"] for p in pts)
-            cells.append(f"{sum(p['world_model'] * p['n_world_model'] for p in pts) / n:.2f} ({n})")
+            cells.append(_rate(sum(p["world_model"] * p["n_world_model"] for p in pts), n))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", "## Rank agreement", "",
               "Per mode and judge, over (policy, group) points; bootstrap 95 % intervals (bias-corrected), "
@@ -203,6 +216,13 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
         for steps, rec in (ev.get("recorded") or {}).items():
             lines.append(f"| {mode} | {steps} | {len(rec['episodes'])} ({sum(rec['labels'])} successes) | "
                          f"{_fmt(rec['accuracy'].get('lift_geometry'))} | {_fmt(rec['accuracy'].get('classifier'))} |")
+    lines += ["", "RGB error (MSE, [0, 1]) of those replays against the recording, per chunk of 8 frames; the controls "
+                  "of every chunk after the first are rebuilt from the generated depth:", "",
+              "| mode | Euler steps | " + " | ".join(f"chunk {n + 1}" for n in range(plan.chunks)) + " |",
+              "|" + "---|" * (2 + plan.chunks)]
+    for mode, ev in r["evaluations"].items():
+        for steps, rec in (ev.get("recorded") or {}).items():
+            lines.append(f"| {mode} | {steps} | " + " | ".join(_fmt(x, 4) for x in rec["mse_per_chunk"]) + " |")
     none = r["evaluations"].get("none", {}).get("none_check")
     if none:
         lines += ["", f"**Negative control.** `none` from the same starts and seeds gives bit-identical frames to "
