@@ -153,6 +153,25 @@ def write_report(plan: RankingPlan) -> Path:
     return docs / "README.md"
 
 
+def _verdict(stats: dict) -> str:
+    """The goal, read off the figures: Pearson >= 0.9 and MMRV <= 0.05 for motion+contact (lift
+    judge), with action-vector clearly lower."""
+    def value(mode, name):
+        return stats.get(mode, {}).get("lift_geometry", {}).get("levels", {}).get("group", {}).get(name, {}).get("value")
+
+    p, m = value("motion+contact", "pearson"), value("motion+contact", "mmrv")
+    if p is None and m is None:
+        return "**Goal.** Not measured: no `motion+contact` run, or its world-model rates do not vary."
+    met = p is not None and m is not None and p >= 0.9 and m <= 0.05
+    text = (f"**Goal** (Pearson >= 0.9 and MMRV <= 0.05 for `motion+contact`, lift judge): "
+            f"{'met' if met else 'not met'} (Pearson {_fmt(p)}, MMRV {_fmt(m)}).")
+    a = value("action-vector", "pearson")
+    if "action-vector" in stats:
+        lower = p is not None and (a is None or a < p)
+        text += f" `action-vector`: Pearson {_fmt(a)}, {'lower' if lower else 'not lower'} than `motion+contact`."
+    return text
+
+
 def _markdown(plan: RankingPlan, r: dict) -> str:
     m = r["machine"]
     cpu_total = sum(s["cpu_s"] for s in r["stages"].values())
@@ -198,6 +217,7 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
             g = r["statistics"][mode][judge]["levels"]["group"]
             cells = [f"{_fmt(g[s]['value'])}{_ci(g[s]['ci'])}" for s in STATISTICS]
             lines.append(f"| {mode} | {judge} | {g['n_points']} | " + " | ".join(cells) + " |")
+    lines += ["", _verdict(r["statistics"])]
     for mode in plan.modes:
         lines += ["", f"![{mode}](scatter_{slug(mode.replace('+', '_'))}.png)"]
     j = r["judges"]
