@@ -65,21 +65,10 @@ CHUNK = 8
 REFERENCE_SAMPLES = 3000
 
 
-class _Capture(FrameRenderer):
-    """FrameRenderer that also keeps MuJoCo's full qpos of every recorded frame."""
-
-    def __init__(self, *a, **k):
-        super().__init__(*a, **k)
-        self.qpos: list[np.ndarray] = []
-
-    def render(self, data):
-        self.qpos.append(data.qpos.copy())
-        return super().render(data)
-
 
 def episode(max_steps: int, seed: int = 0) -> dict:
     model = load_mujoco_model("transfer_cube")
-    cap = _Capture(model, 320, 240, segmentation=True)
+    cap = FrameRenderer(model, 320, 240, segmentation=True, keep_qpos=True)
     try:
         ep = simulate_episode("transfer_cube", seed=seed, frame_stride=2, max_steps=max_steps, renderer=cap)
     finally:

@@ -58,7 +58,6 @@ FK_BATCHES = (1, 8, 64, 512, 4096)
 def export(out: Path, sizes: dict = SIZES, seed: int = 0) -> None:
     import mujoco
 
-    from benchmarks.contact_speed import _Capture
     from imac_data.core.contact.images import chunk_plan
     from imac_data.core.contact.workspace import resolve_workspace, saturation_depth
     from imac_data.core.depth import DepthCodec
@@ -66,6 +65,7 @@ def export(out: Path, sizes: dict = SIZES, seed: int = 0) -> None:
     from imac_data.core.robot.aloha import ARMS, robot_config
     from imac_data.core.robot.description import write_description
     from imac_data.core.robot.model import RobotModel
+    from imac_data.sources.sim.env import FrameRenderer
     from imac_data.sources.sim.recorder import simulate_episode
     from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 
@@ -78,7 +78,7 @@ def export(out: Path, sizes: dict = SIZES, seed: int = 0) -> None:
     (out / "rig.json").write_text(json.dumps(rig.to_info(), indent=1))
     (out / "sizes.json").write_text(json.dumps(sizes))
     for name, (H, W, T) in sizes.items():
-        renderer = _Capture(load_mujoco_model("transfer_cube"), W, H)
+        renderer = FrameRenderer(load_mujoco_model("transfer_cube"), W, H, keep_qpos=True)
         try:
             # frames spread over the grasp: the policy's first ~40 steps barely move
             ep = simulate_episode("transfer_cube", seed=seed, frame_stride=2, max_steps=2 * T + 200,

@@ -35,17 +35,8 @@ def main() -> None:
     from imac_data.sources.sim.recorder import simulate_episode
     from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 
-    class Capture(FrameRenderer):
-        def __init__(self, *a, **k):
-            super().__init__(*a, **k)
-            self.qpos = []
-
-        def render(self, data):
-            self.qpos.append(data.qpos.copy())
-            return super().render(data)
-
     model = load_mujoco_model("transfer_cube")
-    cap = Capture(model, 320, 240, segmentation=True)
+    cap = FrameRenderer(model, 320, 240, segmentation=True, keep_qpos=True)
     try:
         ep = simulate_episode("transfer_cube", seed=0, frame_stride=2, max_steps=120, renderer=cap)
     finally:

@@ -360,24 +360,13 @@ def test_gripper_surface_covers_the_finger_meshes(robot):
     np.testing.assert_allclose(pts[1, :len(local)].numpy(), (local @ T[:3, :3].T + T[:3, 3]).numpy(), atol=1e-6)
 
 
-class _Capture(FrameRenderer):
-    """FrameRenderer that also keeps MuJoCo's full qpos of every recorded frame."""
-
-    def __init__(self, *a, **k):
-        super().__init__(*a, **k)
-        self.qpos = []
-
-    def render(self, data):
-        self.qpos.append(data.qpos.copy())
-        return super().render(data)
-
 
 @pytest.fixture(scope="module")
 def grasp(robot):
     """transfer_cube at 240x320, 25 fps, the first 2.4 s: the right gripper approaches,
     closes on and lifts the cube. Ground-truth depth and segmentation from MuJoCo."""
     model = load_mujoco_model("transfer_cube")
-    cap = _Capture(model, 320, 240, segmentation=True)
+    cap = FrameRenderer(model, 320, 240, segmentation=True, keep_qpos=True)
     try:
         ep = simulate_episode("transfer_cube", seed=0, frame_stride=2, max_steps=120, renderer=cap)
     finally:

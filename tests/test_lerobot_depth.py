@@ -348,17 +348,6 @@ def test_recipe_depth_map_output_is_checked():
 H_SIM, W_SIM, CHUNK = 120, 160, 8
 
 
-class _Capture(FrameRenderer):
-    """FrameRenderer that also keeps MuJoCo's full qpos of every recorded frame."""
-
-    def __init__(self, *a, **k):
-        super().__init__(*a, **k)
-        self.qpos = []
-
-    def render(self, data):
-        self.qpos.append(data.qpos.copy())
-        return super().render(data)
-
 
 @pytest.fixture(scope="module")
 def depth_map_source(tmp_path_factory):
@@ -367,7 +356,7 @@ def depth_map_source(tmp_path_factory):
     them: cameras and joints by LeRobot 0.4.4's writer, depth maps by ours."""
     out = tmp_path_factory.mktemp("depth_map_source")
     model = load_mujoco_model("transfer_cube")
-    cap = _Capture(model, W_SIM, H_SIM, segmentation=True)
+    cap = FrameRenderer(model, W_SIM, H_SIM, segmentation=True, keep_qpos=True)
     try:
         ep = simulate_episode("transfer_cube", seed=0, frame_stride=2, max_steps=120, renderer=cap)
     finally:

@@ -25,7 +25,7 @@ class FrameRenderer:
 
     def __init__(self, model: mujoco.MjModel, width: int, height: int, *, depth: bool = True,
                  segmentation: bool = False, shadows: bool = False, antialias: bool = False,
-                 cameras: dict[str, str] = CAMERA_NAMES):
+                 cameras: dict[str, str] = CAMERA_NAMES, keep_qpos: bool = False):
         # Render settings live in the model's visual options (read when the GL context
         # is made); load_mujoco_model returns a private copy, so changing them is safe.
         model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), width)
@@ -42,10 +42,14 @@ class FrameRenderer:
         self._option = mujoco.MjvOption()
         self._option.sitegroup[:] = 0  # sites are invisible markers; keep them out of every pass
         self.far = float(model.vis.map.zfar * model.stat.extent)
+        # MuJoCo's full qpos of every rendered frame (the cube's pose too): the oracles' scene state
+        self.keep_qpos, self.qpos = keep_qpos, []
 
     def render(self, data: mujoco.MjData) -> dict[str, dict[str, np.ndarray]]:
         """``{"rgb": {cam: (H,W,3) uint8}, "depth_mm": {cam: (H,W) uint16}, "segmentation": {cam: (H,W) int16}}``."""
         r = self.renderer
+        if self.keep_qpos:
+            self.qpos.append(data.qpos.copy())
         out = {"rgb": {}, "depth_mm": {}, "segmentation": {}}
         for mj_cam, name in self.cameras.items():
             r.update_scene(data, camera=mj_cam, scene_option=self._option)
