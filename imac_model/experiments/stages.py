@@ -59,7 +59,7 @@ class StageLog:
         fn()
         entry = {"stage": stage, "wall_s": round(time.time() - w0, 2), "cpu_s": round(cpu_seconds() - c0, 2),
                  "load_start": [round(x, 2) for x in load0], "load_end": [round(x, 2) for x in os.getloadavg()],
-                 "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
+                 "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": git("describe", "--always", "--dirty")}
         self.entries.append(entry)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.path.write_text(json.dumps(self.entries, indent=1))
@@ -67,12 +67,15 @@ class StageLog:
               file=sys.stderr, flush=True)
 
     def totals(self) -> dict[str, dict[str, float]]:
-        """Per stage: wall and CPU seconds summed over its entries."""
-        out: dict[str, dict[str, float]] = {}
+        """Per stage: wall and CPU seconds summed over its entries, and the commits they ran at."""
+        out: dict[str, dict] = {}
         for e in self.entries:
-            t = out.setdefault(e["stage"], {"wall_s": 0.0, "cpu_s": 0.0})
+            t = out.setdefault(e["stage"], {"wall_s": 0.0, "cpu_s": 0.0, "commits": []})
             t["wall_s"] += e["wall_s"]
             t["cpu_s"] += e["cpu_s"]
+            commit = e.get("commit", "not recorded")
+            if commit not in t["commits"]:
+                t["commits"].append(commit)
         return out
 
 

@@ -145,7 +145,7 @@ def write_report(plan: RankingPlan) -> Path:
     for outcome, (policy, start) in examples.items():
         side_by_side(plan, shown, policy, start, docs / f"rollout_{outcome}.png")
     results = {"plan": plan.to_dict(), "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
-               "dirty": bool(git("status", "--porcelain")), "written": time.strftime("%Y-%m-%d %H:%M"),
+               "dirty": bool(git("status", "--porcelain", "--untracked-files=no", "--", ".", f":(exclude){_shown(docs)}")), "written": time.strftime("%Y-%m-%d %H:%M"),
                "real": {f"{p}/{g}": v for (p, g), v in real.items()}, "statistics": stats, "judges": judges,
                "evaluations": evaluations, "stages": stages, "examples": examples}
     (docs / "results.json").write_text(json.dumps(results, indent=1, default=str))
@@ -267,8 +267,8 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
             lines += [f"A start where `{policy}` {'succeeded' if outcome == 'success' else 'failed'} in MuJoCo "
                       f"(start {start}): top MuJoCo, bottom the world model; head and right wrist views.", "",
                       f"![{outcome}](rollout_{outcome}.png)", ""]
-    lines += ["", "## Time per stage", "", "| stage | CPU min | wall min |", "|---|---|---|"]
+    lines += ["", "## Time per stage", "", "| stage | CPU min | wall min | commit |", "|---|---|---|---|"]
     for stage, t in r["stages"].items():
-        lines.append(f"| {stage} | {t['cpu_s'] / 60:.1f} | {t['wall_s'] / 60:.1f} |")
-    lines.append(f"| total | {cpu_total / 60:.1f} | {wall_total / 60:.1f} |")
+        lines.append(f"| {stage} | {t['cpu_s'] / 60:.1f} | {t['wall_s'] / 60:.1f} | {', '.join(t['commits'])} |")
+    lines.append(f"| total | {cpu_total / 60:.1f} | {wall_total / 60:.1f} | |")
     return "\n".join(lines) + "\n"
