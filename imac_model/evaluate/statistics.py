@@ -411,7 +411,7 @@ def scatter_figure(result: Mapping, title: str | None = None):
 
     stats = f"r={fmt('pearson')}  rho={fmt('spearman')}  tau={fmt('kendall')}  MMRV={fmt('mmrv')}"
     ax.set_title(stats if title is None else f"{title}\n{stats}", fontsize=8)
-    ax.legend(fontsize=7, loc="lower right", frameon=False)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)  # off the points
     ax.grid(alpha=0.25)
     fig.tight_layout()
     return fig
@@ -428,6 +428,6 @@ def plot_policy_scatter(result: Mapping, path: str | Path, title: str | None = N
     fig = scatter_figure(result, title)
     FigureCanvasAgg(fig)
     tmp = path.with_name(f".{path.name}.tmp")
-    fig.savefig(tmp, format="png")
+    fig.savefig(tmp, format="png", bbox_inches="tight")
     tmp.replace(path)
     return path
