@@ -8,7 +8,8 @@ random weights of the real shapes (VAE included), 224x224 views, 1 + 8 frames, `
 trainer's own FSDP2 wrapping on one process (bf16 policy, gradient checkpointing, VAE slicing), AdamW and the
 EMA. Each N runs in its own process. After two warm-up steps: the step time (forward with the VAE encodes,
 backward, clipping, AdamW, EMA; ``torch.cuda.synchronize`` around it), the peak of
-``torch.cuda.max_memory_allocated``, and the time of sampling one chunk (20 Euler steps). The plan's bytes for
+``torch.cuda.max_memory_allocated``, and the time of sampling one chunk (20 Euler steps, after a one-step
+warm-up sample). The plan's bytes for
 the same N are printed beside the peak.
 
 Extrapolation to 30 blocks: per block = (x(N2) - x(N1)) / (N2 - N1), then x(30) = x(N2) + (30 - N2) x per
@@ -27,6 +28,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from queue import Empty
 
 REAL = Path(__file__).resolve().parent.parent / "imac_model" / "configs" / "wan2.2_ti2v_5b.yaml"
 QUICK = {"backbone.wan.transformer.num_attention_heads": 2, "backbone.wan.transformer.attention_head_dim": 32,
@@ -116,6 +118,7 @@ def _measure(blocks: int, micro_batch: int, steps: int, quick: bool, queue) -> N
         step_s = (time.perf_counter() - t0) / steps
         peak = torch.cuda.max_memory_allocated() if cuda else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
         model.eval()
+        model.sample(batch, steps=1, generator=torch.Generator().manual_seed(0))  # the decoder's first-call costs
         sync()
         t0 = time.perf_counter()
         model.sample(batch, steps=spec.flow.sample_steps, generator=torch.Generator().manual_seed(0))
@@ -136,7 +139,13 @@ def run(blocks=(2, 4), micro_batch: int = 1, steps: int = 4, quick: bool = False
         queue = ctx.Queue()
         proc = ctx.Process(target=_measure, args=(n, micro_batch, steps, quick, queue))
         proc.start()
-        rows.append(queue.get())
+        while True:  # a measurement that dies (an import, out of memory) must not leave us waiting
+            try:
+                rows.append(queue.get(timeout=5))
+                break
+            except Empty:
+                if not proc.is_alive():
+                    raise RuntimeError(f"the {n}-block measurement died (exit code {proc.exitcode}); see above")
         proc.join()
     report = {"rows": rows, "quick": quick, "load_avg": list(os.getloadavg())}
     if len(rows) >= 2:

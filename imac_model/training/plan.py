@@ -262,8 +262,8 @@ def memory(counts: dict, act: dict, vae: dict, setting: Setting, *, micro_batch:
     each term. States: fp32 weights 4, gradients 4, AdamW's two moments 8 and the EMA 4 bytes per
     trainable parameter, divided by the GPUs under fsdp2 (or moved to the host with
     ``cpu_offload``). Transients: the parameter groups gathered in compute precision, one
-    block's unsharded gradient, the activations, and the VAE's own peak (it encodes before the
-    transformer runs, so the step's peak is the larger of the two phases)."""
+    block's unsharded gradient and the activations; the VAE's own peak (it encodes before the
+    transformer runs); AdamW's temporary: the step's peak is the largest of the three phases."""
     P, N, b = counts["trainable"], setting.gpus, micro_batch
     c = 2 if bf16 else 4  # bytes per parameter in compute precision
     n = N if setting.strategy == "fsdp2" else 1
@@ -283,8 +283,11 @@ def memory(counts: dict, act: dict, vae: dict, setting: Setting, *, micro_batch:
         out["block_gradients"] = c * counts["block"]
     out["activations"] = b * (act["checkpointing"] if checkpointing else act["no_checkpointing"])
     out["vae_peak"] = (1 if vae_slicing else b) * vae["encode_chunk_peak"]
+    # torch's AdamW on GPU tensors is multi-tensor: one fp32 temporary per parameter (the denominator)
+    out["adamw_step"] = 0.0 if setting.cpu_offload else 4 * P / n
     fixed = sum(states.values()) + out["vae"]
-    out["total"] = fixed + max(out["gathered"] + out["block_gradients"] + out["activations"], out["vae_peak"])
+    out["total"] = fixed + max(out["gathered"] + out["block_gradients"] + out["activations"], out["vae_peak"],
+                               out["adamw_step"])
     out["host"] = host
     return out
 
@@ -390,7 +393,8 @@ def format_plan(plan: dict, config: str = "") -> str:
                      f"{', recompute' if plan['gradient_checkpointing'] else ''} and the VAE encodes)")
     lines.append(f"memory per GPU in GB (1e9 bytes), global batch {plan['batch_size']}; fits = total + "
                  f"{plan['reserve_gb']:g} GB reserve <= {plan['gpu_gb']:g} GB:")
-    cols = ("weights", "gradients", "adamw", "ema", "vae", "gathered", "block_gradients", "activations", "vae_peak")
+    cols = ("weights", "gradients", "adamw", "ema", "vae", "gathered", "block_gradients", "activations", "vae_peak",
+            "adamw_step")
     lines.append(f"  {'setting':<44}{'b':>4} " + " ".join(f"{k[:10]:>10}" for k in cols) + f" {'total':>8}  fits")
     for r in plan["settings"]:
         m = r["bytes"]
