@@ -171,21 +171,15 @@ def task_success(layout: TaskLayout, data: mujoco.MjData, task: str) -> bool:
     and its bottom is at least :data:`LIFT_HEIGHT` above the table top.
     """
     pairs = _contact_pairs(data)
-    if task == "lift":
+
+    def cube_held_by(arm: str, other: str) -> bool:
+        return (_touch(pairs, layout.box, layout.fingers[arm]) and not _touch(pairs, layout.box, layout.fingers[other])
+                and not _touch(pairs, layout.box, layout.table))
+
+    if task in ("lift", "transfer_cube"):
         box_z = data.xpos[layout.object_bodies["box"]][2]
-        return (
-            _touch(pairs, layout.box, layout.fingers["vx300s_right"])
-            and not _touch(pairs, layout.box, layout.fingers["vx300s_left"])
-            and not _touch(pairs, layout.box, layout.table)
-            and box_z >= TABLE_Z + REST_HEIGHT["box"] + LIFT_HEIGHT
-        )
-    if task == "transfer_cube":
-        box_z = data.xpos[layout.object_bodies["box"]][2]
-        return (
-            _touch(pairs, layout.box, layout.fingers["vx300s_left"])
-            and not _touch(pairs, layout.box, layout.fingers["vx300s_right"])
-            and not _touch(pairs, layout.box, layout.table)
-            and box_z > TABLE_Z + 0.05
-        )
+        if task == "lift":
+            return cube_held_by("vx300s_right", "vx300s_left") and box_z >= TABLE_Z + REST_HEIGHT["box"] + LIFT_HEIGHT
+        return cube_held_by("vx300s_left", "vx300s_right") and box_z > TABLE_Z + 0.05
     off_table = not (_touch(pairs, layout.peg, layout.table) or _touch(pairs, layout.socket, layout.table))
     return off_table and insertion_depth(layout, data) > 0.01
