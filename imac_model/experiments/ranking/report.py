@@ -145,7 +145,7 @@ def write_report(plan: RankingPlan) -> Path:
     for outcome, (policy, start) in examples.items():
         side_by_side(plan, shown, policy, start, docs / f"rollout_{outcome}.png")
     results = {"plan": plan.to_dict(), "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
-               "dirty": bool(git("status", "--porcelain", "--untracked-files=no", "--", ".", f":(exclude){_shown(docs)}")), "written": time.strftime("%Y-%m-%d %H:%M"),
+               "dirty": _uncommitted_changes(docs), "written": time.strftime("%Y-%m-%d %H:%M"),
                "real": {f"{p}/{g}": v for (p, g), v in real.items()}, "statistics": stats, "judges": judges,
                "evaluations": evaluations, "stages": stages, "examples": examples}
     (docs / "results.json").write_text(json.dumps(results, indent=1, default=str))
@@ -170,6 +170,13 @@ def _verdict(stats: dict) -> str:
         lower = p is not None and (a is None or a < p)
         text += f" `action-vector`: Pearson {_fmt(a)}, {'lower' if lower else 'not lower'} than `motion+contact`."
     return text
+
+
+def _uncommitted_changes(docs: Path) -> bool:
+    """Whether tracked files differ from the commit, the report's own directory aside."""
+    docs = docs.resolve()
+    own = [f":(exclude){docs.relative_to(REPO_ROOT)}"] if docs.is_relative_to(REPO_ROOT) else []
+    return git("status", "--porcelain", "--untracked-files=no", "--", ".", *own) not in ("", "unknown")
 
 
 def _shown(path: Path) -> str:
