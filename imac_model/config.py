@@ -104,9 +104,27 @@ class WanConfig:
 
 
 @dataclass(frozen=True)
+class UNetConfig:
+    """The pixel-space convolutional U-Net (DIAMOND's design): full-resolution output, a chunk's
+    frames stacked in channels, adaptive group norm on the flow time."""
+
+    channels: tuple[int, ...] = (32, 64, 96, 128)  # width per level; each level but the last halves the size
+    blocks: int = 2  # residual blocks per level
+    frame_dim: int = 16  # width of each frame's embedding (and of a control stream's projection)
+    context_dim: int = 256  # width of the action tokens (action-vector mode only)
+
+    def __post_init__(self) -> None:
+        if not self.channels or any(isinstance(c, bool) or not isinstance(c, int) or c <= 0 for c in self.channels):
+            raise InputError(f"backbone.unet.channels: positive integers, one per level (got {list(self.channels)})")
+        for name in ("blocks", "frame_dim", "context_dim"):
+            _positive(self, name, "backbone.unet")
+
+
+@dataclass(frozen=True)
 class BackboneConfig:
-    kind: Literal["small", "wan"] = "small"
+    kind: Literal["small", "unet", "wan"] = "small"
     small: SmallDiTConfig = field(default_factory=SmallDiTConfig)
+    unet: UNetConfig = field(default_factory=UNetConfig)
     wan: WanConfig = field(default_factory=WanConfig)
 
 

@@ -33,6 +33,7 @@ __all__ = [
     "DepthCodec",
     "depth_from_millimetres",
     "path_position",
+    "walk_colour",
 ]
 
 CODEC_ID = "vision_banana_rgb_walk"
@@ -202,6 +203,14 @@ def path_position(rgb, *, channel_axis: int = -1, name: str = "colours"):
     bk = _backend(rgb)
     k, t = _rgb_to_walk(bk, _colour_planes(bk, rgb, name, channel_axis))
     return k + t
+
+
+def walk_colour(s):
+    """The colour ``(..., 3)`` in ``[0, 1]`` at walk position ``s`` (clipped to ``[0, 7]``): the
+    inverse of :func:`path_position` on the walk; independent of the codec parameters."""
+    bk = _backend(s)
+    s = bk.xp.clip(_work_float(bk, s), 0.0, float(N_SEGMENTS))
+    return _walk_to_rgb(bk, s, N_SEGMENTS - s)
 
 
 def walk_distance(rgb, *, channel_axis: int = -1, name: str = "colours"):

@@ -103,6 +103,9 @@ def _evaluate(p: argparse.ArgumentParser) -> None:
                    help="what the policy sees: the world model's view size (default 48 64)")
     m.add_argument("--render-size", type=int, nargs=2, default=(96, 128), metavar=("H", "W"),
                    help="what is rendered and recorded (default 96 128)")
+    m.add_argument("--views", nargs="+", default=("cam_high", "cam_left_wrist", "cam_right_wrist"),
+                   help="the cameras the policy sees, in order (default the three ALOHA cameras; every camera "
+                        "of the rig, cam_workspace included, is recorded)")
     m.add_argument("--output", help="directory for episode_<i>.hdf5 and calibration.json (build it with imac build "
                                     "--recipe recipes/aloha_sim_lift.yaml --source DIR)")
     m.add_argument("--json", help="outcomes JSON (default <output>/outcomes.json, or none without --output)")

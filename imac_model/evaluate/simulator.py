@@ -25,7 +25,7 @@ from imac_data.errors import InputError
 from imac_data.layout import CALIBRATION, depth_key, image_key
 from imac_data.sources.hdf5 import EpisodeInfo, RawEpisode, write_episode
 from imac_data.sources.sim.env import FrameRenderer, SimEnv
-from imac_data.sources.sim.rig import CAMERA_NAMES, camera_calibration, load_mujoco_model
+from imac_data.sources.sim.rig import CAMERA_NAMES, RIG_CAMERAS, camera_calibration, load_mujoco_model
 from imac_data.sources.sim.tasks import TASK_INSTRUCTIONS, TASKS
 from imac_model.data import mosaic
 from imac_model.evaluate.policies import ActionQueue, Observation, make_observation, policy_name
@@ -45,7 +45,7 @@ class SimRunConfig:
     view_width: int = 64
     render_height: int = 96  # what is rendered and recorded
     render_width: int = 128
-    views: tuple[str, ...] = tuple(CAMERA_NAMES.values())
+    views: tuple[str, ...] = tuple(CAMERA_NAMES.values())  # what the policy sees; every rig camera is recorded
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -54,9 +54,9 @@ class SimRunConfig:
                      "render_width"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"simulator: {name} must be >= 1, got {getattr(self, name)}")
-        unknown = [v for v in self.views if v not in CAMERA_NAMES.values()]
+        unknown = [v for v in self.views if v not in RIG_CAMERAS.values()]
         if unknown or not self.views:
-            raise InputError(f"simulator: views {list(self.views)}; the simulated rig has {list(CAMERA_NAMES.values())}")
+            raise InputError(f"simulator: views {list(self.views)}; the simulated rig has {list(RIG_CAMERAS.values())}")
 
     @property
     def frames(self) -> int:
@@ -74,7 +74,7 @@ class SimEpisode:
     policy_calls: int
     qpos: np.ndarray  # (T, 14) measured
     action: np.ndarray  # (T, 14); the last frame repeats the last action, as in the world model's datasets
-    images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8 at the render size
+    images: dict[str, np.ndarray]  # every rig camera -> (T, H, W, 3) uint8 at the render size
     depth_mm: dict[str, np.ndarray]  # camera -> (T, H, W) uint16
     observations: list[Observation] = field(default_factory=list)  # what the policy was given (with keep_observations)
 
@@ -93,9 +93,9 @@ class SimRunner:
     def __init__(self, config: SimRunConfig = SimRunConfig()):
         self.config = c = config
         model = load_mujoco_model(c.task)
-        self.cameras = camera_calibration(model, c.render_width, c.render_height)
+        self.cameras = camera_calibration(model, c.render_width, c.render_height, RIG_CAMERAS)
         self.rig = Rig.from_platform("aloha_sim", self.cameras, task=c.task)
-        self.renderer = FrameRenderer(model, c.render_width, c.render_height)
+        self.renderer = FrameRenderer(model, c.render_width, c.render_height, cameras=RIG_CAMERAS)
         self.env = SimEnv(c.task, frame_stride=c.frame_stride, renderer=self.renderer)
 
     def close(self) -> None:
@@ -138,8 +138,8 @@ class SimRunner:
         env.reset(int(seed))
         T = c.frames
         qpos, action = np.empty((T, ACTION_DIM)), np.empty((T, ACTION_DIM))
-        images = {v: np.empty((T, c.render_height, c.render_width, 3), np.uint8) for v in c.views}
-        depth = {v: np.empty((T, c.render_height, c.render_width), np.uint16) for v in c.views}
+        images = {v: np.empty((T, c.render_height, c.render_width, 3), np.uint8) for v in self.cameras}
+        depth = {v: np.empty((T, c.render_height, c.render_width), np.uint16) for v in self.cameras}
         state = torch.as_tensor(env.qpos()).float()  # measured at the first frame, then commanded
         observations = []
         frame = 0
@@ -147,7 +147,7 @@ class SimRunner:
         def record() -> dict:
             rendered = env.render()
             qpos[frame] = env.qpos()
-            for v in c.views:
+            for v in self.cameras:
                 images[v][frame] = rendered["rgb"][v]
                 depth[v][frame] = rendered["depth_mm"][v]
             return rendered

@@ -62,7 +62,8 @@ class WorldModel(nn.Module):
         super().__init__()
         self.spec = spec
         mode = spec.conditioning.mode
-        self.backbone = backbone or build_backbone(spec.backbone, with_context=mode == "action-vector")
+        self.backbone = backbone or build_backbone(spec.backbone, with_context=mode == "action-vector",
+                                                   num_frames=spec.chunk + 1)
         m = self.backbone.spatial_multiple
         H, W = spec.mosaic_hw
         if H % m or W % m:
@@ -105,7 +106,7 @@ class WorldModel(nn.Module):
         for s in self.streams if streams is None else streams:
             c = controls[s]
             black = torch.zeros_like(c[:, :1])
-            out[s] = self.backbone.encode(torch.cat([black, c], dim=1))
+            out[s] = self.backbone.encode_control(torch.cat([black, c], dim=1))
         return out
 
     def context(self, actions: torch.Tensor) -> torch.Tensor | None:

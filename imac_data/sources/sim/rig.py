@@ -14,10 +14,16 @@ from imac_data.core.mujoco_gl import mujoco
 from imac_data.core.robot.aloha import ARM_JOINTS, ARMS, mjcf_path, unnormalize_gripper
 from imac_data.errors import InputError
 
-__all__ = ["CAMERA_NAMES", "CONTROL_DT", "load_mujoco_model", "camera_calibration", "set_mujoco_qpos"]
+__all__ = ["CAMERA_NAMES", "WORKSPACE_CAMERA", "RIG_CAMERAS", "CONTROL_DT", "load_mujoco_model", "camera_calibration", "set_mujoco_qpos"]
 
-# MuJoCo camera -> dataset camera name (ALOHA HDF5 / LeRobot convention).
+# MuJoCo camera -> dataset camera name (ALOHA HDF5 / LeRobot convention): the three ALOHA cameras.
 CAMERA_NAMES = {"top": "cam_high", "left_wrist": "cam_left_wrist", "right_wrist": "cam_right_wrist"}
+# A fixed, low camera in front of the table that frames where the cube starts and where it is lifted
+# (gym-aloha samples the cube over x 0-0.2 m, y 0.4-0.6 m): the head camera looks almost straight down,
+# so a lift shows mostly in its depth. At 48x64 the cube spans 6-9 px here (docs/simulation.md).
+WORKSPACE_CAMERA = {"workspace": "cam_workspace"}
+WORKSPACE_POSE = {"pos": (0.1, 0.1, 0.18), "target": (0.1, 0.5, 0.07), "fovy": 34.0}
+RIG_CAMERAS = {**CAMERA_NAMES, **WORKSPACE_CAMERA}  # every camera the simulated rig can record
 
 # Simulation rates of gym-aloha: 50 Hz control, 500 Hz physics.
 CONTROL_DT = 0.02
@@ -45,7 +51,20 @@ def load_mujoco_model(task: str, end_effector: bool = False) -> mujoco.MjModel:
         cam.targetbody = ""
         cam.pos = p_rel
         cam.quat = quat
+    _add_workspace_camera(spec)
     return spec.compile()
+
+
+def _add_workspace_camera(spec: mujoco.MjSpec) -> None:
+    """The fixed workspace camera (:data:`WORKSPACE_POSE`) on the world body. A camera changes
+    neither the physics nor the other cameras' images."""
+    pos, target = np.array(WORKSPACE_POSE["pos"]), np.array(WORKSPACE_POSE["target"])
+    forward = (target - pos) / np.linalg.norm(target - pos)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)  # MuJoCo cameras look down -z with y up
+    spec.worldbody.add_camera(name=next(iter(WORKSPACE_CAMERA)), pos=pos, xyaxes=np.r_[right, up],
+                              fovy=WORKSPACE_POSE["fovy"])
 
 
 def camera_calibration(model: mujoco.MjModel, width: int, height: int,

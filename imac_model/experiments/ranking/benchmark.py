@@ -40,7 +40,7 @@ from imac_model.experiments.ranking.plan import (
     RankingPlan,
     slug,
 )
-from imac_model.experiments.ranking.policies import HEAD, WRIST, LiftPolicy
+from imac_model.experiments.ranking.policies import WORKSPACE, WRIST, LiftPolicy
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, python, quote, run_all, then_mark_done
 from imac_model.training.train import model_spec
@@ -57,17 +57,8 @@ def internal(plan: RankingPlan, what: str, *extra: str) -> list[str]:
 
 
 def stage_simulate(plan: RankingPlan) -> None:
+    # the training rollouts first: decoding and training wait on them, not on the evaluation episodes
     commands = []
-    seeds = [str(s) for _, s in plan.eval_seeds()]
-    for spec, name in zip(plan.policies, plan.names):
-        out = plan.sim_dir(name)
-        if (out / ".done").is_file():
-            continue
-        shutil.rmtree(out, ignore_errors=True)
-        argv = python() + ["-m", "imac_model", "evaluate", "simulator", "--policy", spec, "--seeds", *seeds,
-                           "--chunks", str(plan.chunks), "--view-size", *map(str, plan.view_size), "--output", str(out),
-                           "--no-progress"]
-        commands.append((f"simulate {name}", then_mark_done(argv, out / ".done"), plan.work / "logs" / f"sim_{name}.log"))
     parts = max(1, min(plan.jobs, plan.train_episodes))
     for k in range(parts):
         out = plan.work / "sim" / "train" / f"part_{k}"
@@ -76,6 +67,16 @@ def stage_simulate(plan: RankingPlan) -> None:
             commands.append((f"simulate training part {k}", then_mark_done(internal(plan, "train-rollouts", str(k)),
                                                                             out / ".done"),
                              plan.work / "logs" / f"sim_train_{k}.log"))
+    seeds = [str(s) for _, s in plan.eval_seeds()]
+    for spec, name in zip(plan.policies, plan.names):
+        out = plan.sim_dir(name)
+        if (out / ".done").is_file():
+            continue
+        shutil.rmtree(out, ignore_errors=True)
+        argv = python() + ["-m", "imac_model", "evaluate", "simulator", "--policy", spec, "--seeds", *seeds,
+                           "--chunks", str(plan.chunks), "--view-size", *map(str, plan.view_size), "--views", *plan.views,
+                           "--output", str(out), "--no-progress"]
+        commands.append((f"simulate {name}", then_mark_done(argv, out / ".done"), plan.work / "logs" / f"sim_{name}.log"))
     run_all(commands, plan.jobs, tag="ranking")
 
 
@@ -84,7 +85,7 @@ def training_policy(index: int):
     offset of up to 3.5 cm in a random direction (successes and failures near the boundary)."""
     rng = np.random.default_rng([index, 0x7A11])
     kind = index % 3
-    relocalise = ((HEAD, WRIST), (HEAD,), None)[kind]
+    relocalise = ((WORKSPACE, WRIST), (WORKSPACE,), None)[kind]
     angle, radius = rng.uniform(0, 2 * np.pi), 0.035 * np.sqrt(rng.uniform())
     offset = (float(radius * np.cos(angle)), float(radius * np.sin(angle)))
     return LiftPolicy(f"mix_{('closed_loop', 'closed_loop_head', 'open_loop')[kind]}", relocalise=relocalise,
@@ -94,7 +95,8 @@ def training_policy(index: int):
 def simulate_training_part(plan: RankingPlan, part: int) -> None:
     parts = max(1, min(plan.jobs, plan.train_episodes))
     out = plan.work / "sim" / "train" / f"part_{part}"
-    with SimRunner(SimRunConfig(chunks=plan.chunks, view_height=plan.view_size[0], view_width=plan.view_size[1])) as runner:
+    with SimRunner(SimRunConfig(chunks=plan.chunks, view_height=plan.view_size[0], view_width=plan.view_size[1],
+                                   views=plan.views)) as runner:
         rows = []
         for i in range(part, plan.train_episodes, parts):
             p = training_policy(i)

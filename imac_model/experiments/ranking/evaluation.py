@@ -44,7 +44,11 @@ from imac_model.pipelines.sampling import open_chunks
 
 # the second action sequence of the sensitivity samples: the right arm's waist and shoulder
 SENSITIVITY_OFFSETS = {7: 0.3, 8: -0.25}
-CAMERAS = tuple(image_key(v) for v in ("cam_high", "cam_left_wrist", "cam_right_wrist"))
+def cameras(plan: RankingPlan) -> tuple[str, ...]:
+    """The RGB keys the learned classifier sees: the benchmark's views."""
+    return tuple(image_key(v) for v in plan.views)
+
+
 JUDGE_COLUMNS = {"lift_geometry": "success", "classifier": "success_classifier"}  # judge -> its column in the rows
 
 
@@ -64,7 +68,7 @@ def run_judges(plan: RankingPlan) -> None:
     outcomes = set(dataset_success_labels(train).values()) - {None}
     classifier = training = None
     if outcomes == {True, False}:
-        classifier, training = train_success_classifier(train, SuccessClassifierConfig(cameras=CAMERAS,
+        classifier, training = train_success_classifier(train, SuccessClassifierConfig(cameras=cameras(plan),
                                                                                         seed=plan.seed))
         classifier.save(plan.work / "judges" / "classifier")
     else:  # e.g. the toy run's two chunks end before any lift: no classifier, said so in the report
@@ -73,7 +77,7 @@ def run_judges(plan: RankingPlan) -> None:
     labels = dataset_success_labels(evaluation)
     episodes = sorted(labels)
     lift = LiftJudge()
-    frames = episode_frames(evaluation, episodes, CAMERAS, 4, geometry=True)
+    frames = episode_frames(evaluation, episodes, cameras(plan), 4, geometry=True)
     real = {name: evaluate_judge(j, frames, [labels[e] for e in episodes])
             for name, j in (("lift_geometry", lift), ("classifier", classifier)) if j is not None}
     _write(plan.work / "judges" / "real.json", {
@@ -110,7 +114,7 @@ def _closed_loop(plan: RankingPlan, model, chunks, online, policy, out: Path, ep
                              judge=judge, checkpoint=checkpoint, overwrite=True, progress=False).to_dict()
     if classifier is not None:
         generated = lr.LeRobotDataset(f"local/{out.name}", root=out)
-        verdicts = classifier.judge(episode_frames(generated, None, CAMERAS, 4))
+        verdicts = classifier.judge(episode_frames(generated, None, cameras(plan), 4))
         for row, v in zip(result["episodes"], verdicts):
             row["success_classifier"] = bool(v)
     result.update(wall_s=round(time.time() - t0, 1), cpu_s=round(time.process_time() - c0, 1))

@@ -1,7 +1,7 @@
 """The deterministic success judge of the lift: is the cube up in the air?
 
-From the right wrist view, where a held cube fills a good part of the image, the red pixels are
-lifted to the world with their depth and the camera's pose at the frame's state (edge pixels,
+From the workspace view (a fixed, low camera in front of the table, where a 10 cm lift moves the
+cube by 15-20 rows at 48x64), the red pixels are lifted to the world with their depth and the camera's pose at the frame's state (edge pixels,
 which mix the cube's colour with a finger's depth, left out). The cube is
 held up when enough of those points lie near the right gripper's tool centre point (forward
 kinematics of the same state) and their median height is at least the success height (the
@@ -23,7 +23,7 @@ from imac_data.sources.sim.tasks import LIFT_HEIGHT, REST_HEIGHT, TABLE_Z
 from imac_model.data import mosaic
 from imac_model.evaluate.success import EpisodeFrames, SuccessJudge
 from imac_model.experiments.ranking.perception import red_points
-from imac_model.experiments.ranking.policies import WRIST, lift_rig
+from imac_model.experiments.ranking.policies import WORKSPACE, lift_rig
 
 MIN_POINTS = 10  # red points near the gripper a frame needs before it can vote "lifted"
 NEAR = 0.06  # metres from the tool centre point: a held cube's surface (half side 2 cm, grasped up to 2 cm off centre)
@@ -35,7 +35,7 @@ class LiftJudge(SuccessJudge):
 
     name = "lift_geometry"
 
-    def __init__(self, view: str = WRIST, *, min_points: int = MIN_POINTS, near: float = NEAR,
+    def __init__(self, view: str = WORKSPACE, *, min_points: int = MIN_POINTS, near: float = NEAR,
                  lifted_z: float = TABLE_Z + REST_HEIGHT["box"] + LIFT_HEIGHT):
         self.rig = lift_rig()
         self.views = list(self.rig.cameras)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from imac_data.errors import InputError
 from imac_model.config import load_run_config
-from imac_model.experiments.ranking.policies import POLICIES
+from imac_model.experiments.ranking.policies import POLICIES, VIEWS
 from imac_model.experiments.stages import REPO_ROOT
 
 POLICY_MODULE = "imac_model.experiments.ranking.policies"
@@ -24,8 +24,8 @@ EVAL_SEED0 = 100_000  # evaluation start of group g, episode i: EVAL_SEED0 + 100
 TRAIN_SEED0 = 200_000  # the training rollouts' starts: never an evaluation start
 TRAIN_REPO, EVAL_REPO = "local/ranking_train", "local/ranking_eval"
 # the toy run of the CI test: the tiny backbone, a few steps
-TOY_MODEL = {"backbone.small.dim": 32, "backbone.small.depth": 1, "backbone.small.heads": 2,
-             "backbone.small.patch": 4, "train.max_steps": 6, "train.eval_every": 3, "train.checkpoint_every": 6,
+TOY_MODEL = {"backbone.unet.channels": [8, 16], "backbone.unet.blocks": 1, "backbone.unet.frame_dim": 4,
+             "train.max_steps": 6, "train.eval_every": 3, "train.checkpoint_every": 6,
              "train.log_every": 3, "train.warmup_steps": 1}
 
 
@@ -55,6 +55,7 @@ class RankingPlan:
     jobs: int = 2  # processes at a time
     seed: int = 0
     view_size: tuple[int, int] = (48, 64)  # what the policies, the judges and the world model see
+    views: tuple[str, ...] = VIEWS  # the cameras they see (the world model generates these)
     config: str = str(CONFIG)  # the world models' run config
     device: str = "cpu"  # where the world models sample ("cuda" in the GPU preset)
     toy: bool = False  # the CI run: tiny backbone, a few training steps
@@ -74,6 +75,7 @@ class RankingPlan:
         if not 0 <= self.held_out < self.train_episodes:
             raise InputError("ranking: held_out must be below train_episodes")
         self.view_size = tuple(int(x) for x in self.view_size)
+        self.views = tuple(self.views)
         if len(self.view_size) != 2 or min(self.view_size) < 8:
             raise InputError(f"ranking: view_size must be (height, width) of at least 8, got {self.view_size}")
         for name in ("groups", "chunks", "steps", "check_steps", "jobs"):
@@ -120,7 +122,7 @@ class RankingPlan:
                "data.cache_dir": str(self.work / "chunkcache"), "data.held_out_episodes": held,
                "train.max_cpu_minutes": self.cpu_minutes, "train.output_dir": str(self.run_dir(mode)),
                "train.seed": self.seed, "conditioning.mode": mode, "data.view_height": self.view_size[0],
-               "data.view_width": self.view_size[1]}
+               "data.view_width": self.view_size[1], "data.views": list(self.views)}
         return {**out, **(TOY_MODEL if self.toy else {}), **self.overrides}
 
     def run_config(self, mode: str):

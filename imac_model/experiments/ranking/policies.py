@@ -16,7 +16,7 @@ import torch
 from imac_data.core.mujoco_gl import mujoco
 from imac_data.core.rig import Rig
 from imac_data.layout import STATE, depth_key, image_key
-from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
+from imac_data.sources.sim.rig import RIG_CAMERAS, camera_calibration, load_mujoco_model
 from imac_data.sources.sim.scripts import ArmIK, Trajectory, Waypoint, lift_waypoints
 from imac_data.sources.sim.tasks import REST_HEIGHT, TABLE_Z
 from imac_model.experiments.ranking.perception import cube_centre_xy, red_points
@@ -24,8 +24,9 @@ from imac_model.experiments.ranking.perception import cube_centre_xy, red_points
 FPS = 10.0  # frames (actions) per second
 CHUNK = 8  # actions per query: the world model's chunk
 CLOSE_AT = 1.5  # seconds: the fingers start to close; closed-loop targets are fixed from here on
-HEAD, WRIST = "cam_high", "cam_right_wrist"
-MIN_WRIST_POINTS = 6  # red points the wrist view needs before it is trusted over the head view
+WORKSPACE, WRIST = "cam_workspace", "cam_right_wrist"
+VIEWS = (WORKSPACE, WRIST)  # what the policies, the judge and the world model see (docs/ranking.md)
+MIN_WRIST_POINTS = 6  # red points the wrist view needs before it is trusted over the workspace view
 TABLE_CENTRE = np.array([0.0, 0.5])  # where gym-aloha's cube sampler is centred: the guess when nothing is seen
 LEFT, RIGHT_ARM, RIGHT_GRIP = slice(0, 7), slice(7, 13), 13
 
@@ -33,16 +34,16 @@ LEFT, RIGHT_ARM, RIGHT_GRIP = slice(0, 7), slice(7, 13), 13
 def lift_rig() -> Rig:
     """The simulated rig's cameras and kinematics: the policy's knowledge of its own robot."""
     model = load_mujoco_model("lift")
-    return Rig.from_platform("aloha_sim", camera_calibration(model, 640, 480), task="lift")
+    return Rig.from_platform("aloha_sim", camera_calibration(model, 640, 480, RIG_CAMERAS), task="lift")
 
 
 class LiftPolicy:
     """Pick the cube up with the right arm (see the module docstring).
 
     ``relocalise``: the views it localises from on every observation (None: open loop, the
-    head view once); ``offset``: metres added to the grasp target in the table plane."""
+    workspace view once); ``offset``: metres added to the grasp target in the table plane."""
 
-    def __init__(self, name: str, *, relocalise: tuple[str, ...] | None = (HEAD, WRIST),
+    def __init__(self, name: str, *, relocalise: tuple[str, ...] | None = (WORKSPACE, WRIST),
                  offset: tuple[float, float] = (0.0, 0.0)):
         self.name = name
         self.relocalise = tuple(relocalise) if relocalise else None
@@ -62,15 +63,14 @@ class LiftPolicy:
 
     def locate(self, observation: dict, views: tuple[str, ...]) -> np.ndarray | None:
         """The cube's centre (x, y) seen in ``views``: the wrist view when it shows enough of the
-        cube, else the head view; None when neither shows it."""
+        cube, else the workspace view; None when neither shows it."""
         state = torch.as_tensor(observation[STATE]).float()
-        rgb = observation[image_key(self.views[0])]
-        K = self.rig.intrinsics(tuple(rgb.shape[-2:]))
         poses = self.rig.camera_poses(state[None])[0]
-        for view, min_points in ((WRIST, MIN_WRIST_POINTS), (HEAD, 1)):
+        for view, min_points in ((WRIST, MIN_WRIST_POINTS), (WORKSPACE, 1)):
             if view not in views or image_key(view) not in observation:
                 continue
             i = self.views.index(view)
+            K = self.rig.intrinsics(tuple(observation[image_key(view)].shape[-2:]))
             points, weights = red_points(observation[image_key(view)], observation[depth_key(view)], K[i], poses[i])
             xy = cube_centre_xy(points, weights, min_points)
             if xy is not None:
@@ -97,7 +97,7 @@ class LiftPolicy:
             self.grip0 = float(state[RIGHT_GRIP])
         seen = None
         if self.calls == 0 or self.relocalise:
-            seen = self.locate(observation, (HEAD,) if self.calls == 0 else self.relocalise)
+            seen = self.locate(observation, (WORKSPACE,) if self.calls == 0 else self.relocalise)
         self.estimates.append(seen)
         replan = self.calls == 0 or (self.relocalise is not None and t0 < CLOSE_AT and seen is not None)
         if self.calls == 0 or replan:

@@ -19,7 +19,6 @@ from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
 from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, slug
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 
-SHOWN_VIEWS = ("cam_high", "cam_right_wrist")
 
 
 def _fmt(x, digits: int = 3) -> str:
@@ -99,10 +98,10 @@ def side_by_side(plan: RankingPlan, mode: str, policy: str, start: int, path: Pa
     H = 8
     times = [0] + [H * (n + 1) for n in range(plan.chunks)]
     p = plan.names.index(policy)
-    real = _frames(plan.eval_dataset, EVAL_REPO, plan.eval_episode(p, plan.wm_starts()[start]), SHOWN_VIEWS, times,
+    real = _frames(plan.eval_dataset, EVAL_REPO, plan.eval_episode(p, plan.wm_starts()[start]), plan.views, times,
                    plan.view_size)
     gen_root = plan.wm_dir(mode) / policy
-    gen = _frames(gen_root, f"local/{gen_root.name}", start, SHOWN_VIEWS, times, plan.view_size)
+    gen = _frames(gen_root, f"local/{gen_root.name}", start, plan.views, times, plan.view_size)
     rows = []
     for name, frames in (("MuJoCo", real), (f"world model ({mode})", gen)):
         cells = [label(cv2.resize(f, (f.shape[1] * scale, f.shape[0] * scale), interpolation=cv2.INTER_NEAREST),

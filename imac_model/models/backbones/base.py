@@ -76,6 +76,11 @@ class Backbone(nn.Module, abc.ABC):
     def encode(self, video: torch.Tensor) -> torch.Tensor:
         """``(B, T, 3, H, W)`` in [0, 1] -> latents ``(B, C, F, h, w)``."""
 
+    def encode_control(self, video: torch.Tensor) -> torch.Tensor:
+        """A control video ``(B, T, 3, H, W)`` -> latents; the frames' encoder unless a backbone
+        encodes controls apart (the U-Net's depth channel has no meaning for a control)."""
+        return self.encode(video)
+
     @abc.abstractmethod
     def decode(self, latents: torch.Tensor) -> torch.Tensor:
         """Latents ``(B, C, F, h, w)`` -> frames ``(B, T, 3, H, W)`` in [0, 1]."""

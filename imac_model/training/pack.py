@@ -1,0 +1,201 @@
+"""Training from a tensor pack: the GPU preset's training, on a machine that has torch and numpy
+and nothing else of ours (no LeRobot, MuJoCo, Open3D or diffusers).
+
+Here, on the CPU, :func:`export_pack` writes a run's decoded training and held-out chunks (the
+chunk cache the benchmark's ``decode`` stage made) into one compressed ``.npz`` with the model's
+spec; the control rows the mosaic duplicates are stored once. On the GPU machine
+:func:`train_pack` trains one conditioning mode from it for a wall-clock budget and writes a
+checkpoint that :func:`imac_model.models.checkpoint.load_world_model` reads back here, with
+its log. Draws are a function of (seed, step), as in :mod:`.train`; the held-out loss is measured
+at fixed times and noise. ``docs/ranking.md`` ("The GPU preset") has the commands::
+
+    python -m imac_model.training.pack train --pack ranking_pack.npz --mode motion+contact \\
+        --minutes 2.5 --output OUT/motion_contact
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from imac_model.config import CONTROL_STREAMS, ModelSpec, parse, streams_of_mode
+from imac_model.data.batch import ChunkBatch
+from imac_model.models.checkpoint import save_checkpoint
+from imac_model.models.world_model import WorldModel
+
+EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss (as the trainer's)
+SPEC_KEY = "spec_json"
+
+
+# --------------------------------------------------------------------------- the pack
+
+
+def export_pack(items: list[dict], held_out: list[bool], spec: ModelSpec, path: str | Path) -> Path:
+    """Chunk items (``ChunkDataset`` items, every control stream) -> one ``.npz``; ``held_out``
+    flags the held-out episodes' items. Controls keep their top row (the mosaic duplicates it)."""
+    h = spec.view_height
+    arrays = {
+        "reference": np.stack([it["reference"].numpy() for it in items]),
+        "future": np.stack([it["future"].numpy() for it in items]),
+        "future_valid": np.stack([it["future_valid"].numpy() for it in items]),
+        "actions": np.stack([it["actions"].numpy() for it in items]).astype(np.float32),
+        "episode_index": np.array([int(it["episode_index"]) for it in items]),
+        "held_out": np.asarray(held_out, dtype=bool),
+        SPEC_KEY: np.array(json.dumps(spec.to_dict())),
+    }
+    for s in CONTROL_STREAMS:
+        arrays[f"control.{s}"] = np.stack([it[f"control.{s}"][:, :, :h].numpy() for it in items])
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+    return path
+
+
+class Pack:
+    """A pack's tensors on one device (uint8 frames, float actions) and its spec."""
+
+    def __init__(self, path: str | Path, device: torch.device | str = "cpu"):
+        with np.load(path) as data:
+            self.spec = parse(ModelSpec, json.loads(str(data[SPEC_KEY])), "")
+            self.tensors = {k: torch.from_numpy(data[k]).to(device) for k in data.files if k != SPEC_KEY}
+        held = self.tensors.pop("held_out").bool()
+        self.train = torch.nonzero(~held).flatten()
+        self.heldout = torch.nonzero(held).flatten()
+
+    def batch(self, index: torch.Tensor, streams: tuple[str, ...]) -> ChunkBatch:
+        """Float mosaics in [0, 1], controls duplicated back into both rows."""
+        t = self.tensors
+        controls = {s: torch.cat([t[f"control.{s}"][index]] * 2, dim=-2).float() / 255.0 for s in streams}
+        return ChunkBatch(reference=t["reference"][index].float() / 255.0, actions=t["actions"][index],
+                          controls=controls, future=t["future"][index].float() / 255.0,
+                          future_valid=t["future_valid"][index])
+
+
+def spec_for_mode(spec: ModelSpec, mode: str) -> ModelSpec:
+    data = spec.to_dict()
+    data["conditioning"]["mode"] = mode
+    return parse(ModelSpec, data, "")
+
+
+# --------------------------------------------------------------------------- training
+
+
+def _generator(seed: int, step: int, device) -> torch.Generator:
+    return torch.Generator(device=device).manual_seed(int(np.random.SeedSequence([seed, step, 0]).generate_state(1)[0]))
+
+
+@torch.no_grad()
+def heldout_loss(model: WorldModel, pack: Pack, streams: tuple[str, ...], batch_size: int, seed: int) -> float:
+    """The flow loss over the held-out chunks at :data:`EVAL_TAUS`, with fixed noise."""
+    model.eval()
+    losses = []
+    for start in range(0, len(pack.heldout), batch_size):
+        index = pack.heldout[start:start + batch_size]
+        batch = pack.batch(index, streams)
+        for j, tau in enumerate(EVAL_TAUS):
+            g = _generator(seed, 10_000_000 + 1000 * start + j, index.device)
+            tau_t = torch.full((len(index),), tau, device=index.device)
+            losses.append(float(model(batch, generator=g, tau=tau_t, streams=streams or None).loss))
+    model.train()
+    return float(np.mean(losses)) if losses else float("nan")
+
+
+def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, batch_size: int = 32,
+               lr: float = 5e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
+               log_every: int = 50, progress=print) -> dict:
+    """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
+    EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
+    ``output/checkpoints/`` and the log as ``output/log.jsonl``. Returns the summary."""
+    device = pack.tensors["reference"].device
+    spec = spec_for_mode(pack.spec, mode)
+    streams = streams_of_mode(mode)
+    torch.manual_seed(seed)
+    model = WorldModel(spec).to(device).train()
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=lr)
+    ema = {k: p.detach().float().clone() for k, p in model.named_parameters() if p.requires_grad}
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else torch.autocast(
+        "cpu", enabled=False)
+    out = Path(output)
+    out.mkdir(parents=True, exist_ok=True)
+    log = []
+    t0, step, samples = time.time(), 0, 0
+    n = len(pack.train)
+    while time.time() - t0 < 60.0 * minutes:
+        g = _generator(seed, step, device)
+        index = pack.train[torch.randint(n, (batch_size,), generator=g, device=device)]
+        for group in opt.param_groups:
+            group["lr"] = lr * min(1.0, (step + 1) / max(warmup, 1))
+        with autocast:
+            loss = model(pack.batch(index, streams), generator=g, streams=streams or None).loss
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        d = min(ema_decay, (1 + step) / (10 + step))
+        with torch.no_grad():
+            for k, p in model.named_parameters():
+                if k in ema:
+                    ema[k].mul_(d).add_(p.detach().float(), alpha=1 - d)
+        step, samples = step + 1, samples + batch_size
+        if step % log_every == 0:
+            row = {"step": step, "loss": float(loss), "lr": opt.param_groups[0]["lr"],
+                   "elapsed_s": round(time.time() - t0, 1), "samples": samples}
+            if step % eval_every == 0:
+                row["heldout_loss"] = heldout_loss(model, pack, streams, batch_size, seed)
+            log.append(row)
+            progress(json.dumps({"mode": mode, **row}))
+    elapsed = time.time() - t0
+    with torch.no_grad():  # the EMA weights become the checkpoint's weights
+        for k, p in model.named_parameters():
+            if k in ema:
+                p.copy_(ema[k])
+    final = heldout_loss(model, pack, streams, batch_size, seed)
+    log.append({"step": step, "heldout_loss": final, "elapsed_s": round(time.time() - t0, 1), "samples": samples,
+                "weights": "ema"})
+    save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
+    (out / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log))
+    summary = {"mode": mode, "steps": step, "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
+               "samples_per_s": round(samples / max(elapsed, 1e-9), 1), "heldout_loss": final,
+               "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+               "torch": torch.__version__, "parameters": sum(p.numel() for p in params)}
+    (out / "DONE.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m imac_model.training.pack",
+                                description="train one conditioning mode from a tensor pack (the GPU preset)")
+    sub = p.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("train")
+    t.add_argument("--pack", required=True)
+    t.add_argument("--mode", required=True, choices=("none", "motion", "motion+contact", "action-vector"))
+    t.add_argument("--output", required=True)
+    t.add_argument("--minutes", type=float, required=True, help="wall-clock training budget")
+    t.add_argument("--batch-size", type=int, default=32)
+    t.add_argument("--lr", type=float, default=5e-4)
+    t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    t.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    torch.backends.cuda.matmul.allow_tf32 = True
+    torch.backends.cudnn.allow_tf32 = True
+    torch.backends.cudnn.benchmark = True
+    pack = Pack(args.pack, args.device)
+    summary = train_pack(pack, args.mode, args.output, minutes=args.minutes, batch_size=args.batch_size, lr=args.lr,
+                         seed=args.seed)
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+
+
+__all__ = ["Pack", "export_pack", "heldout_loss", "spec_for_mode", "train_pack"]
