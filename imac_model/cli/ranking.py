@@ -11,7 +11,12 @@ from pathlib import Path
 
 from imac_data.console import run_command
 from imac_data.errors import InputError
-from imac_model.experiments.ranking.benchmark import STAGE_FUNCTIONS, decode_chunks, simulate_training_part
+from imac_model.experiments.ranking.benchmark import (
+    STAGE_FUNCTIONS,
+    decode_chunks,
+    export_training_pack,
+    simulate_training_part,
+)
 from imac_model.experiments.ranking.evaluation import evaluate_mode, run_judges
 from imac_model.experiments.ranking.plan import STAGES, RankingPlan, gpu_plan, toy_plan
 from imac_model.experiments.stages import StageLog
@@ -44,7 +49,7 @@ def _ranking(args: argparse.Namespace) -> int:
     if args.internal:
         plan = RankingPlan.load(Path(args.plan))
         {"train-rollouts": lambda: simulate_training_part(plan, int(args.internal_args[0])),
-         "decode": lambda: decode_chunks(plan), "judges": lambda: run_judges(plan),
+         "decode": lambda: decode_chunks(plan), "pack": lambda: export_training_pack(plan), "judges": lambda: run_judges(plan),
          "evaluate": lambda: evaluate_mode(plan, args.internal_args[0])}[args.internal]()
         return 0
     plan = _plan(args)

@@ -112,7 +112,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                log_every: int = 50, progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
-    ``output/checkpoints/`` and the log as ``output/log.jsonl``. Returns the summary."""
+    ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary."""
     device = pack.tensors["reference"].device
     spec = spec_for_mode(pack.spec, mode)
     streams = streams_of_mode(mode)
@@ -161,12 +161,12 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     log.append({"step": step, "heldout_loss": final, "elapsed_s": round(time.time() - t0, 1), "samples": samples,
                 "weights": "ema"})
     save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
-    (out / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log))
     summary = {"mode": mode, "steps": step, "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1), "heldout_loss": final,
                "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
                "torch": torch.__version__, "parameters": sum(p.numel() for p in params)}
-    (out / "DONE.json").write_text(json.dumps(summary, indent=1))
+    # the summary is the log's last row: the GPU machine returns few files
+    (out / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in [*log, {"summary": summary}]))
     return summary
 
 

@@ -43,6 +43,7 @@ from imac_model.experiments.ranking.plan import (
 from imac_model.experiments.ranking.policies import WORKSPACE, WRIST, LiftPolicy
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, python, quote, run_all, then_mark_done
+from imac_model.training.pack import export_pack
 from imac_model.training.train import model_spec
 
 
@@ -155,6 +156,25 @@ def decode_chunks(plan: RankingPlan) -> None:
         ds.preload(num_workers=1, progress=False)
 
 
+def export_training_pack(plan: RankingPlan) -> None:
+    """The decoded training and held-out chunks as one tensor pack (:mod:`imac_model.training.pack`):
+    what the GPU preset trains from on a machine with torch alone."""
+    run = plan.run_config("motion+contact")
+    meta = open_metadata(run.data)
+    spec, layout = model_spec(run, meta)
+    train, held = split_episodes(meta.total_episodes, run.data.held_out_episodes)
+    ds = ChunkDataset(TRAIN_REPO, layout, root=run.data.root, episodes=train + held, cache="memory",
+                      cache_dir=run.data.cache_dir)
+    ds.preload(num_workers=1, progress=False)
+    export_pack([ds[i] for i in range(len(ds))], [e in set(held) for _, e, _ in ds.index], spec, plan.pack)
+
+
+def stage_pack(plan: RankingPlan) -> None:
+    if plan.pack.is_file():
+        return
+    run_all([("pack", internal(plan, "pack"), plan.work / "logs" / "pack.log")], 1, tag="ranking")
+
+
 def stage_decode(plan: RankingPlan) -> None:
     if any((plan.work / "chunkcache").glob("*")):
         return
@@ -196,5 +216,6 @@ def stage_report(plan: RankingPlan) -> None:
     write_report(plan)
 
 
-STAGE_FUNCTIONS = {"simulate": stage_simulate, "build": stage_build, "decode": stage_decode, "train": stage_train,
+STAGE_FUNCTIONS = {"simulate": stage_simulate, "build": stage_build, "decode": stage_decode, "pack": stage_pack,
+                   "train": stage_train,
                    "judges": stage_judges, "evaluate": stage_evaluate, "report": stage_report}

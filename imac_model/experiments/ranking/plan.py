@@ -19,7 +19,7 @@ RECIPE = REPO_ROOT / "recipes" / "aloha_sim_lift.yaml"
 CONFIG = REPO_ROOT / "imac_model" / "configs" / "ranking.yaml"
 GPU_CONFIG = REPO_ROOT / "imac_model" / "configs" / "ranking_gpu.yaml"
 MODES = ("motion+contact", "motion", "action-vector", "none")
-STAGES = ("simulate", "build", "decode", "train", "judges", "evaluate", "report")
+STAGES = ("simulate", "build", "decode", "pack", "train", "judges", "evaluate", "report")
 EVAL_SEED0 = 100_000  # evaluation start of group g, episode i: EVAL_SEED0 + 1000 g + i
 TRAIN_SEED0 = 200_000  # the training rollouts' starts: never an evaluation start
 TRAIN_REPO, EVAL_REPO = "local/ranking_train", "local/ranking_eval"
@@ -109,6 +109,11 @@ class RankingPlan:
     @property
     def eval_dataset(self) -> Path:
         return self.work / "datasets" / "eval"
+
+    @property
+    def pack(self) -> Path:
+        """The training chunks as one tensor pack: what the GPU preset carries to the GPU machine."""
+        return self.work / "gpu" / "pack.npz"
 
     def run_dir(self, mode: str) -> Path:
         return self.work / "runs" / mode.replace("+", "_").replace("-", "_")

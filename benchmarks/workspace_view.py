@@ -1,0 +1,82 @@
+"""Does the workspace camera show the lift? The cube's size and its lift in pixels at the world
+model's view size, from MuJoCo's own cube pose projected with the rig's calibration.
+
+For each start the benchmark's closed-loop lift policy runs in MuJoCo (the ranking views); the
+cube's eight corners are projected into ``cam_workspace`` at rest (after its 3 cm drop, at the
+first chunk boundary) and at the end. The span is the larger side of the corners' bounding box;
+the lift is how far the projected centre moved. The issue's bar: at least 6 px and, for a
+successful lift, at least 10 px::
+
+    python -m benchmarks.workspace_view --starts 12 --json benchmarks/results/workspace_view.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from imac_data.core.cameras import project
+from imac_data.sources.sim.rig import WORKSPACE_CAMERA
+from imac_model.evaluate.simulator import SimRunConfig, SimRunner
+from imac_model.experiments.ranking import policies
+from imac_model.experiments.ranking.plan import EVAL_SEED0
+
+CAMERA = next(iter(WORKSPACE_CAMERA.values()))
+HALF = 0.02  # the cube's half side (m)
+
+
+def cube_corners(env) -> np.ndarray:
+    body = env.layout.object_bodies["box"]
+    R, p = env.data.xmat[body].reshape(3, 3), env.data.xpos[body]
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+    return p + (signs * HALF) @ R.T
+
+
+def pixels(runner: SimRunner, corners: np.ndarray, hw: tuple[int, int]) -> tuple[float, np.ndarray]:
+    cam = runner.cameras[CAMERA].rescaled(width=hw[1], height=hw[0])
+    uv, _ = project(torch.as_tensor(corners), torch.as_tensor(cam.K), torch.as_tensor(cam.T_world_cam))
+    uv = uv.numpy()
+    return float(max(np.ptp(uv[:, 0]), np.ptp(uv[:, 1]))), uv.mean(axis=0)
+
+
+def measure(starts: int, view_size: tuple[int, int]) -> dict:
+    config = SimRunConfig(views=policies.VIEWS, view_height=view_size[0], view_width=view_size[1])
+    rows = []
+    with SimRunner(config) as runner:
+        for i in range(starts):
+            seen = {}
+
+            def at_rest(env, chunk, seen=seen):
+                if chunk == 1:
+                    seen["rest"] = cube_corners(env)
+
+            episode = runner.run_episode(policies.closed_loop(), EVAL_SEED0 + i, intervene=at_rest)
+            span, centre0 = pixels(runner, seen["rest"], view_size)
+            _, centre1 = pixels(runner, cube_corners(runner.env), view_size)
+            rows.append({"seed": EVAL_SEED0 + i, "success": episode.success, "span_px": round(span, 2),
+                         "lift_px": round(float(np.linalg.norm(centre1 - centre0)), 2)})
+    ok = [r for r in rows if r["success"]]
+    return {"camera": CAMERA, "view_size": list(view_size), "episodes": rows,
+            "span_px": {"min": min(r["span_px"] for r in rows), "mean": float(np.mean([r["span_px"] for r in rows]))},
+            "lift_px_successful": ({"min": min(r["lift_px"] for r in ok), "mean": float(np.mean([r["lift_px"] for r in ok]))}
+                                   if ok else None)}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--starts", type=int, default=12)
+    p.add_argument("--view-size", type=int, nargs=2, default=(48, 64))
+    p.add_argument("--json")
+    args = p.parse_args()
+    result = measure(args.starts, tuple(args.view_size))
+    print(json.dumps({k: v for k, v in result.items() if k != "episodes"}, indent=1))
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
