@@ -177,7 +177,7 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stages", default=",".join(RANKING_STAGES),
                    help=f"comma-separated subset of {','.join(RANKING_STAGES)}")
     p.add_argument("--plan", help=argparse.SUPPRESS)
-    p.add_argument("--internal", choices=("train-rollouts", "decode", "judges", "evaluate"), help=argparse.SUPPRESS)
+    p.add_argument("--internal", choices=("train-rollouts", "decode", "pack", "judges", "evaluate"), help=argparse.SUPPRESS)
     p.add_argument("internal_args", nargs="*", help=argparse.SUPPRESS)
 
 
