@@ -3,8 +3,8 @@
 # torch and numpy and nothing else of ours: motion+contact and action-vector trained at once on one GPU,
 # from the tensor pack `imac-model ranking --stages ...,pack` wrote, for the same wall-clock budget each.
 # PyYAML and safetensors travel as wheels beside the pack (runs/ranking/gpu/wheels/) when the machine
-# lacks them. Checkpoints (float16 EMA weights) and logs go to $OUT/<mode>/; copy them back into the
-# work directory with scripts/gpu_ranking_import.sh.
+# lacks them. Checkpoints (float16 EMA weights) and logs go to $OUT/<mode>.*; `imac-model ranking
+# --import-gpu DIR` puts them back into the work directory as trained runs.
 #   OUT=/tmp/gpu_out MINUTES=5 bash scripts/gpu_ranking.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -28,4 +28,14 @@ for mode in motion+contact action-vector; do
 done
 status=0
 for pid in "${pids[@]}"; do wait "$pid" || status=1; done
+# the GPU machine returns files at the top of $OUT only: <mode>.model.json, .model.safetensors, .log.jsonl
+for dir in "$OUT"/*/; do
+  mode=$(basename "$dir")
+  ckpt=$(ls -d "$dir"checkpoints/step_* | tail -n 1)
+  mv "$ckpt/model.json" "$OUT/$mode.model.json"
+  mv "$ckpt/model.safetensors" "$OUT/$mode.model.safetensors"
+  mv "$dir/log.jsonl" "$OUT/$mode.log.jsonl"
+  rm -r "$dir"
+done
+ls -la "$OUT"
 exit $status
