@@ -31,7 +31,8 @@ from imac_data import lerobot_compat as lr
 from imac_data.console import run_command
 from imac_data.dataset.columns import add_episode_columns
 from imac_data.errors import InputError
-from imac_data.layout import info_path
+from imac_data.layout import SUCCESS_COLUMN, info_path
+from imac_data.metadata import dataset_info
 from imac_model.config import MODES
 from imac_model.data import mosaic
 from imac_model.evaluate.closed_loop import ClosedLoopConfig, run_closed_loop
@@ -79,7 +80,7 @@ def default_episodes(chunks, run: Mapping) -> list[int]:
 
 def _online(spec, chunks, run):
     return online_controls_for(spec, chunks, run) or OnlineControls.from_dataset(
-        chunks.lerobot.root, spec, info=lr.dataset_info(chunks.lerobot.meta))
+        chunks.lerobot.root, spec, info=dataset_info(chunks.lerobot.meta))
 
 
 def _camera_map(items) -> dict[str, str] | None:
@@ -202,8 +203,8 @@ def cmd_label(args) -> int:
     import pyarrow as pa
 
     missing = [e for e in episodes if e not in judge.labels]
-    rows = [{"imac/success": judge.labels.get(e)} for e in episodes]
-    add_episode_columns(root, rows, {"imac/success": pa.bool_()})
+    rows = [{SUCCESS_COLUMN: judge.labels.get(e)} for e in episodes]
+    add_episode_columns(root, rows, {SUCCESS_COLUMN: pa.bool_()})
     result = {"dataset": str(root), "labels": str(args.labels), "labelled": len(judge.labels),
               "unlabelled_episodes": missing,
               "success": {str(e): judge.labels[e] for e in sorted(judge.labels)},

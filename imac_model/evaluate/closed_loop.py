@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from imac_data import lerobot_compat as lr
 from imac_data.dataset.columns import add_episode_columns
 from imac_data.dataset.episodes import EpisodeWriter
 from imac_data.dataset.info import update_imac_info
 from imac_data.dataset.output import refuse_overlap
 from imac_data.errors import InputError
 from imac_data.layout import ACTION, EPISODE_COLUMNS, SUCCESS_COLUMN, control_key, depth_key, image_key
+from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
 from imac_model.data.batch import ChunkBatch
 from imac_model.evaluate.policies import (
@@ -382,7 +382,7 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
             p = recorded_actions_policy(start.recorded_actions) if policy == "recorded" else policy
             queue = ActionQueue(p, spec.action_dim)
             writer.begin_episode(start, {"imac/source": SOURCE, "imac/policy_name": name,
-                                         "imac/checkpoint": checkpoint, "imac/success": None,
+                                         "imac/checkpoint": checkpoint, SUCCESS_COLUMN: None,
                                          "imac/start_episode": start.episode, "imac/start_frame": start.frame,
                                          "imac/seed": start.seed, "imac/invalid_depth": None})
             last = deque(maxlen=config.judge_frames)
@@ -402,18 +402,12 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
         if judge is not None:
             success = [bool(s) for s in judge.judge(verdicts)]
             for row, ep, s in zip(writer.rows, result.episodes, success):
-                row["imac/success"] = ep["success"] = s
-        writer.finish({"closed_loop": protocol, **_depth_block(lr.dataset_info(meta))})
+                row[SUCCESS_COLUMN] = ep["success"] = s
+        writer.finish({"closed_loop": protocol, **dataset_meta.depth_entry(meta)})
     except BaseException:
         writer.abort()
         raise
     return result
-
-
-def _depth_block(info: Mapping) -> dict:
-    """The source dataset's depth codec entry (the generated depth rows use it)."""
-    block = info.get("imac", {}) if isinstance(info, Mapping) else {}
-    return {k: block[k] for k in ("depth",) if k in block}
 
 
 __all__ = ["ChunkRecord", "ClosedLoopConfig", "ClosedLoopResult", "GeneratedDatasetWriter", "Start",
