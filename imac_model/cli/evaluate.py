@@ -30,6 +30,7 @@ import numpy as np
 from imac_data import lerobot_compat as lr
 from imac_data.console import run_command
 from imac_data.dataset.columns import add_episode_columns
+from imac_data.dataset.output import check_output
 from imac_data.errors import InputError
 from imac_data.layout import SUCCESS_COLUMN, info_path
 from imac_data.metadata import dataset_info
@@ -99,6 +100,8 @@ def _camera_map(items) -> dict[str, str] | None:
 
 
 def cmd_closed_loop(args) -> int:
+    # a user's directory given as --output, or a staging path next to it that is not ours: refused before any work
+    check_output(Path(args.output), overwrite=args.overwrite, what="--output")
     model, spec, ckpt, run = load_checkpoint(args.checkpoint, mode=args.mode, weights=args.weights, device=args.device)
     chunks = open_source(spec, run, args.dataset, args.root)
     episodes = args.episodes if args.episodes is not None else default_episodes(chunks, run)
