@@ -20,7 +20,6 @@ from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, slug
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 
 
-
 def _fmt(x, digits: int = 3) -> str:
     return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{digits}f}"
 
