@@ -40,7 +40,8 @@ from imac_model.evaluate.success import (
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan, slug
 from imac_model.models.checkpoint import load_world_model
-from imac_model.pipelines.online_controls import OnlineControls
+from imac_model.data import mosaic
+from imac_model.pipelines.online_controls import OnlineControls, decode_depth
 from imac_model.pipelines.sampling import open_chunks
 
 # the second action sequence of the sensitivity samples: the right arm's waist and shoulder
@@ -135,17 +136,19 @@ def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int
         records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,
                                        steps=steps))
         items = chunks.episode_chunks(start.episode)
-        errors = []
+        errors, by_view, depth = [], [], []
         for n, record in enumerate(records):
             recorded = chunks[items[n]]["future"].float()
             recorded = recorded / 255.0 if chunks[items[n]]["future"].dtype == torch.uint8 else recorded
             h = spec.view_height
             errors.append(float(((record.frames[:, :, :h] - recorded[:, :, :h]) ** 2).mean()))
+            by_view.append(_view_errors(record.frames, recorded, spec))
+            depth.append(_depth_figures(record.frames, recorded, online, spec))
         mse.append(errors)
         last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
         seen = judged_frames(start.episode, last, spec.views, start.task, online)
         row = {"episode": start.episode, "label": labels[start.episode], "lift_geometry": bool(judge.judge([seen])[0]),
-               "mse_per_chunk": errors}
+               "mse_per_chunk": errors, "mse_per_chunk_by_view": by_view, "depth_per_chunk": depth}
         if classifier is not None:
             row["classifier"] = bool(classifier.judge([seen])[0])
         rows.append(row)
@@ -153,9 +156,34 @@ def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int
     return {"episodes": episodes, "labels": [r["label"] for r in rows], "rows": rows,
             "accuracy": {j: float(np.mean([r[j] == r["label"] for r in rows])) for j in judges},
             "mse_per_chunk": np.mean(mse, axis=0).tolist(),
+            "mse_per_chunk_by_view": {v: np.mean([[c[v] for c in r["mse_per_chunk_by_view"]] for r in rows], axis=0).tolist()
+                                      for v in spec.views},
+            "depth_valid_per_chunk": np.mean([[c["valid"] for c in r["depth_per_chunk"]] for r in rows], axis=0).tolist(),
+            "depth_median_error_m_per_chunk": np.median([[c["median_error_m"] for c in r["depth_per_chunk"]]
+                                                         for r in rows], axis=0).tolist(),
             "mse_per_chunk_by_label": {str(o): np.mean([m for m, r in zip(mse, rows) if r["label"] is o], axis=0).tolist()
                                        for o in (True, False) if any(r["label"] is o for r in rows)},
             "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
+
+
+def _view_errors(generated: torch.Tensor, recorded: torch.Tensor, spec) -> dict[str, float]:
+    """RGB MSE of one chunk per view (the mosaic's RGB row split into its views)."""
+    g, _ = mosaic.split(generated, len(spec.views))
+    r, _ = mosaic.split(recorded, len(spec.views))
+    return {v: float(((g[:, i] - r[:, i]) ** 2).mean()) for i, v in enumerate(spec.views)}
+
+
+def _depth_figures(generated: torch.Tensor, recorded: torch.Tensor, online, spec) -> dict[str, float]:
+    """Of one chunk's generated depth, over the pixels where the recording's depth is valid: the
+    share that decodes to valid metres, and the median absolute error (m) of those."""
+    _, g = mosaic.split(generated, len(spec.views))
+    _, r = mosaic.split(recorded, len(spec.views))
+    g_m, g_bad = decode_depth(g, online.codec)
+    r_m, r_bad = decode_depth(r, online.codec)
+    where = ~r_bad
+    both = where & ~g_bad
+    return {"valid": float((~g_bad & where).sum() / where.sum().clamp_min(1)),
+            "median_error_m": float((g_m - r_m)[both].abs().median()) if both.any() else float("nan")}
 
 
 def none_is_policy_blind(plan: RankingPlan, model, online, chunks, start_episodes: list[int]) -> dict:
