@@ -197,3 +197,7 @@ def test_an_episode_re_simulates_from_its_own_file(in_tmp):
             qpos.append(env.qpos())
         assert np.ptp(ep.qpos[:, 11]) > 0.1  # the wrist moved
         np.testing.assert_array_equal(np.array(qpos), ep.qpos)
+    with h5py.File(in_tmp / "sim" / "episode_0.hdf5", "r+") as f:
+        f.attrs["sim_seed"] = "seven"
+    with pytest.raises(InputError, match=r"episode_0.hdf5: attribute 'sim_seed' must be a non-negative integer"):
+        read_episode(in_tmp / "sim" / "episode_0.hdf5")
