@@ -208,6 +208,8 @@ def test_moving_the_cube_moves_a_closed_loop_policys_grasp_target_in_both_runner
 OUTSIDE = '''
 import torch
 
+from imac_model.experiments.ranking.judge import LiftJudge
+
 
 class Wave:
     """Lowers the right shoulder by 0.1 rad over each chunk; reads the head view's depth."""
@@ -227,30 +229,62 @@ class Wave:
         actions = observation["observation.state"].repeat(8, 1)
         actions[:, 8] -= torch.linspace(0.0125, 0.1, 8)
         return actions
+
+
+class Held(LiftJudge):
+    """The lift judge, written by someone else."""
+
+    name = "held"
 '''
 
 
-def test_an_outside_policy_module_runs_through_both_runners(lift, tmp_path):
+def test_an_outside_policy_module_runs_through_both_runners_from_its_folder(lift, tmp_path):
+    """The console script, run from the folder that holds the policy and judge module, with no
+    PYTHONPATH for it: `python:MODULE:NAME` imports MODULE from the current directory. (PYTHONPATH
+    names only this checkout, so that the console script runs the code under test.)"""
     (tmp_path / "outside_policy.py").write_text(textwrap.dedent(OUTSIDE))
-    env = {**os.environ, "PYTHONPATH": str(tmp_path), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    command = str(Path(sys.executable).parent / "imac-model")
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     spec = "python:outside_policy:Wave"
-    sim = subprocess.run([sys.executable, "-m", "imac_model", "evaluate", "simulator", "--policy", spec, "--seeds", "3",
-                          "--chunks", "2", "--output", str(tmp_path / "sim"), "--no-progress"],
+    sim = subprocess.run([command, "evaluate", "simulator", "--policy", spec, "--seeds", "3..4",
+                          "--chunks", "2", "--output", "sim", "--no-progress"],
                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert sim.returncode == 0, sim.stderr[-2000:]
+    assert "python:outside_policy:Wave on lift: success 0/2" in sim.stdout
     outcome = json.loads((tmp_path / "sim" / "outcomes.json").read_text())
-    assert outcome["episodes"][0]["policy_calls"] == 2 and outcome["episodes"][0]["success"] is False
-    assert (tmp_path / "sim" / "episode_0.hdf5").is_file()
-    wm = subprocess.run([sys.executable, "-m", "imac_model", "evaluate", "closed-loop", "--checkpoint",
+    assert [e["seed"] for e in outcome["episodes"]] == [3, 4] and outcome["episodes"][0]["policy_calls"] == 2
+    assert (tmp_path / "sim" / "episode_1.hdf5").is_file()
+    wm = subprocess.run([command, "evaluate", "closed-loop", "--checkpoint",
                          str(lift["ckpt"]), "--dataset", REPO, "--root", str(lift["root"]), "--policy", spec,
                          "--episodes", "0", "--horizon-chunks", "2", "--steps", "1",
-                         "--judge", "python:imac_model.experiments.ranking.judge:lift_judge",
-                         "--output", str(tmp_path / "wm"), "--no-progress"],
+                         "--judge", "python:outside_policy:Held", "--output", "wm", "--no-progress"],
                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert wm.returncode == 0, wm.stderr[-2000:]
     result = json.loads((tmp_path / "wm" / "closed_loop.json").read_text())
     assert result["protocol"]["policy"] == "wave" and result["episodes"][0]["policy_calls"] == 2
-    assert result["episodes"][0]["success"] is False and result["protocol"]["judge"] == "lift_geometry"
+    assert result["episodes"][0]["success"] is False and result["protocol"]["judge"] == "held"
+
+
+def test_built_episodes_record_their_simulated_start(lift):
+    eps = LeRobotDataset(REPO, root=lift["root"]).meta.episodes
+    assert list(eps["imac/sim_seed"]) == [SEED, SEED] and list(eps["imac/sim_task"]) == ["lift", "lift"]
+    assert eps.features["imac/sim_seed"].dtype == "int64"
+
+
+def test_a_policy_of_another_task_is_refused_by_the_closed_loop(lift, tmp_path, monkeypatch, capsys):
+    (tmp_path / "insert_policy.py").write_text("from imac_model.evaluate.policies import hold_policy\n\n\n"
+                                               "def inserter(observation):\n    return hold_policy(observation)\n\n\n"
+                                               "inserter.tasks = ('Insert the peg into the socket.',)\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    code = model_main(["evaluate", "closed-loop", "--checkpoint", str(lift["ckpt"]), "--dataset", REPO, "--root",
+                       str(lift["root"]), "--policy", "python:insert_policy:inserter", "--episodes", "1",
+                       "--output", "wm", "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "policy inserter acts on ['Insert the peg into the socket.'] (its tasks), but the task of start " \
+           "episode 1 is 'Pick up the cube with the right arm and lift it.'" in err
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == ["insert_policy.py"]
 
 
 def test_ranking_benchmark_end_to_end_at_toy_size(tmp_path):

@@ -18,9 +18,9 @@ from imac_data.core.cameras import load_calibration, project
 from imac_data.core.robot.aloha import STATE_NAMES
 from imac_data.errors import InputError
 from imac_data.sources.hdf5 import probe_episode, read_episode
-from imac_data.sources.sim.env import FrameRenderer, robot_mask, segmentation_labels
+from imac_data.sources.sim.env import FrameRenderer, SimEnv, robot_mask, segmentation_labels
 from imac_data.sources.sim.recorder import SimConfig, record_dataset, simulate_episode
-from imac_data.sources.sim.rig import CAMERA_NAMES, load_mujoco_model
+from imac_data.sources.sim.rig import CAMERA_NAMES, CONTROL_DT, load_mujoco_model
 from imac_data.sources.sim.tasks import TASK_INSTRUCTIONS
 
 CAMS = sorted(CAMERA_NAMES.values())
@@ -54,8 +54,9 @@ def test_recorded_episode_reads_back(which, request):
     assert [p.name for p in paths] == [f"episode_{i}.hdf5" for i in range(cfg.num_episodes)]
     assert not list(out.glob(".*tmp*")), "temporary files left behind"
     T = cfg.max_steps // cfg.frame_stride
-    for path in paths:
+    for i, path in enumerate(paths):
         ep = read_episode(path, load_segmentation=True)
+        assert (ep.info.sim_task, ep.info.sim_seed) == (cfg.task, cfg.seed + i)
         assert ep.cameras == CAMS
         assert ep.num_frames == T
         for arr in (ep.qpos, ep.qvel, ep.action):
@@ -113,6 +114,22 @@ def _check_table_depth(depth_mm, seg, table_id, K, T_world_cam, min_pixels):
     assert np.abs(recorded - z_depth_mm).max() <= 1.0
     # ...and the test can tell z-depth from ray distance.
     assert np.abs(recorded - ray_dist_mm).max() > 20.0
+
+
+@pytest.mark.parametrize("which", ["cube_dir", "insertion_dir"])
+def test_recorded_episodes_re_simulate_from_their_own_files(which, request):
+    """The start seed and task in the file's attributes, the rate from its fps and its actions:
+    MuJoCo retraces the recorded joints bit for bit."""
+    _, paths, _ = request.getfixturevalue(which)
+    for path in paths:
+        ep = read_episode(path, load_depth=False)
+        env = SimEnv(ep.info.sim_task, frame_stride=round(1 / (ep.fps * CONTROL_DT)))
+        env.reset(ep.info.sim_seed)
+        qpos = []
+        for action in ep.action:
+            qpos.append(env.qpos())
+            env.step(action)
+        np.testing.assert_array_equal(np.array(qpos), ep.qpos)
 
 
 def test_depth_is_planar_z_depth_of_the_table(cube_dir):

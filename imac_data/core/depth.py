@@ -495,7 +495,7 @@ def depth_from_millimetres(depth_mm, *, name: str = "depth"):
     return metres
 
 
-__all__ += ["depth_codec_of", "resize_depth", "walk_distance"]
+__all__ += ["area_resize_depth", "depth_codec_of", "resize_depth", "walk_distance"]
 
 
 def resize_depth(depth, size: tuple[int, int], *, name: str = "depth"):
@@ -540,6 +540,59 @@ def depth_codec_of(meta) -> DepthCodec:
     if codec is None:
         raise InputError("meta/info.json has no imac.depth.codec: the dataset has no depth streams written by imac")
     return DepthCodec.from_dict(codec, where="meta/info.json imac.depth.codec")
+
+def _area_weights(n_out: int, n_in: int) -> np.ndarray:
+    """``(n_out, n_in)``: how much of output pixel ``i``'s span (pixel edges scale) source pixel
+    ``j`` covers, in source pixels."""
+    edges = np.arange(n_out + 1) * (n_in / n_out)
+    j = np.arange(n_in)[None]
+    return np.clip(np.minimum(edges[1:, None], j + 1) - np.maximum(edges[:-1, None], j), 0.0, None)
+
+
+def area_resize_depth(depth, size: tuple[int, int], *, min_valid: float = 0.5, name: str = "depth"):
+    """Area resize of depth ``(..., H, W)`` to ``size = (h, w)`` over the valid pixels only;
+    numpy in, numpy out; torch in, torch out.
+
+    Each output pixel is the mean of the valid (> 0, finite) depths inside its area, so it
+    stands for the ray through its own centre, as an area- or antialiased RGB resize does and
+    as :func:`imac_data.core.cameras.rescale_intrinsics` assumes. (The nearest pixel of a 2x
+    reduction lies a quarter output pixel off that ray.) It is 0 (unknown) where less than
+    ``min_valid`` of the area is valid: an unknown pixel is never averaged in as a depth. Depths
+    are averaged across an object's edge, as the RGB's colours are."""
+    torch_in = _is_torch(depth)
+    if not torch_in:
+        depth = np.asarray(depth)
+    if depth.ndim < 2:
+        raise InputError(f"{name}: depth must be at least 2-D (..., H, W); got shape {tuple(depth.shape)}")
+    try:
+        h, w = (int(v) for v in size)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: size must be (height, width); got {size!r}") from None
+    if h <= 0 or w <= 0:
+        raise InputError(f"{name}: size must be positive; got {size!r}")
+    H, W = depth.shape[-2:]
+    if (H, W) == (h, w):
+        return depth
+    wy, wx = _area_weights(h, H), _area_weights(w, W)
+    if torch_in:
+        torch = sys.modules["torch"]
+        d = depth.to(torch.float64)
+        wy, wx = (torch.as_tensor(a, dtype=torch.float64, device=d.device) for a in (wy, wx))
+        valid = (torch.isfinite(d) & (d > 0)).to(torch.float64)
+        d = torch.where(valid > 0, d, torch.zeros_like(d))
+    else:
+        d = np.asarray(depth, dtype=np.float64)
+        valid = (np.isfinite(d) & (d > 0)).astype(np.float64)
+        d = np.where(valid > 0, d, 0.0)
+    total = wy @ (d * valid) @ wx.T
+    covered = wy @ valid @ wx.T
+    area = (H / h) * (W / w)
+    keep = covered >= min_valid * area
+    if torch_in:
+        out = torch.where(keep, total / covered.clamp_min(1e-12), torch.zeros_like(total))
+        return out.to(depth.dtype if depth.dtype.is_floating_point else torch.float32)
+    out = np.where(keep, total / np.maximum(covered, 1e-12), 0.0)
+    return out.astype(depth.dtype if depth.dtype.kind == "f" else np.float32)
 
 
 def _as_numpy_depth(depth, name: str) -> np.ndarray:

@@ -25,6 +25,7 @@ from imac_data.errors import InputError
 from imac_data.layout import (
     ACTION,
     EPISODE_COLUMNS,
+    SIM_COLUMNS,
     STATE,
     SUCCESS_COLUMN,
     VELOCITY,
@@ -34,7 +35,7 @@ from imac_data.layout import (
 )
 from imac_data.sources.hdf5 import SOURCES
 
-__all__ = ["IngestOptions", "BaseWriter", "write_rig", "episode_column_types"]
+__all__ = ["IngestOptions", "BaseWriter", "write_rig", "episode_column_types", "sim_column_types"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,11 @@ class IngestOptions:
 def episode_column_types() -> dict[str, pa.DataType]:
     """The arrow types of the ``imac/*`` episode columns."""
     return {k: pa.bool_() if k == SUCCESS_COLUMN else pa.string() for k in EPISODE_COLUMNS}
+
+
+def sim_column_types() -> dict[str, pa.DataType]:
+    """The arrow types of the simulated start's columns (null for recorded episodes)."""
+    return dict(zip(SIM_COLUMNS, (pa.string(), pa.int64())))
 
 
 def write_rig(root: Path, rig, *, with_description: bool = True) -> None:
@@ -110,7 +116,8 @@ class BaseWriter:
         o = self.options
         values = (info.source or o.source, info.policy_name or o.policy_name, info.checkpoint or o.checkpoint,
                   info.success)
-        self.rows.append(dict(zip(EPISODE_COLUMNS, values)))
+        self.rows.append({**dict(zip(EPISODE_COLUMNS, values)),
+                          **dict(zip(SIM_COLUMNS, (info.sim_task, info.sim_seed)))})
 
     def add(self, state, action, qvel, images, poses) -> None:
         rows = {STATE: np.asarray(state, np.float64).astype(np.float32),
@@ -128,7 +135,7 @@ class BaseWriter:
 
     def finish(self, rig, *, with_description: bool = True) -> None:
         self.writer.finish()
-        add_episode_columns(self.root, self.rows, episode_column_types())
+        add_episode_columns(self.root, self.rows, {**episode_column_types(), **sim_column_types()})
         write_rig(self.root, rig, with_description=with_description)
 
     def abort(self) -> None:

@@ -12,7 +12,9 @@ One file per episode (``episode_0.hdf5``, ``episode_1.hdf5``, ...)::
     /action                            (T, D) float   commanded joint targets
     /compress_len                      (n_cams, T)    JPEG byte counts, rows in sorted camera order
     attrs: sim, compress, and optionally fps, task, source, policy_name, checkpoint, success,
-           segmentation_labels (JSON {geom id: [geom name, body name]})
+           sim_task and sim_seed (a simulated episode's task and start seed: reset(sim_seed)
+           and the recorded actions re-simulate it), segmentation_labels (JSON {geom id:
+           [geom name, body name]})
 
 The compressed variant stores what ``cv2.imencode('.jpg', rgb)`` returns for the RGB
 array (the ALOHA/ACT recorders pass RGB straight to OpenCV), so decoding returns RGB
@@ -52,6 +54,8 @@ class EpisodeInfo:
     policy_name: str | None = None
     checkpoint: str | None = None
     success: bool | None = None
+    sim_task: str | None = None  # a simulated episode's task (imac_data.sources.sim.tasks.TASKS)
+    sim_seed: int | None = None  # and its start seed: gym-aloha's reset(seed)
 
     def __post_init__(self) -> None:
         if self.source is not None and self.source not in SOURCES:
@@ -82,10 +86,16 @@ def episode_attributes(f: h5py.File, path: Path) -> tuple[EpisodeInfo, float | N
     attrs = f.attrs
     where = f"{path}: attribute"
     success = parse_success(attrs.get("success"), f"{where} 'success'")
+    seed = attrs.get("sim_seed")
+    if seed is not None:
+        if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InputError(f"{where} 'sim_seed' must be a non-negative integer, got {seed!r}")
+        seed = int(seed)
     try:
         info = EpisodeInfo(task=_str_attr(attrs.get("task")), source=_str_attr(attrs.get("source")),
                            policy_name=_str_attr(attrs.get("policy_name")),
-                           checkpoint=_str_attr(attrs.get("checkpoint")), success=success)
+                           checkpoint=_str_attr(attrs.get("checkpoint")), success=success,
+                           sim_task=_str_attr(attrs.get("sim_task")), sim_seed=seed)
     except InputError as e:  # EpisodeInfo checks its fields; say which file
         raise InputError(f"{where} 'source': {e}") from None
     fps = None
@@ -158,12 +168,14 @@ def _write_hdf5(tmp: Path, episode: RawEpisode, *, compress: bool, jpeg_quality:
         f.attrs["compress"] = compress
         if episode.fps is not None:
             f.attrs["fps"] = float(episode.fps)
-        for key in ("task", "source", "policy_name", "checkpoint"):
+        for key in ("task", "source", "policy_name", "checkpoint", "sim_task"):
             value = getattr(episode.info, key)
             if value is not None:
                 f.attrs[key] = value
         if episode.info.success is not None:
             f.attrs["success"] = bool(episode.info.success)
+        if episode.info.sim_seed is not None:
+            f.attrs["sim_seed"] = np.int64(episode.info.sim_seed)
         obs = f.create_group("observations")
         obs.create_dataset("qpos", data=episode.qpos)
         if episode.qvel is not None:
@@ -526,6 +538,7 @@ def tile_episode(src: str | Path, dst: str | Path, num_frames: int, *, chunk: in
             f.attrs["compress"] = False
             if ep.fps is not None:
                 f.attrs["fps"] = ep.fps
+            # not sim_task / sim_seed: the tiled motion is not what that start re-simulates to
             for key in ("task", "source", "policy_name", "checkpoint"):
                 if getattr(ep.info, key) is not None:
                     f.attrs[key] = getattr(ep.info, key)

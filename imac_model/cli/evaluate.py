@@ -40,7 +40,7 @@ from imac_model.evaluate.closed_loop import ClosedLoopConfig, run_closed_loop
 from imac_model.evaluate.open_loop import rollout_starts, rollout_videos
 from imac_model.evaluate.policies import load_policy
 from imac_model.evaluate.results import read_outcomes, write_json
-from imac_model.evaluate.simulator import SimRunConfig, run_policy
+from imac_model.evaluate.simulator import SimRunConfig, parse_seeds, run_policy
 from imac_model.evaluate.statistics import plot_policy_scatter, policy_correlation
 from imac_model.evaluate.success import CsvJudge, SuccessClassifier, load_judge
 from imac_model.evaluate.video_metrics import VideoMetricsConfig, compute_video_metrics
@@ -134,18 +134,22 @@ def cmd_simulator(args) -> int:
     config = SimRunConfig(task=args.task, chunks=args.chunks, chunk=args.chunk, view_height=args.view_size[0],
                           view_width=args.view_size[1], render_height=args.render_size[0],
                           render_width=args.render_size[1], views=tuple(args.views))
-    policy = load_policy(args.policy)
+    seeds = parse_seeds(args.seeds)
     output = Path(args.output) if args.output else None
     if output is not None and any(output.glob("episode_*.hdf5")):
         raise InputError(f"--output {output} already holds episodes; choose an empty directory")
-    rows = run_policy(policy, args.seeds, output, config=config, progress=not args.no_progress)
+    policy = load_policy(args.policy)
+    rows = run_policy(policy, seeds, output, config=config, progress=not args.no_progress)
     rate = float(np.mean([r["success"] for r in rows]))
-    result = {"policy": args.policy, "protocol": {**dataclasses.asdict(config), "success": "read off MuJoCo"},
+    result = {"policy": args.policy, "task": args.task,
+              "protocol": {**dataclasses.asdict(config), "success": "read off MuJoCo",
+                           "observation": f"{config.view_height}x{config.view_width} views (RGB antialiased, depth "
+                                          f"area-resized) of a {config.render_height}x{config.render_width} render"},
               "episodes": rows, "success_rate": rate}
     json_path = args.json or (output / "outcomes.json" if output is not None else None)
     if json_path:
         write_json(json_path, result)
-    print(f"{args.policy}: success {sum(r['success'] for r in rows)}/{len(rows)} ({rate:.3f})"
+    print(f"{args.policy} on {args.task}: success {sum(r['success'] for r in rows)}/{len(rows)} ({rate:.3f})"
           + (f"; episodes in {output}" if output is not None else ""))
     return 0
 

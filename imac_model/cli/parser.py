@@ -95,8 +95,9 @@ def _evaluate(p: argparse.ArgumentParser) -> None:
                                          "observation contract; write HDF5 episodes with their success")
     m.add_argument("--policy", required=True, help="hold or python:MODULE:NAME (as closed-loop)")
     m.add_argument("--task", default="lift", help="simulated task (default lift)")
-    m.add_argument("--seeds", type=int, nargs="+", required=True,
-                   help="episode start seeds (gym-aloha's reset(seed)), one episode each")
+    m.add_argument("--seeds", nargs="+", required=True, metavar="SEED",
+                   help="episode start seeds (gym-aloha's reset(seed)), one episode each: integers or inclusive "
+                        "ranges A..B (0..24 100 is 26 episodes)")
     m.add_argument("--chunks", type=int, default=4, help="policy chunks per episode (default 4)")
     m.add_argument("--chunk", type=int, default=8, help="actions per chunk: the world model's H (default 8)")
     m.add_argument("--view-size", type=int, nargs=2, default=(48, 64), metavar=("H", "W"),

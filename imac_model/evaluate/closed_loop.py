@@ -33,6 +33,7 @@ from imac_model.data.batch import ChunkBatch
 from imac_model.evaluate.policies import (
     STATE_KEY,
     ActionQueue,
+    check_task,
     make_observation,
     policy_name,
     recorded_actions_policy,
@@ -356,6 +357,8 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
     if policy != "recorded":
         check_policy(policy, spec, state_dim)
     starts = episode_starts(chunks, config.episodes, seed=config.seed, horizon_chunks=config.horizon_chunks)
+    for start in starts if policy != "recorded" else ():
+        check_task(policy, start.task, f"the task of start episode {start.episode}")
     names = (state_feature or {}).get("names")
     name = "recorded" if policy == "recorded" else policy_name(policy)
     protocol = {

@@ -22,6 +22,8 @@ code's one place for LeRobot (``docs/lerobot.md``)."""
 from __future__ import annotations
 
 import importlib
+import os
+import sys
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -79,9 +81,12 @@ def policy_name(policy) -> str:
     return str(getattr(policy, "name", None) or getattr(policy, "__name__", None) or type(policy).__name__)
 
 
-def as_action_chunk(actions, action_dim: int, who: str = "policy") -> torch.Tensor:
+WORLD_MODEL = "the world model's dataset"  # what a closed loop's actions must fit
+
+
+def as_action_chunk(actions, action_dim: int, who: str = "policy", target: str = WORLD_MODEL) -> torch.Tensor:
     """A policy's output as a float ``(K, D)`` tensor on the CPU, checked: a leading batch
-    dimension of 1 is dropped; the action dimension must be the world model's."""
+    dimension of 1 is dropped; the action dimension must be ``target``'s (named in the error)."""
     a = torch.as_tensor(actions).detach().float().cpu()
     if a.ndim == 3 and a.shape[0] == 1:
         a = a[0]
@@ -90,7 +95,7 @@ def as_action_chunk(actions, action_dim: int, who: str = "policy") -> torch.Tens
     if a.ndim != 2 or a.shape[0] < 1:
         raise InputError(f"{who} returned actions of shape {tuple(a.shape)}; expected an (K, D) chunk")
     if a.shape[1] != action_dim:
-        raise InputError(f"{who} returned {a.shape[1]}-dimensional actions; the world model's dataset has "
+        raise InputError(f"{who} returned {a.shape[1]}-dimensional actions; {target} has "
                          f"{action_dim}-dimensional actions")
     if not torch.isfinite(a).all():
         raise InputError(f"{who} returned non-finite actions")
@@ -98,12 +103,13 @@ def as_action_chunk(actions, action_dim: int, who: str = "policy") -> torch.Tens
 
 
 class ActionQueue:
-    """``select_action`` semantics for a chunk policy (see the module docstring)."""
+    """``select_action`` semantics for a chunk policy (see the module docstring); ``target``
+    names what the actions drive, for the error on a wrong action size."""
 
-    def __init__(self, policy: Policy, action_dim: int):
+    def __init__(self, policy: Policy, action_dim: int, target: str = WORLD_MODEL):
         if not callable(policy):
             raise InputError(f"a policy must be callable (observation -> actions), got {type(policy).__name__}")
-        self.policy, self.action_dim = policy, int(action_dim)
+        self.policy, self.action_dim, self.target = policy, int(action_dim), target
         self.queue: deque[torch.Tensor] = deque()
         self.calls = 0
 
@@ -118,10 +124,23 @@ class ActionQueue:
         out = []
         while len(out) < n:
             if not self.queue:
-                self.queue.extend(as_action_chunk(self.policy(observation), self.action_dim, policy_name(self.policy)))
+                self.queue.extend(as_action_chunk(self.policy(observation), self.action_dim, policy_name(self.policy),
+                                                  self.target))
                 self.calls += 1
             out.append(self.queue.popleft())
         return torch.stack(out)
+
+
+def check_task(policy, instruction: str, asked: str) -> None:
+    """Refuse, before any work, a policy that declares the instructions it acts on (its
+    ``tasks`` attribute) when ``instruction`` (what ``asked`` runs) is not one of them."""
+    tasks = getattr(policy, "tasks", None)
+    if tasks is None:
+        return
+    tasks = (tasks,) if isinstance(tasks, str) else tuple(tasks)
+    if instruction not in tasks:
+        raise InputError(f"policy {policy_name(policy)} acts on {list(tasks)} (its tasks), but {asked} is "
+                         f"{instruction!r}")
 
 
 # --------------------------------------------------------------------------- scripted policies
@@ -258,17 +277,36 @@ class LeRobotPolicy:
         return self.postprocessor(actions)[0].float().cpu()  # (n_action_steps, D)
 
 
+def import_from_cwd(module: str):
+    """Import ``module`` as ``python -m`` would: the current directory first, then
+    ``PYTHONPATH``. A console script's ``sys.path`` starts with its own bin directory instead,
+    so the current directory is put first (and kept: the module may import its neighbours
+    later)."""
+    cwd = os.getcwd()
+    if not sys.path or os.path.abspath(sys.path[0] or os.curdir) != cwd:
+        sys.path.insert(0, cwd)
+    return importlib.import_module(module)
+
+
 def python_object(spec: str, what: str):
-    """``python:MODULE:NAME``: the callable ``NAME`` of module ``MODULE`` (importable from the
-    current directory or ``PYTHONPATH``); a class, or a function marked ``is_factory``,
-    is called once without arguments to make it."""
+    """``python:MODULE:NAME``: the callable ``NAME`` of module ``MODULE`` (imported from the
+    current directory first, then ``PYTHONPATH``); a class, or a function marked
+    ``is_factory``, is called once without arguments to make it."""
     parts = spec[len("python:"):].split(":")
     if not spec.startswith("python:") or len(parts) != 2 or not all(parts):
         raise InputError(f"{what} {spec!r}: expected python:MODULE:NAME")
     try:
-        obj = getattr(importlib.import_module(parts[0]), parts[1])
-    except (ImportError, AttributeError) as e:
-        raise InputError(f"{what} {spec!r}: {e}") from None
+        module = import_from_cwd(parts[0])
+    except ImportError as e:
+        if e.name and (parts[0] + ".").startswith(e.name + "."):  # MODULE (or its package) itself is missing
+            raise InputError(f"{what} {spec!r}: no module {parts[0]!r} in the current directory {os.getcwd()}, "
+                             "PYTHONPATH or the installed packages") from None
+        raise InputError(f"{what} {spec!r}: importing {parts[0]!r} failed: {e}") from None
+    try:
+        obj = getattr(module, parts[1])
+    except AttributeError:
+        raise InputError(f"{what} {spec!r}: module {parts[0]!r} ({getattr(module, '__file__', '?')}) has no "
+                         f"{parts[1]!r}") from None
     if isinstance(obj, type) or getattr(obj, "is_factory", False):
         obj = obj()
     if not callable(obj) and not hasattr(obj, "judge"):
@@ -291,5 +329,6 @@ def load_policy(spec: str, *, camera_map: Mapping[str, str] | None = None, devic
     raise InputError(f"unknown policy {spec!r}: use recorded, hold, lerobot:DIR or python:MODULE:NAME")
 
 
-__all__ = ["ActionQueue", "LeRobotPolicy", "as_action_chunk", "hold_policy", "image_key", "load_policy",
-           "make_observation", "policy_name", "python_object", "recorded_actions_policy"]
+__all__ = ["ActionQueue", "LeRobotPolicy", "as_action_chunk", "check_task", "hold_policy", "image_key",
+           "import_from_cwd", "load_policy", "make_observation", "policy_name", "python_object",
+           "recorded_actions_policy"]

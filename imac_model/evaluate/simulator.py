@@ -10,6 +10,7 @@ MuJoCo. Episodes can be written as HDF5 episodes with their success labels
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +20,7 @@ import torch
 from tqdm.auto import tqdm
 
 from imac_data.core.cameras import save_calibration
-from imac_data.core.depth import resize_depth
+from imac_data.core.depth import area_resize_depth
 from imac_data.core.rig import Rig
 from imac_data.core.robot.platforms import simulator_platform
 from imac_data.errors import InputError
@@ -29,7 +30,7 @@ from imac_data.sources.sim.env import FrameRenderer, SimEnv
 from imac_data.sources.sim.rig import CAMERA_NAMES, RIG_CAMERAS, camera_calibration, load_mujoco_model
 from imac_data.sources.sim.tasks import TASK_INSTRUCTIONS, TASKS
 from imac_model.data import mosaic
-from imac_model.evaluate.policies import ActionQueue, Observation, make_observation, policy_name
+from imac_model.evaluate.policies import ActionQueue, Observation, check_task, make_observation, policy_name
 
 ACTION_DIM = 14
 
@@ -80,9 +81,11 @@ class SimEpisode:
     observations: list[Observation] = field(default_factory=list)  # what the policy was given (with keep_observations)
 
     def raw_episode(self, task: str, name: str, fps: float) -> RawEpisode:
+        """The episode as HDF5 content: its start seed and simulated task in its attributes, so
+        it can be re-simulated from its own file."""
         return RawEpisode(qpos=self.qpos, action=self.action, images=self.images, depth_mm=self.depth_mm,
                           info=EpisodeInfo(task=TASK_INSTRUCTIONS[task], source="policy", policy_name=name,
-                                           success=self.success), fps=fps)
+                                           success=self.success, sim_task=task, sim_seed=self.seed), fps=fps)
 
 
 Intervention = Callable[[SimEnv, int], None]  # (env, chunk index) at each chunk boundary, before observing
@@ -112,14 +115,21 @@ class SimRunner:
     def fps(self) -> float:
         return self.env.fps
 
+    @property
+    def target(self) -> str:
+        """What the actions drive, as errors name it."""
+        return f"the simulated ALOHA rig (task {self.config.task})"
+
     def observe(self, rendered: dict, state: torch.Tensor) -> Observation:
         """The policy's observation of one rendered frame at the view size: RGB resized as the
-        world model's data are, depth nearest-pixel (never averaged across an edge)."""
+        world model's data are (antialiased), depth area-resized over its valid pixels, so that
+        pixel i of both stands for the ray through view pixel i's centre, the ray the rig's
+        intrinsics at the view size give it."""
         c = self.config
         hw = (c.view_height, c.view_width)
         rgb = torch.stack([torch.as_tensor(rendered["rgb"][v]).permute(2, 0, 1) for v in c.views]).float() / 255.0
         depth = np.stack([rendered["depth_mm"][v] for v in c.views]).astype(np.float32) / 1000.0
-        return make_observation(mosaic.resize_frames(rgb, hw), torch.from_numpy(resize_depth(depth, hw)), state,
+        return make_observation(mosaic.resize_frames(rgb, hw), torch.from_numpy(area_resize_depth(depth, hw)), state,
                                 c.views, TASK_INSTRUCTIONS[c.task])
 
     def reference(self, rendered: dict, codec) -> torch.Tensor:
@@ -134,7 +144,7 @@ class SimRunner:
                     keep_observations: bool = False) -> SimEpisode:
         """Run ``policy`` (a callable or an :class:`ActionQueue`) from the start of ``seed``."""
         c, env = self.config, self.env
-        queue = policy if isinstance(policy, ActionQueue) else ActionQueue(policy, ACTION_DIM)
+        queue = policy if isinstance(policy, ActionQueue) else ActionQueue(policy, ACTION_DIM, self.target)
         queue.reset()
         env.reset(int(seed))
         T = c.frames
@@ -173,32 +183,67 @@ class SimRunner:
                           qpos=qpos, action=action, images=images, depth_mm=depth, observations=observations)
 
 
+def parse_seeds(tokens: Sequence[str]) -> list[int]:
+    """``--seeds``: integers and inclusive ranges ``A..B``, in order (``0..2 7`` is 0, 1, 2, 7)."""
+    seeds = []
+    for token in tokens:
+        text = str(token).strip()
+        lo, sep, hi = text.partition("..")
+        try:
+            a, b = int(lo), int(hi if sep else lo)
+        except ValueError:
+            raise InputError(f"--seeds {text!r}: expected an integer or a range A..B (both ends included)") \
+                from None
+        if not 0 <= a <= b <= 2**32 - 1:
+            raise InputError(f"--seeds {text!r}: seeds are integers in [0, 2^32 - 1] and a range A..B needs A <= B "
+                             "(gym-aloha's samplers)")
+        seeds.extend(range(a, b + 1))
+    if not seeds:
+        raise InputError("--seeds: no seeds given")
+    return seeds
+
+
 def run_policy(policy, seeds: Sequence[int], out_dir: str | Path | None = None, *,
                config: SimRunConfig = SimRunConfig(), name: str | None = None, progress: bool = True,
                runner: SimRunner | None = None) -> list[dict]:
     """Run ``policy`` from each seed's start; with ``out_dir``, write ``episode_{i}.hdf5``
-    (success and policy name in its attributes) and ``calibration.json`` there, each file
-    atomically. Returns one outcome row per episode."""
+    (success, policy name, start seed and task in its attributes) and ``calibration.json``
+    there, each file atomically. A policy made for another task is refused before any work; a
+    run that fails removes what it wrote. Returns one outcome row per episode."""
     name = name or policy_name(policy)
+    config = runner.config if runner is not None else config
+    check_task(policy, TASK_INSTRUCTIONS[config.task], f"--task {config.task}")
     own = runner is None
     runner = runner or SimRunner(config)
     out = Path(out_dir) if out_dir is not None else None
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        save_calibration(out / f".{CALIBRATION}.tmp", runner.cameras)
-        (out / f".{CALIBRATION}.tmp").replace(out / CALIBRATION)
+    made_dir = out is not None and not out.exists()
+    written: list[Path] = []
     rows = []
     try:
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            written.append(out / CALIBRATION)
+            save_calibration(out / f".{CALIBRATION}.tmp", runner.cameras)
+            (out / f".{CALIBRATION}.tmp").replace(out / CALIBRATION)
         for i, seed in enumerate(tqdm(list(seeds), desc=f"{name} in MuJoCo", unit="episode", disable=not progress)):
             ep = runner.run_episode(policy, seed)
             if out is not None:
-                write_episode(out / f"episode_{i}.hdf5", ep.raw_episode(runner.config.task, name, runner.fps))
+                written.append(out / f"episode_{i}.hdf5")
+                write_episode(written[-1], ep.raw_episode(runner.config.task, name, runner.fps))
             rows.append({"episode_index": i, "seed": int(seed), "success": ep.success, "max_reward": ep.max_reward,
                          "policy_calls": ep.policy_calls})
+    except BaseException:
+        for path in written:  # a refused or interrupted run leaves --output as it found it
+            path.unlink(missing_ok=True)
+            path.with_name(f".{path.name}.tmp").unlink(missing_ok=True)
+        if made_dir:
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
     finally:
         if own:
             runner.close()
     return rows
 
 
-__all__ = ["SimEpisode", "SimRunConfig", "SimRunner", "run_policy"]
+__all__ = ["SimEpisode", "SimRunConfig", "SimRunner", "parse_seeds", "run_policy"]

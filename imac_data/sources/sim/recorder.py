@@ -200,7 +200,8 @@ def record_dataset(config: SimConfig, out_dir: str | Path, progress: bool = True
                 depth_mm=result.depth_mm, segmentation=result.segmentation,
                 segmentation_labels=labels,
                 info=EpisodeInfo(task=TASK_INSTRUCTIONS[config.task], source="policy",
-                                 policy_name=f"scripted_{config.task}", success=result.success),
+                                 policy_name=f"scripted_{config.task}", success=result.success,
+                                 sim_task=config.task, sim_seed=config.seed + i),
                 fps=result.fps,
             )
             path = _episode_path(out_dir, i)

@@ -20,6 +20,7 @@ import torch
 from imac_data import lerobot_compat as lr
 from imac_data.layout import image_key
 from imac_data.metadata import dataset_info
+from imac_model.data import mosaic
 from imac_model.evaluate import open_loop
 from imac_model.evaluate.closed_loop import (
     ClosedLoopConfig,
@@ -40,7 +41,6 @@ from imac_model.evaluate.success import (
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan, slug
 from imac_model.models.checkpoint import load_world_model
-from imac_model.data import mosaic
 from imac_model.pipelines.online_controls import OnlineControls, decode_depth
 from imac_model.pipelines.sampling import open_chunks
 

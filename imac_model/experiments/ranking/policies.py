@@ -19,7 +19,7 @@ from imac_data.core.robot.platforms import simulator_platform
 from imac_data.layout import STATE, depth_key, image_key
 from imac_data.sources.sim.rig import RIG_CAMERAS, camera_calibration, load_mujoco_model
 from imac_data.sources.sim.scripts import ArmIK, Trajectory, Waypoint, lift_waypoints
-from imac_data.sources.sim.tasks import REST_HEIGHT, TABLE_Z
+from imac_data.sources.sim.tasks import REST_HEIGHT, TABLE_Z, TASK_INSTRUCTIONS
 from imac_model.experiments.ranking.perception import cube_centre_xy, red_points
 
 FPS = 10.0  # frames (actions) per second
@@ -43,6 +43,8 @@ class LiftPolicy:
 
     ``relocalise``: the views it localises from on every observation (None: open loop, the
     workspace view once); ``offset``: metres added to the grasp target in the table plane."""
+
+    tasks = (TASK_INSTRUCTIONS["lift"],)  # the runners refuse any other task before any work
 
     def __init__(self, name: str, *, relocalise: tuple[str, ...] | None = (WORKSPACE, WRIST),
                  offset: tuple[float, float] = (0.0, 0.0)):
