@@ -178,7 +178,10 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stages", default=",".join(RANKING_STAGES),
                    help=f"comma-separated subset of {','.join(RANKING_STAGES)}")
     p.add_argument("--plan", help=argparse.SUPPRESS)
-    p.add_argument("--internal", choices=("train-rollouts", "decode", "pack", "judges", "evaluate"), help=argparse.SUPPRESS)
+    p.add_argument("--import-gpu", metavar="DIR", help="put scripts/gpu_ranking.sh's checkpoints (DIR) into the work "
+                                                      "directory as trained runs (docs/ranking.md, 'The GPU preset')")
+    p.add_argument("--internal", choices=("train-rollouts", "decode", "pack", "judges", "evaluate"),
+                   help=argparse.SUPPRESS)
     p.add_argument("internal_args", nargs="*", help=argparse.SUPPRESS)
 
 

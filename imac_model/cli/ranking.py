@@ -15,6 +15,7 @@ from imac_model.experiments.ranking.benchmark import (
     STAGE_FUNCTIONS,
     decode_chunks,
     export_training_pack,
+    import_gpu_runs,
     simulate_training_part,
 )
 from imac_model.experiments.ranking.evaluation import evaluate_mode, run_judges
@@ -53,6 +54,9 @@ def _ranking(args: argparse.Namespace) -> int:
          "evaluate": lambda: evaluate_mode(plan, args.internal_args[0])}[args.internal]()
         return 0
     plan = _plan(args)
+    if args.import_gpu:
+        print(f"imported {import_gpu_runs(plan, Path(args.import_gpu))} into {plan.work / 'runs'}")
+        return 0
     stages = [x.strip() for x in args.stages.split(",") if x.strip()]
     bad = [x for x in stages if x not in STAGES]
     if bad:

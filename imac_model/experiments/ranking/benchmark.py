@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from imac_data.errors import InputError
 from imac_data.layout import info_path
 from imac_model.config import CONTROL_STREAMS
 from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
@@ -173,6 +174,31 @@ def stage_pack(plan: RankingPlan) -> None:
     if plan.pack.is_file():
         return
     run_all([("pack", internal(plan, "pack"), plan.work / "logs" / "pack.log")], 1, tag="ranking")
+
+
+def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
+    """``scripts/gpu_ranking.sh``'s output (``<mode>.model.json``, ``.model.safetensors``, ``.log.jsonl``)
+    -> this work directory's trained runs, so ``judges``, ``evaluate`` and ``report`` go on here.
+    Returns the modes imported."""
+    directory, done = Path(directory), []
+    for mode in plan.modes:
+        stem = mode.replace("+", "_").replace("-", "_")
+        files = [directory / f"{stem}.{name}" for name in ("model.json", "model.safetensors", "log.jsonl")]
+        if not all(f.is_file() for f in files):
+            continue
+        rows = [json.loads(line) for line in files[2].read_text().splitlines() if line.strip()]
+        summary = rows[-1].get("summary", rows[-1])
+        run = plan.run_dir(mode)
+        ckpt = run / "checkpoints" / f"step_{int(summary['steps']):06d}"
+        ckpt.mkdir(parents=True, exist_ok=True)
+        shutil.copy(files[0], ckpt / "model.json")
+        shutil.copy(files[1], ckpt / "model.safetensors")
+        shutil.copy(files[2], run / "log.jsonl")
+        (run / "DONE.json").write_text(json.dumps(summary, indent=1))
+        done.append(mode)
+    if not done:
+        raise InputError(f"{directory}: no <mode>.model.json / .model.safetensors / .log.jsonl of scripts/gpu_ranking.sh")
+    return done
 
 
 def stage_decode(plan: RankingPlan) -> None:
