@@ -33,7 +33,7 @@ from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking.judge import LiftJudge
-from imac_model.experiments.ranking.policies import LiftPolicy, closed_loop, open_loop
+from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
 from imac_model.models.checkpoint import load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.online_controls import OnlineControls
@@ -42,8 +42,8 @@ from imac_model.training import train as train_cli
 
 REPO = "local/lift_test"
 SEED = 200  # closed_loop lifts the cube from this start; a 4.5 cm offset misses it
-VIEWS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
 ROOT = Path(__file__).resolve().parents[1]
+TARGET_TOLERANCE = 0.015  # metres: how closely a closed-loop grasp target follows a moved cube
 
 
 class Recording:
@@ -66,7 +66,7 @@ class Recording:
 
 @pytest.fixture(scope="module")
 def runner():
-    with SimRunner(SimRunConfig()) as r:
+    with SimRunner(SimRunConfig(views=VIEWS)) as r:
         yield r
 
 
@@ -91,7 +91,8 @@ def lift(runner, tmp_path_factory):
                       str(src), "--root", str(root), "--episodes", "2", "--workers", "1", "--no-progress"]) == 0
     run = RunConfig().replace(**{"data.dataset": REPO, "data.root": str(root), "conditioning.mode": "motion+contact",
                                  "backbone.small.dim": 32, "backbone.small.depth": 1, "backbone.small.heads": 2,
-                                 "data.view_height": 48, "flow.sample_steps": 2})
+                                 "data.view_height": 48, "data.views": list(VIEWS),
+                                 "flow.sample_steps": 2})
     spec, _ = train_cli.model_spec(run, open_metadata(run.data))
     torch.manual_seed(0)
     model = WorldModel(spec)
@@ -129,7 +130,7 @@ def test_lift_success_agrees_with_gym_aloha_reward(lift):
 def test_lift_judge_agrees_with_mujoco_on_real_frames(runner, lift):
     """Read through LeRobot from the built dataset: the judge's cube height against MuJoCo's."""
     ds = LeRobotDataset(REPO, root=lift["root"])
-    frames = episode_frames(ds, [0, 1], [image_key("cam_right_wrist")], 4, geometry=True)
+    frames = episode_frames(ds, [0, 1], [image_key(v) for v in VIEWS], 4, geometry=True)
     judge = LiftJudge()
     assert judge.judge(frames).tolist() == [True, False]
     held, missed = (judge.heights(f)[-1] for f in frames)
@@ -178,9 +179,11 @@ def test_moving_the_cube_moves_a_closed_loop_policys_grasp_target_in_both_runner
         runner.run_episode(policy, SEED, intervene=intervene)
         return np.array(policy.targets)
 
-    # MuJoCo: the closed-loop policy follows the cube after frame 0; the open-loop one does not
+    # MuJoCo: the closed-loop policy follows the cube after frame 0; the open-loop one does not. The cube's
+    # estimate is pulled towards the camera by the faces it sees (up to a half side from the workspace view, which
+    # sees the front face), so a moved cube is followed to within 1.5 cm (docs/ranking.md, "The policies")
     moved = targets(closed_loop(), move)[1] - targets(closed_loop())[1]
-    assert np.linalg.norm(moved - shift[:2]) < 0.01, moved
+    assert np.linalg.norm(moved - shift[:2]) < TARGET_TOLERANCE, moved
     np.testing.assert_allclose(targets(open_loop(), move), targets(open_loop()))
 
     # the world model: the frame it goes on from after chunk 0 is MuJoCo's, with and without the move
@@ -202,7 +205,7 @@ def test_moving_the_cube_moves_a_closed_loop_policys_grasp_target_in_both_runner
         return np.array(policy.policy.targets)
 
     moved = wm_targets(True)[1] - wm_targets(False)[1]
-    assert np.linalg.norm(moved - shift[:2]) < 0.01, moved
+    assert np.linalg.norm(moved - shift[:2]) < TARGET_TOLERANCE, moved
 
 
 OUTSIDE = '''
@@ -212,7 +215,7 @@ from imac_model.experiments.ranking.judge import LiftJudge
 
 
 class Wave:
-    """Lowers the right shoulder by 0.1 rad over each chunk; reads the head view's depth."""
+    """Lowers the right shoulder by 0.1 rad over each chunk; reads the first view's depth."""
 
     name = "wave"
 
@@ -224,7 +227,7 @@ class Wave:
 
     def __call__(self, observation):
         self.calls += 1
-        depth = observation["observation.depth.cam_high"]
+        depth = next(v for k, v in observation.items() if k.startswith("observation.depth."))
         assert depth.ndim == 2 and float(depth.max()) > 0, "no depth in the observation"
         actions = observation["observation.state"].repeat(8, 1)
         actions[:, 8] -= torch.linspace(0.0125, 0.1, 8)
