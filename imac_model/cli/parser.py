@@ -173,8 +173,8 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "
                                                        "2 chunks, 2 modes, 2 sampler steps")
     p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",
-                   help="cpu (default: 48x64 views, 150 CPU-minutes) or gpu (96x128 views, a larger model, longer "
-                        "training; docs/ranking.md)")
+                   help="cpu (default: every mode trained on the CPU budget) or gpu (motion+contact and "
+                        "action-vector trained 5 minutes each on one GPU from the tensor pack; docs/ranking.md)")
     p.add_argument("--stages", default=",".join(RANKING_STAGES),
                    help=f"comma-separated subset of {','.join(RANKING_STAGES)}")
     p.add_argument("--plan", help=argparse.SUPPRESS)

@@ -43,7 +43,7 @@ from imac_model.experiments.ranking.plan import (
 )
 from imac_model.experiments.ranking.policies import WORKSPACE, WRIST, LiftPolicy
 from imac_model.experiments.ranking.report import write_report
-from imac_model.experiments.stages import MARK_TRAINED, python, quote, run_all, then_mark_done
+from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT, python, quote, run_all, then_mark_done
 from imac_model.training.pack import export_pack
 from imac_model.training.train import model_spec
 
@@ -201,6 +201,22 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
     return done
 
 
+def train_on_gpu(plan: RankingPlan) -> None:
+    """The GPU preset's training: ``scripts/gpu_ranking.sh`` here when this machine has a GPU, else
+    a clear word on how to run it on one and bring the checkpoints back (``--import-gpu``)."""
+    if all((plan.run_dir(mode) / "DONE.json").is_file() for mode in plan.modes):
+        return
+    if not torch.cuda.is_available():
+        raise InputError(f"the GPU preset trains on a GPU: on a GPU machine with this repository and {plan.pack}, run "
+                         f"OUT=DIR MINUTES={plan.gpu_minutes:g} bash scripts/gpu_ranking.sh, then here imac-model "
+                         f"ranking --preset gpu --work {plan.work} --import-gpu DIR")
+    out = plan.work / "gpu" / "out"
+    argv = ["env", f"OUT={out}", f"MINUTES={plan.gpu_minutes:g}", f"PACK={plan.pack}", f"PYTHON={sys.executable}",
+            "bash", str(REPO_ROOT / "scripts" / "gpu_ranking.sh")]
+    run_all([("train on the GPU", argv, plan.work / "logs" / "train_gpu.log")], 1, tag="ranking")
+    import_gpu_runs(plan, out)
+
+
 def stage_decode(plan: RankingPlan) -> None:
     if any((plan.work / "chunkcache").glob("*")):
         return
@@ -208,6 +224,8 @@ def stage_decode(plan: RankingPlan) -> None:
 
 
 def stage_train(plan: RankingPlan) -> None:
+    if plan.gpu_minutes is not None:
+        return train_on_gpu(plan)
     commands = []
     for mode in plan.modes:
         if (plan.run_dir(mode) / "DONE.json").is_file():
