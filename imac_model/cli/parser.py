@@ -180,7 +180,7 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plan", help=argparse.SUPPRESS)
     p.add_argument("--import-gpu", metavar="DIR", help="put scripts/gpu_ranking.sh's checkpoints (DIR) into the work "
                                                       "directory as trained runs (docs/ranking.md, 'The GPU preset')")
-    p.add_argument("--internal", choices=("train-rollouts", "decode", "pack", "judges", "evaluate"),
+    p.add_argument("--internal", choices=("train-rollouts", "decode", "pack", "judges", "evaluate", "replays"),
                    help=argparse.SUPPRESS)
     p.add_argument("internal_args", nargs="*", help=argparse.SUPPRESS)
 

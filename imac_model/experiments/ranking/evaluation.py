@@ -199,6 +199,28 @@ def none_is_policy_blind(plan: RankingPlan, model, online, chunks, start_episode
             "bit_identical": identical}
 
 
+def replays(plan: RankingPlan, mode: str) -> dict:
+    """The gate: the recorded actions of real evaluation episodes (half successes) replayed in one
+    mode's world model, judged against MuJoCo's labels; cached as ``wm/<mode>/replays.json``. Run
+    alone (``--internal replays MODE``) it measures the gate before any closed loop."""
+    done = plan.wm_dir(mode) / "replays.json"
+    if done.is_file():
+        return json.loads(done.read_text())
+    torch.set_num_threads(1)
+    model, spec = load_world_model(plan.run_dir(mode), weights="ema", device=plan.device)
+    labels = dataset_success_labels(lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset))
+    replay = recorded_episodes(plan, labels)
+    chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=replay)
+    online = OnlineControls.from_dataset(plan.eval_dataset, spec, info=dataset_info(chunks.lerobot.meta))
+    saved = plan.work / "judges" / "classifier"
+    classifier = SuccessClassifier.load(saved) if saved.is_dir() else None
+    steps_list = sorted({plan.steps, plan.check_steps} if mode == "motion+contact" else {plan.steps})
+    result = {str(k): replay_recorded(plan, model, chunks, online, replay, labels, k, LiftJudge(), classifier)
+              for k in steps_list}
+    _write(done, result)
+    return result
+
+
 def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     """-> ``wm/<mode>/outcomes.json`` (and a dataset of generated episodes per policy)."""
     torch.set_num_threads(1)
@@ -225,9 +247,7 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
                          judge, classifier, checkpoint)
         result["policies"][slug(spec_p)] = r
     if mode != "none":
-        steps_list = sorted({plan.steps, plan.check_steps} if mode == "motion+contact" else {plan.steps})
-        result["recorded"] = {str(k): replay_recorded(plan, model, chunks, online, replay, labels, k, judge, classifier)
-                              for k in steps_list}
+        result["recorded"] = replays(plan, mode)
     sens_chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sens_episodes)
     sens_chunks.preload(progress=False)
     sens_starts = [(e, c) for e in sens_episodes for c in (0, 1) if c < len(sens_chunks.episode_chunks(e))]
@@ -241,4 +261,4 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     _write(out / "outcomes.json", result)
 
 
-__all__ = ["evaluate_mode", "recorded_episodes", "run_judges"]
+__all__ = ["evaluate_mode", "recorded_episodes", "replays", "run_judges"]
