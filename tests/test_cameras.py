@@ -129,11 +129,12 @@ def robot_surface_points(model, data, stride=40):
 def physics_of(model):
     xml_path = str(aloha.mjcf_path("transfer_cube"))
     physics = Physics.from_xml_path(xml_path)
-    # freeze the cameras exactly as our loader does
-    for i in range(model.ncam):
-        physics.model.cam_mode[i] = model.cam_mode[i]
-        physics.model.cam_pos[i] = model.cam_pos[i]
-        physics.model.cam_quat[i] = model.cam_quat[i]
+    # freeze the cameras exactly as our loader does (by name: ours adds a workspace camera)
+    for i in range(physics.model.ncam):
+        j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, physics.model.id2name(i, "camera"))
+        physics.model.cam_mode[i] = model.cam_mode[j]
+        physics.model.cam_pos[i] = model.cam_pos[j]
+        physics.model.cam_quat[i] = model.cam_quat[j]
     return physics
 
 
