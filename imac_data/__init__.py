@@ -16,7 +16,7 @@ _API = {  # name -> the module that defines it
     "Rig": "imac_data.core.rig",
     "DepthCodec": "imac_data.core.depth",
     "depth_codec_of": "imac_data.core.depth",
-    "chunk_timestamps": "imac_data.layout",
+    "chunk_timestamps": "imac_data.metadata",
     "stream_keys": "imac_data.layout",
     "load_recipe": "imac_data.recipes",
     "Recipe": "imac_data.recipes",

@@ -8,7 +8,7 @@ description under ``meta/imac/robot/``.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable
 from pathlib import Path
 
 # ----------------------------------------------------------------------------- files
@@ -112,23 +112,3 @@ def video_column(key: str, field: str) -> str:
 
 def stats_column(key: str, stat: str) -> str:
     return f"{STATS_COLUMNS}{key}/{stat}"
-
-
-# ----------------------------------------------------------------------------- loading
-def chunk_timestamps(info: Mapping, cameras: Sequence[str] | None = None) -> dict[str, list[float]]:
-    """``delta_timestamps`` for ``LeRobotDataset`` that load one contact chunk per item: the
-    reference frame and the H future frames of RGB and depth, the H future frames of every
-    control stream, and the actions ``a_t .. a_{t+H-1}`` (``info``: the dataset's
-    ``meta/info.json``, e.g. ``ds.meta.info``; ``cameras``: default all)."""
-    fps = float(info["fps"])
-    H = int(info["imac"]["contact"]["chunk_size"])
-    cameras = list(cameras) if cameras is not None else list(info["imac"]["cameras"])
-    future = [k / fps for k in range(1, H + 1)]
-    out: dict[str, list[float]] = {}
-    for cam in cameras:
-        out[image_key(cam)] = [0.0, *future]
-        out[depth_key(cam)] = [0.0, *future]
-        for stream in (MOTION, R2S, S2G):
-            out[f"{stream}.{cam}"] = list(future)
-    out[ACTION] = [k / fps for k in range(H)]
-    return {k: v for k, v in out.items() if k in info["features"]}

@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import importlib
 import inspect
-import json
 from pathlib import Path
 from typing import Any
 
 from imac_data.errors import InputError
-from imac_data.layout import info_path
 
-__all__ = ["NAMES", "default_root", "version", "dataset_info", "create_dataset", "set_streaming_encoder",
+__all__ = ["NAMES", "default_root", "version", "create_dataset", "set_streaming_encoder",
            "close_writers", "video_backend", "convert_v21"]
 
 # name -> the modules that define it, newest layout first
@@ -86,27 +84,6 @@ def _at_least(v: str, major: int, minor: int) -> bool:
 def default_root(repo_id: str) -> Path:
     """Where LeRobot looks for ``repo_id``: ``$HF_LEROBOT_HOME/<repo_id>``."""
     return Path(_find("HF_LEROBOT_HOME")[0]) / repo_id
-
-
-def dataset_info(meta_or_root) -> dict:
-    """``meta/info.json`` of a dataset as a plain dict, our ``imac`` block included.
-    ``meta_or_root``: a dataset root, a ``LeRobotDatasetMetadata`` or a ``LeRobotDataset``
-    (from 0.5.1 ``meta.info`` is a ``DatasetInfo`` that drops unknown keys such as ``imac``,
-    so the file is read itself)."""
-    if isinstance(meta_or_root, (str, Path)):
-        root = Path(meta_or_root)
-    else:
-        root = Path(getattr(meta_or_root, "root"))
-    path = info_path(root)
-    try:
-        info = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{root} is not a LeRobot dataset: {path} is missing") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(info, dict):
-        raise InputError(f"{path}: expected a JSON object, got {type(info).__name__}")
-    return info
 
 
 def create_dataset(repo_id: str, *, fps: int, features: dict, root: Path, robot_type: str | None, encoding):

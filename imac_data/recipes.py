@@ -24,6 +24,7 @@ from imac_data.core.motion import Controller
 from imac_data.core.robot.aloha import SIM_TASKS
 from imac_data.errors import InputError
 from imac_data.layout import ACTION, STATE
+from imac_data.metadata import imac_block
 
 RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
 PLATFORMS = ("aloha_sim",)
@@ -195,6 +196,22 @@ class AugmentSettings:
     @property
     def resolution(self) -> tuple[int, int]:
         return self.height, self.width
+
+    @classmethod
+    def from_info(cls, meta) -> AugmentSettings:
+        """The settings a dataset was built with (``imac.augment`` of its ``meta/info.json``;
+        ``meta``: ``ds.meta``, the root or the dict, :mod:`imac_data.metadata`). A field the
+        dataset does not record takes this class's default, except the stream resolution,
+        which must be recorded."""
+        block = imac_block(meta, require=("augment",))
+        where = "meta/info.json imac.augment"
+        recorded = block["augment"]
+        if not isinstance(recorded, dict) or "height" not in recorded or "width" not in recorded:
+            raise InputError(f"{where}: no stream resolution (height, width) recorded")
+        try:
+            return parse_dataclass(cls, recorded, "imac.augment")
+        except InputError as e:
+            raise InputError(f"meta/info.json {e}") from None
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,13 @@ from imac_model.config import RunConfig
 from imac_model.data import mosaic
 from imac_model.data.batch import ChunkBatch
 from imac_model.data.chunks import open_metadata
-from imac_model.evaluate.closed_loop import ClosedLoopConfig, episode_starts, rollout_episode, run_closed_loop
+from imac_model.evaluate.closed_loop import (
+    ClosedLoopConfig,
+    GeneratedDatasetWriter,
+    episode_starts,
+    rollout_episode,
+    run_closed_loop,
+)
 from imac_model.evaluate.policies import ActionQueue, LeRobotPolicy, recorded_actions_policy
 from imac_model.evaluate.results import write_json
 from imac_model.evaluate.success import CallableJudge
@@ -63,7 +69,7 @@ def world(built, tmp_path_factory):  # noqa: F811
     ckpt = _checkpoint(root, tmp_path_factory.mktemp("wm") / "ckpt", "motion+contact")
     model, spec = load_world_model(ckpt)
     chunks = open_chunks(spec, REPO, str(root))
-    online = OnlineControls.from_dataset(root, spec, info=chunks.lerobot.meta.info)
+    online = OnlineControls.from_dataset(root, spec, info=chunks.lerobot.meta)
     return root, ckpt, model, spec, chunks, online
 
 
@@ -258,6 +264,53 @@ def test_a_policy_that_does_not_fit_the_world_model_is_refused(world, act_dir, t
     assert model_main(["evaluate", *args, "--policy", "hold", "--mode", "motion"]) == 2
     assert "trained with conditioning mode 'motion+contact', not 'motion'" in capsys.readouterr().err
     assert not out.exists() and not list(tmp_path.glob(".never*"))
+
+
+def test_the_output_of_a_user_and_a_staging_path_not_ours_are_refused_before_any_work(world, tmp_path, capsys):
+    """``--output DIR --overwrite`` where DIR is a user's directory (not a dataset), and a
+    ``.DIR.staging`` next to the output that we did not make: both refused before the checkpoint
+    is even read (a missing checkpoint gives the same answer), and nothing is deleted."""
+    _, ckpt, model, spec, chunks, online = world
+    mine = tmp_path / "my_results"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("a user's file\n")
+    staged = tmp_path / ".generated.staging"
+    staged.mkdir()
+    (staged / "thesis.tex").write_text("not ours\n")
+    for out, what in ((mine, "is a directory but not a LeRobot dataset"), (tmp_path / "generated", "was not made by imac_data")):
+        for checkpoint in (str(ckpt), str(tmp_path / "no_such_checkpoint")):
+            assert model_main(["evaluate", "closed-loop", "--checkpoint", checkpoint, "--policy", "recorded",
+                               "--output", str(out), "--overwrite", "--episodes", "0", "--horizon-chunks", "1",
+                               "--no-progress"]) == 2
+            assert what in capsys.readouterr().err
+    # the writer itself refuses the same (its own check, under the output's lock)
+    with pytest.raises(InputError, match="not a LeRobot dataset"):
+        GeneratedDatasetWriter(mine, "local/mine", spec, overwrite=True)
+    with pytest.raises(InputError, match="was not made by imac_data"):
+        run_closed_loop(model, chunks, online, "recorded", tmp_path / "generated", overwrite=True,
+                        config=ClosedLoopConfig(episodes=(0,), horizon_chunks=1), progress=False)
+    assert (mine / "notes.txt").read_text() == "a user's file\n" and sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+    assert (staged / "thesis.tex").read_text() == "not ours\n" and sorted(p.name for p in staged.iterdir()) == ["thesis.tex"]
+    assert not (tmp_path / "generated").exists() and not list(tmp_path.glob(".*.lock"))
+
+
+def test_overwrite_replaces_a_generated_dataset_through_the_staged_flow(world, tmp_path):
+    """A dataset of generated episodes is ours: --overwrite replaces it (swapped into place, no
+    sibling left behind); an aborted run leaves the previous one as it was."""
+    _, _, model, spec, chunks, online = world
+    out = tmp_path / "gen"
+    config = ClosedLoopConfig(episodes=(0,), horizon_chunks=1)
+    run_closed_loop(model, chunks, online, "recorded", out, config=config, progress=False)
+    with pytest.raises(InputError, match="already exists"):
+        run_closed_loop(model, chunks, online, "recorded", out, config=config, progress=False)
+    before = (out / "meta" / "info.json").read_bytes()
+    with pytest.raises(InputError, match="returned 3-dimensional actions"):
+        run_closed_loop(model, chunks, online, lambda obs: torch.zeros(4, 3), out, config=config, overwrite=True,
+                        progress=False)
+    assert (out / "meta" / "info.json").read_bytes() == before
+    run_closed_loop(model, chunks, online, "recorded", out, config=config, overwrite=True, progress=False)
+    assert LeRobotDataset("local/gen", root=out).meta.total_episodes == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gen"]
 
 
 # --------------------------------------------------------------------------- metrics, statistics, JSON

@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = {
     "imac_data": [
         ("base", ["imac_data", "imac_data.errors", "imac_data.config", "imac_data.layout", "imac_data.console",
-                  "imac_data.lerobot_compat"]),
+                  "imac_data.lerobot_compat", "imac_data.metadata"]),
         ("core", ["imac_data.core"]),
         ("recipes", ["imac_data.recipes"]),
         ("sources", ["imac_data.sources"]),

@@ -18,13 +18,13 @@ from dm_control.mujoco.engine import Physics
 from gym_aloha.tasks.sim import TransferCubeTask
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from imac_data import lerobot_compat as lr
 from imac_data.cli import main as imac_main
 from imac_data.cli.parser import TASKS as CLI_TASKS
 from imac_data.core.cameras import save_calibration
 from imac_data.core.depth import depth_codec_of
 from imac_data.core.robot.aloha import SIM_TASKS, mjcf_path
 from imac_data.layout import STATE, depth_key, image_key
+from imac_data.metadata import dataset_info
 from imac_data.sources.hdf5 import write_episode
 from imac_model.cli import main as model_main
 from imac_model.config import RunConfig
@@ -101,7 +101,7 @@ def lift(runner, tmp_path_factory):
     ckpt = save_checkpoint(tmp / "ckpt", model=model, spec=spec, run=run)
     model, spec = load_world_model(ckpt)
     chunks = open_chunks(spec, REPO, str(root))
-    online = OnlineControls.from_dataset(root, spec, info=lr.dataset_info(chunks.lerobot.meta))
+    online = OnlineControls.from_dataset(root, spec, info=dataset_info(chunks.lerobot.meta))
     return {"root": root, "episodes": episodes, "final_qpos": final_qpos, "recorders": recorders, "ckpt": ckpt,
             "model": model, "spec": spec, "chunks": chunks, "online": online}
 
@@ -184,7 +184,7 @@ def test_moving_the_cube_moves_a_closed_loop_policys_grasp_target_in_both_runner
     np.testing.assert_allclose(targets(open_loop(), move), targets(open_loop()))
 
     # the world model: the frame it goes on from after chunk 0 is MuJoCo's, with and without the move
-    codec = depth_codec_of(lr.dataset_info(lift["chunks"].lerobot.meta))
+    codec = depth_codec_of(dataset_info(lift["chunks"].lerobot.meta))
     start = episode_starts(lift["chunks"], [0], horizon_chunks=2)[0]
 
     def wm_targets(with_move: bool) -> np.ndarray:

@@ -80,7 +80,7 @@ def _prepare(staging: Path, key: str | None) -> None:
 @contextlib.contextmanager
 def staged_output(root: Path, *, overwrite: bool = False, wait: bool = False, key: str | None = None,
                   edit: bool = False, sample: int = 2, validate: bool = True,
-                  timer: StageTimer | None = None) -> Iterator[Stage]:
+                  timer: StageTimer | None = None, what: str = "--root") -> Iterator[Stage]:
     """Write the dataset at ``root`` through a staging directory::
 
         with staged_output(root, overwrite=True) as stage:
@@ -92,7 +92,7 @@ def staged_output(root: Path, *, overwrite: bool = False, wait: bool = False, ke
     ``key``: a resumable build (staging is kept for a rerun with the same key; only the
     half-made dataset is removed). ``edit``: start from a copy of the dataset at ``root``
     (its videos hard-linked) instead of an empty one. ``wait``: wait for another writer of
-    ``root`` instead of refusing.
+    ``root`` instead of refusing. ``what``: the output's name in messages (its option).
     """
     root = Path(os.path.abspath(root))
     timer = timer if timer is not None else StageTimer()
@@ -103,7 +103,7 @@ def staged_output(root: Path, *, overwrite: bool = False, wait: bool = False, ke
             for suffix in ("staging", "old"):  # the swap keeps the original at .old: refuse a user's path up front
                 check_sibling(output_sibling(root, suffix))
         else:
-            check_output(root, overwrite=overwrite)  # again, under the lock: a build we waited for may have made it
+            check_output(root, overwrite=overwrite, what=what)  # again, under the lock: a build we waited for may have made it
         stage = Stage(staging_dir(root))
         _prepare(stage.dir, key)
         shutil.rmtree(stage.dataset, ignore_errors=True)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from imac_data.errors import InputError
+from imac_data.metadata import imac_block
 
 __all__ = [
     "CODEC_ID",
@@ -281,24 +282,24 @@ class DepthCodec:
         }
 
     @classmethod
-    def from_dict(cls, meta: Mapping[str, Any], *, where: str = "depth codec metadata") -> DepthCodec:
+    def from_dict(cls, entry: Mapping[str, Any], *, where: str = "depth codec entrydata") -> DepthCodec:
         """Inverse of :meth:`to_dict` (informational keys are checked, not needed)."""
-        if not isinstance(meta, Mapping):
-            raise InputError(f"{where}: expected a mapping, got {type(meta).__name__}")
-        codec = meta.get("codec", CODEC_ID)
+        if not isinstance(entry, Mapping):
+            raise InputError(f"{where}: expected a mapping, got {type(entry).__name__}")
+        codec = entry.get("codec", CODEC_ID)
         if codec != CODEC_ID:
             raise InputError(f"{where}: codec is {codec!r}, this code decodes {CODEC_ID!r}")
-        version = meta.get("version", CODEC_VERSION)
+        version = entry.get("version", CODEC_VERSION)
         if version != CODEC_VERSION:
             raise InputError(f"{where}: codec version {version!r} is not supported (expected {CODEC_VERSION})")
-        if "path" in meta and list(meta["path"]) != list(CORNER_NAMES):
-            raise InputError(f"{where}: path {meta['path']!r} differs from this codec's {list(CORNER_NAMES)}")
-        if "code_levels" in meta and meta["code_levels"] != CODE_LEVELS:
-            raise InputError(f"{where}: code_levels {meta['code_levels']!r} is not {CODE_LEVELS}")
-        missing = [key for key in ("lam", "c") if key not in meta]
+        if "path" in entry and list(entry["path"]) != list(CORNER_NAMES):
+            raise InputError(f"{where}: path {entry['path']!r} differs from this codec's {list(CORNER_NAMES)}")
+        if "code_levels" in entry and entry["code_levels"] != CODE_LEVELS:
+            raise InputError(f"{where}: code_levels {entry['code_levels']!r} is not {CODE_LEVELS}")
+        missing = [key for key in ("lam", "c") if key not in entry]
         if missing:
             raise InputError(f"{where}: missing key(s) {missing}")
-        return cls(meta["lam"], meta["c"])
+        return cls(entry["lam"], entry["c"])
 
     # ------------------------------------------------------- scalar math (float64)
     def transform(self, depth):
@@ -520,16 +521,16 @@ def resize_depth(depth, size: tuple[int, int], *, name: str = "depth"):
     return depth[..., ys[:, None], xs[None, :]]
 
 
-def depth_codec_of(info: Mapping[str, Any]) -> DepthCodec:
-    """The codec of a dataset's depth streams, from its ``meta/info.json`` dict (or
-    ``LeRobotDataset.meta.info``). Decode a loaded frame with
-    ``depth_codec_of(ds.meta.info).decode(item[key], channel_axis=-3)`` (LeRobot
-    returns float ``(3, H, W)`` colours in [0, 1]; the result is metres, 0 = invalid)."""
-    try:
-        meta = info["imac"]["depth"]["codec"]
-    except (KeyError, TypeError):
-        raise InputError("dataset info has no imac.depth.codec: it has no depth streams written by imac") from None
-    return DepthCodec.from_dict(meta, where="meta/info.json imac.depth.codec")
+def depth_codec_of(meta) -> DepthCodec:
+    """The codec of a dataset's depth streams, from its metadata: ``ds.meta``, the dataset's
+    root or its ``meta/info.json`` dict (:mod:`imac_data.metadata`). Decode a loaded frame with
+    ``depth_codec_of(ds.meta).decode(item[key], channel_axis=-3)`` (LeRobot returns float
+    ``(3, H, W)`` colours in [0, 1]; the result is metres, 0 = invalid)."""
+    depth = imac_block(meta).get("depth")
+    codec = depth.get("codec") if isinstance(depth, Mapping) else None
+    if codec is None:
+        raise InputError("meta/info.json has no imac.depth.codec: the dataset has no depth streams written by imac")
+    return DepthCodec.from_dict(codec, where="meta/info.json imac.depth.codec")
 
 
 def _as_numpy_depth(depth, name: str) -> np.ndarray:

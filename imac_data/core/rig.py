@@ -7,14 +7,13 @@ comes from a recipe (:meth:`Rig.from_recipe`) or from a built dataset alone
 (:meth:`Rig.from_info`), which give the same rig. After construction it is tensors in,
 tensors out, so the world model calls the same functions online as the build offline::
 
-    rig = Rig.from_info(ds.meta.info, ds.root)
+    rig = Rig.from_info(ds.meta)
     q = rig.frame_configurations(state, action)                  # or rig.rollout(q_t, actions)
     views = rig.robot_views(q, resolution=(240, 320))            # rgb, mask, depth, poses, gripper points
     chunk = rig.contact(ref_depth, q_ref, q_future)              # both contact streams of one chunk"""
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -33,7 +32,8 @@ from imac_data.core.robot import aloha
 from imac_data.core.robot.description import check_description, description_manifest
 from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.errors import InputError
-from imac_data.layout import URDF_NAME, description_dir, info_path
+from imac_data.layout import URDF_NAME, description_dir
+from imac_data.metadata import dataset_root, imac_block
 
 __all__ = ["Rig", "RobotViews", "DEFAULT_GRIPPER_SPACING", "RIG_KEYS"]
 
@@ -149,22 +149,22 @@ class Rig:
                                       package_dirs={k: recipe.resolve_path(v) for k, v in r.package_dirs.items()}))
 
     @classmethod
-    def from_info(cls, info: Mapping, root: str | Path, *, check_files: bool = True) -> Rig:
-        """The rig of a built dataset: ``info`` is its ``meta/info.json`` (or only the ``imac``
-        block), ``root`` the dataset directory that holds ``meta/imac/robot/``."""
-        block = info.get("imac", info) if isinstance(info, Mapping) else None
-        if not isinstance(block, Mapping) or "robot" not in block:
-            raise InputError(f"{root}: info.json has no imac.robot block (not built by imac, or too old)")
+    def from_info(cls, meta, root: str | Path | None = None, *, check_files: bool = True) -> Rig:
+        """The rig of a built dataset: ``meta`` is ``ds.meta``, the dataset's root or its
+        ``meta/info.json`` dict (:mod:`imac_data.metadata`); ``root``, the directory that holds
+        ``meta/imac/robot/``, is needed with a dict only."""
+        root = root if root is not None else dataset_root(meta)
+        if root is None:
+            raise InputError("Rig.from_info: a meta/info.json dict needs the dataset's root (root=...), where the "
+                             "robot description meta/imac/robot/ is; or pass ds.meta or the root alone")
+        block = imac_block(meta, require=("robot",), where=f"{root}/meta/info.json")
         return cls.from_block(block, description_dir(root), check_files=check_files,
                               where=f"{root}/meta/info.json imac")
 
     @classmethod
     def from_dataset(cls, root: str | Path) -> Rig:
         """:meth:`from_info` of the dataset at ``root``."""
-        path = info_path(root)
-        if not path.is_file():
-            raise InputError(f"{root} is not a LeRobot dataset ({path} is missing)")
-        return cls.from_info(json.loads(path.read_text()), root)
+        return cls.from_info(Path(root))
 
     @classmethod
     def from_block(cls, block: Mapping, description_dir: str | Path, *, check_files: bool = True,

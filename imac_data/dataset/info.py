@@ -14,27 +14,20 @@ from pathlib import Path
 
 from imac_data import __version__
 from imac_data.dataset.files import atomic_write_json
-from imac_data.errors import InputError
 from imac_data.layout import info_path, stats_path
+from imac_data.metadata import SCHEMA_VERSION, SUPPORTED_VERSIONS, dataset_info
+from imac_data.metadata import imac_block as _read_block
 
 __all__ = ["SCHEMA_VERSION", "SUPPORTED_VERSIONS", "RIG_KEYS", "STREAM_KEYS", "read_info", "write_info",
            "update_imac_info", "imac_block", "order_stats", "base_block"]
 
-SCHEMA_VERSION = 2
-SUPPORTED_VERSIONS = (1, 2)
 RIG_KEYS = ("robot", "cameras", "controller", "gripper_surface", "workspace")
 STREAM_KEYS = ("augment", "motion", "depth", "contact")
-ADDED_IN = {"workspace": 2}  # keys newer than version 1: required from that version on
 
 
 def read_info(root: str | Path) -> dict:
-    path = info_path(root)
-    if not path.is_file():
-        raise InputError(f"{root} is not a LeRobot dataset: {path} is missing")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(f"{path}: not valid JSON ({e})") from None
+    """``meta/info.json`` of the dataset at ``root`` (:func:`imac_data.metadata.dataset_info`)."""
+    return dataset_info(Path(root))
 
 
 def write_info(root: str | Path, info: Mapping) -> None:
@@ -59,19 +52,9 @@ def base_block(rig) -> dict:
 
 
 def imac_block(info: Mapping, where: str = "meta/info.json", *, require: tuple[str, ...] = RIG_KEYS) -> dict:
-    """The ``imac`` block of ``info``, checked: present, a known schema version, and the
-    ``require``d keys there. :class:`InputError` otherwise."""
-    block = info.get("imac") if isinstance(info, Mapping) else None
-    if not isinstance(block, Mapping):
-        raise InputError(f"{where}: no 'imac' block (not built by imac, or merged by a tool that dropped it)")
-    version = block.get("schema_version")
-    if version not in SUPPORTED_VERSIONS:
-        raise InputError(f"{where}: imac.schema_version {version!r} is not one this code reads "
-                         f"({list(SUPPORTED_VERSIONS)})")
-    missing = [k for k in require if k not in block and ADDED_IN.get(k, 1) <= version]
-    if missing:
-        raise InputError(f"{where}: imac block lacks {missing}")
-    return dict(block)
+    """The ``imac`` block of ``info``, checked (:func:`imac_data.metadata.imac_block`; by
+    default the rig keys are required)."""
+    return _read_block(info, require=require, where=where)
 
 
 def order_stats(root: str | Path) -> None:

@@ -30,8 +30,10 @@ import numpy as np
 from imac_data import lerobot_compat as lr
 from imac_data.console import run_command
 from imac_data.dataset.columns import add_episode_columns
+from imac_data.dataset.output import check_output
 from imac_data.errors import InputError
-from imac_data.layout import info_path
+from imac_data.layout import SUCCESS_COLUMN, info_path
+from imac_data.metadata import dataset_info
 from imac_model.config import MODES
 from imac_model.data import mosaic
 from imac_model.evaluate.closed_loop import ClosedLoopConfig, run_closed_loop
@@ -79,7 +81,7 @@ def default_episodes(chunks, run: Mapping) -> list[int]:
 
 def _online(spec, chunks, run):
     return online_controls_for(spec, chunks, run) or OnlineControls.from_dataset(
-        chunks.lerobot.root, spec, info=lr.dataset_info(chunks.lerobot.meta))
+        chunks.lerobot.root, spec, info=dataset_info(chunks.lerobot.meta))
 
 
 def _camera_map(items) -> dict[str, str] | None:
@@ -98,6 +100,8 @@ def _camera_map(items) -> dict[str, str] | None:
 
 
 def cmd_closed_loop(args) -> int:
+    # a user's directory given as --output, or a staging path next to it that is not ours: refused before any work
+    check_output(Path(args.output), overwrite=args.overwrite, what="--output")
     model, spec, ckpt, run = load_checkpoint(args.checkpoint, mode=args.mode, weights=args.weights, device=args.device)
     chunks = open_source(spec, run, args.dataset, args.root)
     episodes = args.episodes if args.episodes is not None else default_episodes(chunks, run)
@@ -202,8 +206,8 @@ def cmd_label(args) -> int:
     import pyarrow as pa
 
     missing = [e for e in episodes if e not in judge.labels]
-    rows = [{"imac/success": judge.labels.get(e)} for e in episodes]
-    add_episode_columns(root, rows, {"imac/success": pa.bool_()})
+    rows = [{SUCCESS_COLUMN: judge.labels.get(e)} for e in episodes]
+    add_episode_columns(root, rows, {SUCCESS_COLUMN: pa.bool_()})
     result = {"dataset": str(root), "labels": str(args.labels), "labelled": len(judge.labels),
               "unlabelled_episodes": missing,
               "success": {str(e): judge.labels[e] for e in sorted(judge.labels)},

@@ -11,7 +11,7 @@ the protocol and the dataset's columns."""
 from __future__ import annotations
 
 import math
-import shutil
+import sys
 from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -20,13 +20,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from imac_data import lerobot_compat as lr
+from imac_data.build.staging import staged_output
 from imac_data.dataset.columns import add_episode_columns
 from imac_data.dataset.episodes import EpisodeWriter
 from imac_data.dataset.info import update_imac_info
-from imac_data.dataset.output import refuse_overlap
+from imac_data.dataset.output import check_output, refuse_overlap
 from imac_data.errors import InputError
 from imac_data.layout import ACTION, EPISODE_COLUMNS, SUCCESS_COLUMN, control_key, depth_key, image_key
+from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
 from imac_model.data.batch import ChunkBatch
 from imac_model.evaluate.policies import (
@@ -189,17 +190,18 @@ GENERATED_COLUMNS = {**{k: "bool_" if k == SUCCESS_COLUMN else "string" for k in
 
 
 class GeneratedDatasetWriter:
-    """Generated episodes -> a LeRobot dataset at ``root`` (staged next to it, moved into
-    place by :meth:`finish`; :meth:`abort` leaves nothing). See the module docstring."""
+    """Generated episodes -> a LeRobot dataset at ``root``, through the builds' own staged flow
+    (:func:`~imac_data.build.staging.staged_output`: the output's lock, an existing output
+    replaced only when it is a dataset and ``overwrite`` is given, staging siblings deleted only
+    when they are ours). :meth:`finish` moves it into place; :meth:`abort` leaves ``root`` as it
+    was. See the module docstring."""
 
     def __init__(self, root: str | Path, repo_id: str, spec, *, state_names: Sequence[str] | None = None,
                  overwrite: bool = False):
         self.root = Path(root)
-        if self.root.exists() and not overwrite:
-            raise InputError(f"output {self.root} already exists (pass --overwrite to replace it)")
-        self.staging = self.root.parent / f".{self.root.name}.staging"
-        shutil.rmtree(self.staging, ignore_errors=True)
-        self.staging.parent.mkdir(parents=True, exist_ok=True)
+        # not an imac dataset (no rig): the builds' validation does not apply
+        self._output = staged_output(self.root, overwrite=overwrite, validate=False, what="--output")
+        self.staging = self._output.__enter__().dataset
         self.spec = spec
         self.views = tuple(spec.views)
         self.streams = tuple(spec.conditioning.streams)
@@ -258,16 +260,18 @@ class GeneratedDatasetWriter:
         add_episode_columns(self.staging, self.rows, {k: getattr(pa, t)() for k, t in GENERATED_COLUMNS.items()})
         if info_block:
             update_imac_info(self.staging, info_block)
-        if self.root.exists():
-            shutil.rmtree(self.root)
-        self.staging.rename(self.root)
+        self._output.__exit__(None, None, None)  # swap into place, release the lock
         return self.root
 
     def abort(self) -> None:
+        """Drop the staged dataset (called while handling the error that stopped the run)."""
+        error = sys.exc_info()
+        if error[0] is None:
+            error = (InputError, InputError("closed loop aborted"), None)
         try:
             self.writer.abort()
         finally:
-            shutil.rmtree(self.staging, ignore_errors=True)
+            self._output.__exit__(*error)
 
 
 # --------------------------------------------------------------------------- a whole evaluation
@@ -343,6 +347,7 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
     meta = chunks.lerobot.meta
     refuse_overlap(output, {"source dataset": Path(chunks.lerobot.root),
                             "world-model checkpoint": Path(checkpoint) if checkpoint else None}, what="--output")
+    check_output(output, overwrite=overwrite, what="--output")  # before any work; the writer checks again, locked
     state_feature = meta.features.get(STATE_KEY)
     state_dim = int(state_feature["shape"][0]) if state_feature else None
     if state_dim is not None and state_dim != spec.action_dim:
@@ -382,7 +387,7 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
             p = recorded_actions_policy(start.recorded_actions) if policy == "recorded" else policy
             queue = ActionQueue(p, spec.action_dim)
             writer.begin_episode(start, {"imac/source": SOURCE, "imac/policy_name": name,
-                                         "imac/checkpoint": checkpoint, "imac/success": None,
+                                         "imac/checkpoint": checkpoint, SUCCESS_COLUMN: None,
                                          "imac/start_episode": start.episode, "imac/start_frame": start.frame,
                                          "imac/seed": start.seed, "imac/invalid_depth": None})
             last = deque(maxlen=config.judge_frames)
@@ -402,18 +407,12 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
         if judge is not None:
             success = [bool(s) for s in judge.judge(verdicts)]
             for row, ep, s in zip(writer.rows, result.episodes, success):
-                row["imac/success"] = ep["success"] = s
-        writer.finish({"closed_loop": protocol, **_depth_block(lr.dataset_info(meta))})
+                row[SUCCESS_COLUMN] = ep["success"] = s
+        writer.finish({"closed_loop": protocol, **dataset_meta.depth_entry(meta)})
     except BaseException:
         writer.abort()
         raise
     return result
-
-
-def _depth_block(info: Mapping) -> dict:
-    """The source dataset's depth codec entry (the generated depth rows use it)."""
-    block = info.get("imac", {}) if isinstance(info, Mapping) else {}
-    return {k: block[k] for k in ("depth",) if k in block}
 
 
 __all__ = ["ChunkRecord", "ClosedLoopConfig", "ClosedLoopResult", "GeneratedDatasetWriter", "Start",

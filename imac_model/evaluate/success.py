@@ -89,7 +89,7 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
             ([STATE] if STATE not in meta.features else [])
         if absent:
             raise InputError(f"{dataset.root}: judging geometry needs {absent}, which the dataset does not have")
-        codec = depth_codec_of(lr.dataset_info(meta))
+        codec = depth_codec_of(meta)
     if not isinstance(last, int) or last < 1:
         raise InputError(f"last: must be a positive integer, got {last!r}")
     table = meta.episodes

@@ -9,7 +9,6 @@ from few samples are biased upwards, so compare them only at equal sample counts
 from __future__ import annotations
 
 import math
-import os
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
@@ -19,6 +18,7 @@ import numpy as np
 import torch
 
 from imac_data.errors import InputError
+from imac_data.layout import cache_home
 
 PIXEL_METRICS = ("mse", "psnr", "ssim")
 FEATURE_METRICS = ("fid", "fvd")
@@ -43,7 +43,7 @@ class MissingWeightsError(InputError):
 def weights_dir() -> Path:
     """Where extractor weights are looked for by default: ``$XDG_CACHE_HOME/imac/weights``
     (``~/.cache/imac/weights``)."""
-    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "imac" / "weights"
+    return cache_home() / "weights"
 
 
 def fid_weights_path() -> Path:

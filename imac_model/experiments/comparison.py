@@ -14,8 +14,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from imac_data import lerobot_compat as lr
 from imac_data.layout import info_path
+from imac_data.metadata import dataset_info
 from imac_data.recipes import load_recipe
 from imac_model.config import CONTROL_STREAMS, load_run_config
 from imac_model.data.chunks import ChunkDataset, open_metadata, resolve_layout, split_episodes
@@ -205,7 +205,7 @@ def evaluate_setting(plan: Plan, s: Setting) -> None:
     model, spec = load_world_model(plan.run_dir(s), weights="ema")
     run = run_config(plan, s)
     meta = open_metadata(run.data)
-    info = lr.dataset_info(meta)
+    info = dataset_info(meta)
     layout = resolve_layout(info, run.data, CONTROL_STREAMS, spatial_multiple=spatial_multiple(spec.backbone),
                             temporal_factor=temporal_factor(spec.backbone), mode="motion+contact")
     held = plan.held_out_episodes

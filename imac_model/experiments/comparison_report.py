@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from imac_data.layout import episodes_dir, info_path
+from imac_data.layout import SUCCESS_COLUMN, episodes_dir
+from imac_model.data import meta as dataset_meta
 from imac_model.evaluate.pictures import label
 from imac_model.experiments.stages import git, machine
 
@@ -135,12 +136,11 @@ def write_report(plan, settings) -> Path:
         logs[s.name] = [json.loads(x) for x in (plan.run_dir(s) / "log.jsonl").read_text().splitlines() if x.strip()]
     if not results:
         raise RuntimeError("no evaluated setting to report")
-    info = json.loads(info_path(plan.dataset).read_text())
-    H = int(info["imac"]["contact"]["chunk_size"])
+    H = dataset_meta.contact_chunk_size(plan.dataset)
     import pyarrow.parquet as pq
 
     episodes = pq.read_table(sorted(episodes_dir(plan.dataset).rglob("*.parquet"))).to_pydict()
-    success = [bool(x) for x in episodes["imac/success"]]
+    success = [bool(x) for x in episodes[SUCCESS_COLUMN]]
     lengths = [int(x) for x in episodes["length"]]
     held = plan.held_out_episodes
     stages = json.loads((plan.work / "stages.json").read_text()) if (plan.work / "stages.json").is_file() else []
@@ -224,7 +224,7 @@ def write_report(plan, settings) -> Path:
           "![rollouts: recorded, then each setting; the last frame of each chunk](rollouts.png)", ""]
 
     sens = first["sensitivity"]
-    names = info["imac"]["robot"].get("state_names") or []
+    names = dataset_meta.state_names(plan.dataset) or ()
     offsets = ", ".join(f"{names[int(j)] if int(j) < len(names) else 'joint ' + str(j)} {float(v):+.2f}"
                         for j, v in sens["offsets_rad"].items())
     L += ["## Action sensitivity", "",

@@ -15,6 +15,7 @@ functions the build used, with the dataset's settings and workspace crop::
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +26,7 @@ from imac_data.core.contact.images import contact_chunk
 from imac_data.core.depth import resize_depth, walk_distance
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
-from imac_data.layout import info_path
+from imac_data.recipes import AugmentSettings
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
 
@@ -124,31 +125,20 @@ class OnlineControls:
     @classmethod
     def from_dataset(cls, root: str | Path, spec, *, info: Mapping | None = None, resolution: str = "model",
                      max_walk_distance: float = DEFAULT_MAX_WALK_DISTANCE, device=None) -> OnlineControls:
-        """The rebuilder of the dataset at ``root`` (its ``meta/info.json`` and the robot
-        description under ``meta/imac/robot/``) for a model of ``spec``
+        """The rebuilder of the dataset at ``root`` (its ``meta/info.json``, or ``info`` when given,
+        and the robot description under ``meta/imac/robot/``) for a model of ``spec``
         (:class:`~imac_model.config.ModelSpec`)."""
-        import json
-
         root = Path(root)
-        if info is None:
-            path = info_path(root)
-            if not path.is_file():
-                raise InputError(f"{root} is not a LeRobot dataset ({path} is missing)")
-            info = json.loads(path.read_text())
-        rig = Rig.from_info(info, root)
-        block = info.get("imac", {})
-        augment = block.get("augment") or {}
-        if "height" not in augment or "width" not in augment:
-            raise InputError(f"{root}/meta/info.json imac.augment: no stream resolution recorded")
-        contact = {"cap": augment.get("contact_cap"), "percentile": float(augment.get("contact_percentile", 99.0)),
-                   "dilate_px": int(augment.get("robot_mask_dilate_px", 2))}
-        if augment.get("motion_source", "action") != "action":
-            import warnings
-
+        meta = info if info is not None else root
+        rig = Rig.from_info(meta, root)
+        augment = AugmentSettings.from_info(meta)
+        contact = {"cap": augment.contact_cap, "percentile": float(augment.contact_percentile),
+                   "dilate_px": augment.robot_mask_dilate_px}
+        if augment.motion_source != "action":
             warnings.warn(f"{root}: motion images were drawn from the measured state; online motion images are "
                           "drawn from the commanded configurations (no future state exists in a rollout)")
-        return cls(rig, dataset_meta.depth_codec(info), spec.views, (spec.view_height, spec.view_width),
-                   (int(augment["height"]), int(augment["width"])), contact=contact, resolution=resolution,
+        return cls(rig, dataset_meta.depth_codec(meta), spec.views, (spec.view_height, spec.view_width),
+                   augment.resolution, contact=contact, resolution=resolution,
                    max_walk_distance=max_walk_distance, device=device)
 
     # ------------------------------------------------------------------ parts

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
+from imac_data.metadata import dataset_info
 from imac_model.config import DataConfig, ModelSpec, RolloutConfig, parse
 from imac_model.data import mosaic
 from imac_model.data.batch import ChunkBatch
@@ -46,7 +46,7 @@ def open_chunks(spec: ModelSpec, dataset: str, root: str | None, episodes=None) 
     data = DataConfig(dataset=dataset, root=root, view_height=spec.view_height, view_width=spec.view_width,
                       chunk=spec.chunk, views=spec.views, cache="none")
     meta = open_metadata(data)
-    layout = resolve_layout(lr.dataset_info(meta), data, spec.conditioning.streams,
+    layout = resolve_layout(dataset_info(meta), data, spec.conditioning.streams,
                             spatial_multiple=spatial_multiple(spec.backbone),
                             temporal_factor=temporal_factor(spec.backbone), mode=spec.conditioning.mode)
     if episodes is not None:
@@ -76,7 +76,7 @@ def online_controls_for(spec: ModelSpec, chunks: ChunkDataset, run: dict | None 
     if not spec.conditioning.streams:
         return None
     rc = parse(RolloutConfig, (run or {}).get("rollout") or {}, "rollout")
-    return OnlineControls.from_dataset(chunks.lerobot.root, spec, info=lr.dataset_info(chunks.lerobot.meta),
+    return OnlineControls.from_dataset(chunks.lerobot.root, spec, info=dataset_info(chunks.lerobot.meta),
                                        resolution=rc.resolution, max_walk_distance=rc.max_walk_distance)
 
 

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
+from imac_data.metadata import dataset_info
 from imac_model.config import ModelSpec, RunConfig, save_config
 from imac_model.data.chunks import ChunkDataset, action_stats, open_metadata, resolve_layout, split_episodes
 from imac_model.models import checkpoint as ckpt
@@ -53,7 +53,7 @@ class TrainResult:
 
 def model_spec(run: RunConfig, meta) -> tuple[ModelSpec, object]:
     """The resolved model of a run on a dataset (checks the dataset against the run)."""
-    layout = resolve_layout(lr.dataset_info(meta), run.data, run.conditioning.streams,
+    layout = resolve_layout(dataset_info(meta), run.data, run.conditioning.streams,
                             spatial_multiple=spatial_multiple(run.backbone),
                             temporal_factor=temporal_factor(run.backbone), mode=run.conditioning.mode)
     mean, std = action_stats(meta)
@@ -343,7 +343,7 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
     online = None
     if rc.chunks > 1 and any(s in spec.conditioning.streams for s in CONTACT_STREAMS):
         contact_device = device if rc.device == "auto" else torch.device(rc.device)
-        online = OnlineControls.from_dataset(train_set.lerobot.root, spec, info=lr.dataset_info(meta),
+        online = OnlineControls.from_dataset(train_set.lerobot.root, spec, info=dataset_info(meta),
                                              resolution=rc.resolution, max_walk_distance=rc.max_walk_distance,
                                              device=contact_device)
         online.rig.renderer, online.rig.gripper  # noqa: B018 - built before the clock starts

@@ -19,6 +19,7 @@ import torch
 
 from imac_data import lerobot_compat as lr
 from imac_data.layout import image_key
+from imac_data.metadata import dataset_info
 from imac_model.evaluate import open_loop
 from imac_model.evaluate.closed_loop import (
     ClosedLoopConfig,
@@ -179,7 +180,7 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     replay = recorded_episodes(plan, labels)
     sens_episodes = replay[:4]
     chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sorted(set(starts + replay)))
-    online = OnlineControls.from_dataset(plan.eval_dataset, spec, info=lr.dataset_info(chunks.lerobot.meta))
+    online = OnlineControls.from_dataset(plan.eval_dataset, spec, info=dataset_info(chunks.lerobot.meta))
     judge = LiftJudge()
     saved = plan.work / "judges" / "classifier"
     classifier = SuccessClassifier.load(saved) if saved.is_dir() else None

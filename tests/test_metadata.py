@@ -1,0 +1,193 @@
+"""One reader of a dataset's metadata (``imac_data.metadata``), and every function that takes
+metadata accepts what both LeRobot lines give: ``ds.meta``, the dataset's root, the dict of its
+``meta/info.json``.
+
+* Found, not listed: every public function of the public modules whose first parameter is
+  ``meta`` is called with each form on a built dataset, and gives the same answer for each.
+* ``imac_model`` never touches the ``imac`` key itself (read from the source with ``ast``), and
+  names the success column only through ``imac_data.layout``.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import importlib
+import inspect
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+import pytest
+import yaml
+from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+import imac_data
+from imac_data.cli import main as imac_main
+from imac_data.errors import InputError
+from imac_data.layout import SUCCESS_COLUMN
+from imac_data.recipes import RECIPES_DIR, AugmentSettings
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+REPO = "local/metadata_forms"
+# the public modules whose functions may take metadata: imac_data's API, the reader, the model's reader
+MODULES = sorted({*imac_data._API.values(), "imac_data.metadata", "imac_model.data.meta"})
+# the arguments after ``meta`` of the functions that need more
+EXTRA = {"missing_features": (("motion", "rgb"), ("cam_high",)), "feature_dim": ("action",)}
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """One short simulated episode, built with the real builder at 48x64 (contact chunk 4)."""
+    tmp = tmp_path_factory.mktemp("metadata")
+    record_dataset(SimConfig(num_episodes=1, width=64, height=48, max_steps=12), tmp / "sim", progress=False)
+    recipe = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
+    recipe["augment"] = {"height": 48, "width": 64, "contact_chunk": 4}
+    recipe["source"]["episodes"] = 1
+    (tmp / "recipe.yaml").write_text(yaml.safe_dump(recipe))
+    root = tmp / "ds"
+    assert imac_main(["build", "--repo", REPO, "--recipe", str(tmp / "recipe.yaml"), "--source", str(tmp / "sim"),
+                      "--root", str(root), "--no-progress", "--workers", "1"]) == 0
+    return root
+
+
+def metadata_functions() -> dict[str, object]:
+    """``{qualified name: callable}`` of every public function and classmethod whose first
+    parameter is ``meta``."""
+    found = {}
+    for name in MODULES:
+        mod = importlib.import_module(name)
+        public = getattr(mod, "__all__", [n for n in vars(mod) if not n.startswith("_")])
+        for attr in public:
+            obj = getattr(mod, attr)
+            if getattr(obj, "__module__", None) != name:
+                continue  # re-exported: tested where it is defined
+            candidates = [(attr, obj)] if inspect.isfunction(obj) else []
+            if inspect.isclass(obj):
+                candidates = [(f"{attr}.{m}", getattr(obj, m)) for m in vars(obj)
+                              if not m.startswith("_") and inspect.ismethod(getattr(obj, m))]
+            for qual, fn in candidates:
+                params = list(inspect.signature(fn).parameters)
+                if params and params[0] == "meta":
+                    found[f"{name}.{qual}"] = fn
+    return found
+
+
+def _plain(x):
+    """A comparable form of a result: JSON-like data."""
+    if hasattr(x, "to_info"):
+        return x.to_info()
+    if hasattr(x, "to_dict"):
+        return x.to_dict()
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return dataclasses.asdict(x)
+    if isinstance(x, Mapping):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    return x
+
+
+def _forms(root: Path) -> dict[str, object]:
+    return {"ds.meta": LeRobotDatasetMetadata(REPO, root=root), "root (str)": str(root), "root (Path)": root,
+            "info.json dict": json.loads((root / "meta" / "info.json").read_text())}
+
+
+def _call(fn, meta, root: Path):
+    args = EXTRA.get(fn.__name__, ())
+    if "root" in inspect.signature(fn).parameters and isinstance(meta, Mapping):
+        return fn(meta, *args, root=root)  # a dict does not say where the robot description is
+    return fn(meta, *args)
+
+
+def test_the_metadata_functions_are_found():
+    names = set(metadata_functions())
+    for expected in ("imac_data.metadata.chunk_timestamps", "imac_data.core.depth.depth_codec_of",
+                     "imac_data.core.rig.Rig.from_info", "imac_data.recipes.AugmentSettings.from_info",
+                     "imac_model.data.meta.contact_chunk_size", "imac_model.data.meta.cameras",
+                     "imac_model.data.meta.camera_names", "imac_model.data.meta.fps"):
+        assert expected in names, f"{expected} is not found among {sorted(names)}"
+
+
+def test_every_metadata_function_takes_every_form(built):
+    forms = _forms(built)
+    functions = metadata_functions()
+    for qual, fn in functions.items():
+        results = {form: _plain(_call(fn, meta, built)) for form, meta in forms.items()}
+        if qual == "imac_data.metadata.dataset_root":  # the dict does not know its root
+            assert results.pop("info.json dict") is None
+        first = next(iter(results.values()))
+        assert all(r == first for r in results.values()), f"{qual}: the forms disagree: {results}"
+    # the answers are the dataset's own, not a default
+    fps = json.loads((built / "meta" / "info.json").read_text())["fps"]
+    assert imac_data.chunk_timestamps(built)["action"] == pytest.approx([k / fps for k in range(4)])
+    assert AugmentSettings.from_info(built).resolution == (48, 64)
+    assert AugmentSettings.from_info(built).contact_chunk == 4
+
+
+def test_what_lerobot_loads_as_info(built):
+    """``ds.meta.info``: LeRobot 0.4.4 loads the file as a dict, ``imac`` block included, which
+    works; LeRobot 0.5.1 and later load a ``DatasetInfo`` that dropped the block, which is refused
+    with what to pass instead."""
+    info = LeRobotDatasetMetadata(REPO, root=built).info
+    if isinstance(info, Mapping):  # LeRobot 0.4.4
+        assert imac_data.depth_codec_of(info).to_dict() == imac_data.depth_codec_of(built).to_dict()
+    else:  # LeRobot >= 0.5.1: DatasetInfo
+        for fn in metadata_functions().values():
+            with pytest.raises(InputError, match="pass ds.meta or the dataset's root"):
+                _call(fn, info, built)
+
+
+@pytest.mark.parametrize("name", ["imac_data.metadata.chunk_timestamps", "imac_data.core.depth.depth_codec_of",
+                                  "imac_data.core.rig.Rig.from_info", "imac_data.recipes.AugmentSettings.from_info",
+                                  "imac_model.data.meta.contact_chunk_size"])
+def test_a_dict_without_the_imac_block_names_the_file(built, name):
+    info = json.loads((built / "meta" / "info.json").read_text())
+    info.pop("imac")
+    with pytest.raises(InputError, match=r"meta/info\.json: no 'imac' block.*pass ds\.meta or the dataset's root"):
+        _call(metadata_functions()[name], info, built)
+
+
+def test_other_inputs_are_refused(built, tmp_path):
+    with pytest.raises(InputError, match="is not a LeRobot dataset"):
+        imac_data.depth_codec_of(tmp_path)
+    with pytest.raises(InputError, match="got a int"):
+        imac_data.chunk_timestamps(3)
+    with pytest.raises(InputError, match="needs the dataset's root"):
+        imac_data.Rig.from_info(json.loads((built / "meta" / "info.json").read_text()))
+    info = json.loads((built / "meta" / "info.json").read_text())
+    info["imac"]["augment"]["contact_percentile"] = "high"
+    with pytest.raises(InputError, match=r"meta/info\.json imac\.augment\.contact_percentile"):
+        AugmentSettings.from_info(info)
+
+
+# --------------------------------------------------------------------------- the source
+
+
+def _imac_key_uses(tree: ast.AST) -> list[int]:
+    """Lines where the string ``"imac"`` appears as a value (a key, an argument, a comparison...)."""
+    return [n.lineno for n in ast.walk(tree) if isinstance(n, ast.Constant) and n.value == "imac"]
+
+
+def _success_literals(tree: ast.AST) -> list[int]:
+    return [n.lineno for n in ast.walk(tree) if isinstance(n, ast.Constant) and n.value == SUCCESS_COLUMN]
+
+
+def test_imac_model_reads_the_imac_block_through_the_one_reader():
+    """No ``["imac"]``, ``.get("imac")``, ``"imac" in``, ``{"imac": ...}`` or any other use of the key
+    in ``imac_model``: the one reader is ``imac_data.metadata``. And the success column is named
+    only by ``imac_data.layout.SUCCESS_COLUMN``."""
+    wrong = []
+    for path in sorted((ROOT / "imac_model").rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        wrong += [f"{path.relative_to(ROOT)}:{line}: the imac key" for line in _imac_key_uses(tree)]
+        wrong += [f"{path.relative_to(ROOT)}:{line}: {SUCCESS_COLUMN!r} spelled out" for line in _success_literals(tree)]
+    assert not wrong, "\n".join(wrong)
+
+
+@pytest.mark.parametrize("source", ['x = info["imac"]["augment"]', 'x = info.get("imac", {})', 'ok = "imac" in info',
+                                    'key = "imac"\nx = info[key]', 'row = {"imac/success": True}'])
+def test_the_source_check_catches_each_form(source):
+    tree = ast.parse(source)
+    assert _imac_key_uses(tree) or _success_literals(tree)
