@@ -11,10 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("pybullet")  # a project dependency: present in CI
+from imac_data.core.robot.model import RobotModel
+from tests.conftest import PYBULLET_MISSING, PYBULLET_REASON
+
+if PYBULLET_MISSING:
+    pytest.skip(PYBULLET_REASON, allow_module_level=True)
 
 from benchmarks.panda_vs_pybullet import PyBulletPanda, compare, panda_config, random_configs  # noqa: E402
-from imac_data.core.robot.model import RobotModel  # noqa: E402
 
 PAGE = Path(__file__).resolve().parent.parent / "docs" / "new-robot.md"
 

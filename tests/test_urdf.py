@@ -18,6 +18,7 @@ from imac_data.cli import main as imac_main
 from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.errors import InputError
 from imac_data.recipes import parse_recipe
+from tests.conftest import PYBULLET_MISSING, PYBULLET_REASON
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -157,7 +158,10 @@ def test_materials_resolve_by_name_across_links(tmp_path):
 
 
 def _panda():
-    pybullet_data = pytest.importorskip("pybullet_data")  # a dependency: never skipped in CI
+    if PYBULLET_MISSING:
+        pytest.skip(PYBULLET_REASON)
+    import pybullet_data  # a dependency on Python 3.11 (pyproject.toml)
+
     d = Path(pybullet_data.getDataPath()) / "franka_panda"
     return d / "panda.urdf", d / "meshes"
 
