@@ -9,7 +9,11 @@ LeRobot's ``aggregate_datasets`` does the merge (data, videos, episodes, stats).
   it is rewritten in feature order (:func:`~imac_data.dataset.info.order_stats`), so equal
   inputs give byte-identical outputs;
 * ``aggregate_datasets`` rebuilds ``info.json`` without our ``imac`` block: it is put back,
-  and the robot description (``meta/imac/robot/``) is copied over.
+  and the robot description (``meta/imac/robot/``) is copied over;
+* LeRobot 0.6.1's ``aggregate_datasets`` adds the video-encoder keys a feature's ``info`` lacks
+  (``video.crf``, ``video.preset``, ... as null, for our streams) in the order of a frozenset,
+  which follows Python's per-process string hashing: they are put in sorted order after the
+  first input's keys, so that a resumed build equals an uninterrupted one byte for byte.
 
 The merge is staged: it is written to a temporary sibling of ``out`` and renamed into place
 when complete.
@@ -25,10 +29,10 @@ from pathlib import Path
 
 from imac_data import lerobot_compat as lr
 from imac_data.core.robot.description import DESCRIPTION_DIR, check_description
-from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info
+from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info, write_info
 from imac_data.errors import InputError
 
-__all__ = ["merge_datasets", "check_same_rig"]
+__all__ = ["merge_datasets", "check_same_rig", "order_feature_info"]
 
 
 def check_same_rig(roots: Sequence[Path]) -> dict:
@@ -46,6 +50,18 @@ def check_same_rig(roots: Sequence[Path]) -> dict:
                 raise InputError(f"cannot merge {root} with {roots[0]}: their imac.{key} differ (datasets of "
                                  "different rigs or settings)")
     return first
+
+
+def order_feature_info(root: Path, first: Mapping) -> None:
+    """Each feature's ``info`` in ``root``'s ``meta/info.json`` with its keys in the order of
+    ``first`` (the first input's info.json), keys the merge added after them, sorted."""
+    info = read_info(root)
+    for key, feature in info["features"].items():
+        given = (first["features"].get(key) or {}).get("info")
+        if isinstance(feature.get("info"), dict) and isinstance(given, dict):
+            keys = [k for k in given if k in feature["info"]] + sorted(k for k in feature["info"] if k not in given)
+            feature["info"] = {k: feature["info"][k] for k in keys}
+    write_info(root, info)
 
 
 def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *,
@@ -68,6 +84,7 @@ def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *
     try:
         lr.aggregate_datasets([repo_id] * len(roots), repo_id, roots=roots, aggr_root=tmp)
         order_stats(tmp)
+        order_feature_info(tmp, read_info(roots[0]))
         update_imac_info(tmp, {**block, **dict(imac_extra or {})})
         if "robot" in block:
             shutil.copytree(source, tmp / DESCRIPTION_DIR)
