@@ -93,6 +93,12 @@ print("".join("torch==" + p["metadata"]["version"] for p in json.load(sys.stdin)
     "$V/bin/python" -m pip install "${constrain[@]}" "$torch_pin" >> "$log" 2>&1 || pip_failed "$log"
   fi
   "$V/bin/python" -m pip install "${constrain[@]}" -e ".[dev,ray]" >> "$log" 2>&1 || pip_failed "$log"
+  # Python 3.13: dm-control's labmaze has no cp313 wheel and builds only with Bazel; gym-aloha and dm-control go
+  # in without dependency resolution (pyproject.toml lists their other dependencies for 3.13).
+  case "$py_ver" in
+    3.1[3-9].*) "$V/bin/python" -m pip install --no-deps gym-aloha==0.1.5 dm-control==1.0.41 >> "$log" 2>&1 \
+                  || pip_failed "$log";;
+  esac
   echo "$want" > "$stamp"
   echo "[setup] done (log: $log)"
 fi

@@ -27,12 +27,15 @@ import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
+
 from imac_data import lerobot_compat as lr
 from imac_data.core.robot.description import DESCRIPTION_DIR, check_description
 from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info, write_info
 from imac_data.errors import InputError
+from imac_data.layout import is_added_stream
 
-__all__ = ["merge_datasets", "check_same_rig", "order_feature_info"]
+__all__ = ["merge_datasets", "check_same_rig", "order_feature_info", "restore_imac_block"]
 
 
 def check_same_rig(roots: Sequence[Path]) -> dict:
@@ -93,3 +96,33 @@ def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def restore_imac_block(root: str | Path, original: str | Path) -> dict:
+    """Put back the ``imac`` block (and the robot description) of a dataset that a tool which
+    rewrites ``info.json`` dropped them from (LeRobot's ``merge_datasets``, ``add_features``,
+    ``remove_feature``: docs/lerobot.md), from ``original``, the imac-built dataset it was made
+    from. Every added stream left in ``root`` must be the original's (same dtype, shape, names);
+    returns the restored block."""
+    root, original = Path(root), Path(original)
+    info, source = read_info(root), read_info(original)
+    if "imac" in info:
+        raise InputError(f"{root}/meta/info.json already has an imac block: nothing to restore")
+    block = imac_block(source, f"{original}/meta/info.json")
+    for key, feature in info["features"].items():
+        if not is_added_stream(key):
+            continue
+        given = source["features"].get(key)
+        if given is None:
+            raise InputError(f"cannot restore {root} from {original}: its stream {key} is not in {original}")
+        for field in ("dtype", "shape", "names"):
+            if list(np.atleast_1d(feature.get(field) or [])) != list(np.atleast_1d(given.get(field) or [])):
+                raise InputError(f"cannot restore {root} from {original}: {key}.{field} differs "
+                                 f"({feature.get(field)} against {given.get(field)})")
+    description = original / DESCRIPTION_DIR
+    if "robot" in block:
+        check_description(description, block["robot"]["description"], where=f"robot description {description}")
+        if not (root / DESCRIPTION_DIR).exists():
+            shutil.copytree(description, root / DESCRIPTION_DIR)
+    block["build"] = {**block.get("build", {}), "imac_block_restored_from": str(original.resolve())}
+    return update_imac_info(root, block)["imac"]
