@@ -13,7 +13,10 @@ setup:
 demo: setup
 	$(PY) -m imac_data.build --repo local/aloha_sim_transfer_cube --overwrite
 
+# Lint first (ruff, pinned in the dev extra; its settings and the vendored LeRobot files it skips are in
+# pyproject.toml), then the suite.
 test: setup
+	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 
 # The data layer's benchmark (benchmarks/results/latest.{json,md}), then the model and evaluation

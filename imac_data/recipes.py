@@ -22,14 +22,13 @@ from imac_data.core.depth import DepthCodec
 from imac_data.core.depth_map import DepthMapParams
 from imac_data.core.motion import Controller
 from imac_data.core.robot.aloha import SIM_TASKS
+from imac_data.core.robot.platforms import PLATFORMS, platform, simulated_platforms
 from imac_data.errors import InputError
 from imac_data.layout import ACTION, STATE
 from imac_data.metadata import imac_block
 
 RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
-PLATFORMS = ("aloha_sim",)
-SOURCE_TYPES = ("aloha_sim", "aloha_hdf5", "lerobot")
-DEPTH_SOURCES = ("recorded", "da3", "none")
+FILE_SOURCE_TYPES = ("aloha_hdf5", "lerobot")  # besides the simulated platforms (PLATFORMS), which record themselves
 DEPTH_FORMATS = ("millimetres", "metres", "codec", "lerobot")
 
 
@@ -197,6 +196,12 @@ class AugmentSettings:
     def resolution(self) -> tuple[int, int]:
         return self.height, self.width
 
+    def contact_options(self) -> dict:
+        """What these settings fix of :meth:`~imac_data.core.rig.Rig.contact_images`: the build
+        passes them, and so does the world model's rollout, from the settings a dataset records."""
+        return {"cap": self.contact_cap, "percentile": float(self.contact_percentile),
+                "dilate_px": self.robot_mask_dilate_px, "allow_empty_scene": self.empty_reference_scene == "no_contact"}
+
     @classmethod
     def from_info(cls, meta) -> AugmentSettings:
         """The settings a dataset was built with (``imac.augment`` of its ``meta/info.json``;
@@ -218,7 +223,7 @@ class AugmentSettings:
 class DepthSection:
     """Where the depth streams come from (``depth:``; :mod:`imac_data.sources.depth`)."""
 
-    source: str = "recorded"  # recorded | da3 | none
+    source: str = "recorded"  # a name in imac_data.sources.depth.DEPTH_SOURCES (checked before a build starts)
     model: str | None = None  # da3: hub id or local weights directory (default DA3-BASE)
     monocular_model: str | None = None  # da3, fewer than 3 posed views: DA3's monocular metric model
     feature: str | None = None  # recorded from a LeRobot source: feature key, "{cam}" = camera name
@@ -258,9 +263,9 @@ def _validate(recipe: Recipe) -> None:
     f = recipe.file or "<recipe>"
     r, s = recipe.robot, recipe.source
     if r.platform is None and r.urdf is None:
-        raise InputError(f"{f}: robot: give either 'platform' ({PLATFORMS}) or 'urdf' + 'joint_map'")
-    if r.platform is not None and r.platform not in PLATFORMS:
-        raise InputError(f"{f}: robot.platform: unknown platform {r.platform!r}; known: {PLATFORMS}")
+        raise InputError(f"{f}: robot: give either 'platform' ({sorted(PLATFORMS)}) or 'urdf' + 'joint_map'")
+    if r.platform is not None:
+        platform(r.platform, f"{f}: robot.platform")
     if r.urdf is not None and not r.joint_map:
         raise InputError(f"{f}: robot.joint_map: required with robot.urdf (one entry per joint-vector index)")
     if r.platform is not None:
@@ -275,8 +280,9 @@ def _validate(recipe: Recipe) -> None:
                 len(r.joint_map or ()))
         except InputError as e:
             raise InputError(f"{f}: {e}") from None
-    if s.type not in SOURCE_TYPES:
-        raise InputError(f"{f}: source.type: unknown source type {s.type!r}; known: {SOURCE_TYPES}")
+    simulated = simulated_platforms()
+    if s.type not in FILE_SOURCE_TYPES + simulated:
+        raise InputError(f"{f}: source.type: unknown source type {s.type!r}; known: {list(simulated + FILE_SOURCE_TYPES)}")
     if s.type == "aloha_hdf5" and s.path is None:
         raise InputError(f"{f}: source.path: required for source.type aloha_hdf5 (the directory of .hdf5 episodes)")
     if s.type == "lerobot" and s.path is None and s.repo_id is None:
@@ -288,8 +294,6 @@ def _validate(recipe: Recipe) -> None:
         if extra:
             raise InputError(f"{f}: source: {extra} only apply to source.type lerobot")
     d = recipe.depth
-    if d.source not in DEPTH_SOURCES:
-        raise InputError(f"{f}: depth.source: must be one of {DEPTH_SOURCES}, got {d.source!r}")
     if d.format is not None and d.format not in DEPTH_FORMATS:
         raise InputError(f"{f}: depth.format: must be one of {DEPTH_FORMATS}, got {d.format!r}")
     if d.feature is not None and (s.type != "lerobot" or d.source != "recorded"):
@@ -299,9 +303,9 @@ def _validate(recipe: Recipe) -> None:
                          "(e.g. observation.depth.{cam}), or set depth.source to da3 or none")
     if d.batch_size < 1 or d.process_res < 14 or d.process_res % 14:
         raise InputError(f"{f}: depth: batch_size must be >= 1 and process_res a positive multiple of 14")
-    if s.type == "aloha_sim" and r.platform != "aloha_sim":
-        raise InputError(f"{f}: source.type aloha_sim records the simulated rig: set robot.platform: aloha_sim")
-    if s.type != "aloha_sim" and recipe.cameras.calibration is None:
+    if s.type in simulated and r.platform != s.type:
+        raise InputError(f"{f}: source.type {s.type} records the simulated rig: set robot.platform: {s.type}")
+    if s.type not in simulated and recipe.cameras.calibration is None:
         raise InputError(f"{f}: cameras.calibration: required for real data (a calibration JSON, see docs/calibration.md)")
     if s.episodes is not None and s.episodes <= 0:
         raise InputError(f"{f}: source.episodes: must be positive, got {s.episodes}")

@@ -25,8 +25,8 @@ def test_depth_sections_choose_the_source_and_fail_early(tmp_path):
 
 def test_recipe_depth_section_errors_name_the_field():
     base = {"name": "x", "task": "t", "robot": {"platform": "aloha_sim"}, "source": {"type": "aloha_sim"}}
-    with pytest.raises(InputError, match=r"r.yaml: depth.source: must be one of"):
-        parse_recipe({**base, "depth": {"source": "lidar"}}, "r.yaml")
+    with pytest.raises(InputError, match=r"r.yaml: depth.source: must be one of \['recorded', 'da3', 'none'\]"):
+        check_depth_inputs(parse_recipe({**base, "depth": {"source": "lidar"}}, "r.yaml").depth, "r.yaml", 3)
     with pytest.raises(InputError, match=r"depth.feature: a LeRobot source has no HDF5 depth"):
         parse_recipe({**base, "cameras": {"calibration": "c.json"},
                       "source": {"type": "lerobot", "path": "/data/ds"}}, "r.yaml")

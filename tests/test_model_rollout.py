@@ -18,13 +18,16 @@ import torch
 import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from imac_data.augment.pipeline import EpisodePipeline
 from imac_data.cli import main as imac_main
 from imac_data.core.contact.images import JET_LUT, chunk_plan
 from imac_data.core.contact.nearest import DEFAULT_TOLERANCE
 from imac_data.core.depth import depth_codec_of, depth_from_millimetres, walk_distance
+from imac_data.core.rig import Rig
 from imac_data.errors import InputError
-from imac_data.recipes import RECIPES_DIR
-from imac_data.sources.hdf5 import read_episode
+from imac_data.recipes import RECIPES_DIR, AugmentSettings
+from imac_data.sources.depth import RecordedDepth
+from imac_data.sources.hdf5 import EpisodeReader, read_episode
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 from imac_model.cli import main as model_main
 from imac_model.config import RolloutConfig, RunConfig, load_run_config, parse, save_config, to_dict
@@ -174,6 +177,43 @@ def test_online_rebuild_matches_the_build(built, stored):
     for on, st in caps:
         assert bool(((on - st).abs() <= _tolerance(st.float()).double() + 1e-6).all())
     assert float(same.float().mean()) > 0.99  # the same functions on the same inputs
+
+
+def test_online_controls_are_the_builds_bit_for_bit(built):
+    """One episode, at the dataset's stream resolution (``rollout.resolution: dataset``, the size the
+    build drew at) and fed the depth in metres the build used: the rollout's controls for the
+    recorded actions are bit-identical to the build's control images before encoding, and its caps
+    to the build's. Both sides call ``Rig.contact_images`` with the settings the dataset records."""
+    root, sim = built
+    _, spec, _ = _spec(root, **{"data.view_height": HW[0]})
+    online = OnlineControls.from_dataset(root, spec, resolution="dataset")
+    assert online.compute_hw == online.view_hw == HW
+    path = sorted(sim.glob("episode_*.hdf5"))[0]
+    # the build's images before encoding: its own pipeline, with the rig and settings the dataset records
+    pipe = EpisodePipeline(Rig.from_dataset(root), AugmentSettings.from_info(root), RecordedDepth(), threads=1)
+    with EpisodeReader(path) as reader:
+        built_chunks = list(pipe.chunks(reader))
+    ep = read_episode(path)
+    plan = list(chunk_plan(len(ep.qpos), CHUNK))
+    assert len(built_chunks) == len(plan)
+    compared = 0
+    for (ref, frames), out in zip(plan, built_chunks):
+        future = [f for f in frames if f > 0]
+        q_ref = torch.as_tensor(ep.qpos[ref], dtype=torch.float32)[None]
+        actions = torch.as_tensor(ep.action[[f - 1 for f in future]], dtype=torch.float32)[None]
+        depth = torch.stack([torch.as_tensor(depth_from_millimetres(ep.depth_mm[v][ref])) for v in VIEWS])[None]
+        q_future = online.configurations(q_ref, actions)
+        contact = online.contact(depth, q_ref, q_future, include_reference_step=ref == 0)
+        motion = online.motion(q_future)
+        assert torch.equal(contact.caps[0], torch.as_tensor(out.caps[0]))
+        rows = [f - out.start for f in future]
+        for v, cam in enumerate(VIEWS):
+            for key, mine in ((f"control.motion.{cam}", motion), (f"control.contact_r2s.{cam}", contact.r2s),
+                              (f"control.contact_s2g.{cam}", contact.s2g)):
+                got = (mine[0, :, v] * 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
+                np.testing.assert_array_equal(got, out.streams[key][rows], err_msg=f"{key}, chunk at frame {ref}")
+                compared += got.size
+    assert compared > 0
 
 
 def test_decoded_depth_stream_difference_is_bounded_by_the_codec(built, stored):

@@ -20,7 +20,7 @@ import torch
 
 from imac_data.augment.timing import StageTimer
 from imac_data.console import raise_if_interrupted
-from imac_data.core.contact.images import chunk_plan, contact_chunk
+from imac_data.core.contact.images import chunk_plan
 from imac_data.core.depth import DepthCodec, resize_depth
 from imac_data.errors import InputError
 from imac_data.layout import CAP_KEY, MOTION, R2S, S2G, depth_key, depth_map_key, stream_keys
@@ -86,7 +86,6 @@ class EpisodePipeline:
             q_state = torch.as_tensor(state, dtype=torch.float32)
             q_drawn = torch.as_tensor(rig.frame_configurations(state, action, source=s.motion_source),
                                       dtype=torch.float32)
-            K = rig.intrinsics(res)
         need_images = images or getattr(self.depth_source, "needs_images", True)
         carry = None  # stream-resolution depth of the previous chunk's last frame: the next reference
         for ref, frames in chunk_plan(T, s.contact_chunk):
@@ -131,11 +130,7 @@ class EpisodePipeline:
                 carry = depth_hw[-1]
             with timer("contact"):
                 try:
-                    chunk = contact_chunk(torch.as_tensor(ref_depth), K, seen.T_world_cam[0], seen.mask[0],
-                                          drawn.depth, drawn.T_world_cam, drawn.gripper_points, cap=s.contact_cap,
-                                          percentile=s.contact_percentile, dilate_px=s.robot_mask_dilate_px,
-                                          workspace=rig.workspace, workers=self.threads, parallel=self.threads,
-                                          allow_empty_scene=s.empty_reference_scene == "no_contact")
+                    chunk = rig.contact_images(ref_depth, seen, drawn, **s.contact_options(), threads=self.threads)
                 except InputError as e:  # which episode and frame: the contact functions know only tensors
                     raise InputError(f"{reader.path}: contact images of frames {lo}:{hi} (reference frame {ref}, "
                                      f"cameras {names}): {e}. To build such chunks without contact, set "

@@ -24,6 +24,7 @@ from imac_data.core.cameras import same_aspect
 from imac_data.core.rig import Rig
 from imac_data.core.robot.description import description_bytes, write_description
 from imac_data.core.robot.joint_ranges import joint_range_warning
+from imac_data.core.robot.platforms import simulated_platforms
 from imac_data.dataset.card import write_card
 from imac_data.dataset.ingest import BaseWriter, IngestOptions
 from imac_data.dataset.merge import merge_datasets
@@ -43,7 +44,7 @@ def source_episodes(req: BuildRequest) -> tuple[list[Path], Path]:
     recipe, src = req.recipe, req.recipe.source
     n = req.episodes if req.episodes is not None else src.episodes
     path = req.source_path or recipe.resolve_path(src.path)
-    if src.type == "aloha_sim" and (path is None or not path.exists()):
+    if src.type in simulated_platforms() and (path is None or not path.exists()):  # the simulator records it
         path = record_sim_episodes(recipe, n, path, req.progress)
     if path is None or not path.exists():
         raise InputError(f"source path does not exist: {path}")

@@ -74,7 +74,7 @@ def _overlay(p: argparse.ArgumentParser) -> None:
     p.add_argument("episode", help="raw ALOHA HDF5 episode (episode_N.hdf5)")
     p.add_argument("--calibration", required=True, help="calibration JSON")
     p.add_argument("--out", required=True, help="output directory (must not exist, unless --overwrite)")
-    p.add_argument("--robot", default="aloha", choices=["aloha"], help="a built-in robot description")
+    p.add_argument("--robot", default=None, help="a built-in robot platform (default: the first registered)")
     p.add_argument("--recipe", default=None,
                    help="take the robot (your URDF, joint map) from this build recipe instead of --robot")
     p.add_argument("--source", default="state", choices=("state", "action"),

@@ -25,12 +25,12 @@ from imac_data.core.cameras import Camera, camera_from_dict, load_calibration
 from imac_data.core.contact.clouds import DEFAULT_GRIPPER_SPACING, GripperSurface
 from imac_data.core.contact.images import ContactChunk, contact_chunk
 from imac_data.core.contact.workspace import Workspace, as_workspace, resolve_workspace, saturation_depth
-from imac_data.core.depth import DepthCodec
+from imac_data.core.depth import DepthCodec, resize_depth
 from imac_data.core.motion import Controller, frame_configurations, rollout
 from imac_data.core.render import make_renderer
-from imac_data.core.robot import aloha
 from imac_data.core.robot.description import check_description, description_manifest
 from imac_data.core.robot.model import RobotConfig, RobotModel
+from imac_data.core.robot.platforms import platform as get_platform
 from imac_data.errors import InputError
 from imac_data.layout import URDF_NAME, description_dir
 from imac_data.metadata import dataset_root, imac_block
@@ -55,6 +55,11 @@ class RobotViews:
     link_id: torch.Tensor
     T_world_cam: torch.Tensor
     gripper_points: torch.Tensor | None
+
+    def rows(self, lo: int, hi: int) -> RobotViews:
+        """Configurations ``lo .. hi - 1`` of a batched render (e.g. one chunk's)."""
+        return RobotViews(*(None if x is None else x[lo:hi] for x in
+                            (self.rgb, self.mask, self.depth, self.link_id, self.T_world_cam, self.gripper_points)))
 
 
 @dataclass(eq=False)
@@ -109,7 +114,8 @@ class Rig:
         workspace = resolve_workspace(a.contact_workspace, robot, saturation_depth(DepthCodec.preset(a.depth_codec)))
         r = recipe.robot
         if r.platform is not None:
-            task = recipe.source.sim.task if recipe.source.type == "aloha_sim" else None
+            # a simulated platform's source is the simulator itself (source.type = the platform)
+            task = recipe.source.sim.task if recipe.source.type == r.platform else None
             return cls.from_platform(r.platform, cameras, robot=robot, task=task, workspace=workspace)
         controller = Controller()
         if r.controller is not None:
@@ -121,25 +127,19 @@ class Rig:
     @classmethod
     def from_platform(cls, platform: str, cameras: Mapping[str, Camera], *, robot: RobotModel | None = None,
                       task: str | None = None, workspace: Workspace | None = None) -> Rig:
-        """A built-in rig by name with the given cameras. ``aloha_sim``: gym-aloha's two
-        ViperX 300s (:mod:`imac_data.core.robot.aloha`), its actuators' saturation in the controller
-        (``task``: which scene's MJCF; the arms are the same in every task)."""
-        if platform != "aloha_sim":
-            raise InputError(f"unknown robot platform {platform!r}; known: ['aloha_sim']")
-
-        robot = robot if robot is not None else RobotModel(aloha.robot_config())
-        return cls(robot, dict(cameras), aloha.controller(task or aloha.TASKS[0]), state_names=aloha.STATE_NAMES,
-                   workspace=workspace)
+        """A registered rig by name (:data:`~imac_data.core.robot.platforms.PLATFORMS`) with the
+        given cameras; ``task``: the simulated scene whose actuators the controller follows."""
+        entry = get_platform(platform)
+        robot = robot if robot is not None else RobotModel(entry.robot())
+        return cls(robot, dict(cameras), entry.controller(task), state_names=entry.state_names, workspace=workspace)
 
     @staticmethod
     def robot_from_recipe(recipe) -> RobotModel:
         """The recipe's robot alone (URDF, joint map; checked against each other), e.g. to
         fail on a bad URDF before any work starts."""
         r = recipe.robot
-        if r.platform == "aloha_sim":
-            return RobotModel(aloha.robot_config())
         if r.platform is not None:
-            raise InputError(f"{recipe.file}: robot.platform: unknown platform {r.platform!r}")
+            return RobotModel(get_platform(r.platform, f"{recipe.file}: robot.platform").robot())
         urdf = recipe.resolve_path(r.urdf)
         if not urdf.is_file():
             raise InputError(f"{recipe.file}: robot.urdf: file not found: {urdf}")
@@ -317,10 +317,8 @@ class Rig:
         reference (sensed, or a world model's prediction), the reference state ``q_ref (D,)``
         (robot mask and camera poses) and the configurations to draw ``q_future (S, D)``.
         With a leading batch axis (``(B, V, H, W)``, ``(B, D)``, ``(B, S, D)``) every tensor
-        of the result gets one too. Cameras are rescaled to the depth's ``(H, W)``.
-        ``options``: :func:`imac_data.core.contact.images.contact_chunk` (cap, percentile, dilate_px,
-        tolerance, method, device, ...); the scene is cropped to the rig's workspace unless
-        ``workspace`` is given (None = no crop). Returns a :class:`~imac_data.core.contact.images.ContactChunk`.
+        of the result gets one too. The robot is rendered at the depth's ``(H, W)``, then
+        :meth:`contact_images` paints the streams; ``options`` are its own.
         """
         ref_depth = torch.as_tensor(ref_depth)
         q_ref = torch.as_tensor(q_ref, dtype=torch.float32)
@@ -340,12 +338,41 @@ class Rig:
             raise InputError(f"contact: q_ref must be (D,) and q_future (S, D), got {tuple(q_ref.shape)}, "
                              f"{tuple(q_future.shape)}")
         hw = tuple(ref_depth.shape[-2:])
-        ref = self.robot_views(q_ref[None], resolution=hw, gripper=False)
-        fut = self.robot_views(q_future, resolution=hw)
-        device = options.pop("device", None) or ref_depth.device
+        seen = self.robot_views(q_ref[None], resolution=hw, gripper=False)
+        drawn = self.robot_views(q_future, resolution=hw)
+        return self.contact_images(ref_depth, seen, drawn, **options)
+
+    def contact_images(self, ref_depth, seen: RobotViews, drawn: RobotViews, *, threads: int | None = None,
+                       device=None, **options) -> ContactChunk:
+        """Both contact streams of one chunk from its renders and its reference depth: the one
+        function the build (:mod:`imac_data.augment.pipeline`), the world model's rollout
+        (``imac_model.pipelines.online_controls``) and :meth:`contact` call, so that offline and
+        online controls are the same function of the same inputs.
+
+        ``ref_depth (V, h, w)`` metres at the reference (resized nearest-pixel to the renders'
+        size); ``seen``: the robot rendered at the reference's measured state (one configuration:
+        its mask is removed from the scene, its camera poses place it); ``drawn``: the robot at the
+        chunk's S configurations (robot depth, camera poses, gripper points). ``threads``: the
+        nearest-neighbour and painting threads (None: every core; the result is the same).
+        ``options``: :func:`~imac_data.core.contact.images.contact_chunk` (cap, percentile,
+        dilate_px, allow_empty_scene, ...); the scene is cropped to the rig's workspace unless
+        ``workspace`` is given (None = no crop). Returns a :class:`~imac_data.core.contact.images.ContactChunk`.
+        """
+        hw = tuple(drawn.depth.shape[-2:])
+        ref_depth = torch.as_tensor(ref_depth)
+        if tuple(ref_depth.shape[-2:]) != hw:
+            ref_depth = resize_depth(ref_depth, hw, name="reference depth")
+        device = torch.device(device) if device is not None else ref_depth.device
         options.setdefault("workspace", self.workspace)
-        return contact_chunk(ref_depth.to(device), self.intrinsics(hw), ref.T_world_cam[0], ref.mask[0],
-                             fut.depth, fut.T_world_cam, fut.gripper_points, device=device, **options)
+        if threads is not None:
+            options.update(workers=threads, parallel=threads)
+
+        def on(x):
+            return None if x is None else x.to(device)
+
+        return contact_chunk(on(ref_depth.to(torch.float32)), on(self.intrinsics(hw)), on(seen.T_world_cam[0]),
+                             on(seen.mask[0]), on(drawn.depth), on(drawn.T_world_cam), on(drawn.gripper_points),
+                             device=device, **options)
 
     def __repr__(self) -> str:
         return (f"Rig(robot={self.robot.name!r}, dof={self.dof}, cameras={self.names}, "

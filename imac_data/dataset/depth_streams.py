@@ -6,7 +6,7 @@ codec, encoder settings, depth source and per-camera intrinsics are recorded in
 ``meta/info.json["imac"]["depth"]``, and each feature's ``info`` block carries
 ``imac.depth_codec`` and ``imac.encoding`` too (they survive ``aggregate_datasets``, which
 drops ``info["imac"]``). Decode a loaded frame with
-``depth_codec_of(ds.meta.info).decode(item[key], channel_axis=-3)``.
+``depth_codec_of(ds.meta).decode(item[key], channel_axis=-3)``.
 """
 
 from __future__ import annotations

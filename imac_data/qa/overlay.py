@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import shutil
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from fractions import Fraction
 from pathlib import Path
 
@@ -25,20 +25,17 @@ from imac_data.core.masks import ground_truth_robot_mask, mask_iou, outline
 from imac_data.core.motion import SOURCES, frame_configurations
 from imac_data.core.render import make_renderer
 from imac_data.core.rig import Rig
-from imac_data.core.robot.aloha import robot_config
 from imac_data.core.robot.model import RobotModel
+from imac_data.core.robot.platforms import PLATFORMS, platform
 from imac_data.dataset.output import check_replaceable
 from imac_data.errors import InputError
 from imac_data.sources.hdf5 import read_episode
 
-__all__ = ["ROBOTS", "overlay", "format_summary"]
+__all__ = ["overlay", "format_summary"]
 
 OUTLINE_RGB = (0, 255, 0)  # rendered robot
 TRUTH_RGB = (255, 0, 255)  # ground-truth robot mask
 
-# Robot descriptions the CLI knows by name (their rig: Rig.from_platform).
-ROBOTS: dict[str, Callable] = {"aloha": lambda: RobotModel(robot_config())}
-_PLATFORMS = {"aloha": "aloha_sim"}
 
 
 def _parse_frames(spec: str | None, T: int) -> range:
@@ -105,12 +102,13 @@ class _Mp4:
 
 
 def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str | Path, *,
-            robot="aloha", source: str = "state", fmt: str = "mp4", frames: str | None = None,
+            robot: str | RobotModel | None = None, source: str = "state", fmt: str = "mp4", frames: str | None = None,
             cameras: Sequence[str] | None = None, overwrite: bool = False, batch: int = 8,
             renderer=None, controller=None) -> dict:
     """Write the overlay of one episode into ``out_dir`` and return the summary dict.
 
-    ``robot``: a name in :data:`ROBOTS` or a :class:`~imac_data.core.robot.model.RobotModel`.
+    ``robot``: a registered platform's name (:data:`~imac_data.core.robot.platforms.PLATFORMS`;
+    default the first) or a :class:`~imac_data.core.robot.model.RobotModel`.
     All inputs are validated before anything is written; the output directory appears
     only complete (temporary sibling renamed into place).
     """
@@ -123,14 +121,13 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
         raise InputError(f"output {out_dir} exists; pass --overwrite to replace it")
     check_replaceable(out_dir, made_by="summary.json", what="output")
     calib = load_calibration(calibration_path)
-    if isinstance(robot, str):
-        if robot not in ROBOTS:
-            raise InputError(f"unknown robot {robot!r}; known: {sorted(ROBOTS)}")
-        robot_name, robot = robot, ROBOTS[robot]()
-    elif isinstance(robot, RobotModel):
-        robot_name = robot.name
-    else:
-        raise InputError(f"robot must be a name in {sorted(ROBOTS)} or a RobotModel, got {type(robot).__name__}")
+    platform_name = None
+    if robot is None or isinstance(robot, str):
+        platform_name = robot if robot is not None else next(iter(PLATFORMS))
+        robot = RobotModel(platform(platform_name, "--robot").robot())
+    elif not isinstance(robot, RobotModel):
+        raise InputError(f"robot must be a platform in {sorted(PLATFORMS)} or a RobotModel, got {type(robot).__name__}")
+    robot_name = robot.name
     ep = read_episode(episode_path, cameras=None, load_depth=False, load_segmentation=True)
     cams = list(cameras) if cameras else ep.cameras
     missing_ep = [c for c in cams if c not in ep.images]
@@ -150,8 +147,8 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
         cam = calib[c]
         rig[c] = cam if (cam.height, cam.width) == (h, w) else cam.rescaled(w, h)
     rig = renderer.prepare_cameras(rig)  # mounted links must exist
-    if controller is None and source == "action" and robot_name in _PLATFORMS:
-        controller = Rig.from_platform(_PLATFORMS[robot_name], rig, robot=robot).controller
+    if controller is None and source == "action" and platform_name is not None:
+        controller = Rig.from_platform(platform_name, rig, robot=robot).controller
     kwargs = {} if controller is None else {"controller": controller}
     q_all = frame_configurations(ep.qpos, ep.action, source=source, **kwargs)
     robot.joint_positions(torch.as_tensor(q_all))  # wrong length / non-finite -> InputError now

@@ -13,7 +13,7 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
@@ -21,12 +21,11 @@ import torch
 
 from imac_data.core.cameras import rescale_intrinsics
 from imac_data.errors import InputError
-
-if TYPE_CHECKING:  # annotations only: sources.depth builds these classes
-    from imac_data.sources.depth import EpisodeViews
+from imac_data.sources.episode import EpisodeViews
 
 __all__ = ["DA3_INSTALL", "DEFAULT_DA3_MODEL", "DEFAULT_DA3_METRIC_MODEL", "DepthAnything3", "DepthAnything3Metric",
-           "check_view_geometry", "looks_like_hub_id"]
+           "check_view_geometry", "looks_like_hub_id", "uses_monocular", "da3_model", "check_da3_inputs",
+           "make_da3_source"]
 
 # How to install the optional extra (depth-anything-3 0.1.1 pins numpy<2, so it is
 # installed without its dependency resolution, plus the modules it imports).
@@ -453,3 +452,44 @@ class DepthAnything3Metric(DepthAnything3):
         out = self.predict([views.images[c] for c in cams], [views.cameras[c].K for c in cams],
                            where=views.name, names=cams)
         return dict(zip(cams, out))
+
+
+# --------------------------------------------------------------------------- the recipe's da3 source
+
+
+def uses_monocular(num_cameras: int) -> bool:
+    """DA3's multi-view scale fit needs three posed views; fewer use the monocular metric model."""
+    return num_cameras < 3
+
+
+def da3_model(section, recipe_file: str, monocular: bool) -> str:
+    """The model a recipe's ``depth:`` section names: a local directory (relative to the recipe)
+    or a hub id; the default DA3 model otherwise."""
+    value = section.monocular_model if monocular else section.model
+    field = "depth.monocular_model" if monocular else "depth.model"
+    if value is None:
+        return DEFAULT_DA3_METRIC_MODEL if monocular else DEFAULT_DA3_MODEL
+    path = Path(os.path.expandvars(os.path.expanduser(value)))
+    if not path.is_absolute() and recipe_file:
+        local = Path(recipe_file).parent / path
+        if local.exists() or not looks_like_hub_id(value):
+            path = local
+    if path.exists():
+        return str(path)
+    if looks_like_hub_id(value) and not value.startswith(("/", ".")):
+        return value
+    raise InputError(f"{recipe_file or '<recipe>'}: {field}: the Depth Anything 3 model directory {path} does not "
+                     "exist (give a directory holding config.json and model.safetensors, or a Hugging Face "
+                     "model id such as depth-anything/DA3-BASE)")
+
+
+def check_da3_inputs(section, recipe_file: str, num_cameras: int) -> str:
+    """The model the build will load (an :class:`InputError` now if its directory is missing)."""
+    return da3_model(section, recipe_file, uses_monocular(num_cameras))
+
+
+def make_da3_source(section, recipe_file: str, num_cameras: int, *, local_files_only: bool = False):
+    """DA3 as a recipe's depth source: posed multi-view with three cameras or more, else monocular metric."""
+    cls = DepthAnything3Metric if uses_monocular(num_cameras) else DepthAnything3
+    return cls(check_da3_inputs(section, recipe_file, num_cameras), device=section.device,
+               batch_size=section.batch_size, process_res=section.process_res, local_files_only=local_files_only)

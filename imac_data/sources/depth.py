@@ -15,52 +15,20 @@ stored image size (0 = invalid).
 
 from __future__ import annotations
 
-import os
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
-from imac_data.core.cameras import Camera
 from imac_data.core.depth import depth_from_millimetres, resize_depth
 from imac_data.errors import InputError
-from imac_data.sources.da3 import (
-    DEFAULT_DA3_METRIC_MODEL,
-    DEFAULT_DA3_MODEL,
-    DepthAnything3,
-    DepthAnything3Metric,
-    looks_like_hub_id,
-)
+from imac_data.sources.da3 import check_da3_inputs, make_da3_source, uses_monocular
+from imac_data.sources.episode import DepthSource, EpisodeViews
 
-__all__ = ["DepthSource", "EpisodeViews", "RecordedDepth", "NoDepth", "episode_views", "check_depth_inputs",
-           "make_depth_source", "uses_monocular"]
-
-
-@dataclass
-class EpisodeViews:
-    """One episode as a depth source sees it.
-
-    ``images[cam]``: ``(T, H, W, 3)`` uint8 RGB; ``cameras[cam]``: the calibration
-    at that image resolution; ``poses[cam]``: ``(T, 4, 4)`` camera-to-world
-    (OpenCV); ``depth_mm[cam]``: recorded depth, ``(T, H', W')`` millimetres
-    (optional; only :class:`RecordedDepth` reads it). ``name`` is used in messages.
-    """
-
-    images: Mapping[str, np.ndarray]
-    cameras: Mapping[str, Camera]
-    poses: Mapping[str, np.ndarray]
-    depth_mm: Mapping[str, np.ndarray] = field(default_factory=dict)
-    name: str = "episode"
-
-    @property
-    def num_frames(self) -> int:
-        lengths = {len(v) for v in self.poses.values()} | {len(v) for v in self.images.values()}
-        if len(lengths) != 1:
-            raise InputError(f"{self.name}: views have different frame counts {sorted(lengths)}")
-        return lengths.pop()
+__all__ = ["DepthSource", "EpisodeViews", "RecordedDepth", "NoDepth", "episode_views", "DepthSourceKind",
+           "DEPTH_SOURCES", "depth_source_kind", "check_depth_inputs", "make_depth_source", "uses_monocular"]
 
 
 def episode_views(raw, rig, *, name: str = "episode") -> EpisodeViews:
@@ -75,19 +43,6 @@ def episode_views(raw, rig, *, name: str = "episode") -> EpisodeViews:
     return EpisodeViews(images={c: raw.images[c] for c in rig.names}, cameras=dict(rig.cameras),
                         poses={c: poses[:, v] for v, c in enumerate(rig.names)},
                         depth_mm={c: d for c, d in raw.depth_mm.items() if c in rig.cameras}, name=name)
-
-
-@runtime_checkable
-class DepthSource(Protocol):
-    """Anything that turns an episode's views into metric depth."""
-
-    def depth(self, views: EpisodeViews) -> dict[str, np.ndarray]:
-        """``{cam: (T, H, W) float32 metres}`` at each camera's stored resolution; 0 = invalid."""
-        ...
-
-    def describe(self) -> dict[str, Any]:
-        """JSON-ready description, recorded as ``info["imac"]["depth"]["source"]``."""
-        ...
 
 
 # --------------------------------------------------------------------------- recorded
@@ -144,46 +99,41 @@ class NoDepth:
 # ----------------------------------------------------------------------------- the recipe's choice
 
 
-def uses_monocular(num_cameras: int) -> bool:
-    """DA3's multi-view scale fit needs three posed views; fewer use the monocular metric model."""
-    return num_cameras < 3
+@dataclass(frozen=True)
+class DepthSourceKind:
+    """A recipe's ``depth.source`` choice: how its source is made for a rig of ``num_cameras``
+    cameras, ``make(section, recipe_file, num_cameras, local_files_only=...)``, and what is
+    checked before any work, ``check(section, recipe_file, num_cameras) -> the model it loads``."""
+
+    make: Callable[..., DepthSource]
+    check: Callable[..., str | None] | None = None
 
 
-def _model(section, recipe_file: str, monocular: bool) -> str:
-    value = section.monocular_model if monocular else section.model
-    field = "depth.monocular_model" if monocular else "depth.model"
-    if value is None:
-        return DEFAULT_DA3_METRIC_MODEL if monocular else DEFAULT_DA3_MODEL
-    path = Path(os.path.expandvars(os.path.expanduser(value)))
-    if not path.is_absolute() and recipe_file:
-        local = Path(recipe_file).parent / path
-        if local.exists() or not looks_like_hub_id(value):
-            path = local
-    if path.exists():
-        return str(path)
-    if looks_like_hub_id(value) and not value.startswith(("/", ".")):
-        return value
-    raise InputError(f"{recipe_file or '<recipe>'}: {field}: the Depth Anything 3 model directory {path} does not "
-                     "exist (give a directory holding config.json and model.safetensors, or a Hugging Face "
-                     "model id such as depth-anything/DA3-BASE)")
+# depth.source -> its kind. A new depth source is its module (a DepthSource) and one entry here.
+DEPTH_SOURCES: dict[str, DepthSourceKind] = {
+    "recorded": DepthSourceKind(make=lambda section, recipe_file, num_cameras, **_: RecordedDepth()),
+    "da3": DepthSourceKind(make=make_da3_source, check=check_da3_inputs),
+    "none": DepthSourceKind(make=lambda section, recipe_file, num_cameras, **_: NoDepth()),
+}
+
+
+def depth_source_kind(section, recipe_file: str) -> DepthSourceKind:
+    """The registered kind of a recipe's ``depth.source`` (:class:`InputError` naming the field)."""
+    if section.source not in DEPTH_SOURCES:
+        raise InputError(f"{recipe_file or '<recipe>'}: depth.source: must be one of {list(DEPTH_SOURCES)}, got "
+                         f"{section.source!r}")
+    return DEPTH_SOURCES[section.source]
 
 
 def check_depth_inputs(section, recipe_file: str, num_cameras: int) -> str | None:
-    """Fail early on a ``da3`` model directory that is not there; returns the model the
-    build will load (None unless ``da3``)."""
-    if section.source != "da3":
-        return None
-    return _model(section, recipe_file, uses_monocular(num_cameras))
+    """Fail early on an unknown depth source or a missing input of one (a ``da3`` model
+    directory that is not there); returns the model the build will load (None if none)."""
+    kind = depth_source_kind(section, recipe_file)
+    return kind.check(section, recipe_file, num_cameras) if kind.check is not None else None
 
 
 def make_depth_source(section, recipe_file: str, num_cameras: int, *, local_files_only: bool = False):
-    """The :class:`~imac_data.sources.depth.DepthSource` of a recipe's ``depth:`` section for a
+    """The :class:`~imac_data.sources.episode.DepthSource` of a recipe's ``depth:`` section for a
     rig of ``num_cameras`` cameras."""
-    if section.source == "none":
-        return NoDepth()
-    if section.source == "recorded":
-        return RecordedDepth()
-    model = _model(section, recipe_file, uses_monocular(num_cameras))
-    cls = DepthAnything3Metric if uses_monocular(num_cameras) else DepthAnything3
-    return cls(model, device=section.device, batch_size=section.batch_size, process_res=section.process_res,
-               local_files_only=local_files_only)
+    return depth_source_kind(section, recipe_file).make(section, recipe_file, num_cameras,
+                                                        local_files_only=local_files_only)

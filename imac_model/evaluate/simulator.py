@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 from imac_data.core.cameras import save_calibration
 from imac_data.core.depth import resize_depth
 from imac_data.core.rig import Rig
+from imac_data.core.robot.platforms import simulator_platform
 from imac_data.errors import InputError
 from imac_data.layout import CALIBRATION, depth_key, image_key
 from imac_data.sources.hdf5 import EpisodeInfo, RawEpisode, write_episode
@@ -94,7 +95,7 @@ class SimRunner:
         self.config = c = config
         model = load_mujoco_model(c.task)
         self.cameras = camera_calibration(model, c.render_width, c.render_height)
-        self.rig = Rig.from_platform("aloha_sim", self.cameras, task=c.task)
+        self.rig = Rig.from_platform(simulator_platform(), self.cameras, task=c.task)
         self.renderer = FrameRenderer(model, c.render_width, c.render_height)
         self.env = SimEnv(c.task, frame_stride=c.frame_stride, renderer=self.renderer)
 

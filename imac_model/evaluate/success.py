@@ -455,13 +455,25 @@ class CallableJudge(SuccessJudge):
         return np.array(out, dtype=bool)
 
 
+def _python_judge(spec: str) -> SuccessJudge:
+    obj = python_object(spec, "judge")
+    return obj if isinstance(obj, SuccessJudge) else CallableJudge(obj, name=spec[len("python:"):])
+
+
+# The judges a command line names, ``KIND:ARGUMENT`` -> a judge made from the whole spec. A new judge
+# is its class (a SuccessJudge) and one entry here.
+JUDGES: dict[str, Callable[[str], SuccessJudge]] = {
+    "classifier": lambda spec: SuccessClassifier.load(spec[len("classifier:"):]),  # classifier:DIR
+    "python": _python_judge,  # python:MODULE:NAME
+}
+
+
 def load_judge(spec: str) -> SuccessJudge:
-    """A judge from a command-line spec: ``classifier:DIR`` (a saved :class:`SuccessClassifier`)
-    or ``python:MODULE:NAME`` (a :class:`SuccessJudge`, a class making one, or a function
-    ``EpisodeFrames -> bool or probability``)."""
-    if spec.startswith("classifier:"):
-        return SuccessClassifier.load(spec[len("classifier:"):])
-    if spec.startswith("python:"):
-        obj = python_object(spec, "judge")
-        return obj if isinstance(obj, SuccessJudge) else CallableJudge(obj, name=spec[len("python:"):])
-    raise InputError(f"unknown judge {spec!r}: use classifier:DIR or python:MODULE:NAME")
+    """A judge from a command-line spec (:data:`JUDGES`): ``classifier:DIR`` (a saved
+    :class:`SuccessClassifier`) or ``python:MODULE:NAME`` (a :class:`SuccessJudge`, a class making
+    one, or a function ``EpisodeFrames -> bool or probability``)."""
+    kind = spec.split(":", 1)[0]
+    if ":" not in spec or kind not in JUDGES:
+        raise InputError(f"unknown judge {spec!r}: use " + " or ".join(f"{k}:..." for k in JUDGES)
+                         + " (classifier:DIR, python:MODULE:NAME)")
+    return JUDGES[kind](spec)

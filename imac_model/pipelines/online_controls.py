@@ -22,7 +22,6 @@ from pathlib import Path
 
 import torch
 
-from imac_data.core.contact.images import contact_chunk
 from imac_data.core.depth import resize_depth, walk_distance
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
@@ -97,7 +96,8 @@ class OnlineControls:
     ``rig``: :class:`~imac_data.core.rig.Rig` (its cameras are reordered to ``views``);
     ``codec``: the dataset's :class:`~imac_data.core.depth.DepthCodec`; ``view_hw``: the model's
     per-view size; ``source_hw``: the dataset's stream resolution; ``contact``: keyword
-    options of :func:`imac_data.core.contact.images.contact_chunk` (cap, percentile, dilate_px).
+    options of :meth:`~imac_data.core.rig.Rig.contact_images`, the build's own function
+    (:meth:`imac_data.recipes.AugmentSettings.contact_options` of the dataset's settings).
     """
 
     def __init__(self, rig, codec, views: Sequence[str], view_hw: tuple[int, int], source_hw: tuple[int, int], *,
@@ -123,17 +123,16 @@ class OnlineControls:
         self.device = None if device is None else torch.device(device)
 
     @classmethod
-    def from_dataset(cls, root: str | Path, spec, *, info: Mapping | None = None, resolution: str = "model",
+    def from_dataset(cls, root: str | Path, spec, *, info=None, resolution: str = "model",
                      max_walk_distance: float = DEFAULT_MAX_WALK_DISTANCE, device=None) -> OnlineControls:
-        """The rebuilder of the dataset at ``root`` (its ``meta/info.json``, or ``info`` when given,
-        and the robot description under ``meta/imac/robot/``) for a model of ``spec``
-        (:class:`~imac_model.config.ModelSpec`)."""
+        """The rebuilder of the dataset at ``root`` (its ``meta/info.json`` and the robot description
+        under ``meta/imac/robot/``) for a model of ``spec`` (:class:`~imac_model.config.ModelSpec`).
+        ``info``: the metadata already at hand (``ds.meta`` or the ``meta/info.json`` dict)."""
         root = Path(root)
         meta = info if info is not None else root
         rig = Rig.from_info(meta, root)
         augment = AugmentSettings.from_info(meta)
-        contact = {"cap": augment.contact_cap, "percentile": float(augment.contact_percentile),
-                   "dilate_px": augment.robot_mask_dilate_px}
+        contact = augment.contact_options()
         if augment.motion_source != "action":
             warnings.warn(f"{root}: motion images were drawn from the measured state; online motion images are "
                           "drawn from the commanded configurations (no future state exists in a rollout)")
@@ -202,21 +201,13 @@ class OnlineControls:
         if include_reference_step:
             q_future = torch.cat([q_ref[:, None], q_future], dim=1)
         S = q_future.shape[1]
-        cams = self.cameras()
-        K = self.rig.intrinsics(hw, device=dev)
         # one batched FK + render for every item's reference and future configurations
-        ref = self.rig.robot_views(q_ref, resolution=hw, gripper=False)
-        fut = self.rig.robot_views(q_future.reshape(B * S, -1), resolution=hw)
-        assert list(cams) == self.rig.names
-        fut_depth = fut.depth.reshape(B, S, V, *hw)
-        fut_T = fut.T_world_cam.reshape(B, S, V, 4, 4)
-        grip = fut.gripper_points.reshape(B, S, -1, 3)
-        chunks = []
-        for b in range(B):
-            chunks.append(contact_chunk(depth[b].to(dev, torch.float32), K, ref.T_world_cam[b].to(dev),
-                                        ref.mask[b].to(dev), fut_depth[b].to(dev), fut_T[b].to(dev),
-                                        grip[b].to(dev), allow_empty_scene=True, device=dev,
-                                        **{"workspace": self.rig.workspace, **self.contact_options}))
+        seen = self.rig.robot_views(q_ref, resolution=hw, gripper=False)
+        drawn = self.rig.robot_views(q_future.reshape(B * S, -1), resolution=hw)
+        # a generated reference may leave no scene: no contact then, never an error
+        options = {**self.contact_options, "allow_empty_scene": True}
+        chunks = [self.rig.contact_images(depth[b], seen.rows(b, b + 1), drawn.rows(b * S, (b + 1) * S), device=dev,
+                                          **options) for b in range(B)]
         first = 1 if include_reference_step else 0
         r2s = torch.stack([c.r2s_rgb[first:] for c in chunks])  # (B, S', V, h, w, 3) uint8
         s2g = torch.stack([c.s2g_rgb[first:] for c in chunks])

@@ -15,6 +15,7 @@ import torch
 
 from imac_data.core.mujoco_gl import mujoco
 from imac_data.core.rig import Rig
+from imac_data.core.robot.platforms import simulator_platform
 from imac_data.layout import STATE, depth_key, image_key
 from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 from imac_data.sources.sim.scripts import ArmIK, Trajectory, Waypoint, lift_waypoints
@@ -33,7 +34,7 @@ LEFT, RIGHT_ARM, RIGHT_GRIP = slice(0, 7), slice(7, 13), 13
 def lift_rig() -> Rig:
     """The simulated rig's cameras and kinematics: the policy's knowledge of its own robot."""
     model = load_mujoco_model("lift")
-    return Rig.from_platform("aloha_sim", camera_calibration(model, 640, 480), task="lift")
+    return Rig.from_platform(simulator_platform(), camera_calibration(model, 640, 480), task="lift")
 
 
 class LiftPolicy:
