@@ -32,6 +32,7 @@ import numpy as np
 from imac_data import lerobot_compat as lr
 from imac_data.core.robot.description import DESCRIPTION_DIR, check_description
 from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info, write_info
+from imac_data.dataset.streams import video_info
 from imac_data.errors import InputError
 from imac_data.layout import is_added_stream
 
@@ -102,8 +103,8 @@ def restore_imac_block(root: str | Path, original: str | Path) -> dict:
     """Put back the ``imac`` block (and the robot description) of a dataset that a tool which
     rewrites ``info.json`` dropped them from (LeRobot's ``merge_datasets``, ``add_features``,
     ``remove_feature``: docs/lerobot.md), from ``original``, the imac-built dataset it was made
-    from. Every added stream left in ``root`` must be the original's (same dtype, shape, names);
-    returns the restored block."""
+    from. Every added stream left in ``root`` must be the original's (same dtype, shape, names,
+    and its files of the codec and pixel format imac wrote); returns the restored block."""
     root, original = Path(root), Path(original)
     info, source = read_info(root), read_info(original)
     if "imac" in info:
@@ -119,6 +120,15 @@ def restore_imac_block(root: str | Path, original: str | Path) -> dict:
             if list(np.atleast_1d(feature.get(field) or [])) != list(np.atleast_1d(given.get(field) or [])):
                 raise InputError(f"cannot restore {root} from {original}: {key}.{field} differs "
                                  f"({feature.get(field)} against {given.get(field)})")
+        # LeRobot 0.4.4's delete_episodes / split_dataset re-encode a stream with LeRobot's camera encoder
+        # (lossy AV1) and keep the original info: the files themselves must still be what the block describes
+        want = tuple((given.get("info") or {}).get(f"video.{k}") for k in ("codec", "pix_fmt"))
+        for path in sorted((root / "videos" / key).rglob("*.mp4")) if feature.get("dtype") == "video" else []:
+            got = video_info(path)
+            if (got["video.codec"], got["video.pix_fmt"]) != want:
+                raise InputError(f"cannot restore {root} from {original}: {path.relative_to(root)} is "
+                                 f"{got['video.codec']} {got['video.pix_fmt']}, not the {want[0]} {want[1]} imac "
+                                 "wrote (re-encoded by the tool): rebuild the dataset instead")
     description = original / DESCRIPTION_DIR
     if "robot" in block:
         check_description(description, block["robot"]["description"], where=f"robot description {description}")
