@@ -6,16 +6,17 @@ forward kinematics, and TinyRenderer segmentation and depth). Figures at full si
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from imac_data.core.robot.model import RobotModel
-from tests.conftest import PYBULLET_MISSING, PYBULLET_REASON
 
-if PYBULLET_MISSING:
-    pytest.skip(PYBULLET_REASON, allow_module_level=True)
+if sys.version_info >= (3, 12):  # pyproject.toml installs pybullet on Python 3.11 only
+    pytest.skip("pybullet 3.2.7 has no cp312/cp313 wheel, so Python 3.12+ environments go without it; the Python "
+                "3.11 run (CI's make test) covers this test", allow_module_level=True)
 
 from benchmarks.panda_vs_pybullet import PyBulletPanda, compare, panda_config, random_configs  # noqa: E402
 
