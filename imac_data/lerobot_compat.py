@@ -1,6 +1,7 @@
 """LeRobot in one place: every LeRobot name that imac_data and imac_model use comes from here.
 
-Supported: LeRobot 0.4.4 (run by the tests) and 0.5.1 to 0.6.x (read against their source);
+Supported: LeRobot 0.4.4 (Python 3.11: the whole suite) and 0.5.1 to 0.6.x (Python 3.12+: CI runs the
+LeRobot-facing tests under 0.6.1);
 ``docs/lerobot.md`` has the audit. Names load on first use (``lerobot_compat.LeRobotDataset``):
 LeRobot's dataset modules take over a second to import, and most commands never need them.
 """
