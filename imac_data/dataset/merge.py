@@ -27,8 +27,6 @@ import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-import numpy as np
-
 from imac_data import lerobot_compat as lr
 from imac_data.core.robot.description import DESCRIPTION_DIR, check_description
 from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info, write_info
@@ -117,7 +115,7 @@ def restore_imac_block(root: str | Path, original: str | Path) -> dict:
         if given is None:
             raise InputError(f"cannot restore {root} from {original}: its stream {key} is not in {original}")
         for field in ("dtype", "shape", "names"):
-            if list(np.atleast_1d(feature.get(field) or [])) != list(np.atleast_1d(given.get(field) or [])):
+            if json.dumps(feature.get(field)) != json.dumps(given.get(field)):
                 raise InputError(f"cannot restore {root} from {original}: {key}.{field} differs "
                                  f"({feature.get(field)} against {given.get(field)})")
         # LeRobot 0.4.4's delete_episodes / split_dataset re-encode a stream with LeRobot's camera encoder
