@@ -1,6 +1,8 @@
 # The two commands of the README: `make demo` (main job) and `make test`.
 # Both set up whatever is missing first (system packages, .venv, editable install).
-PY := .venv/bin/python
+# PYTHON picks the interpreter (default: python3), VENV the environment (default: .venv): scripts/setup.sh.
+VENV ?= .venv
+PY := $(VENV)/bin/python
 export MUJOCO_GL ?= egl
 
 .PHONY: setup demo test bench experiment ranking da3 clean
@@ -46,4 +48,4 @@ da3: setup
 	$(PY) -c "from imac_data.sources.da3 import DA3_INSTALL; print(DA3_INSTALL)" | sed 's|^pip|$(PY) -m pip|' | sh
 
 clean:
-	rm -rf .venv .pytest_cache build *.egg-info
+	rm -rf .venv .venv312 .pytest_cache build *.egg-info

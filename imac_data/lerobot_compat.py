@@ -1,6 +1,7 @@
 """LeRobot in one place: every LeRobot name that imac_data and imac_model use comes from here.
 
-Supported: LeRobot 0.4.4 (run by the tests) and 0.5.1 to 0.6.x (read against their source);
+Supported: LeRobot 0.4.4 (Python 3.11: the whole suite) and 0.5.1 to 0.6.x (Python 3.12+: CI runs the
+LeRobot-facing tests under 0.6.1);
 ``docs/lerobot.md`` has the audit. Names load on first use (``lerobot_compat.LeRobotDataset``):
 LeRobot's dataset modules take over a second to import, and most commands never need them.
 """
@@ -15,7 +16,7 @@ from typing import Any
 from imac_data.errors import InputError
 
 __all__ = ["NAMES", "default_root", "version", "create_dataset", "set_streaming_encoder",
-           "close_writers", "video_backend", "convert_v21"]
+           "close_writers", "video_backend", "convert_v21", "encode_image_dir"]
 
 # name -> the modules that define it, newest layout first
 NAMES: dict[str, tuple[str, ...]] = {
@@ -37,6 +38,7 @@ NAMES: dict[str, tuple[str, ...]] = {
     "serialize_dict": ("lerobot.datasets.utils",),
     "update_chunk_file_indices": ("lerobot.datasets.utils",),
     "decode_video_frames": ("lerobot.datasets.video_utils",),
+    "encode_video_frames": ("lerobot.datasets.video_utils",),
     "convert_dataset": (
         "lerobot.scripts.convert_dataset_v21_to_v30",  # >= 0.5.1
         "lerobot.datasets.v30.convert_dataset_v21_to_v30",  # 0.4.4 and 0.5.0
@@ -148,3 +150,15 @@ def convert_v21(dataset_root: Path, repo_id: str) -> str:
             raise InputError(f"{dataset_root}: LeRobot {version()} converts <root>/{repo_id} only")
     convert(repo_id, root=str(root), push_to_hub=False, force_conversion=True)
     return module
+
+
+def encode_image_dir(imgs_dir: Path, video_path: Path, fps: int, *, vcodec: str, overwrite: bool = False) -> None:
+    """LeRobot's own PNG-folder encoder (``encode_video_frames``) with codec ``vcodec`` and LeRobot's
+    other defaults: 0.4.4 takes ``vcodec=``, 0.5.1 on an ``RGBEncoderConfig`` (``video_encoder=``)."""
+    encode = _find("encode_video_frames")[0]
+    params = inspect.signature(encode).parameters
+    if "vcodec" in params:  # 0.4.4
+        encode(imgs_dir, video_path, fps, vcodec=vcodec, overwrite=overwrite)
+    else:  # >= 0.5.1
+        config = importlib.import_module("lerobot.configs.video").RGBEncoderConfig
+        encode(imgs_dir, video_path, fps, video_encoder=config(vcodec=vcodec), overwrite=overwrite)

@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
-# Idempotent set-up: system packages, a virtual environment in .venv, the editable install.
+# Idempotent set-up: system packages, a virtual environment, the editable install.
 # Safe to run again: each step is skipped when already done.
+#   PYTHON       the interpreter (default: the machine's python3); 3.11 gets LeRobot 0.4.4, 3.12+ LeRobot 0.5.1-0.6.x
+#   VENV         the environment's directory (default: .venv), e.g. VENV=.venv312 for a second one beside it
+#   CONSTRAINTS  an optional pip constraints file, e.g. constraints/lerobot-0.6.1.txt (what CI pins)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -25,11 +28,38 @@ fi
 # No pip cache: the stack's wheels (torch with its CUDA libraries, open3d, ...) are about 4 GB
 # compressed, and a cached copy of each on top of the 11 GB install has filled a CI disk.
 export PIP_NO_CACHE_DIR=1
-PY=${PYTHON:-python3.11}
-command -v "$PY" >/dev/null || PY=python3
-if [ ! -x .venv/bin/python ]; then
-  echo "[setup] creating .venv with $($PY --version)"
-  "$PY" -m venv .venv
+V=${VENV:-.venv}
+if [ -n "${PYTHON:-}" ]; then PY=$PYTHON; why="PYTHON"; else PY=python3; why="the machine's python3 (set PYTHON to choose another)"; fi
+# The interpreter's real file (not a pyenv shim or a symlink) and version: what a venv records as its base.
+# shellcheck disable=SC2016  # the $ is Python's
+probe='import os, sys; print(os.path.realpath(sys._base_executable), "%d.%d.%d" % sys.version_info[:3])'
+if ! found=$("$PY" -c "$probe" 2>/dev/null); then
+  echo "[setup] cannot run '$PY' (from $why): set PYTHON to a Python 3.11, 3.12 or 3.13 interpreter" >&2
+  exit 1
+fi
+py_exe=${found% *}; py_ver=${found##* }
+echo "[setup] Python $py_ver at $py_exe, from $why; environment: $V"
+case "$py_ver" in
+  3.1[1-9].*|3.[2-9][0-9].*) ;;
+  *) echo "[setup] $PY is Python $py_ver ($py_exe); the project needs Python 3.11 or newer: set PYTHON to one" >&2
+     exit 1;;
+esac
+if [ -x "$V/bin/python" ]; then
+  have=$("$V/bin/python" -c "$probe" 2>/dev/null || echo "unknown unknown")
+  if [ "${have% *}" != "$py_exe" ]; then
+    echo "[setup] $V was made by Python ${have##* } (${have% *}), not by the Python asked for, $py_ver ($py_exe):" \
+      "remove $V, or set VENV to another directory, or PYTHON to ${have% *}" >&2
+    exit 1
+  fi
+else
+  echo "[setup] creating $V with Python $py_ver"
+  "$PY" -m venv "$V"
+fi
+constrain=()
+if [ -n "${CONSTRAINTS:-}" ]; then
+  [ -f "$CONSTRAINTS" ] || { echo "[setup] CONSTRAINTS=$CONSTRAINTS: no such file" >&2; exit 1; }
+  constrain=(-c "$CONSTRAINTS")
+  echo "[setup] with the constraints of $CONSTRAINTS"
 fi
 # pip's downloads stay on disk until its command ends. torch and its CUDA libraries are more than
 # half of the install, so they go in first, in a command of their own, at the version the whole
@@ -38,31 +68,37 @@ need_gb=13
 pip_failed() {  # $1: the log
   tail -n 40 "$1"
   if grep -q 'No space left on device' "$1"; then
-    echo "[setup] the disk filled up: the install needs about ${need_gb} GB free under $PWD/.venv and \$TMPDIR (${TMPDIR:-/tmp})" >&2
+    echo "[setup] the disk filled up: the install needs about ${need_gb} GB free under $PWD/$V and \$TMPDIR (${TMPDIR:-/tmp})" >&2
   fi
   echo "[setup] pip install failed; full log in $1" >&2
   exit 1
 }
-stamp=.venv/.imac-install-stamp
-want=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)
+stamp=$V/.imac-install-stamp
+want=$(cat pyproject.toml scripts/setup.sh ${CONSTRAINTS:+"$CONSTRAINTS"} | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-  echo "[setup] installing the project and its dependencies into .venv (first time: several minutes)"
-  for dir in .venv "${TMPDIR:-/tmp}"; do
+  echo "[setup] installing the project and its dependencies into $V (first time: several minutes)"
+  for dir in "$V" "${TMPDIR:-/tmp}"; do
     free_gb=$(df -P -BG "$dir" | awk 'NR == 2 { sub("G", "", $4); print $4 }')
-    if [ -n "$free_gb" ] && [ "$free_gb" -lt "$need_gb" ] && [ ! -d .venv/lib/python3*/site-packages/torch ]; then
+    if [ -n "$free_gb" ] && [ "$free_gb" -lt "$need_gb" ] && ! ls -d "$V"/lib/python3*/site-packages/torch >/dev/null 2>&1; then
       echo "[setup] warning: $free_gb GB free under $dir; a first install needs about $need_gb GB" >&2
     fi
   done
-  log=.venv/pip-install.log
-  .venv/bin/python -m pip install --upgrade pip > "$log" 2>&1 || pip_failed "$log"
-  torch_pin=$(.venv/bin/python -m pip install --dry-run --quiet --report - -e ".[dev,ray]" 2>> "$log" \
-    | .venv/bin/python -c 'import json, sys
+  log=$V/pip-install.log
+  "$V/bin/python" -m pip install --upgrade pip > "$log" 2>&1 || pip_failed "$log"
+  torch_pin=$("$V/bin/python" -m pip install --dry-run --quiet --report - "${constrain[@]}" -e ".[dev,ray]" 2>> "$log" \
+    | "$V/bin/python" -c 'import json, sys
 print("".join("torch==" + p["metadata"]["version"] for p in json.load(sys.stdin)["install"] if p["metadata"]["name"] == "torch"))') \
     || pip_failed "$log"
   if [ -n "$torch_pin" ]; then
-    .venv/bin/python -m pip install "$torch_pin" >> "$log" 2>&1 || pip_failed "$log"
+    "$V/bin/python" -m pip install "${constrain[@]}" "$torch_pin" >> "$log" 2>&1 || pip_failed "$log"
   fi
-  .venv/bin/python -m pip install -e ".[dev,ray]" >> "$log" 2>&1 || pip_failed "$log"
+  "$V/bin/python" -m pip install "${constrain[@]}" -e ".[dev,ray]" >> "$log" 2>&1 || pip_failed "$log"
+  # Python 3.13: dm-control's labmaze has no cp313 wheel and builds only with Bazel; gym-aloha and dm-control go
+  # in without dependency resolution (pyproject.toml lists their other dependencies for 3.13).
+  case "$py_ver" in
+    3.1[3-9].*) "$V/bin/python" -m pip install --no-deps gym-aloha==0.1.5 dm-control==1.0.41 >> "$log" 2>&1 \
+                  || pip_failed "$log";;
+  esac
   echo "$want" > "$stamp"
   echo "[setup] done (log: $log)"
 fi
@@ -72,8 +108,8 @@ fi
 # not allow, so it goes in without dependency resolution, with the modules it imports: the exact
 # command is imac_data.sources.da3.DA3_INSTALL (read without importing the package, which
 # would cost a torch import on every run). Stamped with that command, so a new list reinstalls.
-da3_stamp=.venv/.imac-da3-stamp
-da3_cmd=$(.venv/bin/python -c '
+da3_stamp=$V/.imac-da3-stamp
+da3_cmd=$("$V/bin/python" -c '
 import ast
 for node in ast.parse(open("imac_data/sources/da3.py").read()).body:
     if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "DA3_INSTALL" for t in node.targets):
@@ -81,10 +117,10 @@ for node in ast.parse(open("imac_data/sources/da3.py").read()).body:
 ')
 case "$da3_cmd" in "pip install "*) ;; *) echo "[setup] cannot read DA3_INSTALL from imac_data/sources/da3.py" >&2; exit 1;; esac
 if [ ! -f "$da3_stamp" ] || [ "$(cat "$da3_stamp")" != "$da3_cmd" ]; then
-  echo "[setup] installing Depth Anything 3 (code only, no weights) into .venv"
-  log=.venv/pip-install-da3.log
+  echo "[setup] installing Depth Anything 3 (code only, no weights) into $V"
+  log=$V/pip-install-da3.log
   # shellcheck disable=SC2086  # the command's words are meant to split
-  if ! .venv/bin/python -m $da3_cmd > "$log" 2>&1; then
+  if ! "$V/bin/python" -m $da3_cmd > "$log" 2>&1; then
     tail -n 40 "$log"
     echo "[setup] Depth Anything 3 install failed; full log in $log" >&2
     exit 1

@@ -53,7 +53,7 @@ def test_augment_existing_dataset_keeps_original_videos(base):
     assert "observation.depth.cam_left_wrist" in ds.meta.video_keys
     # depth decodes back to the recorded depth (bit-exact stream, 8-bit codec steps)
     item = ds[3]
-    metres = depth_codec_of(ds.meta.info).decode(item["observation.depth.cam_high"], channel_axis=-3)
+    metres = depth_codec_of(ds.meta).decode(item["observation.depth.cam_high"], channel_axis=-3)
     from imac_data.sources.hdf5 import read_episode
 
     truth = read_episode(sorted(src.glob("episode_*.hdf5"))[0]).depth_mm["cam_high"][3] / 1000.0

@@ -12,6 +12,7 @@ from imac_data.cli import main as imac_main
 from imac_data.core.robot import aloha
 from imac_data.dataset.output import staging_dir
 from imac_data.errors import InputError
+from imac_data.metadata import imac_block
 from imac_data.recipes import RECIPES_DIR, load_recipe, parse_recipe
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
@@ -61,7 +62,7 @@ def test_cli_builds_a_loadable_dataset(sim_dir, tmp_path, capsys):
                     f"control.contact_s2g.{cam}"):
             assert key in ds.meta.video_keys
     assert tuple(ds.meta.features["control.contact_cap"]["shape"]) == (2,)
-    info = ds.meta.info["imac"]
+    info = imac_block(ds.meta)
     assert info["contact"]["chunk_size"] == 4 and info["depth"]["codec"]["lam"] == -500
     assert (root / "README.md").read_text().startswith("# local/tiny")
     # the output is complete: rebuilding without --overwrite is refused, with it succeeds

@@ -20,6 +20,7 @@ from imac_data.dataset.merge import merge_datasets
 from imac_data.dataset.validate import validate_dataset
 from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter
 from imac_data.errors import InputError
+from imac_data.lerobot_compat import encode_image_dir
 from imac_data.recipes import RECIPES_DIR
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
@@ -45,7 +46,6 @@ def test_image_stats_equal_lerobots_in_constant_memory(T, H, W):
 def test_lerobot_style_writer_is_lerobots_encoder(tmp_path):
     """Our streaming writer with LeRobot's settings writes the bytes LeRobot's own PNG path
     (encode_video_frames) writes, with no PNGs."""
-    from lerobot.datasets.video_utils import encode_video_frames
     from PIL import Image
 
     rng = np.random.default_rng(0)
@@ -53,7 +53,7 @@ def test_lerobot_style_writer_is_lerobots_encoder(tmp_path):
     (tmp_path / "png").mkdir()
     for i, f in enumerate(frames):
         Image.fromarray(f).save(tmp_path / "png" / f"frame-{i:06d}.png")
-    encode_video_frames(tmp_path / "png", tmp_path / "lerobot.mp4", 10, vcodec="libsvtav1", overwrite=True)
+    encode_image_dir(tmp_path / "png", tmp_path / "lerobot.mp4", 10, vcodec="libsvtav1", overwrite=True)
     writer = VideoWriter(tmp_path / "ours.mp4", VideoEncoding.lerobot_default().with_threads(1), 10, 48, 64,
                          style="lerobot")
     writer.write(frames[:4])

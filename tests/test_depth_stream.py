@@ -106,7 +106,7 @@ def test_depth_round_trip_is_bit_exact_through_lerobot(with_depth, sim):
     assert {k: after[k] for k in before} == before  # the RGB streams are byte-identical
 
     ds = LeRobotDataset("local/depth", root=root)  # default decoder: torchcodec
-    codec = depth_codec_of(ds.meta.info)
+    codec = depth_codec_of(ds.meta)
     assert codec == CODEC
     errs, n = [], 0
     for raw in sim["raws"]:

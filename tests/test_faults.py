@@ -18,6 +18,7 @@ import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from imac_data.cli import main as imac_main
+from imac_data.metadata import imac_block
 from imac_data.recipes import RECIPES_DIR
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
@@ -419,7 +420,7 @@ def test_environment_faults_exit_3_keep_finished_shards_and_resume(sim_src, tmp_
     assert "%|" not in err and "it/s" not in err, err  # --no-progress: LeRobot's bars too
     ds = LeRobotDataset("local/x", root=root)
     assert ds.meta.total_episodes == 2
-    camera = ds.meta.info["imac"]["cameras"]["cam_high"]  # the simulator's own K at 120x160 again
+    camera = imac_block(ds.meta)["cameras"]["cam_high"]  # the simulator's own K at 120x160 again
     assert (camera["height"], camera["width"]) == (120, 160) and np.allclose(camera["K"], K, atol=1e-9)
     assert sorted(p.name for p in root.parent.iterdir()) == ["out"]
     assert tree_digest(src) == source

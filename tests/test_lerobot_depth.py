@@ -28,6 +28,7 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from packaging.version import Version
 
 from imac_data.build.flow import build_dataset
 from imac_data.build.staging import BuildRequest
@@ -37,6 +38,8 @@ from imac_data.core.depth_map import DepthMapParams
 from imac_data.dataset.streams import StreamWriter
 from imac_data.dataset.videos import VideoEncoding
 from imac_data.errors import InputError
+from imac_data.lerobot_compat import version as lerobot_version
+from imac_data.metadata import imac_block
 from imac_data.recipes import load_recipe, parse_recipe
 from imac_data.sources.depth import EpisodeViews, RecordedDepth
 from imac_data.sources.lerobot_dataset import SourceDataset
@@ -47,6 +50,10 @@ from imac_data.sources.sim.rig import camera_calibration, load_mujoco_model
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "lerobot061"
 FIXTURE = FIXTURES / "depth"
 REFERENCE_STEPS_MM = {True: {0.3: 1.25, 1.0: 1.48, 5.0: 2.80}, False: {0.3: 2.44, 1.0: 2.44, 5.0: 2.44}}
+# LeRobot 0.6.0 added depth maps: its LeRobotDataset decodes one to (1, H, W) float millimetres. LeRobot
+# 0.4.4 has none and decodes the same video as a grey (3, H, W) image in [0, 1].
+LEROBOT_DEPTH_MAPS = Version(lerobot_version()) >= Version("0.6.0")
+NO_DEPTH_MAPS = "LeRobot 0.4.4 has no depth maps (0.6.0 added them): its LeRobotDataset decodes one as grey RGB"
 
 
 def run_lerobot061(request: dict, tmp_path: Path) -> dict:
@@ -189,6 +196,8 @@ def test_our_quantiser_gives_lerobots_codes():
                                 ("depth_log_mm", DepthMapParams(), depth["depth_mm"] / 1000.0)):
         np.testing.assert_array_equal(params.quantize(given), depth[f"codes_{name}"])
     assert DepthMapParams().quantize(np.array([np.nan, np.inf, -np.inf, -1.0, 0.0])).tolist() == [0] * 5
+    # valid depth below the range (LeRobot's code 0) is code 1: code 0 stays "invalid"
+    assert DepthMapParams().quantize(np.array([1e-4, 0.01, 0.0105, 0.011])).tolist() == [1, 1, 1, 1]
 
 
 # ----------------------------------------------------------------------------- the output
@@ -240,12 +249,17 @@ def test_our_depth_maps_decode_with_lerobot_061s_own_code(tiny_dataset, tmp_path
     for i, (key, p) in enumerate(cases.items()):
         codes = np.load(tmp_path / f"codes{i}.npy")
         theirs = np.load(tmp_path / f"m{i}.npy")
-        inside = (metres >= p.depth_min) & (metres <= p.depth_max)  # LeRobot clips to its range
+        # LeRobot clips to its range; below half a step above depth_min we write code 1 (quantize)
+        inside = (metres >= p.depth_min + p.step(p.depth_min) / 2) & (metres <= p.depth_max)
         step = np.vectorize(p.step)(metres[inside])
         err = np.abs(theirs[inside] - metres[inside])
         assert (err <= step / 2 + 1e-6).all(), (key, (err / step).max())
-        np.testing.assert_array_equal(np.load(tmp_path / f"q{i}.npy")[metres > 0], codes[metres > 0])
-        assert (codes[metres == 0] == 0).all()
+        theirs_q = np.load(tmp_path / f"q{i}.npy")
+        # the same codes, except that valid depth LeRobot writes as 0 (below the range) is our code 1
+        near = (metres > 0) & (theirs_q == 0)
+        assert near.sum() > 0 or p.depth_min <= 0.05
+        np.testing.assert_array_equal(theirs_q[(metres > 0) & ~near], codes[(metres > 0) & ~near])
+        assert (codes[near] == 1).all() and (codes[metres == 0] == 0).all()
         enc = result["encoders"][i]
         assert (enc["vcodec"], enc["pix_fmt"], enc["depth_min"], enc["depth_max"], enc["shift"], enc["use_log"]) == \
             ("hevc", "gray12le", p.depth_min, p.depth_max, p.shift, p.use_log)
@@ -258,9 +272,11 @@ def test_our_depth_maps_decode_with_lerobot_061s_own_code(tiny_dataset, tmp_path
 
 
 def test_lerobots_merge_keeps_our_depth_maps(tiny_dataset, tmp_path):
-    """LeRobot 0.4.4's aggregate_datasets (what merges a build's shards) on two datasets with our
-    depth maps: the codes concatenated unchanged, the stats still (1, 1, 1) metres, the merge
-    loadable by LeRobot. (Under a key holding "image", 0.4.4's aggregate_stats refuses (1, 1, 1).)"""
+    """LeRobot's aggregate_datasets (what merges a build's shards) on two datasets with our
+    depth maps: the codes concatenated unchanged, the stats still (1, 1, 1) metres, every frame
+    loadable by LeRobot (0.6 on: as the metres written, within half a step; the closed GOPs let
+    its PyAV reader seek across the join). (Under a key holding "image", 0.4.4's aggregate_stats
+    refuses (1, 1, 1).)"""
     from imac_data import lerobot_compat as lr
 
     key, params = "observation.depth_map.cam", DepthMapParams()
@@ -274,7 +290,65 @@ def test_lerobots_merge_keeps_our_depth_maps(tiny_dataset, tmp_path):
     stats = json.loads((out / "meta" / "stats.json").read_text())[key]
     assert np.shape(stats["q50"]) == (1, 1, 1) and stats["count"] == [6]
     assert json.loads((out / "meta" / "info.json").read_text())["features"][key]["info"]["is_depth_map"] is True
-    assert LeRobotDataset("local/merged", root=out)[4][key].shape == (3, 24, 32)  # 0.4.4: grey RGB
+    merged_ds = LeRobotDataset("local/merged", root=out, **({"depth_output_unit": "m"} if LEROBOT_DEPTH_MAPS else {}))
+    for i in range(6):  # every frame, the first of the second part included (a seek across the join)
+        item = merged_ds[i][key]
+        if LEROBOT_DEPTH_MAPS:  # read as a depth map: within half a step where valid
+            metres = random_metres(i // 3)[i % 3]
+            valid = metres > 0
+            assert item.shape == (1, 24, 32), i
+            err = np.abs(item[0].numpy()[valid] - metres[valid])
+            assert (err <= np.vectorize(params.step)(metres[valid]) / 2 + 1e-6).all(), i
+        else:
+            assert item.shape == (3, 24, 32), i  # grey RGB
+
+
+@pytest.mark.skipif(not LEROBOT_DEPTH_MAPS, reason=NO_DEPTH_MAPS)
+@pytest.mark.parametrize("unit", ["mm", "m"])
+def test_lerobots_own_dataset_reads_our_depth_maps_within_half_a_step(tiny_dataset, tmp_path, unit):
+    """LeRobot's own ``LeRobotDataset`` (0.6.0 on) on a dataset with our depth maps (log and
+    linear): every valid pixel of every frame inside the quantiser's range within half a step of
+    the metres written (plus 0.5 mm in millimetres, which LeRobot rounds to whole ones); valid
+    depth below the range reads as code 1, beyond it as ``depth_max``.
+    An invalid pixel (0 in the source: code 0) comes back as ``depth_min`` (10 mm by default),
+    every valid one a step above it or more: ``depth > depth_min`` gives the validity mask back
+    exactly, so nothing is lost and no mask is stored."""
+    cases = {"observation.depth_map.log": DepthMapParams(),
+             "observation.depth_map.linear": DepthMapParams(0.2, 4.0, 0.0, False)}
+    metres = random_metres(2)
+    metres[0, 4, :4] = [0.0105, 0.1, 0.2005, 3.99]  # near either end of both ranges
+    root = tmp_path / "ds"
+    add_depth_maps(tiny_dataset, root, cases, metres)
+    ds = LeRobotDataset("local/source", root=root, depth_output_unit=unit)
+    scale = 1000.0 if unit == "mm" else 1.0
+    # In millimetres (its default) LeRobot 0.6.1 rounds to whole millimetres: up to 0.5 mm more.
+    rounding = 0.0005 if unit == "mm" else 0.0
+
+    def as_read(m: float) -> float:
+        return round(m * 1000) / 1000 if unit == "mm" else m
+
+    valid = metres > 0
+    assert len(ds) == len(metres) and (~valid).sum() > 0
+    for key, p in cases.items():
+        got = np.stack([ds[t][key].numpy() for t in range(len(ds))])
+        assert got.shape == (len(metres), 1, 24, 32) and got.dtype == np.float32, (key, got.shape, got.dtype)
+        got = got[:, 0].astype(np.float64) / scale
+        table = p.code_values()
+        inside = valid & (metres >= p.depth_min + p.step(p.depth_min) / 2) & (metres <= p.depth_max)
+        near, far = valid & (metres < p.depth_min + p.step(p.depth_min) / 2), valid & (metres > p.depth_max)
+        assert inside.sum() > 1000 and near.sum() >= 1 and (far.sum() >= 1 or p.depth_max >= 8.0), key
+        step = np.vectorize(p.step)(metres[inside])
+        err = np.abs(got[inside] - metres[inside])
+        assert (err <= step / 2 + rounding + 1e-6).all(), (key, (err / step).max())
+        # a code's value, up to LeRobot's float32 arithmetic (1 um)
+        np.testing.assert_allclose(got[near], as_read(table[1]), rtol=0, atol=1e-6)
+        np.testing.assert_allclose(got[far], as_read(p.depth_max), rtol=0, atol=1e-6)
+        np.testing.assert_allclose(got[~valid], as_read(p.depth_min), rtol=0, atol=1e-6)
+        assert as_read(table[1]) > as_read(table[0])
+        assert ((got > as_read(table[0]) + 1e-6) == valid).all(), key
+        print(f"{key} ({unit}): LeRobot {lerobot_version()}'s LeRobotDataset within {(err / step).max():.4f} of a "
+              f"step; invalid pixels read {got[~valid].max() * 1000:.4f} mm, the lowest valid "
+              f"{got[valid].min() * 1000:.3f} mm")
 
 
 # ----------------------------------------------------------------------------- refusals
@@ -419,7 +493,7 @@ def test_build_from_a_depth_map_source_matches_mujoco(depth_map_source, tmp_path
     (tmp_path / "recipe.yaml").write_text(yaml.safe_dump(data))
     root = tmp_path / "out"
     ds = build_dataset(BuildRequest("local/out", load_recipe(tmp_path / "recipe.yaml"), root, progress=False))
-    names = list(ds.meta.info["imac"]["cameras"])
+    names = list(imac_block(ds.meta)["cameras"])
     assert [k for k in ds.meta.video_keys if "_depth" in k] == []  # the source's depth maps are read, not copied
     for cam in names:
         ours = _decode(root / "videos" / f"observation.depth_map.{cam}" / "chunk-000" / "file-000.mp4", "gray12le")

@@ -24,6 +24,7 @@ from imac_data.build.staging import BuildRequest
 from imac_data.core.cameras import load_calibration, save_calibration
 from imac_data.core.robot import aloha
 from imac_data.errors import InputError
+from imac_data.metadata import dataset_info, imac_block
 from imac_data.recipes import load_recipe
 from imac_data.sources.hdf5 import read_episode
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
@@ -134,7 +135,7 @@ def test_lerobot_v30_source_built_with_da3(source, sim, da3_weights, tmp_path):
     assert list(ds.meta.episodes["imac/success"]) == [True, False]
     assert list(ds.meta.episodes["imac/source"]) == ["policy", "policy"]
     assert list(ds.meta.episodes["imac/policy_name"]) == ["act", "act"]
-    imac = ds.meta.info["imac"]
+    imac = imac_block(ds.meta)
     assert imac["depth"]["source"]["kind"] == "depth_anything_3"
     assert imac["depth"]["source"]["model"] == str(da3_weights)
     assert imac["build"]["source"]["cameras"]["observation.images.top"] == "cam_high"
@@ -177,11 +178,11 @@ def test_one_camera_source_recorded_depth_or_none(sim, tmp_path, depth):
     if depth == "none":
         assert [k for k in ds.meta.video_keys if k.startswith(("control.", "observation.depth."))] == \
             ["control.motion.cam_high"]
-        assert ds.meta.info["imac"]["depth"]["source"]["kind"] == "none"
+        assert imac_block(ds.meta)["depth"]["source"]["kind"] == "none"
         return
     truth = read_episode(sorted((sim / "sim").glob("episode_*.hdf5"))[1]).depth_mm["cam_high"][3] / 1000.0
     item = ds[ds.meta.episodes["dataset_from_index"][1] + 3]
-    metres = np.asarray(depth_codec_of(ds.meta.info).decode(item["observation.depth.cam_high"], channel_axis=-3))
+    metres = np.asarray(depth_codec_of(ds.meta).decode(item["observation.depth.cam_high"], channel_axis=-3))
     valid = (truth > 0.1) & (truth < 1.2)
     assert np.median(np.abs(metres[valid] - truth[valid])) < 3e-3
     assert "control.contact_s2g.cam_high" in ds.meta.video_keys
@@ -376,8 +377,8 @@ def test_v21_source_is_converted_by_lerobot_on_a_staged_copy(source, sim, tmp_pa
     recipe = recipe_file(tmp_path, v21, sim / "sim" / "calibration.json", depth={"source": "none"})
     ds = build(BuildRequest("local/from_v21", recipe, tmp_path / "out", progress=False))
     assert tree_digest(v21) == before and not (tmp_path / "v21_old").exists()  # converted elsewhere
-    assert ds.meta.info["codebase_version"] == "v3.0" and ds.meta.total_episodes == 2
-    assert ds.meta.info["imac"]["build"]["source"]["codebase_version"] == "v2.1"
+    assert dataset_info(ds.meta)["codebase_version"] == "v3.0" and ds.meta.total_episodes == 2
+    assert imac_block(ds.meta)["build"]["source"]["codebase_version"] == "v2.1"
     out = read_video_frames(tmp_path / "out" / "videos" / "observation.images.cam_high" / "chunk-000" / "file-000.mp4")
     episodes = v21 / "videos" / "chunk-000" / KEYS["cam_high"]
     recorded = np.concatenate([read_video_frames(episodes / f"episode_{e:06d}.mp4") for e in range(2)])
@@ -401,7 +402,7 @@ def test_hdf5_build_with_depth_none_has_motion_streams_only(sim, tmp_path):
     ds = build(BuildRequest("local/h5", recipe, tmp_path / "out", progress=False), workers=1)
     added = sorted(k for k in ds.meta.video_keys if not k.startswith("observation.images."))
     assert added == sorted(f"control.motion.{c}" for c in KEYS)
-    assert "control.contact_cap" not in ds.meta.features and ds.meta.info["imac"]["contact"] is None
+    assert "control.contact_cap" not in ds.meta.features and imac_block(ds.meta)["contact"] is None
 
 
 READER = """

@@ -71,31 +71,53 @@ def test_card_lerobot_train_command_trains_two_steps(built, tmp_path):
     assert "num_learnable_params" in out and "'observation.images.cam_high'" in out
 
 
+def logged_images(rrd: Path) -> dict[str, dict[int, tuple[dict, list]]]:
+    """``{entity: {frame_index: (Image:format, Image:buffer)}}`` of a rerun recording. rerun-sdk 0.33
+    removed ``rerun.dataframe`` (LeRobot 0.4.4 pins rerun-sdk below 0.27; LeRobot 0.6.1's viz extra
+    takes 0.33), so there its chunks are read with ``rerun.experimental.RrdReader``."""
+    out: dict[str, dict[int, tuple[dict, list]]] = {}
+    try:
+        from rerun import dataframe as rr_df
+    except ImportError:  # rerun-sdk >= 0.33
+        from rerun.experimental import RrdReader
+
+        for chunk in RrdReader(str(rrd)).store().stream():
+            rb = chunk.to_record_batch()
+            if "Image:buffer" not in rb.schema.names:
+                continue
+            for f, fmt, buf in zip(rb.column("frame_index").to_pylist(), rb.column("Image:format").to_pylist(),
+                                   rb.column("Image:buffer").to_pylist()):
+                out.setdefault(chunk.entity_path, {})[f] = (fmt[0], buf[0])
+        return out
+    recording = rr_df.load_recording(str(rrd))
+    entities = {c.entity_path for c in recording.schema().component_columns() if c.component == "Image:buffer"}
+    for entity in entities:
+        table = recording.view(index="frame_index", contents=entity).select().read_all()
+        for f, fmt, buf in zip(table.column("frame_index").to_pylist(), table.column(f"{entity}:Image:format"),
+                               table.column(f"{entity}:Image:buffer")):
+            out.setdefault(entity, {})[f] = (fmt.as_py()[0], buf.as_py()[0])
+    return out
+
+
 def test_lerobot_dataset_viz_records_every_stream(built, tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.scripts.lerobot_dataset_viz import to_hwc_uint8_numpy
-    from rerun import dataframe as rr_df
 
     home, root = built
     run = subprocess.run(["lerobot-dataset-viz", "--repo-id", REPO_ID, "--root", str(root), "--episode-index", "0",
                           "--save", "1", "--output-dir", str(tmp_path / "viz"), "--num-workers", "0",
                           "--batch-size", "4"], env=_env(home), capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
-    rrd = tmp_path / "viz" / "local_tiny_episode_0.rrd"
-    recording = rr_df.load_recording(str(rrd))
+    images = logged_images(tmp_path / "viz" / "local_tiny_episode_0.rrd")
     ds = LeRobotDataset(REPO_ID, root=root)
     assert len(ds.meta.video_keys) == 15  # 3 cameras x (rgb, depth, motion, r2s, s2g)
-    entities = {c.entity_path for c in recording.schema().component_columns()}
-    assert {f"/{k}" for k in ds.meta.video_keys} <= entities
+    assert {f"/{k}" for k in ds.meta.video_keys} <= set(images)
     for key in ds.meta.video_keys:
-        table = recording.view(index="frame_index", contents=f"/{key}").select().read_all()
-        assert table.num_rows == T, key
-        fmt = table.column(f"/{key}:Image:format")[0].as_py()[0]
+        assert sorted(images[f"/{key}"]) == list(range(T)), key
+        fmt = images[f"/{key}"][0][0]
         assert (fmt["height"], fmt["width"]) == (H, W), key
     key, k = "control.motion.cam_high", 3
-    table = recording.view(index="frame_index", contents=f"/{key}").select().read_all()
-    frames = table.column("frame_index").to_pylist()
-    logged = np.array(table.column(f"/{key}:Image:buffer")[frames.index(k)].as_py()[0], dtype=np.uint8)
+    logged = np.array(images[f"/{key}"][k][1], dtype=np.uint8)
     np.testing.assert_array_equal(logged.reshape(H, W, 3), to_hwc_uint8_numpy(ds[k][key]))
 
 

@@ -224,7 +224,7 @@ def test_decoded_depth_stream_difference_is_bounded_by_the_codec(built, stored):
     ds, rows, ep = stored
     _, spec, _ = _spec(root, **{"data.view_height": HW[0]})
     online = OnlineControls.from_dataset(root, spec)
-    codec = depth_codec_of(ds.meta.info)
+    codec = depth_codec_of(ds.meta)
     errors = []
 
     def stream_depth(frame):

@@ -12,6 +12,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from safetensors.torch import load_file
 
 from imac_data.cli import main as imac_main
+from imac_data.metadata import dataset_info
 from imac_data.recipes import RECIPES_DIR
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 from imac_model.cli import main as model_main
@@ -56,7 +57,7 @@ def test_chunks_are_lerobots_frames_in_the_mosaic(dataset):
     dataset's resolution: reference rule, layout, controls of the future frames, padding."""
     data = DataConfig(dataset="local/model_tiny", root=str(dataset), view_height=64)
     meta = open_metadata(data)
-    layout = resolve_layout(meta.info, data, ("motion", "contact_s2g", "contact_r2s"), spatial_multiple=8,
+    layout = resolve_layout(dataset_info(meta), data, ("motion", "contact_s2g", "contact_r2s"), spatial_multiple=8,
                             temporal_factor=1, mode="motion+contact")
     assert layout.views == VIEWS and layout.view_hw == (64, 80) and layout.chunk == CHUNK
     chunks = ChunkDataset("local/model_tiny", layout, root=dataset, cache="none")
@@ -187,7 +188,7 @@ def test_a_dataset_without_the_modes_streams_is_refused(dataset, tmp_path, capsy
     assert not out.exists()
     # the motion mode only needs what is there
     meta = open_metadata(DataConfig(dataset="local/x", root=str(no_contact)))
-    resolve_layout(meta.info, DataConfig(view_height=32), ("motion",), spatial_multiple=8, temporal_factor=1)
+    resolve_layout(dataset_info(meta), DataConfig(view_height=32), ("motion",), spatial_multiple=8, temporal_factor=1)
 
 
 def test_unreadable_checkpoints_are_named(trained, tmp_path, capsys):

@@ -6,15 +6,19 @@ forward kinematics, and TinyRenderer segmentation and depth). Figures at full si
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-pytest.importorskip("pybullet")  # a project dependency: present in CI
+from imac_data.core.robot.model import RobotModel
+
+if sys.version_info >= (3, 12):  # pyproject.toml installs pybullet on Python 3.11 only
+    pytest.skip("pybullet 3.2.7 has no cp312/cp313 wheel, so Python 3.12+ environments go without it; the Python "
+                "3.11 run (CI's make test) covers this test", allow_module_level=True)
 
 from benchmarks.panda_vs_pybullet import PyBulletPanda, compare, panda_config, random_configs  # noqa: E402
-from imac_data.core.robot.model import RobotModel  # noqa: E402
 
 PAGE = Path(__file__).resolve().parent.parent / "docs" / "new-robot.md"
 

@@ -157,7 +157,11 @@ def test_materials_resolve_by_name_across_links(tmp_path):
 
 
 def _panda():
-    pybullet_data = pytest.importorskip("pybullet_data")  # a dependency: never skipped in CI
+    if sys.version_info >= (3, 12):  # pyproject.toml installs pybullet on Python 3.11 only
+        pytest.skip("pybullet 3.2.7 has no cp312/cp313 wheel, so Python 3.12+ environments go without it; the "
+                    "Python 3.11 run (CI's make test) covers this test")
+    import pybullet_data  # a dependency on Python 3.11 (pyproject.toml)
+
     d = Path(pybullet_data.getDataPath()) / "franka_panda"
     return d / "panda.urdf", d / "meshes"
 

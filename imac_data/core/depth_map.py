@@ -82,9 +82,11 @@ class DepthMapParams:
 
     def quantize(self, depth_m: np.ndarray) -> np.ndarray:
         """uint16 codes of float metres, with the float32 arithmetic of LeRobot's
-        ``quantize_depth`` (the same codes). Invalid depth (0, NaN, +-inf, negative) gives
-        code 0, which LeRobot reads as ``depth_min`` (it maps NaN by an unchecked cast and
-        +inf to 4095)."""
+        ``quantize_depth`` (the same codes), except that code 0 is kept for invalid depth (0,
+        NaN, +-inf, negative): valid depth that LeRobot would write as 0 (less than half a step
+        above ``depth_min``, or nearer) gets code 1, so that a reader of either kind can tell
+        invalid pixels from valid ones (LeRobot reads code 0 as ``depth_min``; it maps NaN by an
+        unchecked cast and +inf to 4095)."""
         d = np.asarray(depth_m).astype(np.float32)
         dmin, dmax, s = np.float32(self.depth_min), np.float32(self.depth_max), np.float32(self.shift)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -94,8 +96,11 @@ class DepthMapParams:
             else:
                 norm = (d - dmin) / (dmax - dmin)
             q = np.rint(norm * QMAX)
-        q[~(np.isfinite(d) & (d > 0))] = 0
-        return q.clip(0, QMAX).astype(np.uint16)
+        valid = np.isfinite(d) & (d > 0)
+        q = q.clip(0, QMAX)
+        q[valid & (q < 1)] = 1
+        q[~valid] = 0
+        return q.astype(np.uint16)
 
     def step(self, depth_m: float) -> float:
         """The quantiser's step (metres) at ``depth_m``."""

@@ -9,7 +9,11 @@ LeRobot's ``aggregate_datasets`` does the merge (data, videos, episodes, stats).
   it is rewritten in feature order (:func:`~imac_data.dataset.info.order_stats`), so equal
   inputs give byte-identical outputs;
 * ``aggregate_datasets`` rebuilds ``info.json`` without our ``imac`` block: it is put back,
-  and the robot description (``meta/imac/robot/``) is copied over.
+  and the robot description (``meta/imac/robot/``) is copied over;
+* LeRobot 0.6.1's ``aggregate_datasets`` adds the video-encoder keys a feature's ``info`` lacks
+  (``video.crf``, ``video.preset``, ... as null, for our streams) in the order of a frozenset,
+  which follows Python's per-process string hashing: they are put in sorted order after the
+  first input's keys, so that a resumed build equals an uninterrupted one byte for byte.
 
 The merge is staged: it is written to a temporary sibling of ``out`` and renamed into place
 when complete.
@@ -25,10 +29,12 @@ from pathlib import Path
 
 from imac_data import lerobot_compat as lr
 from imac_data.core.robot.description import DESCRIPTION_DIR, check_description
-from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info
+from imac_data.dataset.info import imac_block, order_stats, read_info, update_imac_info, write_info
+from imac_data.dataset.streams import video_info
 from imac_data.errors import InputError
+from imac_data.layout import is_added_stream
 
-__all__ = ["merge_datasets", "check_same_rig"]
+__all__ = ["merge_datasets", "check_same_rig", "order_feature_info", "restore_imac_block"]
 
 
 def check_same_rig(roots: Sequence[Path]) -> dict:
@@ -46,6 +52,18 @@ def check_same_rig(roots: Sequence[Path]) -> dict:
                 raise InputError(f"cannot merge {root} with {roots[0]}: their imac.{key} differ (datasets of "
                                  "different rigs or settings)")
     return first
+
+
+def order_feature_info(root: Path, first: Mapping) -> None:
+    """Each feature's ``info`` in ``root``'s ``meta/info.json`` with its keys in the order of
+    ``first`` (the first input's info.json), keys the merge added after them, sorted."""
+    info = read_info(root)
+    for key, feature in info["features"].items():
+        given = (first["features"].get(key) or {}).get("info")
+        if isinstance(feature.get("info"), dict) and isinstance(given, dict):
+            keys = [k for k in given if k in feature["info"]] + sorted(k for k in feature["info"] if k not in given)
+            feature["info"] = {k: feature["info"][k] for k in keys}
+    write_info(root, info)
 
 
 def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *,
@@ -68,6 +86,7 @@ def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *
     try:
         lr.aggregate_datasets([repo_id] * len(roots), repo_id, roots=roots, aggr_root=tmp)
         order_stats(tmp)
+        order_feature_info(tmp, read_info(roots[0]))
         update_imac_info(tmp, {**block, **dict(imac_extra or {})})
         if "robot" in block:
             shutil.copytree(source, tmp / DESCRIPTION_DIR)
@@ -76,3 +95,42 @@ def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+def restore_imac_block(root: str | Path, original: str | Path) -> dict:
+    """Put back the ``imac`` block (and the robot description) of a dataset that a tool which
+    rewrites ``info.json`` dropped them from (LeRobot's ``merge_datasets``, ``add_features``,
+    ``remove_feature``: docs/lerobot.md), from ``original``, the imac-built dataset it was made
+    from. Every added stream left in ``root`` must be the original's (same dtype, shape, names,
+    and its files of the codec and pixel format imac wrote); returns the restored block."""
+    root, original = Path(root), Path(original)
+    info, source = read_info(root), read_info(original)
+    if "imac" in info:
+        raise InputError(f"{root}/meta/info.json already has an imac block: nothing to restore")
+    block = imac_block(source, f"{original}/meta/info.json")
+    for key, feature in info["features"].items():
+        if not is_added_stream(key):
+            continue
+        given = source["features"].get(key)
+        if given is None:
+            raise InputError(f"cannot restore {root} from {original}: its stream {key} is not in {original}")
+        for field in ("dtype", "shape", "names"):
+            if json.dumps(feature.get(field)) != json.dumps(given.get(field)):
+                raise InputError(f"cannot restore {root} from {original}: {key}.{field} differs "
+                                 f"({feature.get(field)} against {given.get(field)})")
+        # LeRobot 0.4.4's delete_episodes / split_dataset re-encode a stream with LeRobot's camera encoder
+        # (lossy AV1) and keep the original info: the files themselves must still be what the block describes
+        want = tuple((given.get("info") or {}).get(f"video.{k}") for k in ("codec", "pix_fmt"))
+        for path in sorted((root / "videos" / key).rglob("*.mp4")) if feature.get("dtype") == "video" else []:
+            got = video_info(path)
+            if (got["video.codec"], got["video.pix_fmt"]) != want:
+                raise InputError(f"cannot restore {root} from {original}: {path.relative_to(root)} is "
+                                 f"{got['video.codec']} {got['video.pix_fmt']}, not the {want[0]} {want[1]} imac "
+                                 "wrote (re-encoded by the tool): rebuild the dataset instead")
+    description = original / DESCRIPTION_DIR
+    if "robot" in block:
+        check_description(description, block["robot"]["description"], where=f"robot description {description}")
+        if not (root / DESCRIPTION_DIR).exists():
+            shutil.copytree(description, root / DESCRIPTION_DIR)
+    block["build"] = {**block.get("build", {}), "imac_block_restored_from": str(original.resolve())}
+    return update_imac_info(root, block)["imac"]

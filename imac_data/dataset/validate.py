@@ -209,6 +209,10 @@ def _count_video_frames(ctx: _Context) -> list[str]:
 
 def check_imac_block(ctx: _Context) -> list[str]:
     streams = any(is_added_stream(k) for k in ctx.features)
+    if streams and "imac" not in ctx.info:
+        return [f"{ctx.root}/meta/info.json has imac's streams but no 'imac' block: a tool that rewrites info.json "
+                "dropped it (LeRobot's merge_datasets, add_features, remove_feature: docs/lerobot.md); put it back "
+                f"from the dataset it was made from: imac validate {ctx.root} --restore-imac-from ORIGINAL"]
     try:
         imac_block(ctx.info, "info.json", require=RIG_KEYS + (STREAM_KEYS if streams else ()))
     except InputError as e:

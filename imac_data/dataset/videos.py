@@ -109,10 +109,13 @@ class VideoEncoding:
     def depth_map(cls) -> VideoEncoding:
         """LeRobot 0.6's depth-map encoder (``DepthEncoderConfig``: HEVC, gray12le, gop 2, crf 30
         (unused when lossless), x265's default preset, ``lossless=1``) without B-frames (LeRobot
-        0.4.4's torchcodec seeks them a frame off), on one x265 thread (bytes independent of the
-        machine), x265's log at errors only."""
+        0.4.4's torchcodec seeks them a frame off), with closed GOPs (every keyframe an IDR: in a
+        file LeRobot concatenated, 0.6.1's PyAV reader seeking to the previous episode's last open
+        keyframe fails on the next episode's first frame), on one x265 thread (bytes independent
+        of the machine), x265's log at errors only."""
         return cls(codec="libx265", pix_fmt=DEPTH_MAP_PIX_FMT, crf=30, qp=None, preset=None, gop=2,
-                   options={"x265-params": "lossless=1:bframes=0:pools=none:frame-threads=1:log-level=error"})
+                   options={"x265-params": "lossless=1:bframes=0:open-gop=0:pools=none:frame-threads=1:"
+                                           "log-level=error"})
 
     @classmethod
     def lerobot_default(cls) -> VideoEncoding:
