@@ -498,16 +498,8 @@ def depth_from_millimetres(depth_mm, *, name: str = "depth"):
 __all__ += ["area_resize_depth", "depth_codec_of", "resize_depth", "walk_distance"]
 
 
-def resize_depth(depth, size: tuple[int, int], *, name: str = "depth"):
-    """Nearest-neighbour resize of depth ``(..., H, W)`` to ``size = (h, w)``; numpy in,
-    numpy out; torch in, torch out (same device, any leading batch shape).
-
-    Each output pixel takes the source pixel that contains its centre (pixel edges
-    scale, the convention of :func:`imac_data.core.cameras.rescale_intrinsics`), so depths
-    are never averaged across an edge (no flying pixels) and invalid pixels (0 / NaN)
-    are never mixed into valid ones: a value is either copied or not used.
-    """
-    torch_in = _is_torch(depth)
+def _resize_inputs(depth, size, name: str, torch_in: bool):
+    """Validated ``(depth, (h, w))`` of a depth resize: at least 2-D depth, a positive size."""
     if not torch_in:
         depth = np.asarray(depth)
     if depth.ndim < 2:
@@ -518,6 +510,20 @@ def resize_depth(depth, size: tuple[int, int], *, name: str = "depth"):
         raise InputError(f"{name}: size must be (height, width); got {size!r}") from None
     if h <= 0 or w <= 0:
         raise InputError(f"{name}: size must be positive; got {size!r}")
+    return depth, (h, w)
+
+
+def resize_depth(depth, size: tuple[int, int], *, name: str = "depth"):
+    """Nearest-neighbour resize of depth ``(..., H, W)`` to ``size = (h, w)``; numpy in,
+    numpy out; torch in, torch out (same device, any leading batch shape).
+
+    Each output pixel takes the source pixel that contains its centre (pixel edges
+    scale, the convention of :func:`imac_data.core.cameras.rescale_intrinsics`), so depths
+    are never averaged across an edge (no flying pixels) and invalid pixels (0 / NaN)
+    are never mixed into valid ones: a value is either copied or not used.
+    """
+    torch_in = _is_torch(depth)
+    depth, (h, w) = _resize_inputs(depth, size, name, torch_in)
     H, W = depth.shape[-2:]
     if (H, W) == (h, w):
         return depth
@@ -541,6 +547,7 @@ def depth_codec_of(meta) -> DepthCodec:
         raise InputError("meta/info.json has no imac.depth.codec: the dataset has no depth streams written by imac")
     return DepthCodec.from_dict(codec, where="meta/info.json imac.depth.codec")
 
+
 def _area_weights(n_out: int, n_in: int) -> np.ndarray:
     """``(n_out, n_in)``: how much of output pixel ``i``'s span (pixel edges scale) source pixel
     ``j`` covers, in source pixels."""
@@ -560,16 +567,7 @@ def area_resize_depth(depth, size: tuple[int, int], *, min_valid: float = 0.5, n
     ``min_valid`` of the area is valid: an unknown pixel is never averaged in as a depth. Depths
     are averaged across an object's edge, as the RGB's colours are."""
     torch_in = _is_torch(depth)
-    if not torch_in:
-        depth = np.asarray(depth)
-    if depth.ndim < 2:
-        raise InputError(f"{name}: depth must be at least 2-D (..., H, W); got shape {tuple(depth.shape)}")
-    try:
-        h, w = (int(v) for v in size)
-    except (TypeError, ValueError):
-        raise InputError(f"{name}: size must be (height, width); got {size!r}") from None
-    if h <= 0 or w <= 0:
-        raise InputError(f"{name}: size must be positive; got {size!r}")
+    depth, (h, w) = _resize_inputs(depth, size, name, torch_in)
     H, W = depth.shape[-2:]
     if (H, W) == (h, w):
         return depth
