@@ -160,6 +160,11 @@ class FlowConfig:
     # models with large patches cannot output full-rank noise through a narrow token; the small DiT's default)
     prediction: Literal["velocity", "data"] = "velocity"
     data_prediction_min_gap: float = 0.05  # the 1 - tau floor of that conversion
+    # the loss's extra weight on latent pixels that change within the chunk (the arm, a moved object), dilated
+    # by focus_dilation pixels; 0 = a uniform loss (docs/world-model.md, "A loss that looks where it matters")
+    focus_weight: float = 0.0
+    focus_threshold: float = 0.2  # a change larger than this in any latent channel (pixel space: [-1, 1] units)
+    focus_dilation: int = 2
 
     def __post_init__(self) -> None:
         if self.train_shift <= 0 or self.sample_shift <= 0:
@@ -167,6 +172,9 @@ class FlowConfig:
         _positive(self, "sample_steps", "flow")
         if self.reference_noise < 0:
             raise InputError(f"flow.reference_noise: must be >= 0 (got {self.reference_noise})")
+        if self.focus_weight < 0 or self.focus_threshold <= 0 or self.focus_dilation < 0:
+            raise InputError(f"flow.focus_weight / focus_dilation: must be >= 0, flow.focus_threshold > 0 (got "
+                             f"{self.focus_weight}, {self.focus_dilation}, {self.focus_threshold})")
         if not 0 < self.data_prediction_min_gap < 1:
             raise InputError(f"flow.data_prediction_min_gap: must be in (0, 1) (got {self.data_prediction_min_gap})")
 

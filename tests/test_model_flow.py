@@ -73,3 +73,30 @@ def test_masked_mse_counts_only_valid_frames():
     target2 = target.clone()
     target2[0, :, 1] += 100.0  # a masked frame
     torch.testing.assert_close(flow.masked_mse(pred, target2, mask), brute)
+
+
+def test_weighted_masked_mse_is_the_weighted_mean_over_valid_frames():
+    g = torch.Generator().manual_seed(3)
+    pred, target = torch.randn(2, 4, 3, 2, 2, generator=g), torch.randn(2, 4, 3, 2, 2, generator=g)
+    weight = torch.rand(2, 1, 3, 2, 2, generator=g) + 0.5
+    mask = torch.tensor([[True, False, True], [False, True, True]])
+    num = den = 0.0
+    for b in range(2):
+        for f in range(3):
+            if mask[b, f]:
+                num += float((weight[b, 0, f] * (pred[b, :, f] - target[b, :, f]) ** 2).sum())
+                den += float(weight[b, 0, f].sum()) * 4
+    torch.testing.assert_close(flow.masked_mse(pred, target, mask, weight), torch.tensor(num / den))
+
+
+def test_focus_weight_marks_what_changed_dilated():
+    ref = torch.zeros(1, 4, 1, 9, 9)
+    fut = torch.zeros(1, 4, 2, 9, 9)
+    fut[0, 2, 1, 4, 4] = 0.5  # one pixel of one channel changes in the second future frame
+    fut[0, 0, 0, 0, 0] = 0.1  # below the threshold
+    w = flow.focus_weight(ref, fut, weight=3.0, threshold=0.2, dilation=1)
+    assert w.shape == (1, 1, 2, 9, 9)
+    assert torch.all(w[0, 0, 0] == 1.0)
+    expected = torch.ones(9, 9)
+    expected[3:6, 3:6] = 4.0  # the pixel and its 8 neighbours
+    torch.testing.assert_close(w[0, 0, 1], expected)

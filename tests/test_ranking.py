@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import tarfile
 import textwrap
 from pathlib import Path
 
@@ -23,11 +24,12 @@ from imac_data.cli.parser import TASKS as CLI_TASKS
 from imac_data.core.cameras import save_calibration
 from imac_data.core.depth import depth_codec_of
 from imac_data.core.robot.aloha import SIM_TASKS, mjcf_path
+from imac_data.errors import InputError
 from imac_data.layout import STATE, depth_key, image_key
 from imac_data.metadata import dataset_info
 from imac_data.sources.hdf5 import write_episode
 from imac_model.cli import main as model_main
-from imac_model.config import RunConfig
+from imac_model.config import CONTROL_STREAMS, RunConfig, streams_of_mode
 from imac_model.data.chunks import open_metadata
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
@@ -290,11 +292,18 @@ def test_a_policy_of_another_task_is_refused_by_the_closed_loop(lift, tmp_path, 
     assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == ["insert_policy.py"]
 
 
-def test_ranking_benchmark_end_to_end_at_toy_size(tmp_path):
-    """The plumbing of make ranking at the CI size: tiny backbone, 2 policies, 4 episodes each,
-    2 chunks, 2 modes, 2 sampler steps."""
-    work, docs = tmp_path / "work", tmp_path / "docs"
+@pytest.fixture(scope="module")
+def toy_run(tmp_path_factory):
+    """make ranking at the CI size: tiny backbone, 2 policies, 4 episodes each, 2 chunks, 2 modes,
+    2 sampler steps."""
+    tmp = tmp_path_factory.mktemp("toy_ranking")
+    work, docs = tmp / "work", tmp / "docs"
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs)]) == 0
+    return work, docs
+
+
+def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
+    work, docs = toy_run
     results = json.loads((docs / "results.json").read_text())
     assert set(results["statistics"]) == {"motion+contact", "none"}
     assert results["judges"]["real"]["lift_geometry"]["n"] == 8
@@ -307,3 +316,51 @@ def test_ranking_benchmark_end_to_end_at_toy_size(tmp_path):
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs)]) == 0
     again = json.loads((work / "stages.json").read_text())[len(stages):]
     assert all(e["cpu_s"] < 5 for e in again if e["stage"] != "report"), again
+
+
+def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
+    """The GPU preset's path on the CPU: the tensor pack holds what LeRobot reads, scripts/gpu_ranking.sh
+    trains every run from it (the uniform-loss ablation too), and the imported checkpoints are the
+    models that were trained (their held-out loss, measured again here, is the log's), replacing the CPU-trained
+    toy runs of the same name whole."""
+    from imac_model.experiments.ranking.benchmark import import_gpu_runs
+    from imac_model.experiments.ranking.plan import RankingPlan
+    from imac_model.training.pack import Pack, heldout_loss
+
+    work, docs = toy_run
+    assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
+    plan = RankingPlan.load(work / "plan.json")
+    pack = Pack(plan.pack)
+    run = plan.run_config("motion+contact")
+    chunks = open_chunks(pack.spec, "local/ranking_train", run.data.root, episodes=None)
+    for i in (0, len(chunks) - 1):  # the oracle: the dataset read through LeRobot
+        item = chunks[i]
+        assert int(pack.tensors["episode_index"][i]) == int(item["episode_index"])
+        for key in ("reference", "future"):
+            assert torch.equal(pack.tensors[key][i], item[key])
+        h = pack.spec.view_height
+        for s in CONTROL_STREAMS:
+            assert torch.equal(pack.tensors[f"control.{s}"][i], item[f"control.{s}"][:, :, :h])
+    assert sorted(pack.tensors["episode_index"][pack.heldout].unique().tolist()) == list(run.data.held_out_episodes)
+
+    out = tmp_path / "gpu_out"
+    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ABLATION": "1", "PACK": str(plan.pack),
+           "PYTHON": sys.executable}
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["action_vector.tar", "motion_contact.tar",
+                                                     "motion_contact_uniform.tar"]
+    assert sorted(import_gpu_runs(plan, out)) == ["action_vector", "motion_contact", "motion_contact_uniform"]
+    for name, mode, focus in (("motion_contact", "motion+contact", 5.0), ("motion_contact_uniform", "motion+contact", 0.0),
+                              ("action_vector", "action-vector", 5.0)):
+        model, spec = load_world_model(work / "runs" / name, weights="ema")
+        assert spec.conditioning.mode == mode and spec.flow.focus_weight == focus
+        log = [json.loads(line) for line in (work / "runs" / name / "log.jsonl").read_text().splitlines()]
+        again = heldout_loss(model.float(), pack, streams_of_mode(mode), 128, 0)
+        assert again == pytest.approx(log[-1]["summary"]["heldout_loss"], rel=1e-3)  # float16 weights
+    with pytest.raises(InputError, match="not a run of scripts/gpu_ranking.sh"):
+        bad = tmp_path / "bad"
+        bad.mkdir()
+        with tarfile.open(bad / "x.tar", "w") as archive:
+            archive.add(plan.pack, arcname="pack.npz")
+        import_gpu_runs(plan, bad)

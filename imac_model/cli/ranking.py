@@ -52,7 +52,7 @@ def _ranking(args: argparse.Namespace) -> int:
         {"train-rollouts": lambda: simulate_training_part(plan, int(args.internal_args[0])),
          "decode": lambda: decode_chunks(plan), "pack": lambda: export_training_pack(plan), "judges": lambda: run_judges(plan),
          "evaluate": lambda: evaluate_mode(plan, args.internal_args[0]),
-         "replays": lambda: replays(plan, args.internal_args[0])}[args.internal]()
+         "replays": lambda: replays(plan, *args.internal_args[:2])}[args.internal]()
         return 0
     plan = _plan(args)
     if args.import_gpu:

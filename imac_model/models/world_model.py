@@ -176,6 +176,9 @@ class WorldModel(nn.Module):
         if noise is None:
             noise = torch.randn((Bg, *x1.shape[1:]), generator=generator, device=gen_dev)[r::n]
         x0 = noise.to(dev, x1.dtype)
+        fc = self.spec.flow
+        weight = (flow.focus_weight(z_ref, x1, fc.focus_weight, fc.focus_threshold, fc.focus_dilation)
+                  if fc.focus_weight > 0 else None)  # from the clean reference, before its noise
         if self.training and self.spec.flow.reference_noise > 0:  # release option: jitter the clean reference
             scale = torch.rand(Bg, generator=generator, device=gen_dev)[r::n].to(dev) * self.spec.flow.reference_noise
             eps = torch.randn((Bg, *z_ref.shape[1:]), generator=generator, device=gen_dev)[r::n].to(dev, z_ref.dtype)
@@ -185,7 +188,7 @@ class WorldModel(nn.Module):
         target = flow.target_velocity(x0, x1)
         valid = torch.cat([torch.ones_like(batch.valid_mask()[:, :1]), batch.valid_mask()], dim=1)
         mask = self.backbone.latent_frame_mask(valid)[:, 1:]
-        return FlowOutput(loss=flow.masked_mse(v, target, mask), tau=tau, x_tau=x_tau, velocity=v, target=target,
+        return FlowOutput(loss=flow.masked_mse(v, target, mask, weight), tau=tau, x_tau=x_tau, velocity=v, target=target,
                           reference_latent=z_ref, frame_mask=mask)
 
     @torch.no_grad()

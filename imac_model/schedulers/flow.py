@@ -62,14 +62,30 @@ def wan_timestep(tau: torch.Tensor) -> torch.Tensor:
     return WAN_TIMESTEPS * (1.0 - tau)
 
 
-def masked_mse(pred: torch.Tensor, target: torch.Tensor, frame_mask: torch.Tensor) -> torch.Tensor:
+def masked_mse(pred: torch.Tensor, target: torch.Tensor, frame_mask: torch.Tensor,
+               weight: torch.Tensor | None = None) -> torch.Tensor:
     """Mean squared error over the latent frames where ``frame_mask`` ``(B, F)`` is true;
     ``pred``/``target`` are ``(B, C, F, h, w)``. Masked frames add nothing, not even to
-    the count. Returns 0 (with a graph) when nothing is valid."""
+    the count. ``weight`` ``(B, 1, F, h, w)``: a per-latent-pixel weight, the mean becoming a
+    weighted mean. Returns 0 (with a graph) when nothing is valid."""
     m = frame_mask.to(pred.dtype)[:, None, :, None, None]
+    m = m.expand(-1, 1, -1, *pred.shape[3:]) if weight is None else m * weight.to(pred.dtype)
     err = (pred.float() - target.float()) ** 2 * m
-    count = m.sum() * pred.shape[1] * pred.shape[3] * pred.shape[4]
-    return err.sum() / count.clamp_min(1.0)
+    return err.sum() / (m.sum() * pred.shape[1]).clamp_min(1.0)
+
+
+def focus_weight(reference: torch.Tensor, future: torch.Tensor, weight: float, threshold: float,
+                 dilation: int) -> torch.Tensor:
+    """``(B, 1, F, h, w)`` loss weights: ``1 + weight`` where a future latent differs from the
+    reference latent ``(B, C, 1, h, w)`` by more than ``threshold`` in any channel, dilated by
+    ``dilation`` pixels, else 1. What moves in a chunk (the arm, a lifted object) is a few per
+    cent of the pixels; a uniform loss lets the model leave it out."""
+    changed = ((future.float() - reference.float()).abs().amax(dim=1) > threshold).float()  # (B, F, h, w)
+    if dilation > 0:
+        B, Fr, h, w = changed.shape
+        changed = torch.nn.functional.max_pool2d(changed.reshape(B * Fr, 1, h, w), 2 * dilation + 1, stride=1,
+                                                 padding=dilation).reshape(B, Fr, h, w)
+    return (1.0 + weight * changed)[:, None]
 
 
 def schedule(steps: int, shift: float = 1.0, *, device=None) -> torch.Tensor:

@@ -78,9 +78,13 @@ class Pack:
                           future_valid=t["future_valid"][index])
 
 
-def spec_for_mode(spec: ModelSpec, mode: str) -> ModelSpec:
+def spec_for_mode(spec: ModelSpec, mode: str, focus_weight: float | None = None) -> ModelSpec:
+    """The pack's spec with another conditioning mode (and, for an ablation, another
+    ``flow.focus_weight``)."""
     data = spec.to_dict()
     data["conditioning"]["mode"] = mode
+    if focus_weight is not None:
+        data["flow"]["focus_weight"] = float(focus_weight)
     return parse(ModelSpec, data, "")
 
 
@@ -107,20 +111,20 @@ def heldout_loss(model: WorldModel, pack: Pack, streams: tuple[str, ...], batch_
     return float(np.mean(losses)) if losses else float("nan")
 
 
-def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, batch_size: int = 32,
-               lr: float = 5e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
-               log_every: int = 50, progress=print) -> dict:
+def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, batch_size: int = 128,
+               lr: float = 6e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
+               log_every: int = 50, focus_weight: float | None = None, progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary."""
     device = pack.tensors["reference"].device
-    spec = spec_for_mode(pack.spec, mode)
+    spec = spec_for_mode(pack.spec, mode, focus_weight)
     streams = streams_of_mode(mode)
     torch.manual_seed(seed)
     model = WorldModel(spec).to(device).train()
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.AdamW(params, lr=lr)
-    ema = {k: p.detach().float().clone() for k, p in model.named_parameters() if p.requires_grad}
+    ema = [p.detach().float().clone() for p in params]
     autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else torch.autocast(
         "cpu", enabled=False)
     out = Path(output)
@@ -140,10 +144,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()
         d = min(ema_decay, (1 + step) / (10 + step))
-        with torch.no_grad():
-            for k, p in model.named_parameters():
-                if k in ema:
-                    ema[k].mul_(d).add_(p.detach().float(), alpha=1 - d)
+        with torch.no_grad():  # one fused update: a loop over tensors launches a kernel per parameter
+            torch._foreach_lerp_(ema, [p.detach().float() for p in params], 1 - d)
         step, samples = step + 1, samples + batch_size
         if step % log_every == 0:
             row = {"step": step, "loss": float(loss), "lr": opt.param_groups[0]["lr"],
@@ -154,14 +156,13 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
             progress(json.dumps({"mode": mode, **row}))
     elapsed = time.time() - t0
     with torch.no_grad():  # the EMA weights become the checkpoint's weights
-        for k, p in model.named_parameters():
-            if k in ema:
-                p.copy_(ema[k])
+        for p, e in zip(params, ema):
+            p.copy_(e)
     final = heldout_loss(model, pack, streams, batch_size, seed)
     log.append({"step": step, "heldout_loss": final, "elapsed_s": round(time.time() - t0, 1), "samples": samples,
                 "weights": "ema"})
     save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
-    summary = {"mode": mode, "steps": step, "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
+    summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "steps": step, "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1), "heldout_loss": final,
                "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
                "torch": torch.__version__, "parameters": sum(p.numel() for p in params)}
@@ -179,8 +180,9 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--mode", required=True, choices=("none", "motion", "motion+contact", "action-vector"))
     t.add_argument("--output", required=True)
     t.add_argument("--minutes", type=float, required=True, help="wall-clock training budget")
-    t.add_argument("--batch-size", type=int, default=32)
-    t.add_argument("--lr", type=float, default=5e-4)
+    t.add_argument("--batch-size", type=int, default=128)
+    t.add_argument("--lr", type=float, default=6e-4)
+    t.add_argument("--focus-weight", type=float, help="override the pack's flow.focus_weight (an ablation: 0)")
     t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     t.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
@@ -189,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.backends.cudnn.benchmark = True
     pack = Pack(args.pack, args.device)
     summary = train_pack(pack, args.mode, args.output, minutes=args.minutes, batch_size=args.batch_size, lr=args.lr,
-                         seed=args.seed)
+                         seed=args.seed, focus_weight=args.focus_weight)
     print(json.dumps(summary))
     return 0
 

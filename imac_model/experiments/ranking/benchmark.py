@@ -23,6 +23,7 @@ import json
 import os
 import shutil
 import sys
+import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -177,27 +178,33 @@ def stage_pack(plan: RankingPlan) -> None:
 
 
 def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
-    """``scripts/gpu_ranking.sh``'s output (``<mode>.model.json``, ``.model.safetensors``, ``.log.jsonl``)
-    -> this work directory's trained runs, so ``judges``, ``evaluate`` and ``report`` go on here.
-    Returns the modes imported."""
+    """``scripts/gpu_ranking.sh``'s output (``<run>.tar``: model.json, model.safetensors, log.jsonl)
+    -> this work directory's trained runs (``runs/<run>``), so ``judges``, ``evaluate`` and ``report``
+    go on here. A run that is not one of the plan's modes (an ablation) is imported beside them.
+    Returns the runs imported."""
     directory, done = Path(directory), []
-    for mode in plan.modes:
-        stem = mode.replace("+", "_").replace("-", "_")
-        files = [directory / f"{stem}.{name}" for name in ("model.json", "model.safetensors", "log.jsonl")]
-        if not all(f.is_file() for f in files):
-            continue
-        rows = [json.loads(line) for line in files[2].read_text().splitlines() if line.strip()]
+    for tar in sorted(directory.glob("*.tar")):
+        with tarfile.open(tar) as archive:
+            names = set(archive.getnames())
+            if not {"model.json", "model.safetensors", "log.jsonl"} <= names:
+                raise InputError(f"{tar}: not a run of scripts/gpu_ranking.sh (it holds {sorted(names)})")
+            files = {n: archive.extractfile(n).read() for n in ("model.json", "model.safetensors", "log.jsonl")}
+        rows = [json.loads(line) for line in files["log.jsonl"].decode().splitlines() if line.strip()]
         summary = rows[-1].get("summary", rows[-1])
-        run = plan.run_dir(mode)
-        ckpt = run / "checkpoints" / f"step_{int(summary['steps']):06d}"
-        ckpt.mkdir(parents=True, exist_ok=True)
-        shutil.copy(files[0], ckpt / "model.json")
-        shutil.copy(files[1], ckpt / "model.safetensors")
-        shutil.copy(files[2], run / "log.jsonl")
-        (run / "DONE.json").write_text(json.dumps(summary, indent=1))
-        done.append(mode)
+        run = plan.work / "runs" / tar.stem
+        tmp = run.with_name(run.name + ".importing")  # the run replaces any earlier one whole, or not at all
+        shutil.rmtree(tmp, ignore_errors=True)
+        ckpt = tmp / "checkpoints" / f"step_{int(summary['steps']):06d}"
+        ckpt.mkdir(parents=True)
+        (ckpt / "model.json").write_bytes(files["model.json"])
+        (ckpt / "model.safetensors").write_bytes(files["model.safetensors"])
+        (tmp / "log.jsonl").write_bytes(files["log.jsonl"])
+        (tmp / "DONE.json").write_text(json.dumps(summary, indent=1))
+        shutil.rmtree(run, ignore_errors=True)
+        os.replace(tmp, run)
+        done.append(tar.stem)
     if not done:
-        raise InputError(f"{directory}: no <mode>.model.json / .model.safetensors / .log.jsonl of scripts/gpu_ranking.sh")
+        raise InputError(f"{directory}: no <run>.tar of scripts/gpu_ranking.sh")
     return done
 
 

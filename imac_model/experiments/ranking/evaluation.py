@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from imac_data import lerobot_compat as lr
+from imac_data.core.contact.images import JET_LUT
 from imac_data.layout import image_key
 from imac_data.metadata import dataset_info
 from imac_model.data import mosaic
@@ -39,13 +40,17 @@ from imac_model.evaluate.success import (
     train_success_classifier,
 )
 from imac_model.experiments.ranking.judge import LiftJudge
+from imac_model.experiments.ranking.perception import RED_THRESHOLD, interior, redness
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan, slug
+from imac_model.experiments.ranking.policies import WORKSPACE
 from imac_model.models.checkpoint import load_world_model
 from imac_model.pipelines.online_controls import OnlineControls, decode_depth
 from imac_model.pipelines.sampling import open_chunks
+from imac_model.schedulers import flow
 
 # the second action sequence of the sensitivity samples: the right arm's waist and shoulder
 SENSITIVITY_OFFSETS = {7: 0.3, 8: -0.25}
+CONTACT_NEAR = 0.9  # JET level 1 - d / cap of a scene pixel the future gripper touches (a tenth of the cap)
 def cameras(plan: RankingPlan) -> tuple[str, ...]:
     """The RGB keys the learned classifier sees: the benchmark's views."""
     return tuple(image_key(v) for v in plan.views)
@@ -136,19 +141,22 @@ def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int
         records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,
                                        steps=steps))
         items = chunks.episode_chunks(start.episode)
-        errors, by_view, depth = [], [], []
+        errors, moving, by_view, depth = [], [], [], []
         for n, record in enumerate(records):
-            recorded = chunks[items[n]]["future"].float()
-            recorded = recorded / 255.0 if chunks[items[n]]["future"].dtype == torch.uint8 else recorded
+            item = chunks[items[n]]
+            recorded, reference = _unit(item["future"]), _unit(item["reference"])
             h = spec.view_height
             errors.append(float(((record.frames[:, :, :h] - recorded[:, :, :h]) ** 2).mean()))
+            moving.append(_moving_error(record.frames[:, :, :h], recorded[:, :, :h], reference[:, :h]))
             by_view.append(_view_errors(record.frames, recorded, spec))
             depth.append(_depth_figures(record.frames, recorded, online, spec))
         mse.append(errors)
+        contact = _chunk_two_contact(records, chunks, items, spec) if len(records) > 1 else None
         last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
         seen = judged_frames(start.episode, last, spec.views, start.task, online)
         row = {"episode": start.episode, "label": labels[start.episode], "lift_geometry": bool(judge.judge([seen])[0]),
-               "mse_per_chunk": errors, "mse_per_chunk_by_view": by_view, "depth_per_chunk": depth}
+               "mse_per_chunk": errors, "mse_moving_per_chunk": moving, "mse_per_chunk_by_view": by_view,
+               "depth_per_chunk": depth, "chunk2_cube_contact": contact}
         if classifier is not None:
             row["classifier"] = bool(classifier.judge([seen])[0])
         rows.append(row)
@@ -156,14 +164,72 @@ def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int
     return {"episodes": episodes, "labels": [r["label"] for r in rows], "rows": rows,
             "accuracy": {j: float(np.mean([r[j] == r["label"] for r in rows])) for j in judges},
             "mse_per_chunk": np.mean(mse, axis=0).tolist(),
+            "mse_moving_per_chunk": np.nanmean([r["mse_moving_per_chunk"] for r in rows], axis=0).tolist(),
             "mse_per_chunk_by_view": {v: np.mean([[c[v] for c in r["mse_per_chunk_by_view"]] for r in rows], axis=0).tolist()
                                       for v in spec.views},
             "depth_valid_per_chunk": np.mean([[c["valid"] for c in r["depth_per_chunk"]] for r in rows], axis=0).tolist(),
             "depth_median_error_m_per_chunk": np.median([[c["median_error_m"] for c in r["depth_per_chunk"]]
                                                          for r in rows], axis=0).tolist(),
+            "chunk2_cube_contact": _contact_shares([r["chunk2_cube_contact"] for r in rows]),
             "mse_per_chunk_by_label": {str(o): np.mean([m for m, r in zip(mse, rows) if r["label"] is o], axis=0).tolist()
                                        for o in (True, False) if any(r["label"] is o for r in rows)},
             "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
+
+
+def _unit(x: torch.Tensor) -> torch.Tensor:
+    """A chunk item's frames (uint8 from the cache, or float) as floats in [0, 1]."""
+    return x.float() / 255.0 if x.dtype == torch.uint8 else x.float()
+
+
+def _contact_level(rgb: torch.Tensor) -> torch.Tensor:
+    """Contact colours ``(..., 3, h, w)`` in [0, 1] -> the JET level ``1 - d / cap`` of the nearest
+    colour of the table (:func:`imac_data.core.contact.images.colorize`), NaN where black (no value)."""
+    lut = torch.as_tensor(JET_LUT, dtype=torch.float32) / 255.0  # (256, 3)
+    x = rgb.float().movedim(-3, -1)
+    level = torch.cdist(x.reshape(-1, 3), lut).argmin(dim=-1).float().reshape(x.shape[:-1]) / 255.0
+    return level.masked_fill(x.amax(dim=-1) < 0.05, float("nan"))
+
+
+def _cube_contact(s2g: torch.Tensor, reference_rgb: torch.Tensor) -> bool | None:
+    """Does an s2g video ``(H, 3, h, w)`` paint the cube (the red interior of its reference view
+    ``(3, h, w)``) near a future gripper (JET level >= 0.9: within a tenth of the chunk's cap) in some
+    frame? None when the reference shows no cube."""
+    cube = interior(redness(reference_rgb) > RED_THRESHOLD)
+    if int(cube.sum()) < 2:
+        return None
+    level = _contact_level(s2g)[:, cube]
+    return bool((level.nan_to_num(0.0) >= CONTACT_NEAR).any())
+
+
+def _chunk_two_contact(records, chunks, items, spec) -> dict:
+    """The second chunk's s2g contact in the workspace view: rebuilt online from the generated
+    reference (what the model was given) and recorded in the dataset, each judged on its own reference."""
+    v, V = spec.views.index(WORKSPACE), len(spec.views)
+    item = chunks[items[1]]
+    recorded = mosaic.control_views(_unit(item["control.contact_s2g"]), V)[:, v]
+    recorded_ref = mosaic.split(_unit(item["reference"]), V)[0][v]
+    rebuilt_ref = mosaic.split(records[1].reference, V)[0][v]
+    return {"recorded": _cube_contact(recorded, recorded_ref),
+            "rebuilt": _cube_contact(records[1].controls["contact_s2g"][:, v], rebuilt_ref)}
+
+
+def _contact_shares(rows: list[dict | None]) -> dict:
+    """Over the replays: how often the cube's contact is present in chunk 2's s2g, recorded and rebuilt."""
+    rows = [r for r in rows if r is not None]
+    rec = [r for r in rows if r["recorded"]]
+    return {"replays": len(rows), "recorded_present": len(rec),
+            "rebuilt_present": sum(bool(r["rebuilt"]) for r in rows),
+            "rebuilt_present_where_recorded": sum(bool(r["rebuilt"]) for r in rec),
+            "rebuilt_cube_missing": sum(r["rebuilt"] is None for r in rows)}
+
+
+def _moving_error(generated: torch.Tensor, recorded: torch.Tensor, reference: torch.Tensor) -> float:
+    """RGB MSE of one chunk ``(H, 3, h, W)`` over the pixels that move in the recording: those
+    that differ from its reference ``(3, h, W)`` by more than 0.1 in a channel, dilated 2 px (the
+    mask of ``flow.focus_weight``, the loss weighting's; NaN if nothing moves)."""
+    mask = flow.focus_weight(reference[None, :, None], recorded.transpose(0, 1)[None], 1.0, 0.1, 2)[0, 0] - 1.0
+    err = ((generated - recorded) ** 2).sum(dim=1)
+    return float((err * mask).sum() / (3 * mask.sum())) if mask.sum() > 0 else float("nan")
 
 
 def _view_errors(generated: torch.Tensor, recorded: torch.Tensor, spec) -> dict[str, float]:
@@ -199,15 +265,18 @@ def none_is_policy_blind(plan: RankingPlan, model, online, chunks, start_episode
             "bit_identical": identical}
 
 
-def replays(plan: RankingPlan, mode: str) -> dict:
+def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
     """The gate: the recorded actions of real evaluation episodes (half successes) replayed in one
     mode's world model, judged against MuJoCo's labels; cached as ``wm/<mode>/replays.json``. Run
-    alone (``--internal replays MODE``) it measures the gate before any closed loop."""
-    done = plan.wm_dir(mode) / "replays.json"
+    alone (``--internal replays MODE [RUN]``) it measures the gate before any closed loop; ``RUN``
+    names another trained run of the mode under ``runs/`` (an ablation)."""
+    run_dir, wm_dir = ((plan.run_dir(mode), plan.wm_dir(mode)) if run is None else
+                       (plan.work / "runs" / run, plan.work / "wm" / run))
+    done = wm_dir / "replays.json"
     if done.is_file():
         return json.loads(done.read_text())
     torch.set_num_threads(1)
-    model, spec = load_world_model(plan.run_dir(mode), weights="ema", device=plan.device)
+    model, spec = load_world_model(run_dir, weights="ema", device=plan.device)
     labels = dataset_success_labels(lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset))
     replay = recorded_episodes(plan, labels)
     chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=replay)

@@ -43,7 +43,7 @@ class RankingPlan:
     groups: int = 2  # evaluation groups (the statistics' bootstrap resamples within each)
     real_per_group: int = 25  # MuJoCo episodes per policy and group
     wm_per_group: int = 15  # world-model episodes per policy and group (the group's first starts)
-    train_episodes: int = 96  # the world model's training rollouts
+    train_episodes: int = 192  # the world model's training rollouts
     held_out: int = 8  # of them, held out of training (the held-out loss)
     modes: tuple[str, ...] = MODES
     cpu_minutes: float = 18.0  # training budget per mode (process CPU minutes)
@@ -144,9 +144,9 @@ class RankingPlan:
 
 def gpu_plan(work: Path, docs: Path) -> RankingPlan:
     """The GPU preset: the CPU preset's data, model and evaluation, with motion+contact and action-vector
-    trained for 5 minutes each on one GPU from the tensor pack (``scripts/gpu_ranking.sh``) instead of the
+    trained for 8 minutes each on one GPU from the tensor pack (``scripts/gpu_ranking.sh``) instead of the
     CPU budget; a short GPU loan fits it (docs/ranking.md, "The GPU preset")."""
-    return RankingPlan(work=work, docs=docs, modes=("motion+contact", "action-vector"), gpu_minutes=5.0)
+    return RankingPlan(work=work, docs=docs, modes=("motion+contact", "action-vector"), gpu_minutes=8.0)
 
 
 def toy_plan(work: Path, docs: Path) -> RankingPlan:

@@ -139,16 +139,58 @@ def write_report(plan: RankingPlan) -> Path:
         plot_policy_scatter(stats[mode]["lift_geometry"], docs / f"scatter_{slug(mode.replace('+', '_'))}.png",
                             title=f"{mode}: world model vs MuJoCo (lift judge)")
     shown = next((m for m in ("motion+contact", "motion", "action-vector") if m in plan.modes), plan.modes[0])
+    training = {m: training_log(plan.run_dir(m)) for m in plan.modes}
+    plot_training(training, docs / "training_loss.png")
     examples = _examples(plan, real, shown)
     for outcome, (policy, start) in examples.items():
         side_by_side(plan, shown, policy, start, docs / f"rollout_{outcome}.png")
     results = {"plan": plan.to_dict(), "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
                "dirty": _uncommitted_changes(docs), "written": time.strftime("%Y-%m-%d %H:%M"),
                "real": {f"{p}/{g}": v for (p, g), v in real.items()}, "statistics": stats, "judges": judges,
-               "evaluations": evaluations, "stages": stages, "examples": examples}
+               "evaluations": evaluations, "stages": stages, "examples": examples,
+               "training": {m: {k: v for k, v in t.items() if k != "rows"} for m, t in training.items()}}
     (docs / "results.json").write_text(json.dumps(results, indent=1, default=str))
     (docs / "README.md").write_text(_markdown(plan, results))
     return docs / "README.md"
+
+
+def training_log(run: Path) -> dict:
+    """A trained run's log (``log.jsonl``, the CPU trainer's or the GPU pack trainer's): its rows
+    with a loss, and a summary (steps, final held-out loss, device, samples where logged)."""
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
+    summary = next((r["summary"] for r in reversed(rows) if "summary" in r), {})
+    done = json.loads((run / "DONE.json").read_text()) if (run / "DONE.json").is_file() else {}
+    held = [r for r in rows if r.get("heldout_loss") is not None]
+    return {"rows": [r for r in rows if "step" in r], "steps": summary.get("steps", done.get("steps")),
+            "samples": summary.get("samples"), "device": summary.get("device", "cpu"),
+            "final_heldout_loss": held[-1]["heldout_loss"] if held else None,
+            "heldout": [(r["step"], r["heldout_loss"]) for r in held]}
+
+
+def plot_training(training: dict, path: Path) -> None:
+    """Training loss (smoothed over 20 logs) and held-out loss against the step, one colour per mode."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 4))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    for k, (mode, t) in enumerate(training.items()):
+        colour = f"C{k}"
+        train = [(r["step"], r["loss"]) for r in t["rows"] if r.get("loss") is not None]
+        if train:
+            steps, loss = map(np.asarray, zip(*train))
+            smooth = np.convolve(loss, np.ones(20) / 20, mode="valid") if len(loss) >= 20 else loss
+            ax.plot(steps[len(steps) - len(smooth):], smooth, color=colour, alpha=0.6, label=f"{mode}: training")
+        if t["heldout"]:
+            ax.plot(*zip(*t["heldout"]), "o-", color=colour, label=f"{mode}: held out")
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("flow loss")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
 
 
 def _verdict(stats: dict) -> str:
@@ -228,6 +270,13 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
             cells = [f"{_fmt(g[s]['value'])}{_ci(g[s]['ci'])}" for s in STATISTICS]
             lines.append(f"| {mode} | {judge} | {g['n_points']} | " + " | ".join(cells) + " |")
     lines += ["", _verdict(r["statistics"])]
+    lines += ["", "## Training", "", "Per mode, from its log (the held-out loss: the flow loss of the held-out "
+              "episodes' chunks at fixed times and noise; with `flow.focus_weight` it is the weighted loss).", "",
+              "| mode | device | steps | samples | final held-out loss |", "|---|---|---|---|---|"]
+    for mode, t in r["training"].items():
+        lines.append(f"| {mode} | {t['device']} | {t['steps']} | {t['samples'] or ''} | "
+                     f"{_fmt(t['final_heldout_loss'], 4)} |")
+    lines += ["", "![training and held-out loss](training_loss.png)"]
     for mode in plan.modes:
         lines += ["", f"![{mode}](scatter_{slug(mode.replace('+', '_'))}.png)"]
     j = r["judges"]
