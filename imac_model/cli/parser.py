@@ -167,7 +167,7 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--docs", default="docs/ranking", help="where the report goes")
     p.add_argument("--policies", nargs="+", metavar="SPEC",
                    help="python:MODULE:NAME policies to rank (default: the benchmark's six lift policies)")
-    p.add_argument("--cpu-minutes", type=float, help="training budget per mode (default 18)")
+    p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 150)")
     p.add_argument("--steps", type=int, help="Euler steps at evaluation (default 10)")
     p.add_argument("--jobs", type=int, help="processes at a time (default 2)")
     p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "

@@ -151,7 +151,8 @@ def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int
             by_view.append(_view_errors(record.frames, recorded, spec))
             depth.append(_depth_figures(record.frames, recorded, online, spec))
         mse.append(errors)
-        contact = _chunk_two_contact(records, chunks, items, spec) if len(records) > 1 else None
+        contact = (_chunk_two_contact(records, chunks, items, spec)
+                   if len(records) > 1 and "contact_s2g" in records[1].controls else None)  # modes with contact
         last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
         seen = judged_frames(start.episode, last, spec.views, start.task, online)
         row = {"episode": start.episode, "label": labels[start.episode], "lift_geometry": bool(judge.judge([seen])[0]),

@@ -144,7 +144,8 @@ def write_report(plan: RankingPlan) -> Path:
     examples = _examples(plan, real, shown)
     for outcome, (policy, start) in examples.items():
         side_by_side(plan, shown, policy, start, docs / f"rollout_{outcome}.png")
-    results = {"plan": plan.to_dict(), "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
+    shown_plan = {k: (_shown(Path(v)) if k in ("work", "docs", "config") else v) for k, v in plan.to_dict().items()}
+    results = {"plan": shown_plan, "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
                "dirty": _uncommitted_changes(docs), "written": time.strftime("%Y-%m-%d %H:%M"),
                "real": {f"{p}/{g}": v for (p, g), v in real.items()}, "statistics": stats, "judges": judges,
                "evaluations": evaluations, "stages": stages, "examples": examples,
@@ -238,7 +239,10 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
         f"**Machine.** {m['cores']} cores ({m['cpu']}), {m['memory_gb']} GB, "
         f"{'GPU ' + m['gpu'] if m['gpu'] else 'no GPU'}; Python {m['python']}, torch {m['torch']}.", "",
         f"**Budget.** {cpu_total / 60:.1f} CPU-minutes in all (process and children), {wall_total / 60:.1f} minutes "
-        f"wall; per stage at the end. Training: {plan.cpu_minutes:g} CPU-minutes per mode.", "",
+        f"wall; per stage at the end. Training: "
+        + (f"{plan.gpu_minutes:g} minutes per mode on one GPU (the GPU preset; its time is not in the CPU total)."
+           if plan.gpu_minutes is not None else
+           f"{plan.cpu_minutes:g} CPU-minutes per compared mode, {plan.none_minutes:g} for `none`."), "",
         f"**Sizes.** {len(plan.policies)} policies; in MuJoCo {plan.groups} groups of {plan.real_per_group} starts "
         f"each; in the world model the first {plan.wm_per_group} starts of each group, {plan.chunks} chunks of 8 "
         f"frames (10 fps), {plan.steps} Euler steps; {plan.train_episodes} training rollouts.", "",
@@ -302,6 +306,20 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
     for mode, ev in r["evaluations"].items():
         for steps, rec in (ev.get("recorded") or {}).items():
             lines.append(f"| {mode} | {steps} | " + " | ".join(_fmt(x, 4) for x in rec["mse_per_chunk"]) + " |")
+    lines += ["", "The same replays: RGB error over the pixels that move in the recording (`mse_moving`), the share of "
+                  "generated depth that decodes to metres, its median error, and chunk 2's s2g contact image in the "
+                  "workspace view painting the cube near a future gripper (rebuilt online from the generated depth / "
+                  "recorded):", "", "| mode | Euler steps | moving-pixel MSE per chunk | depth valid per chunk | "
+                  "median depth error (mm) | chunk-2 cube contact, rebuilt / recorded |", "|---|---|---|---|---|---|"]
+    for mode, ev in r["evaluations"].items():
+        for steps, rec in (ev.get("recorded") or {}).items():
+            contact = rec.get("chunk2_cube_contact") or {}
+            cells = [", ".join(_fmt(x, 4) for x in rec.get("mse_moving_per_chunk", [])),
+                     ", ".join(_fmt(x, 4) for x in rec.get("depth_valid_per_chunk", [])),
+                     ", ".join(f"{1000 * x:.0f}" for x in rec.get("depth_median_error_m_per_chunk", [])),
+                     (f"{contact['rebuilt_present']} / {contact['recorded_present']} of {contact['replays']}"
+                      if contact.get("replays") else "no contact stream")]
+            lines.append(f"| {mode} | {steps} | " + " | ".join(cells) + " |")
     none = r["evaluations"].get("none", {}).get("none_check")
     if none:
         lines += ["", f"**Negative control.** `none` from the same starts and seeds gives bit-identical frames to "
@@ -319,7 +337,7 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
         lines += ["", "## Rollouts side by side", ""]
         for outcome, (policy, start) in r["examples"].items():
             lines += [f"A start where `{policy}` {'succeeded' if outcome == 'success' else 'failed'} in MuJoCo "
-                      f"(start {start}): top MuJoCo, bottom the world model; head and right wrist views.", "",
+                      f"(start {start}): top MuJoCo, bottom the world model; views: {', '.join(plan.views)}.", "",
                       f"![{outcome}](rollout_{outcome}.png)", ""]
     lines += ["", "## Time per stage", "", "| stage | CPU min | wall min | commit |", "|---|---|---|---|"]
     for stage, t in r["stages"].items():
