@@ -164,6 +164,7 @@ def training_log(run: Path) -> dict:
     held = [r for r in rows if r.get("heldout_loss") is not None]
     return {"rows": [r for r in rows if "step" in r], "steps": summary.get("steps", done.get("steps")),
             "samples": summary.get("samples"), "device": summary.get("device", "cpu"),
+            "train_s": summary.get("train_s", done.get("cpu_s")),  # GPU wall seconds, or CPU seconds
             "final_heldout_loss": held[-1]["heldout_loss"] if held else None,
             "heldout": [(r["step"], r["heldout_loss"]) for r in held]}
 
@@ -240,7 +241,8 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
         f"{'GPU ' + m['gpu'] if m['gpu'] else 'no GPU'}; Python {m['python']}, torch {m['torch']}.", "",
         f"**Budget.** {cpu_total / 60:.1f} CPU-minutes in all (process and children), {wall_total / 60:.1f} minutes "
         f"wall; per stage at the end. Training: "
-        + (f"{plan.gpu_minutes:g} minutes per mode on one GPU (the GPU preset; its time is not in the CPU total)."
+        + (f"about {plan.gpu_minutes:g} minutes per mode on one GPU (the GPU preset; the runs' own times under "
+           "Training; not in the CPU total)."
            if plan.gpu_minutes is not None else
            f"{plan.cpu_minutes:g} CPU-minutes per compared mode, {plan.none_minutes:g} for `none`."), "",
         f"**Sizes.** {len(plan.policies)} policies; in MuJoCo {plan.groups} groups of {plan.real_per_group} starts "
@@ -276,9 +278,10 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
     lines += ["", _verdict(r["statistics"])]
     lines += ["", "## Training", "", "Per mode, from its log (the held-out loss: the flow loss of the held-out "
               "episodes' chunks at fixed times and noise; with `flow.focus_weight` it is the weighted loss).", "",
-              "| mode | device | steps | samples | final held-out loss |", "|---|---|---|---|---|"]
+              "| mode | device | steps | samples | training (s: GPU wall, or CPU) | final held-out loss |",
+              "|---|---|---|---|---|---|"]
     for mode, t in r["training"].items():
-        lines.append(f"| {mode} | {t['device']} | {t['steps']} | {t['samples'] or ''} | "
+        lines.append(f"| {mode} | {t['device']} | {t['steps']} | {t['samples'] or ''} | {_fmt(t['train_s'], 0)} | "
                      f"{_fmt(t['final_heldout_loss'], 4)} |")
     lines += ["", "![training and held-out loss](training_loss.png)"]
     for mode in plan.modes:
