@@ -186,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     t.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    if not str(args.device).startswith("cuda"):
+        torch.set_num_threads(1)  # the script runs its trainings at once: on a CPU, threads would only contend
     torch.backends.cuda.matmul.allow_tf32 = True
     torch.backends.cudnn.allow_tf32 = True
     torch.backends.cudnn.benchmark = True
