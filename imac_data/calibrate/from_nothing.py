@@ -35,6 +35,7 @@ from imac_data.core.cameras import Camera, intrinsics_from_fovy, load_calibratio
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
 from imac_data.recipes import load_recipe
+from imac_data.sources.da3 import DEFAULT_DA3_METRIC_MODEL, DepthAnything3Metric
 from imac_data.sources.hdf5 import EpisodeReader
 
 __all__ = ["DEPTH_KINDS", "NO_DEPTH_HELP", "calibrate_from_nothing", "format_calibration_report"]
@@ -184,8 +185,6 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
     Ks = _intrinsics(cams, hw, intrinsics, fov)
     model = None
     if depth == "da3":
-        from imac_data.sources.da3 import DEFAULT_DA3_METRIC_MODEL, DepthAnything3Metric
-
         model = DepthAnything3Metric(da3_model or DEFAULT_DA3_METRIC_MODEL, local_files_only=True)
 
     refs = _candidates(frames, candidates)
