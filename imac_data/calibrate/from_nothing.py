@@ -139,13 +139,16 @@ def _rigid(X: np.ndarray) -> np.ndarray:
 def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, cameras: Sequence[str] | None = None,
                            mounts: Mapping[str, str] | None = None, fov: Mapping[str, float] | None = None,
                            intrinsics: str | Path | None = None, depth: str = "recorded", da3_model=None,
+                           estimate_depth_scale: bool = False,
                            config: ScratchConfig | None = None, candidates: int = 60, refine: str = "edges",
                            near: float = 0.0, report: str | Path | None = None, overwrite: bool = False,
                            progress: bool = True, log=None) -> dict:
     """Calibrate every camera of ``source`` from nothing; write ``out`` (the cameras found) and the
     report directory; return the report dict. ``mounts``: camera -> URDF link for wrist cameras;
     ``fov``: camera (or ``"*"``) -> nominal vertical field of view in degrees; ``intrinsics``: a
-    calibration file whose K are used as recorded. Inputs are checked before any work."""
+    calibration file whose K are used as recorded; ``estimate_depth_scale``: the recorded depth's
+    scale is not trusted and is estimated with the pose (always so for Depth Anything 3). Inputs
+    are checked before any work."""
     log = log or (lambda msg: None)
     config = config or ScratchConfig()
     mounts, fov = dict(mounts or {}), dict(fov or {})
@@ -210,7 +213,7 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
         if depths[c] is None:
             log(f"[calibrate] {c}: Depth Anything 3 on {len(refs)} frames")
             depths[c] = _da3_depth(model, frames, c, refs, K)
-        scale_known = depth == "recorded"
+        scale_known = depth == "recorded" and not estimate_depth_scale
         try:
             if c in mounts:
                 fixed = {f: r for f, r in results.items() if f not in mounts}
@@ -236,7 +239,7 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
         raise CalibrationRefused("no camera could be calibrated: " + "; ".join(refused.values()))
     found = {c: _camera(c, Ks[c][0], r, hw[c], mounts.get(c)) for c, r in results.items()}
     summary = {"source": str(source), "out": str(out), "robot": robot.name, "robot_urdf_sha256": robot.urdf_hash,
-               "depth": depth, "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
+               "depth": depth, "depth_scale_estimated": depth == "da3" or estimate_depth_scale, "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
                "candidate_frames": len(refs), "cameras": {}, "refused": refused}
     for c, r in results.items():
         summary["cameras"][c] = {

@@ -93,7 +93,8 @@ def fpfh_candidates(source: np.ndarray, target: np.ndarray, voxel: float, *, wit
             [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
             reg.RANSACConvergenceCriteria(iterations, 0.9999))
         T = np.asarray(res.transformation, dtype=np.float64)
-        if res.fitness > 0 and np.isfinite(T).all():
+        det = np.linalg.det(T[:3, :3]) if np.isfinite(T).all() else 0.0
+        if res.fitness > 0 and 0.3 < det < 3.0:  # a scale beyond 0.67-1.44 is a degenerate sample, not a pose
             out.append(T)
     return out
 

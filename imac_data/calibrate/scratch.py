@@ -49,7 +49,7 @@ class ScratchConfig:
     voxel: float = 0.015  # FPFH/RANSAC voxel (metres)
     ransac_runs: int = 6
     depth_margin: float = 0.03  # a pixel is nearer than the background by this fraction of its depth
-    min_inlier_ratio: float = 0.6  # below: refused (the best pose explains too little of the depth)
+    min_inlier_ratio: float = 0.8  # below: refused (the best pose explains too little of the depth)
     max_residual_mm: float = 6.0  # above: refused
     ambiguity_ratio: float = 0.9  # a different pose scoring this close to the best: refused
     distinct_mm: float = 20.0  # two poses this far apart (or distinct_deg) are different answers
@@ -187,32 +187,43 @@ def solve_fixed(camera: str, q: np.ndarray, depth: np.ndarray, focal: float, pri
             f"{100 * config.min_coverage:.0f}% of the image) in configurations {config.min_separation} apart; needs 3")
     rng = np.random.default_rng(0)
     obs = [_thin(camera_points(depth[i], moving[i], principal), focal, config, rng) for i in sel]
-    links = surface.moving_links(q[sel])
-    posed = surface.posed(q[sel], links)
+    # every link is a target (a link that moves little still shows as moving pixels), but only the links that
+    # move are matched globally: the static base is never among the moving pixels, and would only add clutter
+    posed = surface.posed(q[sel])
     targets = [Target(p, n) for p, n in posed]
     A = np.repeat(np.eye(4)[None], len(sel), axis=0)
     src = np.concatenate([lift(o, focal) for o in obs])
-    dst = np.concatenate([p for p, _ in posed])
+    moving_links = np.isin(surface.link, surface.moving_links(q[sel]))
+    dst = np.concatenate([p[moving_links] for p, _ in posed])
     dst = dst[voxel_thin(dst, config.voxel / 2)]
-    cands = fpfh_candidates(src, dst, config.voxel, with_scaling=not (focal_known and scale_known),
-                            runs=config.ransac_runs)
+    scaling = not (focal_known and scale_known)
+    cands = fpfh_candidates(src, dst, config.voxel, with_scaling=scaling, runs=config.ransac_runs)
+    # each of the best-covered frames alone too: its correspondences cannot mix arm poses
+    for k in np.argsort(-coverage[sel])[:4]:
+        cands += fpfh_candidates(lift(obs[k], focal), posed[k][0][moving_links], 0.7 * config.voxel,
+                                 with_scaling=scaling, runs=2, seed=100 + int(k))
     log(f"[calibrate] {camera}: {len(sel)} frames, {len(src)} points, {len(cands)} global candidates")
-    fits = []
-    for T in cands:
-        s = float(np.cbrt(np.linalg.det(T[:3, :3])))
-        X = np.eye(4)
-        X[:3, :3], X[:3, 3] = T[:3, :3] / s, T[:3, 3]
-        f0, s0 = (focal, 1.0) if focal_known else (focal / s, 1.0)
-        if not scale_known:
-            f0, s0 = focal, s
-        fits.append(fit_pose(obs, A, X, targets, f0, scale0=s0, free_focal=not focal_known,
-                             free_scale=not scale_known, schedule=(0.05, 0.03), iterations=8))
+    starts = [_start(T, focal, focal_known, scale_known) for T in cands]
+    starts.sort(key=lambda x: -score_pose(obs, A, x[0], targets, x[1], x[2], 0.02))
+    fits = [fit_pose(obs, A, X, targets, f0, scale0=s0, free_focal=not focal_known, free_scale=not scale_known,
+                     schedule=(0.05, 0.03), iterations=8) for X, f0, s0 in starts[:6]]
     if not fits:
         raise CalibrationRefused(f"camera {camera!r}: global registration found no candidate pose")
     fit, conf = _converge(camera, fits, obs, A, targets, focal_known, scale_known, config)
     conf.update(inlier_ratio=fit.inlier_ratio, residual_mm=fit.residual_mm, wall_s=time.perf_counter() - t0,
                 coverage=float(coverage[sel].mean()))
     return CameraResult(camera, fit.X, fit.focal, fit.scale, conf, sel.tolist(), (obs, A, targets))
+
+
+def _start(T: np.ndarray, focal: float, focal_known: bool, scale_known: bool) -> tuple[np.ndarray, float, float]:
+    """A similarity from global registration as a start: (pose, focal, depth scale). Its scale is
+    the depth's when that is unknown, else the focal length's error (lateral size ~ 1 / focal)."""
+    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    X = np.eye(4)
+    X[:3, :3], X[:3, 3] = T[:3, :3] / s, T[:3, 3]
+    if not scale_known:
+        return X, focal, s
+    return X, (focal if focal_known else focal / s), 1.0
 
 
 def _converge(camera, coarse: list[Fit], obs, A, targets, focal_known: bool, scale_known: bool,

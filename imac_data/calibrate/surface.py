@@ -9,7 +9,6 @@ and the depth scale are unknowns of the fit: ``p = s * z * (du / f, dv / f, 1)``
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -102,11 +101,12 @@ def lift(obs: np.ndarray, focal: float, scale: float = 1.0) -> np.ndarray:
 def static_background(depth: np.ndarray, quantile: float = 0.9) -> np.ndarray:
     """Per pixel, a high quantile of the valid depths over frames ``(N, H, W)``: what a fixed
     camera sees behind the moving arm (the arm only ever comes closer). 0 where no frame has depth."""
-    d = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan).astype(np.float32)
-    with warnings.catch_warnings():  # all-NaN pixels (never any depth) are expected
-        warnings.simplefilter("ignore", RuntimeWarning)
-        bg = np.nanquantile(d, quantile, axis=0)
-    return np.nan_to_num(bg, nan=0.0)
+    valid = np.isfinite(depth) & (depth > 0)
+    d = np.sort(np.where(valid, depth, np.inf).astype(np.float32), axis=0)  # invalid last
+    n = valid.sum(axis=0)
+    k = np.clip(np.floor(quantile * (n - 1)).astype(np.int64), 0, None)  # nanquantile, lower, 10x faster
+    bg = np.take_along_axis(d, k[None], axis=0)[0]
+    return np.where(n > 0, bg, 0.0).astype(np.float32)
 
 
 def moving_pixels(depth: np.ndarray, background: np.ndarray, margin: float) -> np.ndarray:

@@ -137,6 +137,8 @@ def _calibrate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--intrinsics", default=None, help="calibration JSON whose K are the recorded intrinsics (used as is)")
     p.add_argument("--depth", default="recorded", choices=("recorded", "da3"),
                    help="recorded depth (default) or Depth Anything 3's monocular model, scale estimated")
+    p.add_argument("--estimate-depth-scale", action="store_true",
+                   help="do not trust the recorded depth's scale: estimate it with the pose (always so with da3)")
     p.add_argument("--da3-model", default=None, help="local Depth Anything 3 metric weights directory (--depth da3)")
     p.add_argument("--cameras", default=None, help="comma-separated cameras (default: every camera of the source)")
     p.add_argument("--frames", type=int, default=10, help="frames registered together per camera (default 10)")

@@ -54,6 +54,7 @@ def _calibrate(args: argparse.Namespace) -> None:
     summary = calibrate_from_nothing(
         args.source, args.out, recipe=args.recipe, cameras=cams, mounts=dict(args.mount), fov=dict(args.fov),
         intrinsics=args.intrinsics, depth=args.depth, da3_model=args.da3_model,
+        estimate_depth_scale=args.estimate_depth_scale,
         config=ScratchConfig(frames=args.frames), candidates=args.candidates, refine=args.refine, near=args.near,
         report=args.report, overwrite=args.overwrite, progress=not args.no_progress,
         log=lambda m: print(m, file=sys.stderr))
