@@ -39,11 +39,18 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
-from benchmarks.calibration_scenes import (ALOHA_FOVY, ALOHA_MOUNTS, ALOHA_NEAR, ALOHA_RECIPE, aloha_episodes,
-                                           aloha_placements, degrade_depth, panda_episodes, panda_recipe,
-                                           random_placements)
+from benchmarks.calibration_scenes import (
+    ALOHA_FOVY,
+    ALOHA_MOUNTS,
+    ALOHA_NEAR,
+    ALOHA_RECIPE,
+    aloha_episodes,
+    aloha_placements,
+    degrade_depth,
+    panda_episodes,
+    panda_recipe,
+    random_placements,
+)
 from imac_data.calibrate.from_nothing import calibrate_from_nothing
 from imac_data.calibrate.scratch import pose_distance
 from imac_data.core.cameras import load_calibration
