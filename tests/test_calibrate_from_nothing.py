@@ -18,8 +18,16 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.calibration_scenes import (ALOHA_FOVY, ALOHA_MOUNTS, ALOHA_NEAR, ALOHA_RECIPE, aloha_episodes,
-                                           aloha_placements, degrade_depth, random_placements)
+from benchmarks.calibration_scenes import (
+    ALOHA_FOVY,
+    ALOHA_MOUNTS,
+    ALOHA_NEAR,
+    ALOHA_RECIPE,
+    aloha_episodes,
+    aloha_placements,
+    degrade_depth,
+    random_placements,
+)
 from imac_data.calibrate.from_nothing import calibrate_from_nothing
 from imac_data.calibrate.scratch import CalibrationRefused, ScratchConfig, pose_distance
 from imac_data.cli import main as imac_main
