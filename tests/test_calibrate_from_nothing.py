@@ -207,3 +207,21 @@ def test_bad_input_is_refused_before_any_work(sim, tmp_path):
     with pytest.raises(InputError, match="ScratchConfig.frames"):
         ScratchConfig(frames=2)
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_depth_anything_3_pose_free_mode_and_missing_weights(sim, tmp_path):
+    """DA3's pose-free mode needs images and a focal guess only; its scale follows the guess
+    (random weights: the plumbing, not the depth). Without weights the command stops before any work."""
+    pytest.importorskip("depth_anything_3")
+    from imac_data.sources.da3 import DepthAnything3Metric
+
+    net = DepthAnything3Metric.random_init("da3-small", process_res=56, batch_size=2, device="cpu")
+    images = read_episode(sim[0] / "episode_0.hdf5", load_depth=False).images["cam_high"][:2]
+    d1 = net.predict_pose_free(images, 100.0)
+    d2 = net.predict_pose_free(images, 50.0)
+    assert d1.shape == (2, *HW) and np.isfinite(d1).all()
+    np.testing.assert_allclose(d2, d1 / 2, rtol=1e-5, atol=1e-7)
+    with pytest.raises(InputError, match="Depth Anything 3 weights"):
+        calibrate_from_nothing(sim[0], tmp_path / "calib.json", recipe=ALOHA_RECIPE, cameras=["cam_high"],
+                               fov={"*": 78.0}, depth="da3", da3_model=str(tmp_path / "no_weights"), progress=False)
+    assert not list(tmp_path.iterdir())

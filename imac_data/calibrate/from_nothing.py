@@ -89,9 +89,10 @@ def _recorded_depth(frames, cam: str, refs) -> np.ndarray | None:
 
 
 def _da3_depth(model, frames, cam: str, refs, K: np.ndarray) -> np.ndarray:
+    """Depth Anything 3 in its pose-free mode: the scale follows the focal guess and is estimated later."""
     images = np.concatenate([frames.images(ep, cam, [t for e, t in refs if e == ep])
                              for ep in dict.fromkeys(e for e, _ in refs)])
-    return model.predict([images], [K], where=str(frames.source), names=[cam])[0]
+    return model.predict_pose_free(images, float(K[0, 0]), where=f"{frames.source} camera {cam!r}")
 
 
 def _scene_targets(fixed: dict[str, CameraResult], depth: dict, principal: dict, q: np.ndarray,
@@ -240,7 +241,8 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
     found = {c: _camera(c, Ks[c][0], r, hw[c], mounts.get(c)) for c, r in results.items()}
     summary = {"source": str(source), "out": str(out), "robot": robot.name, "robot_urdf_sha256": robot.urdf_hash,
                "depth": depth, "depth_scale_estimated": depth == "da3" or estimate_depth_scale, "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
-               "candidate_frames": len(refs), "cameras": {}, "refused": refused}
+               "candidate_frames": len(refs), "cameras": {}, "refused": refused,
+               "depth_model": model.describe() if model is not None else None}
     for c, r in results.items():
         summary["cameras"][c] = {
             "mounted_on": mounts.get(c), "focal_px": r.focal, "nominal_focal_px": None if Ks[c][1] else Ks[c][0][0, 0],
