@@ -198,8 +198,8 @@ def test_bad_input_is_refused_before_any_work(sim, tmp_path):
     with pytest.raises(InputError, match="no link 'nope'"):
         calibrate_from_nothing(src, out, fov={"*": 60.0}, mounts={"cam_left_wrist": "nope"}, cameras=["cam_left_wrist"],
                                **kw)
-    with pytest.raises(InputError, match="camera 'cam_high': no intrinsics"):
-        calibrate_from_nothing(src, out, cameras=["cam_high"], **kw)
+    with pytest.raises(InputError, match="--fov for camera 'cam_high'"):
+        calibrate_from_nothing(src, out, cameras=["cam_high"], fov={"cam_high": 500.0}, **kw)
     with pytest.raises(InputError, match="not in the source"):
         calibrate_from_nothing(src, out, cameras=["cam_x"], fov={"*": 60.0}, **kw)
     with pytest.raises(InputError, match="is the source|inside"):

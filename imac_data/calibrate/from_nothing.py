@@ -29,7 +29,14 @@ from tqdm import tqdm
 from imac_data.calibrate.frames import DatasetFrames, open_frames
 from imac_data.calibrate.refine import _check_outputs, refine_calibration
 from imac_data.calibrate.register import Target
-from imac_data.calibrate.scratch import CalibrationRefused, CameraResult, ScratchConfig, solve_fixed, solve_mounted
+from imac_data.calibrate.scratch import (
+    CalibrationRefused,
+    CameraResult,
+    ScratchConfig,
+    pose_distance,
+    solve_fixed,
+    solve_mounted,
+)
 from imac_data.calibrate.surface import RobotSurface, lift
 from imac_data.core.cameras import Camera, intrinsics_from_fovy, load_calibration, save_calibration
 from imac_data.core.rig import Rig
@@ -38,7 +45,7 @@ from imac_data.recipes import load_recipe
 from imac_data.sources.da3 import DEFAULT_DA3_METRIC_MODEL, DepthAnything3Metric
 from imac_data.sources.hdf5 import EpisodeReader
 
-__all__ = ["DEPTH_KINDS", "NO_DEPTH_HELP", "calibrate_from_nothing", "format_calibration_report"]
+__all__ = ["DEPTH_KINDS", "FOV_SWEEP", "NO_DEPTH_HELP", "calibrate_from_nothing", "format_calibration_report"]
 
 DEPTH_KINDS = ("recorded", "da3")
 NO_DEPTH_HELP = ("calibration from nothing registers depth to the robot: record depth, or estimate it with Depth "
@@ -46,23 +53,28 @@ NO_DEPTH_HELP = ("calibration from nothing registers depth to the robot: record 
                  "pose), or give a rough starting pose (a few cm and degrees) to `imac qa refine` instead")
 
 
-def _intrinsics(cams, hw, intrinsics: Path | None, fov: Mapping[str, float]) -> dict[str, tuple[np.ndarray, bool]]:
-    """Per camera: (K at the images' size, whether it is recorded). Recorded intrinsics win; else
-    the nominal field of view gives the focal length (to be estimated) at the image centre."""
+# Without a nominal field of view, these are tried in turn: each one's fit starts from focal lengths
+# 30 % too short to 50 % too long (measured, docs/calibration.md), so together they cover about 17-110 deg.
+FOV_SWEEP = (25.0, 50.0, 90.0)
+
+
+def _intrinsics(cams, hw, intrinsics: Path | None, fov: Mapping[str, float]) -> dict[str, tuple[list, str]]:
+    """Per camera: (the K to start from at the images' size, where they come from: ``recorded``,
+    ``nominal`` or ``sweep``). Recorded intrinsics are used as they are; a nominal vertical field
+    of view, or else :data:`FOV_SWEEP`, gives a focal length to be estimated at the image centre."""
     recorded = load_calibration(intrinsics) if intrinsics is not None else {}
     out = {}
     for c in cams:
         H, W = hw[c]
         if c in recorded:
-            out[c] = (recorded[c].for_images(H, W, where=f"{c} images").K, True)
+            out[c] = ([recorded[c].for_images(H, W, where=f"{c} images").K], "recorded")
         elif c in fov or "*" in fov:
             deg = fov.get(c, fov.get("*"))
             if not (isinstance(deg, (int, float)) and 1.0 <= deg <= 170.0):
                 raise InputError(f"--fov for camera {c!r}: a vertical field of view in degrees in [1, 170], got {deg!r}")
-            out[c] = (intrinsics_from_fovy(float(deg), W, H), False)
+            out[c] = ([intrinsics_from_fovy(float(deg), W, H)], "nominal")
         else:
-            raise InputError(f"camera {c!r}: no intrinsics: give --intrinsics FILE (recorded K) or a nominal vertical "
-                             f"field of view, --fov {c}=DEG (or --fov DEG for every camera)")
+            out[c] = ([intrinsics_from_fovy(d, W, H) for d in FOV_SWEEP], "sweep")
     return out
 
 
@@ -120,6 +132,24 @@ def _scene_targets(fixed: dict[str, CameraResult], depth: dict, principal: dict,
     return scene
 
 
+def _pick(camera: str, tries: list[CameraResult], why: list[str], config: ScratchConfig) -> CameraResult:
+    """The answer of a camera over its focal starts: the best fit, unless a different pose fits
+    about as well (ambiguous); refused with every start's reason when none gave one."""
+    if not tries:
+        raise CalibrationRefused(why[0] if len(why) == 1 else f"camera {camera!r}: every focal start refused: "
+                                 + " | ".join(dict.fromkeys(why)))
+    tries = sorted(tries, key=lambda r: -r.confidence["inlier_ratio"])
+    best = tries[0]
+    for other in tries[1:]:
+        t, r = pose_distance(best.X, other.X)
+        if (t > config.distinct_mm or r > config.distinct_deg) and \
+                other.confidence["inlier_ratio"] >= config.ambiguity_ratio * best.confidence["inlier_ratio"]:
+            raise CalibrationRefused(f"camera {camera!r}: ambiguous: focal starts {best.focal:.0f} and "
+                                     f"{other.focal:.0f} px lead to poses {t:.0f} mm and {r:.1f} deg apart that fit "
+                                     "about equally well; give the nominal field of view (--fov)")
+    return best
+
+
 def _camera(name: str, K: np.ndarray, res: CameraResult, hw, link: str | None) -> Camera:
     K = K.copy()
     K[0, 0] = K[1, 1] = res.focal
@@ -146,7 +176,8 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
                            progress: bool = True, log=None) -> dict:
     """Calibrate every camera of ``source`` from nothing; write ``out`` (the cameras found) and the
     report directory; return the report dict. ``mounts``: camera -> URDF link for wrist cameras;
-    ``fov``: camera (or ``"*"``) -> nominal vertical field of view in degrees; ``intrinsics``: a
+    ``fov``: camera (or ``"*"``) -> nominal vertical field of view in degrees (none: :data:`FOV_SWEEP`
+    is tried); ``intrinsics``: a
     calibration file whose K are used as recorded; ``estimate_depth_scale``: the recorded depth's
     scale is not trusted and is estimated with the pose (always so for Depth Anything 3). Inputs
     are checked before any work."""
@@ -206,47 +237,55 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
 
     t0, c0 = time.perf_counter(), time.process_time()
     surface = RobotSurface(robot)
-    principal = {c: (Ks[c][0][0, 2], Ks[c][0][1, 2]) for c in cams}
+    principal = {c: (Ks[c][0][0][0, 2], Ks[c][0][0][1, 2]) for c in cams}
     results: dict[str, CameraResult] = {}
     order = [c for c in cams if c not in mounts and c in depths] + [c for c in cams if c in mounts and c in depths]
     for c in tqdm(order, desc="calibrate", unit="camera", disable=not progress):
-        K, known = Ks[c]
+        starts, how = Ks[c]
         if depths[c] is None:
             log(f"[calibrate] {c}: Depth Anything 3 on {len(refs)} frames")
-            depths[c] = _da3_depth(model, frames, c, refs, K)
+            depths[c] = _da3_depth(model, frames, c, refs, starts[0])
         scale_known = depth == "recorded" and not estimate_depth_scale
+        tries, why, tc = [], [], time.perf_counter()
+        for K in starts:
+            try:
+                if c in mounts:
+                    fixed = {f: r for f, r in results.items() if f not in mounts}
+                    if not fixed:
+                        raise CalibrationRefused(
+                            f"camera {c!r}: a wrist camera's mount is found against the scene a fixed camera saw, and "
+                            "no fixed camera with depth was calibrated in this run (calibrate one in the same run, or "
+                            "give a rough mount to `imac qa refine`)")
+                    lp = robot.link_poses(torch.as_tensor(q))[mounts[c]].numpy()
+                    tries.append(solve_mounted(c, q, depths[c], lp, _scene_targets(fixed, depths, principal, q, surface),
+                                               K[0, 0], principal[c], config, focal_known=how == "recorded",
+                                               scale_known=scale_known, log=log))
+                else:
+                    tries.append(solve_fixed(c, q, depths[c], K[0, 0], principal[c], surface, config,
+                                             focal_known=how == "recorded", scale_known=scale_known, log=log))
+            except CalibrationRefused as e:
+                why.append(str(e))
         try:
-            if c in mounts:
-                fixed = {f: r for f, r in results.items() if f not in mounts}
-                if not fixed:
-                    raise CalibrationRefused(
-                        f"camera {c!r}: a wrist camera's mount is found against the scene a fixed camera saw, and no "
-                        "fixed camera with depth was calibrated in this run (calibrate one in the same run, or give "
-                        "a rough mount to `imac qa refine`)")
-                lp = robot.link_poses(torch.as_tensor(q))[mounts[c]].numpy()
-                res = solve_mounted(c, q, depths[c], lp, _scene_targets(fixed, depths, principal, q, surface),
-                                    K[0, 0], principal[c], config, focal_known=known, scale_known=scale_known, log=log)
-            else:
-                res = solve_fixed(c, q, depths[c], K[0, 0], principal[c], surface, config, focal_known=known,
-                                  scale_known=scale_known, log=log)
+            res = _pick(c, tries, why, config)
         except CalibrationRefused as e:
             refused[c] = str(e)
             log(f"[calibrate] REFUSED {e}")
             continue
+        res.confidence.update(wall_s=time.perf_counter() - tc, focal_starts_tried=len(starts))
         results[c] = res
         log(f"[calibrate] {c}: {100 * res.confidence['inlier_ratio']:.1f}% inliers, residual "
             f"{res.confidence['residual_mm']:.2f} mm, focal {res.focal:.1f} px, depth scale {res.scale:.4f}")
     if not results:
         raise CalibrationRefused("no camera could be calibrated: " + "; ".join(refused.values()))
-    found = {c: _camera(c, Ks[c][0], r, hw[c], mounts.get(c)) for c, r in results.items()}
+    found = {c: _camera(c, Ks[c][0][0], r, hw[c], mounts.get(c)) for c, r in results.items()}
     summary = {"source": str(source), "out": str(out), "robot": robot.name, "robot_urdf_sha256": robot.urdf_hash,
                "depth": depth, "depth_scale_estimated": depth == "da3" or estimate_depth_scale, "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
                "candidate_frames": len(refs), "cameras": {}, "refused": refused,
                "depth_model": model.describe() if model is not None else None}
     for c, r in results.items():
         summary["cameras"][c] = {
-            "mounted_on": mounts.get(c), "focal_px": r.focal, "nominal_focal_px": None if Ks[c][1] else Ks[c][0][0, 0],
-            "focal_recorded": Ks[c][1], "depth_scale": r.scale, "frames": [list(refs[i]) for i in r.frames],
+            "mounted_on": mounts.get(c), "focal_px": r.focal, "focal_from": Ks[c][1],
+            "focal_start_px": [float(K[0, 0]) for K in Ks[c][0]], "depth_scale": r.scale, "frames": [list(refs[i]) for i in r.frames],
             **{k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in r.confidence.items()}}
     summary["search_wall_s"] = time.perf_counter() - t0
     summary["search_cpu_s"] = time.process_time() - c0

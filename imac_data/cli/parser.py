@@ -133,7 +133,7 @@ def _calibrate(p: argparse.ArgumentParser) -> None:
                    help="a wrist camera and the URDF link it is mounted on (repeatable)")
     p.add_argument("--fov", type=_fov, action="append", default=[], metavar="[CAMERA=]DEG",
                    help="nominal vertical field of view in degrees, for every camera or one (repeatable); the "
-                        "focal length is then estimated")
+                        "focal length is then estimated (none: 25, 50 and 90 degrees are tried)")
     p.add_argument("--intrinsics", default=None, help="calibration JSON whose K are the recorded intrinsics (used as is)")
     p.add_argument("--depth", default="recorded", choices=("recorded", "da3"),
                    help="recorded depth (default) or Depth Anything 3's monocular model, scale estimated")
