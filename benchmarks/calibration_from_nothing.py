@@ -162,7 +162,11 @@ def scaled_case(tmp: Path, hw, max_steps=None) -> tuple[list[dict], float]:
 def run(cases, *, quick: bool, seeds: int, placements: int, panda: int, refine: str, partial: Path | None) -> dict:
     hw = (120, 160) if quick else (480, 640)
     load0 = os.getloadavg()
-    result = {"height": hw[0], "width": hw[1], "quick": quick, "rows": [], "case_wall_s": {}}
+    import subprocess
+
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
+                         text=True).stdout.strip()
+    result = {"height": hw[0], "width": hw[1], "quick": quick, "commit": rev, "rows": [], "case_wall_s": {}}
     with tempfile.TemporaryDirectory(prefix="imac-calib-") as d:
         tmp = Path(d)
         for case in cases:

@@ -132,6 +132,32 @@ def _scene_targets(fixed: dict[str, CameraResult], depth: dict, principal: dict,
     return scene
 
 
+def _solve(c: str, starts: list[np.ndarray], focal_known: bool, scale_known: bool, q: np.ndarray, depths: dict,
+           principal: dict, results: dict[str, CameraResult], mounts: Mapping[str, str], robot, surface: RobotSurface,
+           config: ScratchConfig, log) -> tuple[list[CameraResult], list[str]]:
+    """Camera ``c`` from each focal start: (the answers, the refusals' reasons)."""
+    tries, why = [], []
+    for K in starts:
+        try:
+            if c not in mounts:
+                tries.append(solve_fixed(c, q, depths[c], K[0, 0], principal[c], surface, config,
+                                         focal_known=focal_known, scale_known=scale_known, log=log))
+                continue
+            fixed = {f: r for f, r in results.items() if f not in mounts}
+            if not fixed:
+                raise CalibrationRefused(
+                    f"camera {c!r}: a wrist camera's mount is found against the scene a fixed camera saw, and no "
+                    "fixed camera with depth was calibrated in this run (calibrate one in the same run, or give a "
+                    "rough mount to `imac qa refine`)")
+            lp = robot.link_poses(torch.as_tensor(q))[mounts[c]].numpy()
+            tries.append(solve_mounted(c, q, depths[c], lp, _scene_targets(fixed, depths, principal, q, surface),
+                                       K[0, 0], principal[c], config, focal_known=focal_known,
+                                       scale_known=scale_known, log=log))
+        except CalibrationRefused as e:
+            why.append(str(e))
+    return tries, why
+
+
 def _pick(camera: str, tries: list[CameraResult], why: list[str], config: ScratchConfig) -> CameraResult:
     """The answer of a camera over its focal starts: the best fit, unless a different pose fits
     about as well (ambiguous); refused with every start's reason when none gave one."""
@@ -177,10 +203,9 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
     """Calibrate every camera of ``source`` from nothing; write ``out`` (the cameras found) and the
     report directory; return the report dict. ``mounts``: camera -> URDF link for wrist cameras;
     ``fov``: camera (or ``"*"``) -> nominal vertical field of view in degrees (none: :data:`FOV_SWEEP`
-    is tried); ``intrinsics``: a
-    calibration file whose K are used as recorded; ``estimate_depth_scale``: the recorded depth's
-    scale is not trusted and is estimated with the pose (always so for Depth Anything 3). Inputs
-    are checked before any work."""
+    is tried); ``intrinsics``: a calibration file whose K are used as recorded;
+    ``estimate_depth_scale``: the recorded depth's scale is not trusted and is estimated with the
+    pose (always so for Depth Anything 3). Inputs are checked before any work."""
     log = log or (lambda msg: None)
     config = config or ScratchConfig()
     mounts, fov = dict(mounts or {}), dict(fov or {})
@@ -246,25 +271,9 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
             log(f"[calibrate] {c}: Depth Anything 3 on {len(refs)} frames")
             depths[c] = _da3_depth(model, frames, c, refs, starts[0])
         scale_known = depth == "recorded" and not estimate_depth_scale
-        tries, why, tc = [], [], time.perf_counter()
-        for K in starts:
-            try:
-                if c in mounts:
-                    fixed = {f: r for f, r in results.items() if f not in mounts}
-                    if not fixed:
-                        raise CalibrationRefused(
-                            f"camera {c!r}: a wrist camera's mount is found against the scene a fixed camera saw, and "
-                            "no fixed camera with depth was calibrated in this run (calibrate one in the same run, or "
-                            "give a rough mount to `imac qa refine`)")
-                    lp = robot.link_poses(torch.as_tensor(q))[mounts[c]].numpy()
-                    tries.append(solve_mounted(c, q, depths[c], lp, _scene_targets(fixed, depths, principal, q, surface),
-                                               K[0, 0], principal[c], config, focal_known=how == "recorded",
-                                               scale_known=scale_known, log=log))
-                else:
-                    tries.append(solve_fixed(c, q, depths[c], K[0, 0], principal[c], surface, config,
-                                             focal_known=how == "recorded", scale_known=scale_known, log=log))
-            except CalibrationRefused as e:
-                why.append(str(e))
+        tc = time.perf_counter()
+        tries, why = _solve(c, starts, how == "recorded", scale_known, q, depths, principal, results, mounts, robot,
+                            surface, config, log)
         try:
             res = _pick(c, tries, why, config)
         except CalibrationRefused as e:
@@ -279,13 +288,15 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
         raise CalibrationRefused("no camera could be calibrated: " + "; ".join(refused.values()))
     found = {c: _camera(c, Ks[c][0][0], r, hw[c], mounts.get(c)) for c, r in results.items()}
     summary = {"source": str(source), "out": str(out), "robot": robot.name, "robot_urdf_sha256": robot.urdf_hash,
-               "depth": depth, "depth_scale_estimated": depth == "da3" or estimate_depth_scale, "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
+               "depth": depth, "depth_scale_estimated": depth == "da3" or estimate_depth_scale,
+               "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
                "candidate_frames": len(refs), "cameras": {}, "refused": refused,
                "depth_model": model.describe() if model is not None else None}
     for c, r in results.items():
         summary["cameras"][c] = {
             "mounted_on": mounts.get(c), "focal_px": r.focal, "focal_from": Ks[c][1],
-            "focal_start_px": [float(K[0, 0]) for K in Ks[c][0]], "depth_scale": r.scale, "frames": [list(refs[i]) for i in r.frames],
+            "focal_start_px": [float(K[0, 0]) for K in Ks[c][0]], "depth_scale": r.scale,
+            "frames": [list(refs[i]) for i in r.frames],
             **{k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in r.confidence.items()}}
     summary["search_wall_s"] = time.perf_counter() - t0
     summary["search_cpu_s"] = time.process_time() - c0
