@@ -81,6 +81,7 @@ def compare(truth: dict, out: Path, summary: dict, case: str, run: str, goal_of)
                        depth_scale=entry["depth_scale"], inlier_ratio=entry["inlier_ratio"],
                        residual_mm=entry["residual_mm"], search_s=entry["wall_s"],
                        refine_accepted=entry.get("refine_accepted"),
+                       refine_moved_mm=entry.get("refine_pose_change", {}).get("t_mm"),
                        outline_px_after_refine=entry.get("outline_px_after_refine"))
             row["within_goal"] = bool(t_mm <= row["goal"][0] and r_deg <= row["goal"][1])
         else:
