@@ -225,3 +225,20 @@ def test_depth_anything_3_pose_free_mode_and_missing_weights(sim, tmp_path):
         calibrate_from_nothing(sim[0], tmp_path / "calib.json", recipe=ALOHA_RECIPE, cameras=["cam_high"],
                                fov={"*": 78.0}, depth="da3", da3_model=str(tmp_path / "no_weights"), progress=False)
     assert not list(tmp_path.iterdir())
+
+
+def test_two_different_poses_that_fit_alike_are_refused_as_ambiguous():
+    """The judge of the candidates: a runner-up 5 cm away scoring 95 % of the best is refused by
+    name; one scoring half is not; a best that explains too little is refused too."""
+    from imac_data.calibrate.register import Fit
+    from imac_data.calibrate.scratch import _judge
+
+    cfg = ScratchConfig()
+    a, b = np.eye(4), np.eye(4)
+    b[:3, 3] = [0.05, 0.0, 0.0]
+    with pytest.raises(CalibrationRefused, match=r"camera 'cam_x': ambiguous: two poses 50 mm"):
+        _judge("cam_x", [Fit(a, 500.0, 1.0, 0.95, 0.8, 10), Fit(b, 500.0, 1.0, 0.91, 0.8, 10)], cfg)
+    best, conf = _judge("cam_x", [Fit(a, 500.0, 1.0, 0.95, 0.8, 10), Fit(b, 500.0, 1.0, 0.5, 3.0, 10)], cfg)
+    assert best.X is a and conf["runner_up_inlier_ratio"] == 0.5
+    with pytest.raises(CalibrationRefused, match=r"camera 'cam_x': no pose explains the depth"):
+        _judge("cam_x", [Fit(a, 500.0, 1.0, 0.6, 0.8, 10)], cfg)
