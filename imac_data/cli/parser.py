@@ -15,6 +15,7 @@ COMMANDS = {
     "validate": "imac_data.cli.validate",
     "qa overlay": "imac_data.cli.qa",
     "qa refine": "imac_data.cli.qa",
+    "qa calibrate": "imac_data.cli.qa",
     "qa preview": "imac_data.cli.qa",
     "simulate": "imac_data.cli.simulate",
     "robot joints": "imac_data.cli.robot",
@@ -109,6 +110,47 @@ def _refine(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs (never inputs)")
 
 
+def _name_value(text: str) -> tuple[str, str]:
+    name, sep, value = text.partition("=")
+    if not sep or not name or not value:
+        raise argparse.ArgumentTypeError(f"expected CAMERA=VALUE, got {text!r}")
+    return name, value
+
+
+def _fov(text: str) -> tuple[str, float]:
+    name, sep, value = text.rpartition("=")
+    try:
+        return (name if sep else "*"), float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected DEG or CAMERA=DEG, got {text!r}") from None
+
+
+def _calibrate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("source", help="directory of raw HDF5 episodes, one episode file, or a LeRobot dataset")
+    p.add_argument("--recipe", required=True, help="build recipe: the robot (URDF, joint map)")
+    p.add_argument("--out", required=True, help="calibration JSON to write (the cameras found)")
+    p.add_argument("--mount", type=_name_value, action="append", default=[], metavar="CAMERA=LINK",
+                   help="a wrist camera and the URDF link it is mounted on (repeatable)")
+    p.add_argument("--fov", type=_fov, action="append", default=[], metavar="[CAMERA=]DEG",
+                   help="nominal vertical field of view in degrees, for every camera or one (repeatable); the "
+                        "focal length is then estimated (none: 25, 50 and 90 degrees are tried)")
+    p.add_argument("--intrinsics", default=None, help="calibration JSON whose K are the recorded intrinsics (used as is)")
+    p.add_argument("--depth", default="recorded", choices=("recorded", "da3"),
+                   help="recorded depth (default) or Depth Anything 3's monocular model, scale estimated")
+    p.add_argument("--estimate-depth-scale", action="store_true",
+                   help="do not trust the recorded depth's scale: estimate it with the pose (always so with da3)")
+    p.add_argument("--da3-model", default=None, help="local Depth Anything 3 metric weights directory (--depth da3)")
+    p.add_argument("--cameras", default=None, help="comma-separated cameras (default: every camera of the source)")
+    p.add_argument("--frames", type=int, default=10, help="frames registered together per camera (default 10)")
+    p.add_argument("--candidates", type=int, default=60, help="frames read, spread over the episodes (default 60)")
+    p.add_argument("--refine", default="edges", choices=("edges", "none"),
+                   help="hand the result to `qa refine` with the edge cue (default), or not")
+    p.add_argument("--near", type=float, default=0.0, help="renderer near clip for the refinement (simulated: 0.166)")
+    p.add_argument("--report", default=None, help="report directory (default: <out>.report beside --out)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs (never inputs)")
+    p.add_argument("--no-progress", action="store_true")
+
+
 def _preview(p: argparse.ArgumentParser) -> None:
     p.add_argument("root", help="the built dataset's root directory")
     p.add_argument("--episode", type=int, default=0, help="episode index (default 0)")
@@ -150,11 +192,13 @@ def build_parser(prog: str = "imac") -> argparse.ArgumentParser:
     _build(sub.add_parser("build", help="build a dataset with every added stream from a recipe"))
     _augment(sub.add_parser("augment", help="add the streams to an existing LeRobot dataset"))
     _validate(sub.add_parser("validate", help="check a built dataset (exit 2 with a report when it is not valid)"))
-    qa = sub.add_parser("qa", help="calibration overlay, calibration refinement, preview of a built episode")
+    qa = sub.add_parser("qa", help="calibration overlay, calibration from nothing and refinement, preview of a built episode")
     qa_sub = qa.add_subparsers(dest="qa_command", required=True, metavar="QA_COMMAND")
     _overlay(qa_sub.add_parser("overlay", help="draw the rendered robot's outline over an episode's frames"))
     _refine(qa_sub.add_parser("refine", help="refine camera poses by aligning the rendered robot with the "
                                              "robot's pixels (docs/calibration.md)"))
+    _calibrate(qa_sub.add_parser("calibrate", help="find every camera's pose from depth and joint states, with no "
+                                                   "starting calibration (docs/calibration.md)"))
     _preview(qa_sub.add_parser("preview", help="write an mp4 mosaic of every stream of a built episode"))
     _simulate(sub.add_parser("simulate", help="record scripted gym-aloha episodes as ALOHA HDF5"))
     robot = sub.add_parser("robot", help="inspect a URDF for a recipe's robot: block")

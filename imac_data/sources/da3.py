@@ -394,7 +394,8 @@ class DepthAnything3Metric(DepthAnything3):
     Loading, devices, precision and batching over time are :class:`DepthAnything3`'s.
 
     Verified here with random weights only (shapes, the focal rule: halving the focal length
-    halves the depth); its accuracy with real weights is not measured.
+    halves the depth); its accuracy with real weights is not measured. With no calibration at all,
+    :meth:`predict_pose_free` is the mode ``qa calibrate`` uses: the scale is then estimated there.
     """
 
     def describe(self) -> dict[str, Any]:
@@ -443,6 +444,18 @@ class DepthAnything3Metric(DepthAnything3):
                     depth[t] = self._resize_back(d[b], (H, W))
             out.append(depth)
         return out
+
+    def predict_pose_free(self, images: np.ndarray, focal_guess: float, *, where: str = "views") -> np.ndarray:
+        """Pose-free mode, for a camera with no calibration (``qa calibrate``): depth ``(T, H, W)``
+        of one view's frames from a guessed focal length (px, at the images' size) and the image
+        centre, nothing else. Its scale is the metric rule's with that guess, so it is off by the
+        guess's error and the model's own; the caller estimates the scale with the pose (a
+        similarity fit) and reports it. Depth only, without the scale, is what this mode promises."""
+        if not (isinstance(focal_guess, (int, float)) and math.isfinite(focal_guess) and focal_guess > 0):
+            raise InputError(f"{where}: focal_guess must be a positive number of pixels, got {focal_guess!r}")
+        H, W = np.shape(images)[1:3]
+        K = np.array([[focal_guess, 0.0, (W - 1) / 2.0], [0.0, focal_guess, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
+        return self.predict([images], [K], where=where)[0]
 
     def depth(self, views: EpisodeViews) -> dict[str, np.ndarray]:
         cams = self.cameras if self.cameras is not None else sorted(views.cameras)
