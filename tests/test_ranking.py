@@ -34,13 +34,16 @@ from imac_model.data.chunks import open_metadata
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
+from imac_model.experiments.ranking.benchmark import import_gpu_runs
 from imac_model.experiments.ranking.judge import LiftJudge
+from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
 from imac_model.models.checkpoint import load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.training import train as train_cli
+from imac_model.training.pack import Pack, heldout_loss
 
 REPO = "local/lift_test"
 SEED = 200  # closed_loop lifts the cube from this start; a 4.5 cm offset misses it
@@ -213,6 +216,7 @@ def test_moving_the_cube_moves_a_closed_loop_policys_grasp_target_in_both_runner
 OUTSIDE = '''
 import torch
 
+from imac_model.experiments.ranking.benchmark import import_gpu_runs
 from imac_model.experiments.ranking.judge import LiftJudge
 
 
@@ -323,10 +327,6 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     trains every run from it (the uniform-loss ablation too), and the imported checkpoints are the
     models that were trained (their held-out loss, measured again here, is the log's), replacing the CPU-trained
     toy runs of the same name whole."""
-    from imac_model.experiments.ranking.benchmark import import_gpu_runs
-    from imac_model.experiments.ranking.plan import RankingPlan
-    from imac_model.training.pack import Pack, heldout_loss
-
     work, docs = toy_run
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
     plan = RankingPlan.load(work / "plan.json")

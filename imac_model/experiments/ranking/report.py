@@ -171,7 +171,7 @@ def training_log(run: Path) -> dict:
 
 def plot_training(training: dict, path: Path) -> None:
     """Training loss (smoothed over 20 logs) and held-out loss against the step, one colour per mode."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib is heavy: imported by the report only
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(7, 4))
