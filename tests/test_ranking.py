@@ -216,7 +216,6 @@ def test_moving_the_cube_moves_a_closed_loop_policys_grasp_target_in_both_runner
 OUTSIDE = '''
 import torch
 
-from imac_model.experiments.ranking.benchmark import import_gpu_runs
 from imac_model.experiments.ranking.judge import LiftJudge
 
 
