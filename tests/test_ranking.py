@@ -4,8 +4,10 @@ an outside policy module through both runners, and the whole benchmark at toy si
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -34,7 +36,7 @@ from imac_model.data.chunks import open_metadata
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
-from imac_model.experiments.ranking.benchmark import import_gpu_runs
+from imac_model.experiments.ranking.benchmark import GateStop, import_gpu_runs, stage_train
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
@@ -314,11 +316,35 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     assert all(results["evaluations"]["none"]["none_check"]["bit_identical"])
     assert {"simulate", "build", "decode", "train", "judges", "evaluate"} <= set(results["stages"])  # before the report
     assert (docs / "scatter_motion_contact.png").is_file() and "## Time per stage" in (docs / "README.md").read_text()
+    # the early gate: motion+contact measured on the held-out training rollouts, against the simulator's own outcomes
+    plan = RankingPlan.load(work / "plan.json")
+    (gate,) = results["gates"]
+    simulated = {r["index"]: r["success"] for part in (work / "sim" / "train").glob("part_*")
+                 for r in json.loads((part / "outcomes.json").read_text())}
+    assert gate["episodes"] == plan.held_out_episodes() and gate["labels"] == [simulated[e] for e in gate["episodes"]]
+    assert gate["budget_minutes"] == plan.cpu_minutes and set(gate["from_chunk"]) == {"0", "1"}
+    assert "## The early gate" in (docs / "README.md").read_text() and (docs / "gate.png").is_file()
     # a second run finds every stage's outputs and only writes the report again
     stages = json.loads((work / "stages.json").read_text())
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs)]) == 0
     again = json.loads((work / "stages.json").read_text())[len(stages):]
     assert all(e["cpu_s"] < 5 for e in again if e["stage"] != "report"), again
+
+
+def test_a_run_that_misses_the_early_gate_stops_and_reports_it(toy_run, tmp_path):
+    """The toy's gated model against a goal it cannot meet: the benchmark stops before the other
+    modes train, and writes the report of what the gate showed."""
+    work, _ = toy_run
+    plan = dataclasses.replace(RankingPlan.load(work / "plan.json"), work=tmp_path / "work", docs=tmp_path / "docs",
+                               gate_min=1.01)
+    shutil.copytree(work / "runs" / "motion_contact", plan.run_dir("motion+contact"))
+    (plan.run_dir("motion+contact") / "DONE.json").unlink()
+    with pytest.raises(GateStop, match="below 1.01; the benchmark stops here"):
+        stage_train(plan)  # the gate at the end of the budget is measured already: nothing trains again
+    assert not plan.run_dir("none").exists()
+    report = (plan.docs / "README.md").read_text()
+    assert "**Stopped at the early gate**" in report and "**Verdict:** stop." in report
+    assert (plan.docs / "gate.png").is_file() and (plan.docs / "training_loss.png").is_file()
 
 
 def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):

@@ -167,20 +167,20 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--docs", default="docs/ranking", help="where the report goes")
     p.add_argument("--policies", nargs="+", metavar="SPEC",
                    help="python:MODULE:NAME policies to rank (default: the benchmark's six lift policies)")
-    p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 150)")
+    p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 180)")
     p.add_argument("--steps", type=int, help="Euler steps at evaluation (default 10)")
     p.add_argument("--jobs", type=int, help="processes at a time (default 2)")
     p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "
                                                        "2 chunks, 2 modes, 2 sampler steps")
     p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",
                    help="cpu (default: every mode trained on the CPU budget) or gpu (motion+contact and "
-                        "action-vector trained 5 minutes each on one GPU from the tensor pack; docs/ranking.md)")
+                        "action-vector trained 8 minutes each on one GPU from the tensor pack; docs/ranking.md)")
     p.add_argument("--stages", default=",".join(RANKING_STAGES),
                    help=f"comma-separated subset of {','.join(RANKING_STAGES)}")
     p.add_argument("--plan", help=argparse.SUPPRESS)
     p.add_argument("--import-gpu", metavar="DIR", help="put scripts/gpu_ranking.sh's checkpoints (DIR) into the work "
                                                       "directory as trained runs (docs/ranking.md, 'The GPU preset')")
-    p.add_argument("--internal", choices=("train-rollouts", "decode", "pack", "judges", "evaluate", "replays"),
+    p.add_argument("--internal", choices=("train-rollouts", "decode", "pack", "judges", "evaluate", "replays", "gate"),
                    help=argparse.SUPPRESS)
     p.add_argument("internal_args", nargs="*", help=argparse.SUPPRESS)
 

@@ -13,12 +13,14 @@ from imac_data.console import run_command
 from imac_data.errors import InputError
 from imac_model.experiments.ranking.benchmark import (
     STAGE_FUNCTIONS,
+    GateStop,
     decode_chunks,
     export_training_pack,
     import_gpu_runs,
     simulate_training_part,
 )
 from imac_model.experiments.ranking.evaluation import evaluate_mode, replays, run_judges
+from imac_model.experiments.ranking.gate import measure_gate
 from imac_model.experiments.ranking.plan import STAGES, RankingPlan, gpu_plan, toy_plan
 from imac_model.experiments.stages import StageLog
 
@@ -52,7 +54,8 @@ def _ranking(args: argparse.Namespace) -> int:
         {"train-rollouts": lambda: simulate_training_part(plan, int(args.internal_args[0])),
          "decode": lambda: decode_chunks(plan), "pack": lambda: export_training_pack(plan), "judges": lambda: run_judges(plan),
          "evaluate": lambda: evaluate_mode(plan, args.internal_args[0]),
-         "replays": lambda: replays(plan, *args.internal_args[:2])}[args.internal]()
+         "replays": lambda: replays(plan, *args.internal_args[:2]),
+         "gate": lambda: measure_gate(plan, float(args.internal_args[0]), *args.internal_args[1:2])}[args.internal]()
         return 0
     plan = _plan(args)
     if args.import_gpu:
@@ -69,6 +72,9 @@ def _ranking(args: argparse.Namespace) -> int:
         for stage in STAGES:
             if stage in stages:
                 log.run(stage, lambda f=STAGE_FUNCTIONS[stage]: f(plan))
+    except GateStop as e:  # a result, not a failure of the run: the report holds it
+        print(f"stopped: {e}", file=sys.stderr)
+        return 3
     except RuntimeError as e:  # a stage's subprocess failed; its log says why
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -322,10 +322,18 @@ def fit_classifier(config: SuccessClassifierConfig, episodes: Sequence[EpisodeFr
 def evaluate_judge(judge: SuccessJudge, episodes: Sequence[EpisodeFrames], labels: Sequence[bool]) -> dict:
     """Accuracy of ``judge`` on labelled episodes (real or generated): accuracy,
     balanced accuracy, the majority-class baseline and the confusion counts."""
-    y = np.asarray(labels, dtype=bool)
-    if len(y) != len(episodes) or len(y) == 0:
-        raise InputError(f"labels: {len(y)} labels for {len(episodes)} episodes")
-    pred = np.asarray(judge.judge(episodes), dtype=bool)
+    if len(labels) != len(episodes) or len(labels) == 0:
+        raise InputError(f"labels: {len(labels)} labels for {len(episodes)} episodes")
+    return {**verdict_scores(judge.judge(episodes), labels), "episodes": [int(e.episode_index) for e in episodes]}
+
+
+def verdict_scores(predicted: Sequence[bool], labels: Sequence[bool]) -> dict:
+    """Verdicts against labels: accuracy, balanced accuracy (the mean recall of the outcomes
+    present: a judge that always says the majority outcome scores 0.5), the majority-class
+    baseline and the confusion counts."""
+    pred, y = np.asarray(predicted, dtype=bool), np.asarray(labels, dtype=bool)
+    if len(y) != len(pred) or len(y) == 0:
+        raise InputError(f"labels: {len(y)} labels for {len(pred)} verdicts")
     tp, tn = int(np.sum(pred & y)), int(np.sum(~pred & ~y))
     fp, fn = int(np.sum(pred & ~y)), int(np.sum(~pred & y))
     recalls = [r for r in (tp / (tp + fn) if tp + fn else None, tn / (tn + fp) if tn + fp else None) if r is not None]
@@ -335,7 +343,6 @@ def evaluate_judge(judge: SuccessJudge, episodes: Sequence[EpisodeFrames], label
         "balanced_accuracy": float(np.mean(recalls)),
         "majority_baseline": max(y.mean(), 1 - y.mean()).item(),
         "confusion": {"true_positive": tp, "true_negative": tn, "false_positive": fp, "false_negative": fn},
-        "episodes": [int(e.episode_index) for e in episodes],
         "predicted": pred.tolist(),
     }
 

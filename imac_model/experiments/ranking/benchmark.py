@@ -34,6 +34,7 @@ from imac_data.layout import info_path
 from imac_model.config import CONTROL_STREAMS
 from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner, run_policy
+from imac_model.experiments.ranking.gate import GATED_MODE, gate_minutes, gate_verdict, read_gates
 from imac_model.experiments.ranking.plan import (
     EVAL_REPO,
     RECIPE,
@@ -230,18 +231,56 @@ def stage_decode(plan: RankingPlan) -> None:
     run_all([("decode", internal(plan, "decode"), plan.work / "logs" / "decode.log")], 1, tag="ranking")
 
 
+def _train_command(plan: RankingPlan, mode: str, minutes: float | None = None, finish: bool = True) -> list[str]:
+    """argv training ``mode`` (resuming its checkpoints) up to ``minutes`` CPU-minutes (default: its
+    budget); with ``finish``, the run is then marked trained (``DONE.json``)."""
+    overrides = plan.mode_overrides(mode)
+    if minutes is not None:
+        overrides["train.max_cpu_minutes"] = minutes
+    sets = [a for k, v in overrides.items() for a in ("--set", f"{k}={json.dumps(v)}")]
+    script = " ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", plan.config, "--no-progress",
+                                             *sets]))
+    if finish:
+        script += f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(plan.run_dir(mode)))}"
+    return ["bash", "-c", script]
+
+
+class GateStop(RuntimeError):
+    """The early gate was not passed in time: the benchmark stops (the report says what it showed)."""
+
+
+def train_gated(plan: RankingPlan) -> None:
+    """motion+contact in segments of ``gate_every`` CPU-minutes, each followed by the early gate
+    (:mod:`.gate`); raises :class:`GateStop` when the gate says stop."""
+    mode, log = GATED_MODE, plan.work / "logs" / f"train_{slug(GATED_MODE)}.log"
+    measured = {g["budget_minutes"] for g in read_gates(plan)}
+    for minutes in gate_minutes(plan):
+        if minutes not in measured:
+            last = minutes == gate_minutes(plan)[-1]
+            run_all([(f"train {mode} to {minutes:g} CPU-minutes", _train_command(plan, mode, minutes, finish=last), log),
+                     ], 1, tag="ranking")
+            run_all([(f"gate {mode} at {minutes:g} CPU-minutes", internal(plan, "gate", f"{minutes:g}"),
+                      plan.work / "logs" / "gate.log")], 1, tag="ranking")
+        gates = read_gates(plan)
+        score = gates[-1]["from_chunk"]["0"]["balanced_accuracy"]
+        print(f"[ranking]   gate at {minutes:g} CPU-minutes: balanced accuracy {score:.2f} (goal {plan.gate_min:g})",
+              file=sys.stderr, flush=True)
+        if gate_verdict(plan, gates) == "stop":
+            write_report(plan)
+            raise GateStop(f"the early gate: {mode}'s lift judge on replays of held-out training rollouts reached "
+                           f"{max(g['from_chunk']['0']['balanced_accuracy'] for g in gates):.2f} balanced accuracy by "
+                           f"{minutes:g} CPU-minutes, below {plan.gate_min:g}; the benchmark stops here "
+                           f"(docs/ranking.md, \"The early gate\"; the gates: {plan.docs / 'README.md'})")
+
+
 def stage_train(plan: RankingPlan) -> None:
     if plan.gpu_minutes is not None:
         return train_on_gpu(plan)
-    commands = []
-    for mode in plan.modes:
-        if (plan.run_dir(mode) / "DONE.json").is_file():
-            continue
-        sets = [a for k, v in plan.mode_overrides(mode).items() for a in ("--set", f"{k}={json.dumps(v)}")]
-        script = (" ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", plan.config,
-                                                   "--no-progress", *sets]))
-                  + f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(plan.run_dir(mode)))}")
-        commands.append((f"train {mode}", ["bash", "-c", script], plan.work / "logs" / f"train_{slug(mode)}.log"))
+    gated = plan.gate_every is not None and GATED_MODE in plan.modes
+    if gated and not (plan.run_dir(GATED_MODE) / "DONE.json").is_file():
+        train_gated(plan)  # first, alone: the other modes train only once it has passed
+    commands = [(f"train {mode}", _train_command(plan, mode), plan.work / "logs" / f"train_{slug(mode)}.log")
+                for mode in plan.modes if not (plan.run_dir(mode) / "DONE.json").is_file()]
     run_all(commands, plan.jobs, tag="ranking")
 
 

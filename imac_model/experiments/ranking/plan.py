@@ -44,12 +44,17 @@ class RankingPlan:
     real_per_group: int = 25  # MuJoCo episodes per policy and group
     wm_per_group: int = 15  # world-model episodes per policy and group (the group's first starts)
     train_episodes: int = 192  # the world model's training rollouts
-    held_out: int = 8  # of them, held out of training (the held-out loss)
+    held_out: int = 16  # of them, held out of training (the held-out loss and the early gate)
     # motion is left out of the default: the comparison is motion+contact against action-vector, and none is
     # the harness check; at 8 CPU-hours a fourth equal budget does not fit (docs/ranking.md, "Modes")
     modes: tuple[str, ...] = ("motion+contact", "action-vector", "none")
-    cpu_minutes: float = 150.0  # training budget of each compared mode (process CPU minutes, one thread)
+    cpu_minutes: float = 180.0  # training budget of each compared mode (process CPU minutes, one thread)
     none_minutes: float = 10.0  # none's: a harness check (bit-identity), not a comparison
+    # the early gate (gate.py): motion+contact trains first, measured every gate_every CPU-minutes on the
+    # held-out training rollouts; the benchmark stops if it has not reached gate_min by gate_by
+    gate_every: float | None = 60.0
+    gate_min: float = 0.7
+    gate_by: float = 180.0
     chunks: int = 4  # world-model chunks per episode (8 frames each)
     steps: int = 10  # Euler steps of the evaluation sampler
     check_steps: int = 20  # the training default: the judges are checked at both
@@ -84,6 +89,8 @@ class RankingPlan:
         for name in ("groups", "chunks", "steps", "check_steps", "jobs"):
             if getattr(self, name) < 1:
                 raise InputError(f"ranking: {name} must be >= 1")
+        if self.gate_every is not None and not 0 < self.gate_every <= self.cpu_minutes:
+            raise InputError(f"ranking: gate_every must be in (0, cpu_minutes], got {self.gate_every}")
 
     # ------------------------------------------------------------------ paths and indices
     @property
@@ -124,10 +131,13 @@ class RankingPlan:
     def wm_dir(self, mode: str) -> Path:
         return self.work / "wm" / mode.replace("+", "_").replace("-", "_")
 
+    def held_out_episodes(self) -> list[int]:
+        """The training rollouts kept out of training: the last ``held_out``."""
+        return list(range(self.train_episodes - self.held_out, self.train_episodes))
+
     def mode_overrides(self, mode: str) -> dict:
-        held = list(range(self.train_episodes - self.held_out, self.train_episodes))
         out = {"data.dataset": TRAIN_REPO, "data.root": str(self.train_dataset),
-               "data.cache_dir": str(self.work / "chunkcache"), "data.held_out_episodes": held,
+               "data.cache_dir": str(self.work / "chunkcache"), "data.held_out_episodes": self.held_out_episodes(),
                "train.max_cpu_minutes": self.none_minutes if mode == "none" else self.cpu_minutes, "train.output_dir": str(self.run_dir(mode)),
                "train.seed": self.seed, "conditioning.mode": mode, "data.view_height": self.view_size[0],
                "data.view_width": self.view_size[1], "data.views": list(self.views)}
@@ -149,7 +159,8 @@ def gpu_plan(work: Path, docs: Path) -> RankingPlan:
     """The GPU preset: the CPU preset's data, model and evaluation, with motion+contact and action-vector
     trained for 8 minutes each on one GPU from the tensor pack (``scripts/gpu_ranking.sh``) instead of the
     CPU budget; a short GPU loan fits it (docs/ranking.md, "The GPU preset")."""
-    return RankingPlan(work=work, docs=docs, modes=("motion+contact", "action-vector"), gpu_minutes=8.0)
+    return RankingPlan(work=work, docs=docs, modes=("motion+contact", "action-vector"), gpu_minutes=8.0,
+                       gate_every=None)
 
 
 def toy_plan(work: Path, docs: Path) -> RankingPlan:
@@ -158,6 +169,6 @@ def toy_plan(work: Path, docs: Path) -> RankingPlan:
                                                             for p in ("closed_loop", "open_loop_3cm")),
                        groups=2, real_per_group=2, wm_per_group=1, train_episodes=4, held_out=1,
                        modes=("motion+contact", "none"), cpu_minutes=1.0, none_minutes=1.0, chunks=2, steps=2, check_steps=2,
-                       recorded=2, toy=True)
+                       recorded=2, toy=True, gate_every=1.0, gate_min=0.0)
 
 

@@ -4,6 +4,7 @@ written from the work directory's outputs only; nothing is typed in by hand."""
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from imac_data.layout import image_key
 from imac_model.evaluate.pictures import label
 from imac_model.evaluate.statistics import STATISTICS, plot_policy_scatter, policy_correlation
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
+from imac_model.experiments.ranking.gate import GATED_MODE, gate_verdict, read_gates
 from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, slug
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 
@@ -130,26 +132,37 @@ def _examples(plan: RankingPlan, real: dict, mode: str) -> dict[str, tuple[str, 
 def write_report(plan: RankingPlan) -> Path:
     docs = plan.docs
     docs.mkdir(parents=True, exist_ok=True)
+    stages = StageLog(plan.work / "stages.json").totals()
+    trained = [m for m in plan.modes if (plan.run_dir(m) / "log.jsonl").is_file()]
+    training = {m: training_log(plan.run_dir(m)) for m in trained}
+    if training:
+        plot_training(training, docs / "training_loss.png")
+    gates = read_gates(plan)
+    if gates:
+        latest = plan.run_dir(GATED_MODE) / f"gate_{gates[-1]['step']:06d}.png"
+        if latest.is_file():
+            shutil.copy(latest, docs / "gate.png")
+    shown_plan = {k: (_shown(Path(v)) if k in ("work", "docs", "config") else v) for k, v in plan.to_dict().items()}
+    results = {"plan": shown_plan, "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
+               "dirty": _uncommitted_changes(docs), "written": time.strftime("%Y-%m-%d %H:%M"), "stages": stages,
+               "gates": gates, "training": {m: {k: v for k, v in t.items() if k != "rows"} for m, t in training.items()}}
+    if not all((plan.wm_dir(m) / "outcomes.json").is_file() for m in plan.modes):  # stopped at the early gate
+        (docs / "results.json").write_text(json.dumps(results, indent=1, default=str))
+        (docs / "README.md").write_text(_stopped_markdown(plan, results))
+        return docs / "README.md"
     real = real_outcomes(plan)
     stats = _correlations(plan, real)
-    judges = json.loads((plan.work / "judges" / "real.json").read_text())
-    evaluations = {m: json.loads((plan.wm_dir(m) / "outcomes.json").read_text()) for m in plan.modes}
-    stages = StageLog(plan.work / "stages.json").totals()
     for mode in plan.modes:
         plot_policy_scatter(stats[mode]["lift_geometry"], docs / f"scatter_{slug(mode.replace('+', '_'))}.png",
                             title=f"{mode}: world model vs MuJoCo (lift judge)")
     shown = next((m for m in ("motion+contact", "motion", "action-vector") if m in plan.modes), plan.modes[0])
-    training = {m: training_log(plan.run_dir(m)) for m in plan.modes}
-    plot_training(training, docs / "training_loss.png")
     examples = _examples(plan, real, shown)
     for outcome, (policy, start) in examples.items():
         side_by_side(plan, shown, policy, start, docs / f"rollout_{outcome}.png")
-    shown_plan = {k: (_shown(Path(v)) if k in ("work", "docs", "config") else v) for k, v in plan.to_dict().items()}
-    results = {"plan": shown_plan, "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
-               "dirty": _uncommitted_changes(docs), "written": time.strftime("%Y-%m-%d %H:%M"),
-               "real": {f"{p}/{g}": v for (p, g), v in real.items()}, "statistics": stats, "judges": judges,
-               "evaluations": evaluations, "stages": stages, "examples": examples,
-               "training": {m: {k: v for k, v in t.items() if k != "rows"} for m, t in training.items()}}
+    results.update(real={f"{p}/{g}": v for (p, g), v in real.items()}, statistics=stats,
+                   judges=json.loads((plan.work / "judges" / "real.json").read_text()),
+                   evaluations={m: json.loads((plan.wm_dir(m) / "outcomes.json").read_text()) for m in plan.modes},
+                   examples=examples)
     (docs / "results.json").write_text(json.dumps(results, indent=1, default=str))
     (docs / "README.md").write_text(_markdown(plan, results))
     return docs / "README.md"
@@ -226,7 +239,7 @@ def _shown(path: Path) -> str:
     return str(path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path)
 
 
-def _markdown(plan: RankingPlan, r: dict) -> str:
+def _header(plan: RankingPlan, r: dict) -> list[str]:
     m = r["machine"]
     cpu_total = sum(s["cpu_s"] for s in r["stages"].values())
     wall_total = sum(s["wall_s"] for s in r["stages"].values())
@@ -249,6 +262,65 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
         f"each; in the world model the first {plan.wm_per_group} starts of each group, {plan.chunks} chunks of 8 "
         f"frames (10 fps), {plan.steps} Euler steps; {plan.train_episodes} training rollouts.", "",
     ]
+    return lines
+
+
+def _training(r: dict) -> list[str]:
+    lines = ["", "## Training", "", "Per mode, from its log (the held-out loss: the flow loss of the held-out "
+              "episodes' chunks at fixed times and noise; with `flow.focus_weight` it is the weighted loss).", "",
+              "| mode | device | steps | samples | training (s: GPU wall, or CPU) | final held-out loss |",
+              "|---|---|---|---|---|---|"]
+    for mode, t in r["training"].items():
+        lines.append(f"| {mode} | {t['device']} | {t['steps']} | {t['samples'] or ''} | {_fmt(t['train_s'], 0)} | "
+                     f"{_fmt(t['final_heldout_loss'], 4)} |")
+    return lines + (["", "![training and held-out loss](training_loss.png)"] if r["training"] else [])
+
+
+def _gate(plan: RankingPlan, r: dict) -> list[str]:
+    """The early gate's table (docs/ranking.md, "The early gate"), if the run was gated."""
+    gates = r.get("gates") or []
+    if not gates:
+        return []
+    k = max(len(g["from_chunk"]) for g in gates)
+    lines = ["", "## The early gate", "",
+             f"`{GATED_MODE}` trained first, alone; after every {plan.gate_every:g} CPU-minutes the recorded actions of "
+             f"the {plan.held_out} held-out training rollouts replayed in it, the lift judge against MuJoCo's labels. "
+             "Balanced accuracy (mean recall of successes and failures: painting one outcome everywhere scores 0.5); "
+             "\"from chunk k\": the replay starts at the recorded frame of chunk k (drift before it is taken away). "
+             f"Goal: {plan.gate_min:g} from chunk 1 by {min(plan.gate_by, plan.cpu_minutes):g} CPU-minutes.", "",
+             "| budget (CPU min) | step | episodes (successes) | " + " | ".join(f"from chunk {i + 1}" for i in range(k))
+             + " | accuracy from chunk 1 |", "|" + "---|" * (4 + k)]
+    for g in gates:
+        cells = [_fmt(g["from_chunk"][str(i)]["balanced_accuracy"], 2) if str(i) in g["from_chunk"] else ""
+                 for i in range(k)]
+        lines.append(f"| {g['budget_minutes']:g} | {g['step']} | {len(g['labels'])} ({sum(g['labels'])}) | "
+                     + " | ".join(cells) + f" | {_fmt(g['from_chunk']['0']['accuracy'], 2)} |")
+    lines += ["", f"**Verdict:** {gate_verdict(plan, gates)}.", "",
+              "The latest gate's replays (workspace view; top recorded, bottom generated):", "", "![gate](gate.png)"]
+    return lines
+
+
+def _stopped_markdown(plan: RankingPlan, r: dict) -> str:
+    """The report of a run that stopped at the early gate: what the gate showed, and the training."""
+    lines = _header(plan, r)
+    lines += ["**Stopped at the early gate** (or not yet evaluated): no closed loop was run, so no ranking is "
+              "reported. What the gate showed:"]
+    lines += _gate(plan, r) + _training(r) + _stage_times(r)
+    return "\n".join(lines) + "\n"
+
+
+def _stage_times(r: dict) -> list[str]:
+    cpu_total = sum(s["cpu_s"] for s in r["stages"].values())
+    wall_total = sum(s["wall_s"] for s in r["stages"].values())
+    lines = ["", "## Time per stage", "", "| stage | CPU min | wall min | commit |", "|---|---|---|---|"]
+    for stage, t in r["stages"].items():
+        lines.append(f"| {stage} | {t['cpu_s'] / 60:.1f} | {t['wall_s'] / 60:.1f} | {', '.join(t['commits'])} |")
+    lines.append(f"| total | {cpu_total / 60:.1f} | {wall_total / 60:.1f} | |")
+    return lines
+
+
+def _markdown(plan: RankingPlan, r: dict) -> str:
+    lines = _header(plan, r)
     lines += ["## Success per policy", "",
               "MuJoCo's success (all starts) and the world model's (lift judge), with 95 % Wilson intervals and the "
               "number of episodes.", ""]
@@ -276,14 +348,8 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
             cells = [f"{_fmt(g[s]['value'])}{_ci(g[s]['ci'])}" for s in STATISTICS]
             lines.append(f"| {mode} | {judge} | {g['n_points']} | " + " | ".join(cells) + " |")
     lines += ["", _verdict(r["statistics"])]
-    lines += ["", "## Training", "", "Per mode, from its log (the held-out loss: the flow loss of the held-out "
-              "episodes' chunks at fixed times and noise; with `flow.focus_weight` it is the weighted loss).", "",
-              "| mode | device | steps | samples | training (s: GPU wall, or CPU) | final held-out loss |",
-              "|---|---|---|---|---|---|"]
-    for mode, t in r["training"].items():
-        lines.append(f"| {mode} | {t['device']} | {t['steps']} | {t['samples'] or ''} | {_fmt(t['train_s'], 0)} | "
-                     f"{_fmt(t['final_heldout_loss'], 4)} |")
-    lines += ["", "![training and held-out loss](training_loss.png)"]
+    lines += _training(r)
+    lines += _gate(plan, r)
     for mode in plan.modes:
         lines += ["", f"![{mode}](scatter_{slug(mode.replace('+', '_'))}.png)"]
     j = r["judges"]
@@ -342,8 +408,5 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
             lines += [f"A start where `{policy}` {'succeeded' if outcome == 'success' else 'failed'} in MuJoCo "
                       f"(start {start}): top MuJoCo, bottom the world model; views: {', '.join(plan.views)}.", "",
                       f"![{outcome}](rollout_{outcome}.png)", ""]
-    lines += ["", "## Time per stage", "", "| stage | CPU min | wall min | commit |", "|---|---|---|---|"]
-    for stage, t in r["stages"].items():
-        lines.append(f"| {stage} | {t['cpu_s'] / 60:.1f} | {t['wall_s'] / 60:.1f} | {', '.join(t['commits'])} |")
-    lines.append(f"| total | {cpu_total / 60:.1f} | {wall_total / 60:.1f} | |")
+    lines += _stage_times(r)
     return "\n".join(lines) + "\n"

@@ -1,0 +1,52 @@
+"""The early gate's arithmetic (imac_model/experiments/ranking/gate.py): when it measures, what it
+scores, when it stops. Its run on a trained model is in tests/test_ranking.py (the toy benchmark)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from imac_data.errors import InputError
+from imac_model.evaluate.success import verdict_scores
+from imac_model.experiments.ranking.gate import gate_minutes, gate_verdict
+from imac_model.experiments.ranking.plan import RankingPlan
+
+
+def test_balanced_accuracy_is_the_mean_recall_of_the_outcomes_present():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        n = int(rng.integers(1, 30))
+        labels, predicted = rng.random(n) < rng.random(), rng.random(n) < 0.5
+        recalls = []  # brute force, one outcome at a time
+        for outcome in (True, False):
+            rows = [p == outcome for p, y in zip(predicted, labels) if y == outcome]
+            if rows:
+                recalls.append(sum(rows) / len(rows))
+        s = verdict_scores(predicted.tolist(), labels.tolist())
+        assert s["balanced_accuracy"] == pytest.approx(sum(recalls) / len(recalls))
+        assert s["accuracy"] == pytest.approx(float(np.mean(predicted == labels)))
+    # painting one outcome everywhere scores 0.5, whatever the mix
+    assert verdict_scores([True] * 10, [True] * 7 + [False] * 3)["balanced_accuracy"] == 0.5
+    with pytest.raises(InputError, match="3 labels for 2 verdicts"):
+        verdict_scores([True, False], [True, False, True])
+
+
+def _gate(budget: float, score: float) -> dict:
+    return {"budget_minutes": budget, "from_chunk": {"0": {"balanced_accuracy": score}}}
+
+
+def test_the_gate_measures_every_hour_and_stops_after_three_without_a_pass(tmp_path):
+    plan = RankingPlan(work=tmp_path, docs=tmp_path)
+    assert (plan.cpu_minutes, plan.gate_every, plan.gate_min, plan.gate_by) == (180, 60, 0.7, 180)
+    assert gate_minutes(plan) == [60, 120, 180]
+    assert gate_minutes(dataclasses.replace(plan, cpu_minutes=150)) == [60, 120, 150]
+    assert gate_minutes(dataclasses.replace(plan, gate_every=None)) == []
+    assert gate_verdict(plan, [_gate(60, 0.5)]) == "continue"
+    assert gate_verdict(plan, [_gate(60, 0.5), _gate(120, 0.7)]) == "passed"
+    assert gate_verdict(plan, [_gate(60, 0.5), _gate(120, 0.6), _gate(180, 0.69)]) == "stop"
+    # a budget below the deadline: the end of the budget is the deadline
+    assert gate_verdict(dataclasses.replace(plan, cpu_minutes=150), [_gate(150, 0.6)]) == "stop"
+    with pytest.raises(InputError, match="gate_every"):
+        RankingPlan(work=tmp_path, docs=tmp_path, gate_every=0)
