@@ -24,6 +24,7 @@ from imac_data.errors import InputError
 
 MODES = ("none", "motion", "motion+contact", "action-vector")
 CONTROL_STREAMS = ("motion", "contact_s2g", "contact_r2s")  # the order of paper eq. 2: P_m, P_s2g, P_r2s
+CONTACT_STREAMS = CONTROL_STREAMS[1:]  # those rebuilt from the scene's depth at a chunk boundary
 
 
 def streams_of_mode(mode: str) -> tuple[str, ...]:

@@ -2,8 +2,10 @@
 # The GPU preset's training (docs/ranking.md, "The GPU preset"), run on a GPU machine that has Python,
 # torch and numpy and nothing else of ours: motion+contact and action-vector trained at once on one GPU,
 # from the tensor pack `imac-model ranking --stages ...,pack` wrote, for the same wall-clock budget each.
-# ABLATION=1 also trains motion+contact with a uniform loss (focus_weight 0) as motion_contact_uniform,
-# the loss-weighting ablation (benchmarks/focus_ablation.py). PyYAML and safetensors travel as wheels
+# ROLLOUT=R trains every run with training-time rollout over clips of R chunks (default 1: none).
+# ABLATION=1 (or focus) also trains motion+contact with a uniform loss (focus_weight 0) as motion_contact_uniform,
+# the loss-weighting ablation (benchmarks/focus_ablation.py); ABLATION=rollout trains motion+contact without
+# rollout as motion_contact_no_rollout, the rollout ablation. PyYAML and safetensors travel as wheels
 # beside the pack (runs/ranking_gpu/gpu/wheels/) when the machine lacks them. Each run comes back as one
 # file, $OUT/<run>.tar (model.json, model.safetensors: float16 EMA weights, log.jsonl), since the GPU
 # machine returns few files; `imac-model ranking --preset gpu --import-gpu DIR` puts them back here.
@@ -13,6 +15,7 @@ cd "$(dirname "$0")/.."
 PACK=${PACK:-runs/ranking_gpu/gpu/pack.npz}
 MINUTES=${MINUTES:-8}
 ABLATION=${ABLATION:-0}
+ROLLOUT=${ROLLOUT:-1}
 : "${OUT:?set OUT to the directory for the checkpoints}"
 mkdir -p "$OUT"
 PY=${PYTHON:-$(command -v python3 || command -v python)}
@@ -24,8 +27,13 @@ if ! "$PY" -c "import yaml, safetensors" 2>/dev/null; then
 fi
 export PYTHONPATH="$PWD:$site${PYTHONPATH:+:$PYTHONPATH}"
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,memory.used --format=csv,noheader
-runs=("motion_contact motion+contact" "action_vector action-vector")
-[ "$ABLATION" = 1 ] && runs+=("motion_contact_uniform motion+contact --focus-weight 0")
+runs=("motion_contact motion+contact --rollout-chunks $ROLLOUT" "action_vector action-vector --rollout-chunks $ROLLOUT")
+case "$ABLATION" in
+  1|focus) runs+=("motion_contact_uniform motion+contact --focus-weight 0 --rollout-chunks $ROLLOUT") ;;
+  rollout) runs+=("motion_contact_no_rollout motion+contact --rollout-chunks 1") ;;
+  0) ;;
+  *) echo "gpu_ranking: ABLATION must be 0, 1 (focus) or rollout, got $ABLATION" >&2; exit 2 ;;
+esac
 pids=()
 for run in "${runs[@]}"; do
   set -- $run

@@ -43,9 +43,10 @@ from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_lo
 from imac_model.models.checkpoint import load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.online_controls import OnlineControls
+from imac_model.pipelines.rollout import last_frame, rollout_loss
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.training import train as train_cli
-from imac_model.training.pack import Pack, heldout_loss
+from imac_model.training.pack import Pack, heldout_loss, spec_for_mode
 
 REPO = "local/lift_test"
 SEED = 200  # closed_loop lifts the cube from this start; a 4.5 cm offset misses it
@@ -345,6 +346,53 @@ def test_a_run_that_misses_the_early_gate_stops_and_reports_it(toy_run, tmp_path
     report = (plan.docs / "README.md").read_text()
     assert "**Stopped at the early gate**" in report and "**Verdict:** stop." in report
     assert (plan.docs / "gate.png").is_file() and (plan.docs / "training_loss.png").is_file()
+
+
+def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
+    """Training-time rollout as the GPU machine runs it, from the pack with torch alone: the clips
+    are the dataset's own, chunk 2 starts from the model's estimate and keeps its recorded contact
+    images, and scripts/gpu_ranking.sh trains with it (ROLLOUT) beside the run without (ABLATION=rollout)."""
+    work, docs = toy_run
+    assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
+    plan = RankingPlan.load(work / "plan.json")
+    pack = Pack(plan.pack)
+    held = set(plan.held_out_episodes())
+    chunks = open_chunks(pack.spec, "local/ranking_train", str(plan.train_dataset),
+                         episodes=[e for e in range(plan.train_episodes) if e not in held])
+    expected = chunks.clips(2)  # the oracle: what the CPU trainer rolls out over, read through LeRobot
+    clips = pack.clips(2)
+    assert len(clips) == len(expected) > 0
+    for got, want in zip(clips.tolist(), expected):
+        for j, i in zip(got, want):
+            assert torch.equal(pack.tensors["reference"][j], chunks[i]["reference"])
+
+    streams = streams_of_mode("motion+contact")
+    model = WorldModel(spec_for_mode(pack.spec, "motion+contact"))
+    clip = [pack.batch(clips[:1, r], streams) for r in range(2)]
+    result = rollout_loss(model, clip, None, stored_contact=True, generator=torch.Generator().manual_seed(0))
+    first = model(clip[0], generator=torch.Generator().manual_seed(0), streams=streams)  # the same draws
+    assert torch.equal(result.references[1], last_frame(model, first))
+    assert not torch.equal(result.references[1], clip[1].reference)
+    for s in ("contact_s2g", "contact_r2s"):
+        assert torch.equal(result.controls[1][s], clip[1].controls[s])
+    with pytest.raises(InputError, match="needs the dataset's OnlineControls"):
+        rollout_loss(model, clip, None)
+
+    probe = "import sys, imac_model.training.pack; print([m for m in ('mujoco', 'trimesh', 'lerobot', 'scipy', " \
+            "'open3d', 'diffusers', 'cv2') if m in sys.modules])"
+    assert subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
+                          cwd=ROOT).stdout.strip() == "[]"
+
+    out = tmp_path / "gpu_out"
+    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ROLLOUT": "2", "ABLATION": "rollout",
+           "PACK": str(plan.pack), "PYTHON": sys.executable}
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
+    for name, rollout in (("motion_contact", 2), ("action_vector", 2), ("motion_contact_no_rollout", 1)):
+        with tarfile.open(out / f"{name}.tar") as archive:
+            summary = json.loads(archive.extractfile("log.jsonl").read().decode().splitlines()[-1])["summary"]
+        assert summary["rollout_chunks"] == rollout and summary["steps"] >= 1
+        assert summary["samples"] == summary["steps"] * (128 // rollout) * rollout
 
 
 def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):

@@ -26,12 +26,12 @@ from imac_data.core.depth import resize_depth, walk_distance
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
 from imac_data.recipes import AugmentSettings
+from imac_model.config import CONTACT_STREAMS
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
 
 DEFAULT_MAX_WALK_DISTANCE = 0.1  # RGB units in [0, 1]: about 25 8-bit levels off the codec's colour walk
 DEFAULT_INVALID_CODES = 2.0  # walk positions within 2 codes of black (depth < 0.6 mm, manipulation) = invalid
-CONTACT_STREAMS = ("contact_s2g", "contact_r2s")
 RESOLUTIONS = ("model", "dataset")
 
 

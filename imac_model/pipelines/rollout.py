@@ -12,12 +12,16 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import torch
 
 from imac_data.errors import InputError
+from imac_model.config import CONTACT_STREAMS
 from imac_model.data.batch import ChunkBatch
-from imac_model.pipelines.online_controls import CONTACT_STREAMS, OnlineControls
+
+if TYPE_CHECKING:  # the rig and its renderer are not needed to train from a pack (the GPU machine lacks them)
+    from imac_model.pipelines.online_controls import OnlineControls
 
 
 @dataclass
@@ -49,12 +53,14 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
                  backward: Callable[[torch.Tensor], None] | None = None,
                  taus: Sequence[torch.Tensor] | None = None, noises: Sequence[torch.Tensor] | None = None,
                  autocast=None, rows: tuple[int, int] = (0, 1),
-                 loss_of: Callable | None = None) -> RolloutOutput:
+                 loss_of: Callable | None = None, stored_contact: bool = False) -> RolloutOutput:
     """The training-time rollout loss of a batch of clips: ``clip[r]`` is chunk r of every
     clip. See the module docstring. ``backward(loss_r / R)`` is called per chunk when given
     (then the returned loss is detached). ``taus``/``noises`` fix each chunk's draws (tests).
     ``rows``: the data-parallel slice of :meth:`WorldModel.forward`; ``loss_of(out)``: the
-    chunk's loss to train on (default ``out.loss``; data-parallel training rebalances it)."""
+    chunk's loss to train on (default ``out.loss``; data-parallel training rebalances it).
+    ``stored_contact``: chunk r > 1 keeps its recorded contact images and only its reference is
+    the model's own (a machine without the renderer: the GPU preset's pack trainer)."""
     import contextlib
 
     R = len(clip)
@@ -62,7 +68,7 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
         raise InputError("rollout: a clip needs at least one chunk")
     base = getattr(model, "module", model)  # under DDP the world model is .module
     streams = tuple(base.active_streams(None if streams is None else tuple(streams)))
-    rebuild_contact = _contact_active(streams) and not clean_reference
+    rebuild_contact = _contact_active(streams) and not clean_reference and not stored_contact
     if rebuild_contact and online is None:
         raise InputError("rollout: rebuilding contact images needs the dataset's OnlineControls")
     autocast = autocast or contextlib.nullcontext
@@ -86,7 +92,7 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
                 result.invalid_depth.append(float(rebuilt.invalid_fraction.mean()))
             chunk = replace(batch, reference=reference, controls=controls)
         with autocast():
-            out = model(chunk, generator=generator, streams=streams, rows=rows,
+            out = model(chunk, generator=generator, streams=streams or None, rows=rows,
                         tau=None if taus is None else taus[r], noise=None if noises is None else noises[r])
         loss_r = (out.loss if loss_of is None else loss_of(out)) / R
         if backward is not None:

@@ -23,10 +23,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from imac_data.errors import InputError
 from imac_model.config import CONTROL_STREAMS, ModelSpec, parse, streams_of_mode
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.checkpoint import save_checkpoint
 from imac_model.models.world_model import WorldModel
+from imac_model.pipelines.rollout import rollout_loss
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss (as the trainer's)
 SPEC_KEY = "spec_json"
@@ -68,6 +70,15 @@ class Pack:
         held = self.tensors.pop("held_out").bool()
         self.train = torch.nonzero(~held).flatten()
         self.heldout = torch.nonzero(held).flatten()
+
+    def clips(self, length: int) -> torch.Tensor:
+        """``(n, length)`` indices of every run of ``length`` consecutive training chunks of one
+        episode (the pack keeps each episode's chunks in time order, as ``ChunkDataset.clips``)."""
+        episode = self.tensors["episode_index"][self.train]
+        starts = torch.arange(len(self.train) - length + 1, device=episode.device)
+        same = torch.stack([episode[starts + r] == episode[starts] for r in range(length)]).all(dim=0)
+        first = starts[same]
+        return self.train[first[:, None] + torch.arange(length, device=first.device)]
 
     def batch(self, index: torch.Tensor, streams: tuple[str, ...]) -> ChunkBatch:
         """Float mosaics in [0, 1], controls duplicated back into both rows."""
@@ -113,10 +124,16 @@ def heldout_loss(model: WorldModel, pack: Pack, streams: tuple[str, ...], batch_
 
 def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, batch_size: int = 128,
                lr: float = 6e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
-               log_every: int = 50, focus_weight: float | None = None, progress=print) -> dict:
+               log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
+               progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
-    ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary."""
+    ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
+
+    ``rollout_chunks`` R > 1: training-time rollout (:func:`imac_model.pipelines.rollout.rollout_loss`)
+    over clips of R consecutive chunks, ``batch_size // R`` clips a step; chunk r > 1 starts from the
+    model's own estimate of chunk r-1's last frame and keeps its recorded contact images (no renderer
+    here to rebuild them)."""
     device = pack.tensors["reference"].device
     spec = spec_for_mode(pack.spec, mode, focus_weight)
     streams = streams_of_mode(mode)
@@ -127,6 +144,10 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     ema = [p.detach().float().clone() for p in params]
     autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else torch.autocast(
         "cpu", enabled=False)
+    clips = pack.clips(rollout_chunks) if rollout_chunks > 1 else None
+    if clips is not None and (len(clips) == 0 or batch_size < rollout_chunks):
+        raise InputError(f"rollout_chunks {rollout_chunks}: {len(clips)} training clips of that length, batch "
+                         f"{batch_size}; a step needs at least one clip")
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
     log = []
@@ -134,19 +155,27 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     n = len(pack.train)
     while time.time() - t0 < 60.0 * minutes:
         g = _generator(seed, step, device)
-        index = pack.train[torch.randint(n, (batch_size,), generator=g, device=device)]
         for group in opt.param_groups:
             group["lr"] = lr * min(1.0, (step + 1) / max(warmup, 1))
-        with autocast:
-            loss = model(pack.batch(index, streams), generator=g, streams=streams or None).loss
         opt.zero_grad(set_to_none=True)
-        loss.backward()
+        if clips is None:
+            index = pack.train[torch.randint(n, (batch_size,), generator=g, device=device)]
+            with autocast:
+                loss = model(pack.batch(index, streams), generator=g, streams=streams or None).loss
+            loss.backward()
+            drawn = batch_size
+        else:  # backward runs per chunk inside, so memory stays that of one chunk
+            index = clips[torch.randint(len(clips), (batch_size // rollout_chunks,), generator=g, device=device)]
+            clip = [pack.batch(index[:, r], streams) for r in range(rollout_chunks)]
+            loss = rollout_loss(model, clip, None, generator=g, streams=streams or None, stored_contact=True,
+                                backward=torch.Tensor.backward, autocast=lambda: autocast).loss
+            drawn = index.numel()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()
         d = min(ema_decay, (1 + step) / (10 + step))
         with torch.no_grad():  # one fused update: a loop over tensors launches a kernel per parameter
             torch._foreach_lerp_(ema, [p.detach().float() for p in params], 1 - d)
-        step, samples = step + 1, samples + batch_size
+        step, samples = step + 1, samples + drawn
         if step % log_every == 0:
             row = {"step": step, "loss": float(loss), "lr": opt.param_groups[0]["lr"],
                    "elapsed_s": round(time.time() - t0, 1), "samples": samples}
@@ -162,7 +191,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     log.append({"step": step, "heldout_loss": final, "elapsed_s": round(time.time() - t0, 1), "samples": samples,
                 "weights": "ema"})
     save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
-    summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "steps": step, "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
+    summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "rollout_chunks": rollout_chunks, "steps": step,
+               "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1), "heldout_loss": final,
                "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
                "torch": torch.__version__, "parameters": sum(p.numel() for p in params)}
@@ -183,6 +213,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--batch-size", type=int, default=128)
     t.add_argument("--lr", type=float, default=6e-4)
     t.add_argument("--focus-weight", type=float, help="override the pack's flow.focus_weight (an ablation: 0)")
+    t.add_argument("--rollout-chunks", type=int, default=1,
+                   help="training-time rollout over clips of this many chunks (1: none; docs/ranking.md)")
     t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     t.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
@@ -193,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.backends.cudnn.benchmark = True
     pack = Pack(args.pack, args.device)
     summary = train_pack(pack, args.mode, args.output, minutes=args.minutes, batch_size=args.batch_size, lr=args.lr,
-                         seed=args.seed, focus_weight=args.focus_weight)
+                         seed=args.seed, focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks)
     print(json.dumps(summary))
     return 0
 

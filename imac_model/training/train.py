@@ -26,12 +26,12 @@ import torch
 
 from imac_data.errors import InputError
 from imac_data.metadata import dataset_info
-from imac_model.config import ModelSpec, RunConfig, save_config
+from imac_model.config import CONTACT_STREAMS, ModelSpec, RunConfig, save_config
 from imac_model.data.chunks import ChunkDataset, action_stats, open_metadata, resolve_layout, split_episodes
 from imac_model.models import checkpoint as ckpt
 from imac_model.models.backbones.build import spatial_multiple, temporal_factor
 from imac_model.models.world_model import WorldModel
-from imac_model.pipelines.online_controls import CONTACT_STREAMS, OnlineControls
+from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.rollout import rollout_loss
 from imac_model.training.sharding import ShardedRuntime, shard_report
 

@@ -86,7 +86,7 @@ def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[in
     for name, frames in (("recorded", recorded), ("generated", generated)):
         rgb, _ = mosaic.split(frames, len(spec.views))
         cells = [(rgb[t, v].clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy() for t in times]
-        cells = [cv2.resize(c, (c.shape[1] * 3, c.shape[0] * 3), interpolation=cv2.INTER_NEAREST) for c in cells]
+        cells = [cv2.resize(c, (c.shape[1] * 2, c.shape[0] * 2), interpolation=cv2.INTER_NEAREST) for c in cells]
         cells = [label(c, f"{name} t={t + 1}" if i else f"{caption} {name}") for i, (c, t) in enumerate(zip(cells, times))]
         rows.append(np.concatenate(cells, axis=1))
     return np.concatenate(rows, axis=0)
@@ -141,7 +141,8 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     if strips:
         width = max(s.shape[1] for s in strips)
         img = np.concatenate([np.pad(s, ((0, 0), (0, width - s.shape[1]), (0, 0))) for s in strips], axis=0)
-        cv2.imwrite(str(path.with_name(f"gate_{gate['step']:06d}.png")), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(path.with_name(f"gate_{gate['step']:06d}.png")), cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
+                    [cv2.IMWRITE_PNG_COMPRESSION, 9])
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(sorted(gates, key=lambda g: g["budget_minutes"]), indent=1))
     os.replace(tmp, path)
