@@ -294,6 +294,12 @@ def stage_judges(plan: RankingPlan) -> None:
 
 
 def stage_evaluate(plan: RankingPlan) -> None:
+    # the gate of every compared mode at the end of its training, beside motion+contact's hourly ones
+    budget = plan.gpu_minutes if plan.gpu_minutes is not None else plan.cpu_minutes
+    gates = [(f"gate {mode}", internal(plan, "gate", f"{budget:g}", mode), plan.work / "logs" / "gate.log")
+             for mode in plan.modes
+             if mode != "none" and not any(g["budget_minutes"] == budget for g in read_gates(plan, mode))]
+    run_all(gates, plan.jobs, tag="ranking")
     commands = []
     for mode in plan.modes:
         if not (plan.wm_dir(mode) / "outcomes.json").is_file():
