@@ -79,15 +79,17 @@ def _from_chunk(start, chunks, k: int):
                                state=item["state"].float(), recorded_actions=start.recorded_actions[k * H:])
 
 
-def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[int], caption: str) -> np.ndarray:
-    """Two rows (recorded, generated) of the workspace view at ``times``; (H, W, 3) uint8."""
+def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[int],
+           captions: tuple[str, str]) -> np.ndarray:
+    """Two rows (recorded, generated) of the workspace view at ``times``, each row's first cell
+    captioned; (H, W, 3) uint8."""
     v = spec.views.index(WORKSPACE) if WORKSPACE in spec.views else 0
     rows = []
-    for name, frames in (("recorded", recorded), ("generated", generated)):
+    for name, frames, caption in (("recorded", recorded, captions[0]), ("generated", generated, captions[1])):
         rgb, _ = mosaic.split(frames, len(spec.views))
         cells = [(rgb[t, v].clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy() for t in times]
         cells = [cv2.resize(c, (c.shape[1] * 2, c.shape[0] * 2), interpolation=cv2.INTER_NEAREST) for c in cells]
-        cells = [label(c, f"{name} t={t + 1}" if i else f"{caption} {name}") for i, (c, t) in enumerate(zip(cells, times))]
+        cells = [label(c, f"{name} t={t + 1}" if i else caption) for i, (c, t) in enumerate(zip(cells, times))]
         rows.append(np.concatenate(cells, axis=1))
     return np.concatenate(rows, axis=0)
 
@@ -127,9 +129,9 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
                 generated = torch.cat([r.frames for r in records])
                 H = spec.chunk
                 times = [H // 2 - 1] + [H * (n + 1) - 1 for n in range(len(records))]
-                caption = f"ep {start.episode} ({'success' if outcome else 'failure'}, judged " \
-                          f"{'lifted' if verdicts[0][-1] else 'not lifted'})"
-                strips.append(_strip(recorded, generated, spec, times, caption))
+                captions = (f"ep {start.episode}: {'success' if outcome else 'failure'}",
+                            f"judged {'lifted' if verdicts[0][-1] else 'not lifted'}")
+                strips.append(_strip(recorded, generated, spec, times, captions))
     truth = [labels[e] for e in episodes]
     from_chunk = {str(k): verdict_scores(v, truth[:len(v)]) for k, v in verdicts.items() if v}
     gate = {"budget_minutes": float(budget_minutes),

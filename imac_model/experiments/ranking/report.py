@@ -176,9 +176,11 @@ def training_log(run: Path) -> dict:
     summary = next((r["summary"] for r in reversed(rows) if "summary" in r), {})
     done = json.loads((run / "DONE.json").read_text()) if (run / "DONE.json").is_file() else {}
     held = [r for r in rows if r.get("heldout_loss") is not None]
-    return {"rows": [r for r in rows if "step" in r], "steps": summary.get("steps", done.get("steps")),
+    last = next((r for r in reversed(rows) if "step" in r), {})  # a run still training has no DONE.json yet
+    return {"rows": [r for r in rows if "step" in r], "steps": summary.get("steps", done.get("steps", last.get("step"))),
             "samples": summary.get("samples"), "device": summary.get("device", "cpu"),
-            "train_s": summary.get("train_s", done.get("cpu_s")),  # GPU wall seconds, or CPU seconds
+            "finished": bool(summary or done),
+            "train_s": summary.get("train_s", done.get("cpu_s", last.get("cpu_s"))),  # GPU wall s, or CPU s
             "final_heldout_loss": held[-1]["heldout_loss"] if held else None,
             "heldout": [(r["step"], r["heldout_loss"]) for r in held]}
 
@@ -272,8 +274,8 @@ def _training(r: dict) -> list[str]:
               "| mode | device | steps | samples | training (s: GPU wall, or CPU) | final held-out loss |",
               "|---|---|---|---|---|---|"]
     for mode, t in r["training"].items():
-        lines.append(f"| {mode} | {t['device']} | {t['steps']} | {t['samples'] or ''} | {_fmt(t['train_s'], 0)} | "
-                     f"{_fmt(t['final_heldout_loss'], 4)} |")
+        lines.append(f"| {mode}{'' if t['finished'] else ' (training)'} | {t['device']} | {t['steps']} | "
+                     f"{t['samples'] or ''} | {_fmt(t['train_s'], 0)} | {_fmt(t['final_heldout_loss'], 4)} |")
     return lines + (["", "![training and held-out loss](training_loss.png)"] if r["training"] else [])
 
 
@@ -310,8 +312,9 @@ def _gate(plan: RankingPlan, r: dict) -> list[str]:
 def _stopped_markdown(plan: RankingPlan, r: dict) -> str:
     """The report of a run that stopped at the early gate: what the gate showed, and the training."""
     lines = _header(plan, r)
-    lines += ["**Stopped at the early gate** (or not yet evaluated): no closed loop was run, so no ranking is "
-              "reported. What the gate showed:"]
+    stopped = gate_verdict(plan, r["gates"].get(GATED_MODE, [])) == "stop" if plan.gate_every else False
+    lines += [("**Stopped at the early gate**" if stopped else "**Not evaluated yet** (training goes on)")
+              + ": no closed loop was run, so no ranking is reported. What the gates showed:"]
     lines += _gate(plan, r) + _training(r) + _stage_times(r)
     return "\n".join(lines) + "\n"
 
