@@ -20,6 +20,8 @@ from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
 from imac_model.experiments.ranking.gate import GATED_MODE, gate_verdict, read_gates
 from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, slug
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
+from imac_model.models.checkpoint import list_checkpoints, read_spec
+from imac_model.models.world_model import WorldModel
 
 
 def _fmt(x, digits: int = 3) -> str:
@@ -177,10 +179,18 @@ def training_log(run: Path) -> dict:
     done = json.loads((run / "DONE.json").read_text()) if (run / "DONE.json").is_file() else {}
     held = [r for r in rows if r.get("heldout_loss") is not None]
     last = next((r for r in reversed(rows) if "step" in r), {})  # a run still training has no DONE.json yet
-    return {"rows": [r for r in rows if "step" in r], "steps": summary.get("steps", done.get("steps", last.get("step"))),
-            "samples": summary.get("samples"), "device": summary.get("device", "cpu"),
-            "finished": bool(summary or done),
-            "train_s": summary.get("train_s", done.get("cpu_s", last.get("cpu_s"))),  # GPU wall s, or CPU s
+    steps = summary.get("steps", done.get("steps", last.get("step")))
+    train_s = summary.get("train_s", done.get("cpu_s", last.get("cpu_s")))  # GPU wall s, or CPU s
+    spec = read_spec(list_checkpoints(run)[-1])
+    backbone = getattr(spec.backbone, spec.backbone.kind)
+    shape = (f"U-Net {list(backbone.channels)} x {backbone.blocks} blocks" if spec.backbone.kind == "unet"
+             else spec.backbone.kind)
+    parameters = summary.get("parameters") or sum(p.numel() for p in WorldModel(spec).parameters() if p.requires_grad)
+    rate = (f"{summary['samples_per_s']:g} samples/s" if "samples_per_s" in summary else
+            f"{train_s / steps:.2f} CPU-s/step" if steps and train_s else "")
+    return {"rows": [r for r in rows if "step" in r], "steps": steps, "samples": summary.get("samples"),
+            "device": summary.get("device", "cpu"), "finished": bool(summary or done), "train_s": train_s,
+            "backbone": shape, "parameters": int(parameters), "rate": rate,
             "final_heldout_loss": held[-1]["heldout_loss"] if held else None,
             "heldout": [(r["step"], r["heldout_loss"]) for r in held]}
 
@@ -271,11 +281,12 @@ def _header(plan: RankingPlan, r: dict) -> list[str]:
 def _training(r: dict) -> list[str]:
     lines = ["", "## Training", "", "Per mode, from its log (the held-out loss: the flow loss of the held-out "
               "episodes' chunks at fixed times and noise; with `flow.focus_weight` it is the weighted loss).", "",
-              "| mode | device | steps | samples | training (s: GPU wall, or CPU) | final held-out loss |",
-              "|---|---|---|---|---|---|"]
+              "| mode | backbone | parameters | device | steps | samples | training (s: GPU wall, or CPU) | rate | "
+              "final held-out loss |", "|---|---|---|---|---|---|---|---|---|"]
     for mode, t in r["training"].items():
-        lines.append(f"| {mode}{'' if t['finished'] else ' (training)'} | {t['device']} | {t['steps']} | "
-                     f"{t['samples'] or ''} | {_fmt(t['train_s'], 0)} | {_fmt(t['final_heldout_loss'], 4)} |")
+        lines.append(f"| {mode}{'' if t['finished'] else ' (training)'} | {t.get('backbone', '')} | "
+                     f"{t.get('parameters', 0) / 1e6:.2f} M | {t['device']} | {t['steps']} | {t['samples'] or ''} | "
+                     f"{_fmt(t['train_s'], 0)} | {t.get('rate', '')} | {_fmt(t['final_heldout_loss'], 4)} |")
     return lines + (["", "![training and held-out loss](training_loss.png)"] if r["training"] else [])
 
 
