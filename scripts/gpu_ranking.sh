@@ -4,7 +4,7 @@
 # from the tensor pack `imac-model ranking --stages ...,pack` wrote, for the same wall-clock budget each.
 # ROLLOUT=R trains every run with training-time rollout over clips of R chunks (default 1: none).
 # ABLATION=1 (or focus) also trains motion+contact with a uniform loss (focus_weight 0) as motion_contact_uniform,
-# the loss-weighting ablation (benchmarks/focus_ablation.py); ABLATION=rollout trains motion+contact without
+# the loss-weighting ablation (python -m benchmarks.ablation focus); ABLATION=rollout trains motion+contact without
 # rollout as motion_contact_no_rollout, the rollout ablation. PyYAML and safetensors travel as wheels
 # beside the pack (runs/ranking_gpu/gpu/wheels/) when the machine lacks them. Each run comes back as one
 # file, $OUT/<run>.tar (model.json, model.safetensors: float16 EMA weights, log.jsonl), since the GPU
