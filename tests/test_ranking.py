@@ -21,6 +21,7 @@ from dm_control.mujoco.engine import Physics
 from gym_aloha.tasks.sim import TransferCubeTask
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from benchmarks import ablation
 from imac_data.cli import main as imac_main
 from imac_data.cli.parser import TASKS as CLI_TASKS
 from imac_data.core.cameras import save_calibration
@@ -423,7 +424,9 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     assert done.returncode == 0, done.stdout + done.stderr
     assert sorted(p.name for p in out.iterdir()) == ["action_vector.tar", "motion_contact.tar",
                                                      "motion_contact_uniform.tar"]
+    assert (work / "wm" / "motion_contact" / "replays.json").is_file()  # the CPU-trained toy model's
     assert sorted(import_gpu_runs(plan, out)) == ["action_vector", "motion_contact", "motion_contact_uniform"]
+    assert not (work / "wm" / "motion_contact").exists()  # evaluations of the replaced model are dropped
     for name, mode, focus in (("motion_contact", "motion+contact", 5.0), ("motion_contact_uniform", "motion+contact", 0.0),
                               ("action_vector", "action-vector", 5.0)):
         model, spec = load_world_model(work / "runs" / name, weights="ema")
@@ -431,6 +434,12 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         log = [json.loads(line) for line in (work / "runs" / name / "log.jsonl").read_text().splitlines()]
         again = heldout_loss(model.float(), pack, streams_of_mode(mode), 128, 0)
         assert again == pytest.approx(log[-1]["summary"]["heldout_loss"], rel=1e-3)  # float16 weights
+    # the loss-weighting ablation's figures on the imported runs: the gate measured for each, the replays
+    assert ablation.main(["focus", "--work", str(work), "--json", str(tmp_path / "focus.json")]) == 0
+    figures = json.loads((tmp_path / "focus.json").read_text())
+    assert [figures[k]["focus_weight"] for k in ("focus", "uniform")] == [5.0, 0.0]
+    assert all(set(f["gate_balanced_accuracy_from_chunk"]) == {"0", "1"} and f["replays"] == plan.recorded
+               for f in figures.values())
     with pytest.raises(InputError, match="not a run of scripts/gpu_ranking.sh"):
         bad = tmp_path / "bad"
         bad.mkdir()

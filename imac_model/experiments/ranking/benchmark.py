@@ -181,8 +181,9 @@ def stage_pack(plan: RankingPlan) -> None:
 def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
     """``scripts/gpu_ranking.sh``'s output (``<run>.tar``: model.json, model.safetensors, log.jsonl)
     -> this work directory's trained runs (``runs/<run>``), so ``judges``, ``evaluate`` and ``report``
-    go on here. A run that is not one of the plan's modes (an ablation) is imported beside them.
-    Returns the runs imported."""
+    go on here. A run that is not one of the plan's modes (an ablation) is imported beside them; the
+    evaluations of a run it replaces (``wm/<run>``) are dropped, being of another model. Returns the
+    runs imported."""
     directory, done = Path(directory), []
     for tar in sorted(directory.glob("*.tar")):
         with tarfile.open(tar) as archive:
@@ -203,6 +204,7 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
         (tmp / "DONE.json").write_text(json.dumps(summary, indent=1))
         shutil.rmtree(run, ignore_errors=True)
         os.replace(tmp, run)
+        shutil.rmtree(plan.work / "wm" / tar.stem, ignore_errors=True)
         done.append(tar.stem)
     if not done:
         raise InputError(f"{directory}: no <run>.tar of scripts/gpu_ranking.sh")
