@@ -8,7 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from imac_data.dataset.output import output_lock
 from imac_data.errors import InputError
+from imac_model.cli import main as model_main
 from imac_model.evaluate.success import verdict_scores
 from imac_model.experiments.ranking.gate import gate_minutes, gate_verdict
 from imac_model.experiments.ranking.plan import RankingPlan
@@ -50,3 +52,14 @@ def test_the_gate_measures_every_hour_and_stops_after_three_without_a_pass(tmp_p
     assert gate_verdict(dataclasses.replace(plan, cpu_minutes=150), [_gate(150, 0.6)]) == "stop"
     with pytest.raises(InputError, match="gate_every"):
         RankingPlan(work=tmp_path, docs=tmp_path, gate_every=0)
+
+
+def test_a_second_run_on_the_same_work_directory_is_refused(tmp_path, capsys):
+    """Two benchmark processes on one work directory would train the same checkpoints: the second
+    is refused (exit 3, the environment) before it writes anything there."""
+    work = tmp_path / "work"
+    with output_lock(work):  # as a running benchmark holds it
+        code = model_main(["ranking", "--toy", "--work", str(work), "--docs", str(tmp_path / "docs"),
+                           "--stages", "report"])
+    assert code == 3 and "is writing" in capsys.readouterr().err
+    assert not (work / "plan.json").exists()

@@ -210,7 +210,8 @@ def _same_file(path: Path, fd: int) -> bool:
         return False
 
 
-def _acquire(path: Path, root: Path, wait: bool) -> int:
+def _acquire(path: Path, root: Path, wait: bool, who: str = "build",
+             hint: str = "wait for it to finish, or pass --wait") -> int:
     """A descriptor of ``path`` holding its exclusive lock. The previous holder may unlink the
     file between our open and our lock: then the lock is on a dead inode, so try again."""
     while True:
@@ -221,10 +222,9 @@ def _acquire(path: Path, root: Path, wait: bool) -> int:
             except BlockingIOError:
                 pid = _holder(path)
                 if not wait:
-                    raise EnvironmentFault(
-                        f"another build (PID {pid}) is writing {root} (it holds {path}); wait for it to finish, "
-                        "or pass --wait") from None
-                print(f"[lock] waiting for the build with PID {pid} to release {root}", file=sys.stderr)
+                    raise EnvironmentFault(f"another {who} (PID {pid}) is writing {root} (it holds {path}); {hint}") \
+                        from None
+                print(f"[lock] waiting for the {who} with PID {pid} to release {root}", file=sys.stderr)
                 fcntl.flock(fd, fcntl.LOCK_EX)
             if _same_file(path, fd):
                 return fd
@@ -235,11 +235,13 @@ def _acquire(path: Path, root: Path, wait: bool) -> int:
 
 
 @contextlib.contextmanager
-def output_lock(root: Path, *, wait: bool = False) -> Iterator[Path]:
-    """Hold the lock of output ``root`` (:func:`lock_path`) for the ``with`` block."""
+def output_lock(root: Path, *, wait: bool = False, who: str = "build",
+                hint: str = "wait for it to finish, or pass --wait") -> Iterator[Path]:
+    """Hold the lock of output ``root`` (:func:`lock_path`) for the ``with`` block; ``who`` and
+    ``hint`` word the refusal when another process holds it."""
     path = lock_path(root)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = _acquire(path, Path(root), wait)
+    fd = _acquire(path, Path(root), wait, who, hint)
     try:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())

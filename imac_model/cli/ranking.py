@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from imac_data.console import run_command
+from imac_data.dataset.output import output_lock
 from imac_data.errors import InputError
 from imac_model.experiments.ranking.benchmark import (
     STAGE_FUNCTIONS,
@@ -23,6 +24,8 @@ from imac_model.experiments.ranking.evaluation import evaluate_mode, replays, ru
 from imac_model.experiments.ranking.gate import measure_gate
 from imac_model.experiments.ranking.plan import STAGES, RankingPlan, gpu_plan, toy_plan
 from imac_model.experiments.stages import StageLog
+
+EXIT_GATE_STOP = 4  # the early gate stopped the benchmark (docs/ranking.md); 3 is an environment fault
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,14 +61,20 @@ def _ranking(args: argparse.Namespace) -> int:
          "gate": lambda: measure_gate(plan, float(args.internal_args[0]), *args.internal_args[1:2])}[args.internal]()
         return 0
     plan = _plan(args)
-    if args.import_gpu:
-        print(f"imported {import_gpu_runs(plan, Path(args.import_gpu))} into {plan.work / 'runs'}")
-        return 0
     stages = [x.strip() for x in args.stages.split(",") if x.strip()]
     bad = [x for x in stages if x not in STAGES]
     if bad:
         raise InputError(f"--stages: unknown {bad}; choose from {list(STAGES)}")
     plan.work.mkdir(parents=True, exist_ok=True)
+    # one run per work directory at a time: two would train (or import) the same checkpoints
+    with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
+        if args.import_gpu:
+            print(f"imported {import_gpu_runs(plan, Path(args.import_gpu))} into {plan.work / 'runs'}")
+            return 0
+        return _run_stages(plan, stages)
+
+
+def _run_stages(plan: RankingPlan, stages: list[str]) -> int:
     (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
     log = StageLog(plan.work / "stages.json", tag="ranking")
     try:
@@ -74,7 +83,7 @@ def _ranking(args: argparse.Namespace) -> int:
                 log.run(stage, lambda f=STAGE_FUNCTIONS[stage]: f(plan))
     except GateStop as e:  # a result, not a failure of the run: the report holds it
         print(f"stopped: {e}", file=sys.stderr)
-        return 3
+        return EXIT_GATE_STOP
     except RuntimeError as e:  # a stage's subprocess failed; its log says why
         print(f"error: {e}", file=sys.stderr)
         return 1
