@@ -75,7 +75,7 @@ class Pack:
         """``(n, length)`` indices of every run of ``length`` consecutive training chunks of one
         episode (the pack keeps each episode's chunks in time order, as ``ChunkDataset.clips``)."""
         episode = self.tensors["episode_index"][self.train]
-        starts = torch.arange(len(self.train) - length + 1, device=episode.device)
+        starts = torch.arange(max(len(self.train) - length + 1, 0), device=episode.device)
         same = torch.stack([episode[starts + r] == episode[starts] for r in range(length)]).all(dim=0)
         first = starts[same]
         return self.train[first[:, None] + torch.arange(length, device=first.device)]

@@ -263,7 +263,7 @@ def train_gated(plan: RankingPlan) -> None:
                      ], 1, tag="ranking")
             run_all([(f"gate {mode} at {minutes:g} CPU-minutes", internal(plan, "gate", f"{minutes:g}"),
                       plan.work / "logs" / "gate.log")], 1, tag="ranking")
-        gates = read_gates(plan)
+        gates = [g for g in read_gates(plan) if g["budget_minutes"] <= minutes]  # those up to this point
         score = gates[-1]["from_chunk"]["0"]["balanced_accuracy"]
         print(f"[ranking]   gate at {minutes:g} CPU-minutes: balanced accuracy {score:.2f} (goal {plan.gate_min:g})",
               file=sys.stderr, flush=True)
