@@ -110,7 +110,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     chunks = open_chunks(spec, TRAIN_REPO, str(plan.train_dataset), episodes=episodes)
     online = OnlineControls.from_dataset(plan.train_dataset, spec, info=dataset_info(chunks.lerobot.meta))
     judge = LiftJudge()
-    verdicts: dict[int, list[bool]] = {k: [] for k in range(plan.chunks)}
+    verdicts: dict[int, list[tuple[bool, bool]]] = {k: [] for k in range(plan.chunks)}  # (judged, label)
     shown = {True: 0, False: 0}
     strips = []
     for start in episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks):
@@ -119,8 +119,9 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
             records = list(rollout_episode(model, online, recorded_actions_policy(s.recorded_actions), s,
                                            steps=plan.steps))
             last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
-            verdicts[k].append(bool(judge.judge([judged_frames(s.episode, last, spec.views, s.task, online)])[0]))
             outcome = labels[start.episode]
+            verdicts[k].append((bool(judge.judge([judged_frames(s.episode, last, spec.views, s.task, online)])[0]),
+                                outcome))
             if k == 0 and shown[outcome] < pictures // 2:
                 shown[outcome] += 1
                 items = chunks.episode_chunks(start.episode)[:plan.chunks]
@@ -130,10 +131,10 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
                 H = spec.chunk
                 times = [H // 2 - 1] + [H * (n + 1) - 1 for n in range(len(records))]
                 captions = (f"ep {start.episode}: {'success' if outcome else 'failure'}",
-                            f"judged {'lifted' if verdicts[0][-1] else 'not lifted'}")
+                            f"judged {'lifted' if verdicts[0][-1][0] else 'not lifted'}")
                 strips.append(_strip(recorded, generated, spec, times, captions))
     truth = [labels[e] for e in episodes]
-    from_chunk = {str(k): verdict_scores(v, truth[:len(v)]) for k, v in verdicts.items() if v}
+    from_chunk = {str(k): verdict_scores(*zip(*v)) for k, v in verdicts.items() if v}
     gate = {"budget_minutes": float(budget_minutes),
             "cpu_minutes": round(trained["cpu_s"] / 60, 2) if "cpu_s" in trained else None, "step": int(trained["step"]),
             "checkpoint": checkpoint.name, "episodes": episodes, "labels": truth, "sampler_steps": plan.steps,
