@@ -139,7 +139,7 @@ def write_report(plan: RankingPlan) -> Path:
     training = {m: training_log(plan.run_dir(m)) for m in trained}
     if training:
         plot_training(training, docs / "training_loss.png")
-    gates = {m: read_gates(plan, m) for m in plan.modes if read_gates(plan, m)}
+    gates = {m: rows for m in plan.modes if (rows := read_gates(plan, m))}
     shown_gate = next(iter(gates), None)  # motion+contact's, when it has any
     if shown_gate:
         latest = plan.run_dir(shown_gate) / f"gate_{gates[shown_gate][-1]['step']:06d}.png"
@@ -284,9 +284,9 @@ def _training(r: dict) -> list[str]:
               "| mode | backbone | parameters | device | steps | samples | training (s: GPU wall, or CPU) | rate | "
               "final held-out loss |", "|---|---|---|---|---|---|---|---|---|"]
     for mode, t in r["training"].items():
-        lines.append(f"| {mode}{'' if t['finished'] else ' (training)'} | {t.get('backbone', '')} | "
-                     f"{t.get('parameters', 0) / 1e6:.2f} M | {t['device']} | {t['steps']} | {t['samples'] or ''} | "
-                     f"{_fmt(t['train_s'], 0)} | {t.get('rate', '')} | {_fmt(t['final_heldout_loss'], 4)} |")
+        lines.append(f"| {mode}{'' if t['finished'] else ' (training)'} | {t['backbone']} | "
+                     f"{t['parameters'] / 1e6:.2f} M | {t['device']} | {t['steps']} | {t['samples'] or ''} | "
+                     f"{_fmt(t['train_s'], 0)} | {t['rate']} | {_fmt(t['final_heldout_loss'], 4)} |")
     return lines + (["", "![training and held-out loss](training_loss.png)"] if r["training"] else [])
 
 
