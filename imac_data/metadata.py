@@ -21,12 +21,14 @@ from typing import Any
 from imac_data.errors import InputError
 from imac_data.layout import ACTION, INFO, MOTION, R2S, S2G, depth_key, image_key, info_path
 
-__all__ = ["SCHEMA_VERSION", "SUPPORTED_VERSIONS", "ADDED_IN", "dataset_root", "dataset_info", "imac_block",
+__all__ = ["SCHEMA_VERSION", "SUPPORTED_VERSIONS", "ADDED_IN", "RIG_KEYS", "STREAM_KEYS", "dataset_root", "dataset_info", "imac_block",
            "chunk_timestamps"]
 
 SCHEMA_VERSION = 2
 SUPPORTED_VERSIONS = (1, 2)
 ADDED_IN = {"workspace": 2}  # keys newer than version 1: required from that version on
+RIG_KEYS = ("robot", "cameras", "controller", "gripper_surface", "workspace")  # the rig's part (Rig.to_info)
+STREAM_KEYS = ("augment", "motion", "depth", "contact")  # the streams' settings, written when they are built
 _PASS_INSTEAD = "pass ds.meta or the dataset's root instead"
 
 

@@ -33,11 +33,9 @@ from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.core.robot.platforms import platform as get_platform
 from imac_data.errors import InputError
 from imac_data.layout import URDF_NAME, description_dir
-from imac_data.metadata import dataset_root, imac_block
+from imac_data.metadata import RIG_KEYS, dataset_root, imac_block
 
 __all__ = ["Rig", "RobotViews", "DEFAULT_GRIPPER_SPACING", "RIG_KEYS"]
-
-RIG_KEYS = ("robot", "cameras", "controller", "gripper_surface", "workspace")  # what to_info writes into info["imac"]
 
 
 @dataclass

@@ -15,14 +15,11 @@ from pathlib import Path
 from imac_data import __version__
 from imac_data.dataset.files import atomic_write_json
 from imac_data.layout import info_path, stats_path
-from imac_data.metadata import SCHEMA_VERSION, SUPPORTED_VERSIONS, dataset_info
+from imac_data.metadata import RIG_KEYS, SCHEMA_VERSION, STREAM_KEYS, SUPPORTED_VERSIONS, dataset_info
 from imac_data.metadata import imac_block as _read_block
 
 __all__ = ["SCHEMA_VERSION", "SUPPORTED_VERSIONS", "RIG_KEYS", "STREAM_KEYS", "read_info", "write_info",
            "update_imac_info", "imac_block", "order_stats", "base_block"]
-
-RIG_KEYS = ("robot", "cameras", "controller", "gripper_surface", "workspace")
-STREAM_KEYS = ("augment", "motion", "depth", "contact")
 
 
 def read_info(root: str | Path) -> dict:
