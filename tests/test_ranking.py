@@ -17,11 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from dm_control.mujoco.engine import Physics
 from gym_aloha.tasks.sim import TransferCubeTask
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from benchmarks import ablation
+from benchmarks import ablation, cpu_ablation
 from imac_data.cli import main as imac_main
 from imac_data.cli.parser import TASKS as CLI_TASKS
 from imac_data.core.cameras import save_calibration
@@ -347,6 +348,53 @@ def test_a_run_that_misses_the_early_gate_stops_and_reports_it(toy_run, tmp_path
     report = (plan.docs / "README.md").read_text()
     assert "**Stopped at the early gate**" in report and "**Verdict:** stop." in report
     assert (plan.docs / "gate.png").is_file() and (plan.docs / "training_loss.png").is_file()
+
+
+def test_a_cpu_ablation_arm_continues_the_gated_run_with_one_change(toy_run, tmp_path):
+    """benchmarks.cpu_ablation on the toy: the arm is the gated run's checkpoint and log up to the
+    branch point, trained on with training-time rollout and nothing else changed, to the same CPU
+    budget; its gate replays the same held-out rollouts, labelled by the simulator."""
+    work, _ = toy_run
+    shutil.copytree(work, tmp_path / "work", ignore=shutil.ignore_patterns("wm"))
+    plan = RankingPlan.load(work / "plan.json")
+    base = plan.run_dir("motion+contact")
+    (from_step,) = [int(p.name.split("_")[1]) for p in (base / "checkpoints").glob("step_*")]
+    # the toy stops at max_steps before its CPU budget: the arm may take 2 steps more
+    plan = dataclasses.replace(plan, work=tmp_path / "work", docs=tmp_path / "docs",
+                               overrides={**plan.overrides, "train.max_steps": from_step + 2})
+    (plan.work / "plan.json").write_text(json.dumps(plan.to_dict()))
+    base = plan.run_dir("motion+contact")
+    assert cpu_ablation.main(["rollout", "--work", str(plan.work), "--from-step", str(from_step),
+                              "--json", str(tmp_path / "ablation.json")]) == 0
+    result = json.loads((tmp_path / "ablation.json").read_text())
+    arm = plan.work / "runs" / "motion_contact_rollout2"
+    assert result["arm"]["run"] == arm.name and result["changes"] == {"rollout.chunks": 2}
+
+    def rows(run):
+        return [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines() if x.strip()]
+    base_rows, arm_rows = rows(base), rows(arm)
+    assert arm_rows[:len(base_rows)] == base_rows  # the branch carries the log up to its checkpoint
+    later = [r for r in arm_rows if r.get("step", 0) > from_step and "loss" in r]
+    assert later and all(r["phase"] == "rollout" and len(r["chunk_losses"]) == 2 for r in later)
+    base_config = yaml.safe_load((base / "config.yaml").read_text().replace(str(work), str(plan.work)))
+    arm_config = yaml.safe_load((arm / "config.yaml").read_text())
+    assert arm_config["rollout"]["chunks"] == 2 and arm_config["train"]["output_dir"] == str(arm)
+    for section in ("data", "backbone", "conditioning", "flow"):
+        assert arm_config[section] == base_config[section], section
+    (gate,) = json.loads((arm / "gates.json").read_text())
+    simulated = {r["index"]: r["success"] for part in (plan.work / "sim" / "train").glob("part_*")
+                 for r in json.loads((part / "outcomes.json").read_text())}
+    assert gate["step"] == from_step + 2 and gate["budget_minutes"] == plan.cpu_minutes
+    assert gate["episodes"] == plan.held_out_episodes() and gate["labels"] == [simulated[e] for e in gate["episodes"]]
+    assert result["arm"]["chunks"] == (gate["step"] - from_step) * 2 * plan.run_config("motion+contact").train.batch_size
+    base_gate = json.loads((base / "gates.json").read_text())[-1]
+    assert result["baseline"]["balanced_accuracy_from_chunk"] == {
+        k: v["balanced_accuracy"] for k, v in base_gate["from_chunk"].items()}
+    # a second call finds the arm trained and measured
+    assert cpu_ablation.main(["rollout", "--work", str(plan.work), "--from-step", str(from_step)]) == 0
+    assert len(json.loads((arm / "gates.json").read_text())) == 1
+    with pytest.raises(InputError, match="--from-step 1: .* does not exist"):
+        cpu_ablation.branch(plan, "another_arm", 1)
 
 
 def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
