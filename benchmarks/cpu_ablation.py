@@ -24,16 +24,13 @@ from imac_model.experiments.ranking.benchmark import internal
 from imac_model.experiments.ranking.gate import GATED_MODE, read_gates
 from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.stages import MARK_TRAINED, python, quote, run_all
+from imac_model.training.log import read_log, write_log
 
 ARMS = {  # ablation -> plan -> (the arm's run, what it changes)
     # clips as long as the replays, every chunk after the first from the model's own last frame
     "rollout": lambda plan: (f"motion_contact_rollout{plan.chunks}", {"rollout.chunks": plan.chunks}),
     "reference-noise": lambda plan: ("motion_contact_noise03", {"flow.reference_noise": 0.3}),
 }
-
-
-def _log_rows(run: Path) -> list[dict]:
-    return [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines() if x.strip()]
 
 
 def branch(plan: RankingPlan, arm: str, from_step: int) -> Path:
@@ -49,8 +46,8 @@ def branch(plan: RankingPlan, arm: str, from_step: int) -> Path:
     tmp = run.with_name(run.name + ".branching")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(source, tmp / "checkpoints" / source.name)
-    rows = [r for r in _log_rows(base) if r.get("step", 0) <= from_step]
-    (tmp / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    rows = read_log(base, upto=from_step)
+    write_log(tmp, rows)
     (tmp / "branch.json").write_text(json.dumps({"from": str(base.relative_to(plan.work)), "step": from_step,
                                                  "cpu_s": rows[-1].get("cpu_s")}, indent=1) + "\n")
     tmp.rename(run)
@@ -92,7 +89,7 @@ def ablate(plan: RankingPlan, ablation: str, from_step: int) -> dict:
     result = {"ablation": ablation, "changes": changes, "from_step": from_step, "cpu_minutes": plan.cpu_minutes}
     for name, gate in (("baseline", baseline), ("arm", final_gate(plan, arm, from_step))):
         run_name = arm if name == "arm" else plan.run_dir(GATED_MODE).name
-        rows = _log_rows(plan.work / "runs" / run_name)
+        rows = read_log(plan.work / "runs" / run_name)
         chunks_per_step = batch * int(changes.get("rollout.chunks", 1)) if name == "arm" else batch
         result[name] = {"run": run_name, "step": gate["step"], "chunks": (gate["step"] - from_step) * chunks_per_step,
                         "balanced_accuracy_from_chunk": {k: v["balanced_accuracy"]

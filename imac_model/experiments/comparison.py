@@ -32,6 +32,7 @@ from imac_model.experiments.stages import (
 from imac_model.models.backbones.build import spatial_multiple, temporal_factor
 from imac_model.models.checkpoint import load_world_model
 from imac_model.pipelines.online_controls import OnlineControls
+from imac_model.training.log import read_log
 from imac_model.training.train import model_spec
 
 REPO = "local/imac_experiment"
@@ -228,7 +229,7 @@ def evaluate_setting(plan: Plan, s: Setting) -> None:
     sens_starts = [(e, c) for e in held for c in SENSITIVITY_CHUNKS if c < len(ds.episode_chunks(e))]
     sens = open_loop.action_sensitivity(model, ds, sens_starts, online, offsets=SENSITIVITY_OFFSETS,
                                         steps=plan.steps, seed=plan.seed)
-    log = [json.loads(line) for line in (plan.run_dir(s) / "log.jsonl").read_text().splitlines() if line.strip()]
+    log = read_log(plan.run_dir(s))
     chunks = open_loop.summarise(metrics)
     result = {
         "setting": s.name, "slug": s.slug, "overrides": s.overrides,

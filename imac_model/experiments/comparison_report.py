@@ -16,6 +16,7 @@ from imac_data.layout import SUCCESS_COLUMN, episodes_dir
 from imac_model.data import meta as dataset_meta
 from imac_model.evaluate.pictures import label
 from imac_model.experiments.stages import git, machine
+from imac_model.training.log import read_log
 
 
 def _fmt(x, digits=4):
@@ -133,7 +134,7 @@ def write_report(plan, settings) -> Path:
             continue
         results[s.name] = json.loads(f.read_text())
         samples[s.name] = torch.load(f.with_suffix(".pt"), weights_only=False)
-        logs[s.name] = [json.loads(x) for x in (plan.run_dir(s) / "log.jsonl").read_text().splitlines() if x.strip()]
+        logs[s.name] = read_log(plan.run_dir(s))
     if not results:
         raise RuntimeError("no evaluated setting to report")
     H = dataset_meta.contact_chunk_size(plan.dataset)

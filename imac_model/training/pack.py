@@ -29,6 +29,7 @@ from imac_model.data.batch import ChunkBatch
 from imac_model.models.checkpoint import save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.rollout import rollout_loss
+from imac_model.training.log import write_log
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss (as the trainer's)
 SPEC_KEY = "spec_json"
@@ -197,7 +198,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
                "torch": torch.__version__, "parameters": sum(p.numel() for p in params)}
     # the summary is the log's last row: the GPU machine returns few files
-    (out / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in [*log, {"summary": summary}]))
+    write_log(out, [*log, {"summary": summary}])
     return summary
 
 

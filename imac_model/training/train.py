@@ -11,7 +11,6 @@ are functions of (seed, step)). With ``rollout.chunks`` R > 1, steps train clips
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -33,6 +32,7 @@ from imac_model.models.backbones.build import spatial_multiple, temporal_factor
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.rollout import rollout_loss
+from imac_model.training.log import append_log, read_log, write_log
 from imac_model.training.sharding import ShardedRuntime, shard_report
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss
@@ -356,9 +356,9 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
             (out / "sharding.json").write_text(json.dumps(report, indent=1) + "\n")
         if runtime.tracker is not None:
             runtime.tracker.init_trackers("imac_model", config=_flat(run.to_dict()))
-    log_rows: list[dict] = _read_log(out / "log.jsonl", upto=step) if main and existing else []
+    log_rows: list[dict] = read_log(out, upto=step) if main and existing else []
     if main:
-        _rewrite_log(out, log_rows)
+        write_log(out, log_rows)
     if log_rows:  # a resumed run: the logged times continue
         t_wall -= log_rows[-1].get("wall_s", 0.0)
         t_cpu -= log_rows[-1].get("cpu_s", 0.0)
@@ -385,9 +385,8 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
         if not main:
             return
         log_rows.append(row)
-        with open(out / "log.jsonl", "a") as f:
-            f.write(json.dumps(row) + "\n")
-        _rewrite_log(out, log_rows, csv_only=True)
+        append_log(out, row)
+        write_log(out, log_rows, csv_only=True)
         if runtime.tracker is not None:
             runtime.tracker.log({k: v for k, v in row.items() if k != "step"}, step=row["step"])
 
@@ -474,30 +473,7 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
     return TrainResult(output_dir=out, step=step, checkpoint=last_ckpt, log=log_rows, stopped=stopped, main=main)
 
 
-# --------------------------------------------------------------------------- logs
-
-
-LOG_FIELDS = ("step", "loss", "heldout_loss", "lr", "steps_per_s", "wall_s", "cpu_s", "load", "epoch")
-
-
-def _read_log(path: Path, upto: int) -> list[dict]:
-    if not path.is_file():
-        return []
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [r for r in rows if r["step"] <= upto]
-
-
-def _rewrite_log(out: Path, rows: list[dict], csv_only: bool = False) -> None:
-    """log.csv from the rows (and log.jsonl unless ``csv_only``): a resumed run drops the
-    rows after its checkpoint, so the logs hold one row per step."""
-    out.mkdir(parents=True, exist_ok=True)
-    if not csv_only:
-        (out / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    with open(out / "log.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=LOG_FIELDS, extrasaction="ignore")
-        writer.writeheader()
-        for r in rows:
-            writer.writerow(r)
+# --------------------------------------------------------------------------- tracker
 
 
 def _flat(d: dict, prefix: str = "") -> dict:

@@ -46,6 +46,7 @@ from imac_model.experiments.ranking.plan import (
 from imac_model.experiments.ranking.policies import WORKSPACE, WRIST, LiftPolicy
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT, python, quote, run_all, then_mark_done
+from imac_model.training.log import LOG_FILE
 from imac_model.training.pack import export_pack
 from imac_model.training.train import model_spec
 
@@ -188,10 +189,10 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
     for tar in sorted(directory.glob("*.tar")):
         with tarfile.open(tar) as archive:
             names = set(archive.getnames())
-            if not {"model.json", "model.safetensors", "log.jsonl"} <= names:
+            if not {"model.json", "model.safetensors", LOG_FILE} <= names:
                 raise InputError(f"{tar}: not a run of scripts/gpu_ranking.sh (it holds {sorted(names)})")
-            files = {n: archive.extractfile(n).read() for n in ("model.json", "model.safetensors", "log.jsonl")}
-        rows = [json.loads(line) for line in files["log.jsonl"].decode().splitlines() if line.strip()]
+            files = {n: archive.extractfile(n).read() for n in ("model.json", "model.safetensors", LOG_FILE)}
+        rows = [json.loads(line) for line in files[LOG_FILE].decode().splitlines() if line.strip()]
         summary = rows[-1].get("summary", rows[-1])
         run = plan.work / "runs" / tar.stem
         tmp = run.with_name(run.name + ".importing")  # the run replaces any earlier one whole, or not at all
@@ -200,7 +201,7 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
         ckpt.mkdir(parents=True)
         (ckpt / "model.json").write_bytes(files["model.json"])
         (ckpt / "model.safetensors").write_bytes(files["model.safetensors"])
-        (tmp / "log.jsonl").write_bytes(files["log.jsonl"])
+        (tmp / LOG_FILE).write_bytes(files[LOG_FILE])
         (tmp / "DONE.json").write_text(json.dumps(summary, indent=1))
         shutil.rmtree(run, ignore_errors=True)
         os.replace(tmp, run)

@@ -36,6 +36,7 @@ from imac_model.experiments.ranking.policies import WORKSPACE
 from imac_model.models.checkpoint import list_checkpoints, load_world_model
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import open_chunks
+from imac_model.training.log import read_log
 
 GATED_MODE = "motion+contact"
 
@@ -103,7 +104,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     run_dir = plan.run_dir(mode)
     checkpoint = list_checkpoints(run_dir)[-1]
     model, spec = load_world_model(checkpoint, weights="ema", device=plan.device)
-    log = [json.loads(x) for x in (run_dir / "log.jsonl").read_text().splitlines() if x.strip()]
+    log = read_log(run_dir)
     trained = next(r for r in reversed(log) if "step" in r)  # the CPU trainer logs CPU seconds, the GPU one wall
     labels = dataset_success_labels(lr.LeRobotDataset(TRAIN_REPO, root=plan.train_dataset))
     episodes = [e for e in plan.held_out_episodes() if labels.get(e) is not None]
