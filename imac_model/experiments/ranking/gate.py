@@ -31,6 +31,7 @@ from imac_model.evaluate.pictures import label
 from imac_model.evaluate.policies import recorded_actions_policy
 from imac_model.evaluate.success import dataset_success_labels, verdict_scores
 from imac_model.experiments.ranking.judge import LiftJudge
+from imac_model.experiments.ranking.perception import RED_THRESHOLD, redness
 from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import WORKSPACE
 from imac_model.models.checkpoint import list_checkpoints, load_world_model
@@ -80,6 +81,23 @@ def _from_chunk(start, chunks, k: int):
                                state=item["state"].float(), recorded_actions=start.recorded_actions[k * H:])
 
 
+def cube_pixels(frames: torch.Tensor, spec) -> list[int]:
+    """The cube's (red) pixels in the workspace view of each of ``frames (T, 3, 2h, V w)``."""
+    v = spec.views.index(WORKSPACE) if WORKSPACE in spec.views else 0
+    rgb, _ = mosaic.split(frames, len(spec.views))
+    return [int(n) for n in (redness(rgb[:, v].clamp(0, 1)) > RED_THRESHOLD).sum(dim=(-2, -1))]
+
+
+def cube_kept(cube: dict[str, list[list[int]]], share: float = 0.5) -> list[float | None]:
+    """Per chunk: the share of full replays whose generated workspace view still shows at least
+    ``share`` of the recorded cube's pixels at the chunk's last frame (where the recording shows it)."""
+    kept = []
+    for n in range(max((len(r) for r in cube["recorded"]), default=0)):
+        pairs = [(g[n], r[n]) for g, r in zip(cube["generated"], cube["recorded"]) if len(r) > n and r[n] > 0]
+        kept.append(round(sum(g >= share * r for g, r in pairs) / len(pairs), 4) if pairs else None)
+    return kept
+
+
 def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[int],
            captions: tuple[str, str]) -> np.ndarray:
     """Two rows (recorded, generated) of the workspace view at ``times``, each row's first cell
@@ -112,6 +130,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     online = OnlineControls.from_dataset(plan.train_dataset, spec, info=dataset_info(chunks.lerobot.meta))
     judge = LiftJudge()
     verdicts: dict[int, list[tuple[bool, bool]]] = {k: [] for k in range(plan.chunks)}  # (judged, label)
+    cube = {"recorded": [], "generated": []}  # per full replay: the cube's pixels at each chunk's last frame
     shown = {True: 0, False: 0}
     strips = []
     for start in episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks):
@@ -123,14 +142,19 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
             outcome = labels[start.episode]
             verdicts[k].append((bool(judge.judge([judged_frames(s.episode, last, spec.views, s.task, online)])[0]),
                                 outcome))
-            if k == 0 and shown[outcome] < pictures // 2:
+            if k > 0:
+                continue
+            items = chunks.episode_chunks(start.episode)[:len(records)]
+            recorded = torch.cat([chunks[i]["future"] for i in items])
+            recorded = recorded.float() / 255.0 if recorded.dtype == torch.uint8 else recorded.float()
+            generated = torch.cat([r.frames for r in records])
+            H = spec.chunk
+            ends = [H * (n + 1) - 1 for n in range(len(records))]
+            for name, frames in (("recorded", recorded), ("generated", generated)):
+                cube[name].append(cube_pixels(frames[ends], spec))
+            if shown[outcome] < pictures // 2:
                 shown[outcome] += 1
-                items = chunks.episode_chunks(start.episode)[:plan.chunks]
-                recorded = torch.cat([chunks[i]["future"] for i in items])
-                recorded = recorded.float() / 255.0 if recorded.dtype == torch.uint8 else recorded.float()
-                generated = torch.cat([r.frames for r in records])
-                H = spec.chunk
-                times = [H // 2 - 1] + [H * (n + 1) - 1 for n in range(len(records))]
+                times = [H // 2 - 1] + ends
                 captions = (f"ep {start.episode}: {'success' if outcome else 'failure'}",
                             f"judged {'lifted' if verdicts[0][-1][0] else 'not lifted'}")
                 strips.append(_strip(recorded, generated, spec, times, captions))
@@ -139,7 +163,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     gate = {"budget_minutes": float(budget_minutes),
             "cpu_minutes": round(trained["cpu_s"] / 60, 2) if "cpu_s" in trained else None, "step": int(trained["step"]),
             "checkpoint": checkpoint.name, "episodes": episodes, "labels": truth, "sampler_steps": plan.steps,
-            "from_chunk": from_chunk, "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
+            "from_chunk": from_chunk, "cube_pixels": cube, "cube_kept": cube_kept(cube), "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
     gates = [g for g in read_gates(plan, mode) if g["budget_minutes"] != budget_minutes] + [gate]
     path = gates_path(plan, mode)
     if strips:

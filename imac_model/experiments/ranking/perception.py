@@ -11,8 +11,8 @@ RED_THRESHOLD = 0.15  # redness r - max(g, b) of a cube pixel; the table, robot 
 
 
 def redness(rgb: torch.Tensor) -> torch.Tensor:
-    """``(3, h, w)`` in [0, 1] -> ``(h, w)``: how much red exceeds the other channels."""
-    return rgb[0] - torch.maximum(rgb[1], rgb[2])
+    """``(..., 3, h, w)`` in [0, 1] -> ``(..., h, w)``: how much red exceeds the other channels."""
+    return rgb[..., 0, :, :] - torch.maximum(rgb[..., 1, :, :], rgb[..., 2, :, :])
 
 
 def interior(mask: torch.Tensor) -> torch.Tensor:

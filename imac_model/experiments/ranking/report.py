@@ -314,6 +314,15 @@ def _gate(plan: RankingPlan, r: dict) -> list[str]:
                      for i in range(k)]
             lines.append(f"| {mode} | {g['budget_minutes']:g} | {g['step']} | {len(g['labels'])} ({sum(g['labels'])}) | "
                          + " | ".join(cells) + f" | {_fmt(g['from_chunk']['0']['accuracy'], 2)} |")
+    kept = [(mode, g) for mode, rows in gates.items() for g in rows if g.get("cube_kept")]
+    if kept:
+        n = max(len(g["cube_kept"]) for _, g in kept)
+        lines += ["", "Where the cube is lost: the share of full replays (from chunk 1) whose generated workspace view "
+                  "still shows at least half of the recorded cube's pixels at the last frame of each chunk:", "",
+                  "| mode | budget (min) | step | " + " | ".join(f"end of chunk {i + 1}" for i in range(n)) + " |",
+                  "|" + "---|" * (3 + n)]
+        lines += [f"| {mode} | {g['budget_minutes']:g} | {g['step']} | "
+                  + " | ".join(_fmt(x, 2) for x in g["cube_kept"]) + " |" for mode, g in kept]
     if plan.gate_every and GATED_MODE in gates:
         lines += ["", f"**Verdict:** {gate_verdict(plan, gates[GATED_MODE])}."]
     lines += ["", f"The latest gate of `{next(iter(gates))}` (workspace view; top recorded, bottom generated):", "",
