@@ -94,6 +94,7 @@ def ablate(plan: RankingPlan, ablation: str, from_step: int) -> dict:
         result[name] = {"run": run_name, "step": gate["step"], "chunks": (gate["step"] - from_step) * chunks_per_step,
                         "balanced_accuracy_from_chunk": {k: v["balanced_accuracy"]
                                                          for k, v in gate["from_chunk"].items()},
+                        "cube_at_chunk_end": gate.get("cube_at_chunk_end"),
                         "heldout_loss": next((r["heldout_loss"] for r in reversed(rows) if "heldout_loss" in r),
                                              None)}
     return result
@@ -112,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
         r = result[name]
         gate = " ".join(f"{x:.2f}" for x in r["balanced_accuracy_from_chunk"].values())
         print(f"{name:8s} {r['run']}: step {r['step']}, {r['chunks']} chunks trained after step {args.from_step}; "
-              f"gate from chunk 1.. {gate}; held-out loss {r['heldout_loss']}")
+              f"gate from chunk 1.. {gate}; held-out loss {r['heldout_loss']:.4f}; cube at each chunk's end "
+              f"{r['cube_at_chunk_end']}")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
     return 0

@@ -326,10 +326,10 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
                  for r in json.loads((part / "outcomes.json").read_text())}
     assert gate["episodes"] == plan.held_out_episodes() and gate["labels"] == [simulated[e] for e in gate["episodes"]]
     assert gate["budget_minutes"] == plan.cpu_minutes and set(gate["from_chunk"]) == {"0", "1"}
-    assert [len(c) for c in gate["cube_pixels"]["recorded"]] == [plan.chunks] * len(gate["episodes"])
-    assert len(gate["cube_kept"]) == plan.chunks
+    assert [len(c) for c in gate["cube"]["recorded"]] == [plan.chunks] * len(gate["episodes"])
+    assert [len(v) for v in gate["cube_at_chunk_end"].values()] == [plan.chunks] * 2
     report = (docs / "README.md").read_text()
-    assert "## The early gate" in report and "Where the cube is lost" in report and (docs / "gate.png").is_file()
+    assert "## The early gate" in report and "Where the cube goes wrong" in report and (docs / "gate.png").is_file()
     # a second run finds every stage's outputs and only writes the report again
     stages = json.loads((work / "stages.json").read_text())
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs)]) == 0

@@ -15,7 +15,7 @@ from imac_data.errors import InputError
 from imac_model.cli import main as model_main
 from imac_model.data import mosaic
 from imac_model.evaluate.success import verdict_scores
-from imac_model.experiments.ranking.gate import cube_kept, cube_pixels, gate_minutes, gate_verdict
+from imac_model.experiments.ranking.gate import cube_in_view, cube_summary, gate_minutes, gate_verdict
 from imac_model.experiments.ranking.plan import RankingPlan
 
 
@@ -68,24 +68,29 @@ def test_a_second_run_on_the_same_work_directory_is_refused(tmp_path, capsys):
     assert not (work / "plan.json").exists()
 
 
-def test_the_cube_is_counted_in_the_workspace_view_only():
-    """cube_pixels against painted squares of known area: red in the workspace view counts; red in
-    the wrist view or in the depth row, and a faint red below the threshold, do not."""
+def test_the_cube_is_found_in_the_workspace_view_only():
+    """cube_in_view against painted rectangles of known area and centre: red in the workspace view
+    counts; red in the wrist view or in the depth row, and a faint red below the threshold, do not."""
     h, w, T = 12, 16, 3
-    views = ("cam_right_wrist", "cam_workspace")  # the workspace view second: its place is looked up
-    spec = SimpleNamespace(views=views)
+    spec = SimpleNamespace(views=("cam_right_wrist", "cam_workspace"))  # the workspace view second: looked up
     rgb, depth = torch.full((T, 2, 3, h, w), 0.3), torch.full((T, 2, 3, h, w), 0.3)
-    areas = [(5, 6), (3, 3), (0, 0)]
-    for t, (a, b) in enumerate(areas):
-        rgb[t, 1, :, 2:2 + a, 4:4 + b] = torch.tensor([0.9, 0.1, 0.1])[:, None, None]
+    boxes = [(2, 4, 5, 6), (7, 1, 3, 3)]  # row, col, height, width
+    for t, (r, c, a, b) in enumerate(boxes):
+        rgb[t, 1, :, r:r + a, c:c + b] = torch.tensor([0.9, 0.1, 0.1])[:, None, None]
     rgb[:, 0, :, :4, :4] = torch.tensor([1.0, 0.0, 0.0])[:, None, None]  # the wrist view's red
     depth[:, 1, 0] = 1.0  # a red depth colour
-    rgb[:, 1, :, 10:, 10:] = torch.tensor([0.45, 0.35, 0.35])[:, None, None]  # redness 0.1
-    assert cube_pixels(mosaic.assemble(rgb, depth), spec) == [a * b for a, b in areas]
+    rgb[:, 1, :, 10:, 12:] = torch.tensor([0.45, 0.35, 0.35])[:, None, None]  # redness 0.1
+    got = cube_in_view(mosaic.assemble(rgb, depth), spec)
+    for (r, c, a, b), (n, cy, cx) in zip(boxes, got):
+        assert (n, cy, cx) == (a * b, r + (a - 1) / 2, c + (b - 1) / 2)
+    assert got[2] == [0, None, None]
 
 
-def test_the_cube_is_kept_where_half_its_recorded_pixels_are_drawn():
-    cube = {"recorded": [[20, 20, 0], [10, 10, 10], [8]], "generated": [[20, 9, 5], [5, 0, 4], [3]]}
-    # chunk 1: 20>=10, 5>=5, 3<4; chunk 2: 9<10, 0<5; chunk 3: only replay 2 shows it (4<5)
-    assert cube_kept(cube) == [round(2 / 3, 4), 0.0, 0.0]
-    assert cube_kept({"recorded": [], "generated": []}) == []
+def test_the_cube_summary_counts_kept_cubes_and_their_offsets():
+    cube = {"recorded": [[[20, 5, 5], [20, 5, 5], [0, None, None]], [[10, 1, 1], [10, 2, 2], [10, 3, 3]], [[8, 0, 0]]],
+            "generated": [[[20, 5, 8], [9, 5, 5], [5, 0, 0]], [[5, 4, 5], [0, None, None], [4, 3, 3]], [[3, 0, 1]]]}
+    s = cube_summary(cube)
+    # chunk 1: 20>=10, 5>=5, 3<4; chunk 2: 9<10, 0<5; chunk 3: only replay 2's recording shows it (4<5)
+    assert s["kept"] == [round(2 / 3, 4), 0.0, 0.0]
+    assert s["offset_px"] == [3.0, 0.0, 0.0]  # median of 3, 5, 1; replay 1 alone; replay 2 alone
+    assert cube_summary({"recorded": [], "generated": []}) == {"kept": [], "offset_px": []}

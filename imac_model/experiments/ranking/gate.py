@@ -81,21 +81,30 @@ def _from_chunk(start, chunks, k: int):
                                state=item["state"].float(), recorded_actions=start.recorded_actions[k * H:])
 
 
-def cube_pixels(frames: torch.Tensor, spec) -> list[int]:
-    """The cube's (red) pixels in the workspace view of each of ``frames (T, 3, 2h, V w)``."""
+def cube_in_view(frames: torch.Tensor, spec) -> list[list[float]]:
+    """The cube in the workspace view of each of ``frames (T, 3, 2h, V w)``: ``[pixels, row, col]``,
+    its red pixels and their centroid (None without any)."""
     v = spec.views.index(WORKSPACE) if WORKSPACE in spec.views else 0
     rgb, _ = mosaic.split(frames, len(spec.views))
-    return [int(n) for n in (redness(rgb[:, v].clamp(0, 1)) > RED_THRESHOLD).sum(dim=(-2, -1))]
+    red = (redness(rgb[:, v].clamp(0, 1)) > RED_THRESHOLD).float()
+    n = red.sum(dim=(-2, -1))
+    rows, cols = torch.arange(red.shape[-2]).float(), torch.arange(red.shape[-1]).float()
+    cy = (red.sum(-1) * rows).sum(-1) / n
+    cx = (red.sum(-2) * cols).sum(-1) / n
+    return [[int(a), round(float(b), 2), round(float(c), 2)] if a > 0 else [0, None, None] for a, b, c in zip(n, cy, cx)]
 
 
-def cube_kept(cube: dict[str, list[list[int]]], share: float = 0.5) -> list[float | None]:
-    """Per chunk: the share of full replays whose generated workspace view still shows at least
-    ``share`` of the recorded cube's pixels at the chunk's last frame (where the recording shows it)."""
-    kept = []
+def cube_summary(cube: dict[str, list[list[list[float]]]], share: float = 0.5) -> dict[str, list]:
+    """Per chunk, over the full replays whose recording shows the cube at the chunk's last frame:
+    ``kept``, the share whose generated view shows at least ``share`` of its pixels; ``offset_px``,
+    the median distance (pixels) between the generated and recorded cubes' centroids, where both show."""
+    kept, offset = [], []
     for n in range(max((len(r) for r in cube["recorded"]), default=0)):
-        pairs = [(g[n], r[n]) for g, r in zip(cube["generated"], cube["recorded"]) if len(r) > n and r[n] > 0]
-        kept.append(round(sum(g >= share * r for g, r in pairs) / len(pairs), 4) if pairs else None)
-    return kept
+        pairs = [(g[n], r[n]) for g, r in zip(cube["generated"], cube["recorded"]) if len(r) > n and r[n][0] > 0]
+        kept.append(round(sum(g[0] >= share * r[0] for g, r in pairs) / len(pairs), 4) if pairs else None)
+        d = [float(np.hypot(g[1] - r[1], g[2] - r[2])) for g, r in pairs if g[0] > 0]
+        offset.append(round(float(np.median(d)), 2) if d else None)
+    return {"kept": kept, "offset_px": offset}
 
 
 def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[int],
@@ -130,7 +139,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     online = OnlineControls.from_dataset(plan.train_dataset, spec, info=dataset_info(chunks.lerobot.meta))
     judge = LiftJudge()
     verdicts: dict[int, list[tuple[bool, bool]]] = {k: [] for k in range(plan.chunks)}  # (judged, label)
-    cube = {"recorded": [], "generated": []}  # per full replay: the cube's pixels at each chunk's last frame
+    cube = {"recorded": [], "generated": []}  # per full replay: the cube at each chunk's last frame
     shown = {True: 0, False: 0}
     strips = []
     for start in episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks):
@@ -151,7 +160,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
             H = spec.chunk
             ends = [H * (n + 1) - 1 for n in range(len(records))]
             for name, frames in (("recorded", recorded), ("generated", generated)):
-                cube[name].append(cube_pixels(frames[ends], spec))
+                cube[name].append(cube_in_view(frames[ends], spec))
             if shown[outcome] < pictures // 2:
                 shown[outcome] += 1
                 times = [H // 2 - 1] + ends
@@ -163,7 +172,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     gate = {"budget_minutes": float(budget_minutes),
             "cpu_minutes": round(trained["cpu_s"] / 60, 2) if "cpu_s" in trained else None, "step": int(trained["step"]),
             "checkpoint": checkpoint.name, "episodes": episodes, "labels": truth, "sampler_steps": plan.steps,
-            "from_chunk": from_chunk, "cube_pixels": cube, "cube_kept": cube_kept(cube), "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
+            "from_chunk": from_chunk, "cube": cube, "cube_at_chunk_end": cube_summary(cube), "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
     gates = [g for g in read_gates(plan, mode) if g["budget_minutes"] != budget_minutes] + [gate]
     path = gates_path(plan, mode)
     if strips:
