@@ -200,9 +200,21 @@ def block_interrupts_in_this_thread() -> None:
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
 
 
+def _silence_native_stderr() -> None:
+    """fd 2 to /dev/null: as a job unwinds after Ctrl-C, native libraries still write there (an
+    SVT-AV1 encoder freed mid-stream: "deinit called without sending EOS!"); the command reports."""
+    sys.stderr.flush()
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+    finally:
+        os.close(null)
+
+
 def _worker_interrupt(signum, frame) -> None:
     global _interrupt_pending
     _interrupt_pending = True
+    _silence_native_stderr()
     if _in_job:  # the job cleans up as it unwinds; the pool hands the exception to the build
         raise KeyboardInterrupt
     os._exit(EXIT_INTERRUPTED)  # idle: nothing to clean up, and no traceback from the pool's loop

@@ -492,6 +492,46 @@ def test_ctrl_c_while_the_command_loads_is_one_line(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+ENCODING_WORKER = """
+import os, signal, sys, time
+import av, numpy as np
+from imac_data.console import quiet_worker_interrupts, run_as_job
+
+def job(path):
+    container = av.open(path, "w")
+    stream = container.add_stream("libsvtav1", rate=10)
+    stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+    for i in range(3):
+        for packet in stream.encode(av.VideoFrame.from_ndarray(np.full((48, 64, 3), 40 * i, np.uint8), "rgb24")):
+            container.mux(packet)
+    os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C mid-stream: the encoder is freed unflushed as the job unwinds
+    time.sleep(10)
+
+if sys.argv[2] == "worker":
+    quiet_worker_interrupts()
+try:
+    run_as_job(job, sys.argv[1])
+except KeyboardInterrupt:
+    sys.exit(130)
+"""
+
+
+@pytest.mark.parametrize("process", ["worker", "plain"])
+def test_a_pool_worker_interrupted_while_encoding_stays_quiet(tmp_path, process):
+    """Ctrl-C in a pool worker whose SVT-AV1 encoder is mid-stream: SVT-AV1 writes "deinit called
+    without sending EOS!" to fd 2 as the encoder is freed; a pool worker's stderr stays empty (the
+    command prints the one line). ``plain``: the same job without the worker's handler, where the
+    library's line shows, so the quiet is the handler's doing."""
+    env = {**os.environ, "SVT_LOG": "1"}  # errors only, as the commands set it
+    done = subprocess.run([sys.executable, "-c", ENCODING_WORKER, str(tmp_path / "x.mp4"), process], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 130, done.stderr
+    if process == "worker":
+        assert done.stderr == ""
+    else:
+        assert "deinit called without sending EOS" in done.stderr
+
+
 def test_environment_errors_are_recognised_however_they_arrive():
     """From a pool worker (pickled), wrapped by a library (chained), or with only the text kept
     (pyarrow, PyAV): still an environment fault; anything else is a bug."""
