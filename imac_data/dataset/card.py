@@ -13,7 +13,8 @@ from pathlib import Path
 import jinja2
 
 from imac_data import lerobot_compat as lr
-from imac_data.layout import IMAGE_PREFIX, STATE, info_path
+from imac_data.dataset.info import imac_block, read_info
+from imac_data.layout import IMAGE_PREFIX, STATE
 
 TEMPLATE = Path(__file__).resolve().parents[2] / "dataset_cards" / "imac_dataset_card.md"
 
@@ -47,13 +48,13 @@ def lerobot_train_command(info: dict, repo_id: str, policy: str = "act") -> str:
 def render_card(info: dict, repo_id: str, recipe) -> str:
     env = jinja2.Environment(undefined=jinja2.StrictUndefined, keep_trailing_newline=True)
     template = env.from_string(TEMPLATE.read_text())
-    imac = info["imac"]
+    imac = imac_block(info)
     return template.render(repo_id=repo_id, recipe=recipe, info=info, imac=imac, cameras=list(imac["cameras"]),
                            lerobot_train=lerobot_train_command(info, repo_id), lerobot_version=lr.version())
 
 
 def write_card(root: Path, repo_id: str, recipe) -> Path:
-    info = json.loads(info_path(root).read_text())
+    info = read_info(root)
     path = root / "README.md"
     path.write_text(render_card(info, repo_id, recipe))
     return path
@@ -62,10 +63,10 @@ def write_card(root: Path, repo_id: str, recipe) -> Path:
 def hub_card_kwargs(root: Path, repo_id: str, recipe) -> dict:
     """What ``LeRobotDataset.push_to_hub`` gets for its card: our card as the dataset
     description, plus tags. LeRobot renders and uploads the card itself."""
-    info = json.loads(info_path(root).read_text())
+    info = read_info(root)
     return {
         "dataset_description": render_card(info, repo_id, recipe),
-        "tags": ["imac", "world-model", "robotics", f"robot:{info['imac']['robot']['name']}"],
+        "tags": ["imac", "world-model", "robotics", f"robot:{imac_block(info)['robot']['name']}"],
         "license": "apache-2.0",
     }
 

@@ -309,7 +309,7 @@ def check_depth(ctx: _Context) -> list[str]:
         codec = depth_codec_of(ctx.info)
     except InputError as e:
         return [str(e)]
-    lossless = _lossless(ctx.info["imac"]["depth"].get("encoding", {}))
+    lossless = _lossless(imac_block(ctx.info, "info.json", require=("depth",))["depth"].get("encoding", {}))
     problems = []
 
     def judge(where: str, rgb) -> None:
