@@ -16,14 +16,13 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 from pathlib import Path
 
 from imac_data.errors import InputError
-from imac_model.experiments.ranking.benchmark import internal
+from imac_model.experiments.ranking.benchmark import internal, train_command
 from imac_model.experiments.ranking.gate import GATED_MODE, read_gates
 from imac_model.experiments.ranking.plan import RankingPlan
-from imac_model.experiments.stages import MARK_TRAINED, python, quote, run_all
+from imac_model.experiments.stages import run_all
 from imac_model.training.log import read_log, write_log
 
 ARMS = {  # ablation -> plan -> (the arm's run, what it changes)
@@ -58,13 +57,8 @@ def train_arm(plan: RankingPlan, run: Path, changes: dict) -> None:
     """Train the arm to the preset's CPU budget with ``changes`` (resumes; marks it trained)."""
     if (run / "DONE.json").is_file():
         return
-    overrides = {**plan.mode_overrides(GATED_MODE), "train.output_dir": str(run), **changes}
-    sets = [a for k, v in overrides.items() for a in ("--set", f"{k}={json.dumps(v)}")]
-    script = " ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", plan.config, "--no-progress",
-                                             *sets]))
-    script += f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(run))}"
-    run_all([(f"train {run.name}", ["bash", "-c", script], plan.work / "logs" / f"train_{run.name}.log")], 1,
-            tag="ablation")
+    argv = train_command(plan, GATED_MODE, changes={"train.output_dir": str(run), **changes})
+    run_all([(f"train {run.name}", argv, plan.work / "logs" / f"train_{run.name}.log")], 1, tag="ablation")
 
 
 def final_gate(plan: RankingPlan, run_name: str, from_step: int) -> dict | None:

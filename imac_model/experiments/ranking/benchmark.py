@@ -234,17 +234,19 @@ def stage_decode(plan: RankingPlan) -> None:
     run_all([("decode", internal(plan, "decode"), plan.work / "logs" / "decode.log")], 1, tag="ranking")
 
 
-def _train_command(plan: RankingPlan, mode: str, minutes: float | None = None, finish: bool = True) -> list[str]:
+def train_command(plan: RankingPlan, mode: str, minutes: float | None = None, finish: bool = True,
+                  changes: dict | None = None) -> list[str]:
     """argv training ``mode`` (resuming its checkpoints) up to ``minutes`` CPU-minutes (default: its
-    budget); with ``finish``, the run is then marked trained (``DONE.json``)."""
-    overrides = plan.mode_overrides(mode)
+    budget); with ``finish``, the run is then marked trained (``DONE.json``). ``changes``: run-config
+    fields set on top (an ablation's arm: its output directory and the one setting it changes)."""
+    overrides = {**plan.mode_overrides(mode), **(changes or {})}
     if minutes is not None:
         overrides["train.max_cpu_minutes"] = minutes
     sets = [a for k, v in overrides.items() for a in ("--set", f"{k}={json.dumps(v)}")]
     script = " ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", plan.config, "--no-progress",
                                              *sets]))
     if finish:
-        script += f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(plan.run_dir(mode)))}"
+        script += f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(overrides['train.output_dir'])}"
     return ["bash", "-c", script]
 
 
@@ -260,7 +262,7 @@ def train_gated(plan: RankingPlan) -> None:
     for minutes in gate_minutes(plan):
         if minutes not in measured:
             last = minutes == gate_minutes(plan)[-1]
-            run_all([(f"train {mode} to {minutes:g} CPU-minutes", _train_command(plan, mode, minutes, finish=last), log),
+            run_all([(f"train {mode} to {minutes:g} CPU-minutes", train_command(plan, mode, minutes, finish=last), log),
                      ], 1, tag="ranking")
             run_all([(f"gate {mode} at {minutes:g} CPU-minutes", internal(plan, "gate", f"{minutes:g}"),
                       plan.work / "logs" / "gate.log")], 1, tag="ranking")
@@ -282,7 +284,7 @@ def stage_train(plan: RankingPlan) -> None:
     gated = plan.gate_every is not None and GATED_MODE in plan.modes
     if gated and not (plan.run_dir(GATED_MODE) / "DONE.json").is_file():
         train_gated(plan)  # first, alone: the other modes train only once it has passed
-    commands = [(f"train {mode}", _train_command(plan, mode), plan.work / "logs" / f"train_{slug(mode)}.log")
+    commands = [(f"train {mode}", train_command(plan, mode), plan.work / "logs" / f"train_{slug(mode)}.log")
                 for mode in plan.modes if not (plan.run_dir(mode) / "DONE.json").is_file()]
     run_all(commands, plan.jobs, tag="ranking")
 
