@@ -4,7 +4,9 @@ the same call of ``scripts/gpu_ranking.sh``, one with a design choice and one wi
 * ``focus``: the loss weighted on what moves (``motion_contact``) against a uniform loss
   (``motion_contact_uniform``, ``focus_weight 0``; ``ABLATION=1``);
 * ``rollout``: training-time rollout (``motion_contact``, ``ROLLOUT=R``) against none
-  (``motion_contact_no_rollout``; ``ABLATION=rollout``).
+  (``motion_contact_no_rollout``; ``ABLATION=rollout``);
+* ``first-frame``: the episode's first frame as memory (``motion_contact_first_frame``,
+  ``conditioning.first_frame``) against none (``motion_contact``; ``ABLATION=first-frame``).
 
 Each run is measured by the early gate (its held-out training rollouts replayed, balanced accuracy
 of the lift judge from every chunk; measured here if missing) and on the replays of the evaluation
@@ -25,7 +27,8 @@ from imac_model.experiments.ranking.gate import measure_gate, read_gates
 from imac_model.experiments.ranking.plan import RankingPlan
 
 ABLATIONS = {"focus": {"focus": "motion_contact", "uniform": "motion_contact_uniform"},
-             "rollout": {"rollout": "motion_contact", "no_rollout": "motion_contact_no_rollout"}}
+             "rollout": {"rollout": "motion_contact", "no_rollout": "motion_contact_no_rollout"},
+             "first-frame": {"first_frame": "motion_contact_first_frame", "without": "motion_contact"}}
 
 
 def summary(plan: RankingPlan, run: str) -> dict:
@@ -33,6 +36,7 @@ def summary(plan: RankingPlan, run: str) -> dict:
     gates = read_gates(plan, run) or [measure_gate(plan, trained.get("train_s", 0) / 60, run)]
     gate = replays(plan, "motion+contact", None if plan.run_dir("motion+contact").name == run else run)[str(plan.steps)]
     return {"focus_weight": trained.get("focus_weight"), "rollout_chunks": trained.get("rollout_chunks", 1),
+            "first_frame": trained.get("first_frame", False),
             "steps": trained["steps"], "samples": trained["samples"], "device": trained.get("device"),
             "gate_balanced_accuracy_from_chunk": {k: v["balanced_accuracy"] for k, v in gates[-1]["from_chunk"].items()},
             "lift_judge_accuracy": gate["accuracy"]["lift_geometry"],

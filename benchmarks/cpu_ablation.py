@@ -1,6 +1,6 @@
 """Ablations on the ranking benchmark's CPU preset: an arm continues the preset's ``motion+contact``
-run from one of its checkpoints with one design choice changed, to the same CPU budget as the preset
-(``plan.cpu_minutes``, process CPU time, one thread), and is measured by the same early gate (its
+run from one of its checkpoints with one design choice changed, to a CPU budget (process CPU time,
+one thread; default the preset's, ``plan.cpu_minutes``), and is measured by the same early gate (its
 held-out training rollouts replayed; balanced accuracy of the lift judge from every chunk). The
 baseline is the preset's own run, which continues from the same checkpoint unchanged (a resumed run
 draws the same batches and noise), measured by its gate at the end of the budget::
@@ -8,8 +8,16 @@ draws the same batches and noise), measured by its gate at the end of the budget
     python -m benchmarks.cpu_ablation rollout --work runs/ranking_cpu --from-step 3800 \\
         --json benchmarks/results/rollout_cpu_ablation.json
 
+Past the preset's budget (``--minutes``) the preset has no gate; the baseline is then another arm
+(``--baseline``), trained by its own call (two calls run side by side, one core each)::
+
+    python -m benchmarks.cpu_ablation reference-noise --from-step 5627 --minutes 240 &
+    python -m benchmarks.cpu_ablation first-frame --from-step 5627 --minutes 240 --baseline reference-noise
+
 The arm lives in ``<work>/runs/<arm>`` (checkpoint, log, gates); an interrupted call resumes. The
-GPU preset's ablations, trained side by side on the pack, are :mod:`benchmarks.ablation`."""
+first-frame arm's branch widens the checkpoint (:func:`imac_model.models.checkpoint.add_first_frame`),
+so it starts as the model it branches from. The GPU preset's ablations, trained side by side on the
+pack, are :mod:`benchmarks.ablation`."""
 
 from __future__ import annotations
 
@@ -23,18 +31,41 @@ from imac_model.experiments.ranking.benchmark import internal, train_command
 from imac_model.experiments.ranking.gate import GATED_MODE, read_gates
 from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.stages import run_all
+from imac_model.models.checkpoint import SPEC, add_first_frame
 from imac_model.training.log import read_log, write_log
 
 ARMS = {  # ablation -> plan -> (the arm's run, what it changes)
     # clips as long as the replays, every chunk after the first from the model's own last frame
     "rollout": lambda plan: (f"motion_contact_rollout{plan.chunks}", {"rollout.chunks": plan.chunks}),
     "reference-noise": lambda plan: ("motion_contact_noise03", {"flow.reference_noise": 0.3}),
+    # memory beyond one frame; with the reference noise above, so the clean first frame has something to add
+    "first-frame": lambda plan: ("motion_contact_first_frame", {"flow.reference_noise": 0.3,
+                                                                "conditioning.first_frame": True}),
 }
 
 
-def branch(plan: RankingPlan, arm: str, from_step: int) -> Path:
+def arm_run(plan: RankingPlan, ablation: str, minutes: float) -> tuple[str, dict]:
+    """The arm's run name (suffixed with its budget when it is not the preset's) and its changes."""
+    arm, changes = ARMS[ablation](plan)
+    return (arm if minutes == plan.cpu_minutes else f"{arm}_to{minutes:g}"), changes
+
+
+def respec(checkpoint: Path, changes: dict) -> None:
+    """The branched checkpoint's model spec with the arm's changes to it (``flow.*``, ...), so the
+    trainer resumes it as the arm's model; a first-frame arm's weights widened first."""
+    if changes.get("conditioning.first_frame"):
+        add_first_frame(checkpoint)
+    spec = json.loads((checkpoint / SPEC).read_text())
+    for key, value in changes.items():
+        section, _, name = key.rpartition(".")
+        if section in spec and name in spec[section]:
+            spec[section][name] = value
+    (checkpoint / SPEC).write_text(json.dumps(spec, indent=1) + "\n")
+
+
+def branch(plan: RankingPlan, arm: str, from_step: int, changes: dict | None = None) -> Path:
     """``<work>/runs/<arm>``: a copy of the preset's motion+contact run at ``from_step`` (its
-    checkpoint, the log up to it, its config), unless it exists."""
+    checkpoint, the log up to it, its config), unless it exists; a first-frame arm's checkpoint widened."""
     base, run = plan.run_dir(GATED_MODE), plan.work / "runs" / arm
     if (run / "branch.json").is_file():
         return run
@@ -45,6 +76,7 @@ def branch(plan: RankingPlan, arm: str, from_step: int) -> Path:
     tmp = run.with_name(run.name + ".branching")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(source, tmp / "checkpoints" / source.name)
+    respec(tmp / "checkpoints" / source.name, changes or {})
     rows = read_log(base, upto=from_step)
     write_log(tmp, rows)
     (tmp / "branch.json").write_text(json.dumps({"from": str(base.relative_to(plan.work)), "step": from_step,
@@ -53,38 +85,48 @@ def branch(plan: RankingPlan, arm: str, from_step: int) -> Path:
     return run
 
 
-def train_arm(plan: RankingPlan, run: Path, changes: dict) -> None:
-    """Train the arm to the preset's CPU budget with ``changes`` (resumes; marks it trained)."""
+def train_arm(plan: RankingPlan, run: Path, changes: dict, minutes: float) -> None:
+    """Train the arm to ``minutes`` CPU-minutes with ``changes`` (resumes; marks it trained)."""
     if (run / "DONE.json").is_file():
         return
-    argv = train_command(plan, GATED_MODE, changes={"train.output_dir": str(run), **changes})
+    argv = train_command(plan, GATED_MODE, minutes, changes={"train.output_dir": str(run), **changes})
     run_all([(f"train {run.name}", argv, plan.work / "logs" / f"train_{run.name}.log")], 1, tag="ablation")
 
 
-def final_gate(plan: RankingPlan, run_name: str, from_step: int) -> dict | None:
-    """The run's gate at the end of the budget, of a checkpoint at or after ``from_step``."""
+def final_gate(plan: RankingPlan, run_name: str, from_step: int, minutes: float) -> dict | None:
+    """The run's gate at the end of its budget, of a checkpoint at or after ``from_step``."""
     return next((g for g in reversed(read_gates(plan, run_name))
-                 if g["budget_minutes"] == plan.cpu_minutes and g["step"] >= from_step), None)
+                 if g["budget_minutes"] == minutes and g["step"] >= from_step), None)
 
 
-def ablate(plan: RankingPlan, ablation: str, from_step: int) -> dict:
-    arm, changes = ARMS[ablation](plan)
-    run = branch(plan, arm, from_step)
-    train_arm(plan, run, changes)
-    if final_gate(plan, arm, from_step) is None:
-        run_all([(f"gate {arm}", internal(plan, "gate", f"{plan.cpu_minutes:g}", arm),
+def ablate(plan: RankingPlan, ablation: str, from_step: int, minutes: float | None = None,
+           baseline: str | None = None) -> dict | None:
+    """Branch, train and gate the arm; its figures beside the baseline's (the preset's run, or the arm
+    ``baseline`` at the same budget), or None while the baseline has no gate there yet."""
+    minutes = float(plan.cpu_minutes if minutes is None else minutes)
+    arm, changes = arm_run(plan, ablation, minutes)
+    run = branch(plan, arm, from_step, changes)
+    train_arm(plan, run, changes, minutes)
+    if final_gate(plan, arm, from_step, minutes) is None:
+        run_all([(f"gate {arm}", internal(plan, "gate", f"{minutes:g}", arm),
                   plan.work / "logs" / f"gate_{arm}.log")], 1, tag="ablation")
-    baseline = final_gate(plan, GATED_MODE, from_step)
-    if baseline is None:
-        raise InputError(f"{plan.work}: motion+contact has no gate at {plan.cpu_minutes:g} CPU-minutes after step "
-                         f"{from_step} yet; run the CPU preset to the end of its budget (imac-model ranking --work "
-                         f"{plan.work}), then this again")
+    base_run, base_changes = ((plan.run_dir(GATED_MODE).name, {}) if baseline is None
+                              else arm_run(plan, baseline, minutes))
+    base_gate = final_gate(plan, base_run, from_step, minutes)
+    if base_gate is None:
+        how = (f"run the CPU preset to the end of its budget (imac-model ranking --work {plan.work})"
+               if baseline is None else f"python -m benchmarks.cpu_ablation {baseline} --from-step {from_step} "
+                                        f"--minutes {minutes:g}")
+        print(f"[ablation] {arm} is gated; its baseline {base_run} has no gate at {minutes:g} CPU-minutes after "
+              f"step {from_step} yet: {how}, then this again")
+        return None
     batch = plan.run_config(GATED_MODE).train.batch_size
-    result = {"ablation": ablation, "changes": changes, "from_step": from_step, "cpu_minutes": plan.cpu_minutes}
-    for name, gate in (("baseline", baseline), ("arm", final_gate(plan, arm, from_step))):
-        run_name = arm if name == "arm" else plan.run_dir(GATED_MODE).name
+    result = {"ablation": ablation, "changes": changes, "from_step": from_step, "cpu_minutes": minutes,
+              "baseline_changes": base_changes}
+    for name, gate, run_name, ch in (("baseline", base_gate, base_run, base_changes),
+                                     ("arm", final_gate(plan, arm, from_step, minutes), arm, changes)):
         rows = read_log(plan.work / "runs" / run_name)
-        chunks_per_step = batch * int(changes.get("rollout.chunks", 1)) if name == "arm" else batch
+        chunks_per_step = batch * int(ch.get("rollout.chunks", 1))
         result[name] = {"run": run_name, "step": gate["step"], "chunks": (gate["step"] - from_step) * chunks_per_step,
                         "balanced_accuracy_from_chunk": {k: v["balanced_accuracy"]
                                                          for k, v in gate["from_chunk"].items()},
@@ -99,10 +141,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("ablation", choices=sorted(ARMS))
     p.add_argument("--work", default="runs/ranking_cpu", help="the CPU preset's work directory")
     p.add_argument("--from-step", type=int, required=True, help="the checkpoint of motion+contact the arm starts from")
+    p.add_argument("--minutes", type=float, help="the CPU budget to train to (default: the preset's)")
+    p.add_argument("--baseline", choices=sorted(ARMS),
+                   help="compare with this arm at the same budget (default: the preset's own run)")
     p.add_argument("--json", help="write the figures here")
     args = p.parse_args(argv)
     plan = RankingPlan.load(Path(args.work) / "plan.json")
-    result = ablate(plan, args.ablation, args.from_step)
+    result = ablate(plan, args.ablation, args.from_step, args.minutes, args.baseline)
+    if result is None:
+        return 0
     for name in ("baseline", "arm"):
         r = result[name]
         gate = " ".join(f"{x:.2f}" for x in r["balanced_accuracy_from_chunk"].values())

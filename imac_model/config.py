@@ -138,6 +138,9 @@ class ConditioningConfig:
     control_on_reference: bool = False
     action_hidden: int = 256  # action-vector baseline: MLP width
     action_layers: int = 3  # action-vector baseline: MLP depth (the release: 3 layers, SiLU)
+    # memory beyond one frame (not in the paper): the episode's first recorded frame goes in as one more clean
+    # frame ahead of the reference, so a chunk whose generated reference lost the object still sees where it began
+    first_frame: bool = False
 
     def __post_init__(self) -> None:
         _positive(self, "action_hidden", "conditioning")

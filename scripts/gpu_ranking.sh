@@ -5,7 +5,8 @@
 # ROLLOUT=R trains every run with training-time rollout over clips of R chunks (default 1: none).
 # ABLATION=1 (or focus) also trains motion+contact with a uniform loss (focus_weight 0) as motion_contact_uniform,
 # the loss-weighting ablation (python -m benchmarks.ablation focus); ABLATION=rollout trains motion+contact without
-# rollout as motion_contact_no_rollout, the rollout ablation. PyYAML and safetensors travel as wheels
+# rollout as motion_contact_no_rollout, the rollout ablation; ABLATION=first-frame trains motion+contact conditioned
+# on the episode's first frame as motion_contact_first_frame, the memory ablation. PyYAML and safetensors travel as wheels
 # beside the pack (runs/ranking_gpu/gpu/wheels/) when the machine lacks them. Each run comes back as one
 # file, $OUT/<run>.tar (model.json, model.safetensors: float16 EMA weights, log.jsonl), since the GPU
 # machine returns few files; `imac-model ranking --preset gpu --import-gpu DIR` puts them back here.
@@ -31,8 +32,9 @@ runs=("motion_contact motion+contact --rollout-chunks $ROLLOUT" "action_vector a
 case "$ABLATION" in
   1|focus) runs+=("motion_contact_uniform motion+contact --focus-weight 0 --rollout-chunks $ROLLOUT") ;;
   rollout) runs+=("motion_contact_no_rollout motion+contact --rollout-chunks 1") ;;
+  first-frame) runs+=("motion_contact_first_frame motion+contact --first-frame --rollout-chunks $ROLLOUT") ;;
   0) ;;
-  *) echo "gpu_ranking: ABLATION must be 0, 1 (focus) or rollout, got $ABLATION" >&2; exit 2 ;;
+  *) echo "gpu_ranking: ABLATION must be 0, 1 (focus), rollout or first-frame, got $ABLATION" >&2; exit 2 ;;
 esac
 pids=()
 for run in "${runs[@]}"; do

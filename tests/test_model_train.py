@@ -91,6 +91,26 @@ def test_chunks_are_lerobots_frames_in_the_mosaic(dataset):
     assert not all(chunks[len(chunks.episode_chunks(0)) - 1]["future_valid"])  # the last chunk is padded
 
 
+def test_a_batch_carries_each_chunks_episode_first_frame(dataset):
+    """``ChunkBatch.first_frame`` against LeRobot's own loader: frame 0 of each chunk's episode."""
+    data = DataConfig(dataset="local/model_tiny", root=str(dataset), view_height=64)
+    layout = resolve_layout(dataset_info(open_metadata(data)), data, (), spatial_multiple=8, temporal_factor=1,
+                            mode="none")
+    chunks = ChunkDataset("local/model_tiny", layout, root=dataset, cache="none")
+    plain = LeRobotDataset("local/model_tiny", root=dataset)
+    starts = [int(s) for s in plain.meta.episodes["dataset_from_index"]]
+    picks = [chunks.episode_chunks(1)[2], chunks.episode_chunks(0)[3], chunks.episode_chunks(1)[0]]
+    batch = chunks.batch(picks)
+    h, w = 64, 80
+    for b, i in enumerate(picks):
+        row = plain[starts[chunks.index[i][1]]]
+        got = (batch.first_frame[b] * 255).round().byte()
+        for v, cam in enumerate(VIEWS):
+            assert torch.equal(got[:, :h, v * w:(v + 1) * w], (row[f"observation.images.{cam}"] * 255).round().byte())
+            assert torch.equal(got[:, h:, v * w:(v + 1) * w], (row[f"observation.depth.{cam}"] * 255).round().byte())
+    assert not torch.equal(batch.first_frame[0], batch.first_frame[1])
+
+
 @pytest.fixture(scope="module")
 def trained(dataset, cache_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "run"

@@ -5,14 +5,25 @@
 * A behaviour test with an analytic oracle: a small square that a control image moves. The
   reference shows it at one place, the motion control at another; after a fixed budget the
   generated square's centroid lies near the control's, and the same model without controls
-  (``none``) misses it."""
+  (``none``) misses it.
+* The same for the episode's first frame (``conditioning.first_frame``): a square only that frame
+  shows is painted where it shows it, and another first frame moves it; a checkpoint widened for it
+  computes what it did."""
 
+import pytest
 import torch
 
 from imac_data.core.depth import DepthCodec
 from imac_model.config import BackboneConfig, ConditioningConfig, FlowConfig, ModelSpec, UNetConfig
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.backbones.build import build_backbone
+from imac_model.models.checkpoint import (
+    add_first_frame,
+    load_world_model,
+    read_spec,
+    read_trainer_state,
+    save_checkpoint,
+)
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.online_controls import decode_depth
 
@@ -100,3 +111,95 @@ def test_unet_paints_a_small_square_where_the_control_puts_it():
     seen, blind = centroid_error(train("motion")), centroid_error(train("none"))
     assert seen < 1.5, seen  # within a pixel or so of the controlled place
     assert blind > 3.0, blind  # without the control the model can only guess (random places: about 5 px off)
+
+
+# --------------------------------------------------------------------------- the episode's first frame as memory
+
+
+def first_frame_batch(g: torch.Generator, B: int) -> tuple[ChunkBatch, torch.Tensor]:
+    """The square is in the episode's first frame only: the reference has lost it (black), and the
+    future shows it where the first frame had it."""
+    place = torch.randint(2, SIDE - 2, (B, 2), generator=g)
+    depth = _depth_row(B)
+    first = torch.cat([_square(place), depth], dim=-2)
+    reference = torch.cat([torch.zeros(B, 3, SIDE, SIDE), depth], dim=-2)
+    future = first[:, None].expand(B, H, -1, -1, -1).clone()
+    return ChunkBatch(reference=reference, actions=torch.zeros(B, H, 1), future=future, first_frame=first), \
+        place.float()
+
+
+def unet_spec(**conditioning) -> ModelSpec:
+    return ModelSpec(backbone=BackboneConfig(kind="unet", unet=UNetConfig(channels=(16, 32), blocks=1, frame_dim=8)),
+                     conditioning=ConditioningConfig(mode="none", **conditioning),
+                     flow=FlowConfig(prediction="data", sample_steps=8),
+                     views=("cam",), view_height=SIDE, view_width=SIDE, chunk=H, action_dim=1, fps=10.0)
+
+
+def square_error(frames: torch.Tensor, place: torch.Tensor) -> float:
+    """Mean distance (px) between the centroid of the last generated frame's square and ``place``."""
+    weight = frames[:, -1, :, :SIDE].mean(dim=1).clamp_min(0) ** 2
+    ys, xs = torch.meshgrid(torch.arange(SIDE).float(), torch.arange(SIDE).float(), indexing="ij")
+    total = weight.sum(dim=(-1, -2)).clamp_min(1e-6)
+    centre = torch.stack([(weight * ys).sum(dim=(-1, -2)) / total, (weight * xs).sum(dim=(-1, -2)) / total], dim=-1)
+    return float((centre - place).norm(dim=-1).mean())
+
+
+def test_a_model_conditioned_on_the_first_frame_paints_what_only_that_frame_shows():
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    model = WorldModel(unet_spec(first_frame=True))
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(150):
+        loss = model(first_frame_batch(g, 16)[0], generator=g).loss
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    batch, place = first_frame_batch(torch.Generator().manual_seed(2), 12)
+    sample = lambda b: model.sample(b, generator=torch.Generator().manual_seed(3)).frames  # noqa: E731
+    assert square_error(sample(batch), place) < 1.5  # within a pixel or so of the first frame's square
+    # the first frame, not a guess, decides: another sample's first frame moves the square to its place
+    swapped = sample(ChunkBatch(reference=batch.reference, actions=batch.actions, first_frame=batch.first_frame.roll(1, 0)))
+    assert square_error(swapped, place.roll(1, 0)) < 1.5
+    assert square_error(swapped, place) > 3.0
+    with pytest.raises(ValueError, match="ChunkBatch.first_frame"):
+        model.sample(ChunkBatch(reference=batch.reference, actions=batch.actions))
+
+
+def test_a_checkpoint_widened_for_the_first_frame_computes_what_it_did(tmp_path):
+    """``add_first_frame`` (an ablation's branch): the widened checkpoint's model gives the original's
+    loss and samples whatever first frame it is shown, and its trainer state resumes an AdamW."""
+    torch.manual_seed(0)
+    spec = unet_spec()
+    spec = ModelSpec(**{**spec.__dict__, "conditioning": ConditioningConfig(mode="motion")})
+    model = WorldModel(spec)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
+    g = torch.Generator().manual_seed(1)
+    batch, _ = batch_of(g, 4)
+    model(batch, generator=g).loss.backward()
+    opt.step()
+    ema = {k: v.detach() * 0.5 for k, v in model.named_parameters()}
+    path = save_checkpoint(tmp_path / "step_000001", model=model, spec=spec, ema=ema,
+                           trainer_state={"optimizer": opt.state_dict(), "step": 1})
+    add_first_frame(path)
+    assert read_spec(path).conditioning.first_frame
+    wide, _ = load_world_model(path, weights="raw")
+    assert wide.clean_frames == 2 and wide.backbone.conv_in.in_channels == model.backbone.conv_in.in_channels + 8
+    model.eval()
+    batch.first_frame = torch.rand(batch.reference.shape, generator=g)
+    tau, noise = torch.full((4,), 0.4), torch.randn(4, 4, H, SIDE, SIDE, generator=g)
+    with torch.no_grad():
+        assert torch.allclose(wide(batch, tau=tau, noise=noise).loss, model(batch, tau=tau, noise=noise).loss)
+    a = model.sample(batch, noise=noise).frames
+    b = wide.sample(batch, noise=noise).frames
+    assert torch.allclose(a, b, atol=1e-6)
+    ema_model, _ = load_world_model(path, weights="ema")
+    assert torch.equal(ema_model.backbone.conv_in.weight[:, 8:], ema["backbone.conv_in.weight"])
+    assert not ema_model.backbone.conv_in.weight[:, :8].any()
+    resumed = torch.optim.AdamW(wide.parameters(), lr=1e-3)
+    resumed.load_state_dict(read_trainer_state(path)["optimizer"])
+    wide.train()
+    wide(batch, generator=g).loss.backward()
+    resumed.step()
+    assert wide.backbone.conv_in.weight[:, :8].abs().sum() > 0  # training reaches the first frame's slice

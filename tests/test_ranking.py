@@ -48,7 +48,7 @@ from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.rollout import last_frame, rollout_loss
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.training import train as train_cli
-from imac_model.training.pack import Pack, heldout_loss, spec_for_mode
+from imac_model.training.pack import Pack, heldout_loss, spec_for_mode, train_pack
 
 REPO = "local/lift_test"
 SEED = 200  # closed_loop lifts the cube from this start; a 4.5 cm offset misses it
@@ -429,6 +429,11 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
         assert torch.equal(result.controls[1][s], clip[1].controls[s])
     with pytest.raises(InputError, match="needs the dataset's OnlineControls"):
         rollout_loss(model, clip, None)
+    # with the first frame as memory (ABLATION=first-frame), every chunk of a clip keeps its episode's first frame
+    summary = train_pack(pack, "motion+contact", tmp_path / "first_frame", minutes=0.001, rollout_chunks=2,
+                         first_frame=True, progress=lambda row: None)
+    assert summary["first_frame"] and summary["steps"] >= 1
+    assert load_world_model(tmp_path / "first_frame")[1].conditioning.first_frame
 
     probe = "import sys, imac_model.training.pack; print([m for m in ('mujoco', 'trimesh', 'lerobot', 'scipy', " \
             "'open3d', 'diffusers', 'cv2') if m in sys.modules])"
@@ -467,6 +472,8 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         for s in CONTROL_STREAMS:
             assert torch.equal(pack.tensors[f"control.{s}"][i], item[f"control.{s}"][:, :, :h])
     assert sorted(pack.tensors["episode_index"][pack.heldout].unique().tolist()) == list(run.data.held_out_episodes)
+    some = [1, len(chunks) // 2, len(chunks) - 1]  # each chunk's episode's first frame, as the CPU trainer's batch
+    assert torch.equal(pack.batch(torch.tensor(some), ()).first_frame, chunks.batch(some).first_frame)
 
     out = tmp_path / "gpu_out"
     env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ABLATION": "1", "PACK": str(plan.pack),

@@ -3,7 +3,9 @@
 A :class:`ChunkBatch` is one chunk per sample, laid out as mosaics at the model's resolution,
 float in [0, 1]: ``reference (B, 3, 2h, V w)``, ``controls {stream: (B, H, 3, 2h, V w)}``,
 ``actions (B, H, D)``, ``future (B, H, 3, 2h, V w)`` (None to sample), ``future_valid (B, H)``
-and optionally ``state (B, D)``, ``success``, ``episode_index``, ``frame_index``.
+and optionally ``state (B, D)``, ``success``, ``episode_index``, ``frame_index`` and
+``first_frame (B, 3, 2h, V w)``, the episode's first recorded frame (a model with
+``conditioning.first_frame`` needs it).
 :mod:`imac_model.data.chunks` builds it from a dataset; a rollout from a generated reference and
 controls rebuilt online."""
 
@@ -25,6 +27,7 @@ class ChunkBatch:
     success: torch.Tensor | None = None
     episode_index: torch.Tensor | None = None
     frame_index: torch.Tensor | None = None
+    first_frame: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return self.reference.shape[0]
@@ -53,7 +56,8 @@ class ChunkBatch:
 
         return replace(self, **{f.name: move(getattr(self, f.name)) for f in fields(self)})
 
-    def check(self, *, mosaic_hw: tuple[int, int], horizon: int, action_dim: int, streams: tuple[str, ...]) -> None:
+    def check(self, *, mosaic_hw: tuple[int, int], horizon: int, action_dim: int, streams: tuple[str, ...],
+              first_frame: bool = False) -> None:
         """Raise ``ValueError`` naming the field whose shape does not fit the model."""
         B = len(self)
 
@@ -65,6 +69,10 @@ class ChunkBatch:
         expect("actions", self.actions, (B, horizon, action_dim))
         expect("future", self.future, (B, horizon, 3, *mosaic_hw))
         expect("future_valid", self.future_valid, (B, horizon))
+        if first_frame and self.first_frame is None:
+            raise ValueError("ChunkBatch.first_frame: the model is conditioned on the episode's first frame "
+                             "(conditioning.first_frame) and the batch has none")
+        expect("first_frame", self.first_frame, (B, 3, *mosaic_hw))
         for s in streams:
             if s not in self.controls:
                 raise ValueError(f"ChunkBatch.controls: stream {s!r} is missing (has {sorted(self.controls)})")
@@ -93,4 +101,5 @@ def collate(items: list[dict]) -> ChunkBatch:
         success=opt("success"),
         episode_index=opt("episode_index"),
         frame_index=opt("frame_index"),
+        first_frame=frames("first_frame") if "first_frame" in items[0] else None,
     )

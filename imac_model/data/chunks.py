@@ -10,6 +10,9 @@ rule: chunk c has reference frame ``cH`` and future frames ``cH+1 .. cH+H``):
 * the actions ``a_{cH} .. a_{cH+H-1}``, the state at the reference, the episode's
   success label.
 
+A batch (:meth:`ChunkDataset.batch`) also carries each chunk's ``first_frame``, the reference
+of its episode's first chunk (frame 0), for a model conditioned on it.
+
 The last chunk of an episode may run past its end: LeRobot pads those frames (it
 repeats the edge frame and flags it in ``<key>_is_pad``); ``future_valid`` carries the
 flag so that padded frames are never trained on.
@@ -151,6 +154,7 @@ class ChunkDataset(Dataset):
         for e in eps:
             self.success[e] = None if success[e] is None else bool(success[e])
             self.index += [(int(starts[e]) + r, e, r) for r in chunk_starts(int(lengths[e]), H)]
+        self.first_item = {e: i for i, (_, e, r) in enumerate(self.index) if r == 0}  # episode -> its chunk 0
         self.cache: dict[int, dict] | None = {} if cache == "memory" else None
         self.cache_file = None
         if self.cache is not None and cache_dir is not None:
@@ -250,8 +254,10 @@ class ChunkDataset(Dataset):
                 for c in range(len(items) - length + 1)]
 
     def batch(self, indices: Sequence[int]):
-        """A :class:`~imac_model.data.batch.ChunkBatch` of the given items."""
-        return collate([self[i] for i in indices])
+        """A :class:`~imac_model.data.batch.ChunkBatch` of the given items, each with its
+        episode's first frame."""
+        items = [dict(self[i], first_frame=self[self.first_item[self.index[i][1]]]["reference"]) for i in indices]
+        return collate(items)
 
 
 class _Uncached(Dataset):

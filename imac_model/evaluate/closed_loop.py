@@ -139,13 +139,15 @@ def rollout_episode(model, online, policy, start: Start, *, steps: int | None = 
     queue.reset()
     device = next(base.parameters()).device
     reference = start.reference[None].to(device)
+    start_frame = reference  # the first frame a model conditioned on it keeps (conditioning.first_frame)
     q = start.state[None].float()
     H = spec.chunk
     for n in range(start.chunks):
         if intervene is not None and n > 0:
             reference = intervene(reference, n).to(device)
         actions = queue.take(observation_of(reference[0].cpu(), q[0], views, start.task, online), H)[None]  # (1, H, D)
-        first = ChunkBatch(reference=reference, actions=actions.to(device), state=q.to(device))
+        first = ChunkBatch(reference=reference, actions=actions.to(device), state=q.to(device),
+                           first_frame=start_frame)
         out = sample_rollout(base, first, actions[:, None].to(device), online, q0=q.to(device), steps=steps,
                              seed=start.seed + n, first_controls="online",
                              include_reference_step=(n == 0 and start.frame == 0))

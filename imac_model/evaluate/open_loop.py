@@ -148,7 +148,8 @@ def action_sensitivity(model, dataset, starts: Sequence[tuple[int, int]], online
             # every stream (also the motion images of a mode without controls, for the masks)
             ctl = online.controls(batch.reference, q0, acts)
             first = ChunkBatch(reference=batch.reference, actions=acts,
-                               controls={s: ctl.controls[s] for s in streams}, state=q0)
+                               controls={s: ctl.controls[s] for s in streams}, state=q0,
+                               first_frame=batch.first_frame)
             out = sample_rollout(model, first, acts[:, None], online, q0=q0, steps=steps, seed=seed)
             gens.append(out.frames[:, 0])
             motions.append(mosaic.control_views(ctl.controls["motion"], V))

@@ -267,3 +267,55 @@ def run_config_of(path: Path) -> dict | None:
 
 def spec_json(spec: ModelSpec) -> str:
     return json.dumps(spec.to_dict(), sort_keys=True)
+
+
+def _widen_front(state: dict[str, torch.Tensor], shapes: dict[str, torch.Size]) -> dict[str, torch.Tensor]:
+    """Tensors whose one frame-sized dimension grew by a frame, zero-padded at its front."""
+    out = {}
+    for k, v in state.items():
+        shape = shapes.get(k, v.shape)
+        grown = [d for d in range(v.ndim) if v.shape[d] != shape[d]] if len(shape) == v.ndim else None
+        if grown is None or len(grown) > 1:
+            raise InputError(f"weight {k}: shape {tuple(v.shape)} cannot grow into {tuple(shape)}")
+        if grown:
+            d = grown[0]
+            wide = v.new_zeros(shape)
+            wide.narrow(d, shape[d] - v.shape[d], v.shape[d]).copy_(v)
+            v = wide
+        out[k] = v
+    return out
+
+
+def add_first_frame(path: str | Path) -> None:
+    """Turn a plain checkpoint into one of the same model conditioned on the episode's first frame
+    (``conditioning.first_frame``), in place: the first frame is the first of the frame sequence, so
+    every weight sized by it grows a zero slice at its front (weights, EMA, the optimizer's moments),
+    and the model computes what it did until training teaches it to look (an ablation's branch)."""
+    from dataclasses import replace
+
+    import yaml
+    from safetensors.torch import save_file
+
+    path = resolve_checkpoint(path)
+    if is_sharded(path):
+        raise InputError(f"{path}: a sharded checkpoint cannot be widened here; widen a plain one")
+    spec = read_spec(path)
+    if spec.conditioning.first_frame:
+        return
+    spec = replace(spec, conditioning=replace(spec.conditioning, first_frame=True))
+    model = WorldModel(spec)
+    shapes = {k: v.shape for k, v in model.state_dict().items()}
+    save_file(_widen_front(read_weights(path / WEIGHTS), shapes), str(path / WEIGHTS))
+    if (path / EMA).is_file():
+        save_file(_widen_front(read_weights(path / EMA), shapes), str(path / EMA))
+    state = read_trainer_state(path)
+    names = [k for k, p in model.named_parameters() if p.requires_grad]  # the optimizer's parameter order
+    for i, moments in state["optimizer"]["state"].items():
+        tensors = {m: v for m, v in moments.items() if torch.is_tensor(v) and v.ndim}
+        moments.update(_widen_front(tensors, {m: shapes[names[int(i)]] for m in tensors}))
+    torch.save(state, path / STATE)
+    save_config(spec, path / SPEC)
+    run = run_config_of(path)
+    if run is not None:
+        run.setdefault("conditioning", {})["first_frame"] = True
+        (path / CONFIG).write_text(yaml.safe_dump(run, sort_keys=False))

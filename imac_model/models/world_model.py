@@ -16,7 +16,9 @@
 
 Conditioning modes (``ModelSpec.conditioning.mode``): ``none``, ``motion``,
 ``motion+contact`` (control images, :class:`~imac_model.models.controls.ControlInjector`) and
-``action-vector`` (raw actions through an MLP, cross-attended).
+``action-vector`` (raw actions through an MLP, cross-attended). With
+``conditioning.first_frame`` the episode's first recorded frame goes in as one more clean frame
+ahead of the reference (memory beyond one frame; a backbone that keeps every frame).
 """
 
 from __future__ import annotations
@@ -62,8 +64,12 @@ class WorldModel(nn.Module):
         super().__init__()
         self.spec = spec
         mode = spec.conditioning.mode
+        self.clean_frames = 2 if spec.conditioning.first_frame else 1  # [first frame,] reference
         self.backbone = backbone or build_backbone(spec.backbone, with_context=mode == "action-vector",
-                                                   num_frames=spec.chunk + 1)
+                                                   num_frames=spec.chunk + self.clean_frames)
+        if self.clean_frames > 1 and self.backbone.temporal_factor != 1:
+            raise InputError(f"conditioning.first_frame: needs a backbone that keeps every frame (unet, small); "
+                             f"{spec.backbone.kind} compresses time by {self.backbone.temporal_factor}")
         m = self.backbone.spatial_multiple
         H, W = spec.mosaic_hw
         if H % m or W % m:
@@ -109,6 +115,10 @@ class WorldModel(nn.Module):
             out[s] = self.backbone.encode_control(torch.cat([black, c], dim=1))
         return out
 
+    def encode_first_frame(self, batch: ChunkBatch) -> torch.Tensor | None:
+        """The latent ``(B, C, 1, h, w)`` of the batch's first frame, for a model conditioned on it."""
+        return self.backbone.encode(batch.first_frame[:, None]) if self.clean_frames > 1 else None
+
     def context(self, actions: torch.Tensor) -> torch.Tensor | None:
         return None if self.action_encoder is None else self.action_encoder(actions)
 
@@ -122,15 +132,23 @@ class WorldModel(nn.Module):
 
     def velocity(self, x_future: torch.Tensor, tau: torch.Tensor, *, reference_latent: torch.Tensor,
                  control_latents: dict[str, torch.Tensor] | None = None,
-                 context: torch.Tensor | None = None) -> torch.Tensor:
+                 context: torch.Tensor | None = None, first_latent: torch.Tensor | None = None) -> torch.Tensor:
         """Predicted velocity of the future latents at ``tau`` ``(B,)``: the reference
-        latent goes in clean at timestep 0, the controls onto the future tokens."""
-        latents = torch.cat([reference_latent, x_future.to(reference_latent.dtype)], dim=2)
-        B, Fr = latents.shape[0], latents.shape[2]
+        latent (after ``first_latent``, for a model conditioned on the first frame) goes in
+        clean at timestep 0, the controls onto the future tokens."""
+        if (first_latent is not None) != (self.clean_frames > 1):
+            raise ValueError("first_latent: given exactly when the model is conditioned on the first frame "
+                             f"(conditioning.first_frame: {self.clean_frames > 1})")
+        clean = [reference_latent] if first_latent is None else [first_latent.to(reference_latent.dtype),
+                                                                 reference_latent]
+        latents = torch.cat([*clean, x_future.to(reference_latent.dtype)], dim=2)
+        B, Fr, k = latents.shape[0], latents.shape[2], len(clean)
         t = flow.wan_timestep(tau.float())[:, None].expand(B, Fr).clone()
-        t[:, 0] = 0.0
+        t[:, :k] = 0.0
         tokens = (self.controls(control_latents, tuple(control_latents)) if self.controls is not None else None)
-        out = self.backbone.denoise(latents, t, control_tokens=tokens, context=context)[:, :, 1:]
+        if tokens is not None and k > 1:  # no control on the first frame
+            tokens = torch.cat([torch.zeros_like(tokens[:, :, :k - 1]), tokens], dim=2)
+        out = self.backbone.denoise(latents, t, control_tokens=tokens, context=context)[:, :, k:]
         if self.spec.flow.prediction == "data":  # the network predicts x1: v = (x1_hat - x_tau) / (1 - tau)
             gap = (1.0 - tau.float()).clamp_min(self.spec.flow.data_prediction_min_gap).view(B, 1, 1, 1, 1)
             return (out.float() - x_future.float()) / gap
@@ -149,10 +167,10 @@ class WorldModel(nn.Module):
     def _inputs(self, batch: ChunkBatch, *, with_future: bool, streams: tuple[str, ...] | None = None):
         streams = self.active_streams(streams)
         batch.check(mosaic_hw=self.spec.mosaic_hw, horizon=self.spec.chunk, action_dim=self.spec.action_dim,
-                    streams=streams)
+                    streams=streams, first_frame=self.clean_frames > 1)
         z_ref, x1 = self.encode_chunk(batch.reference, batch.future if with_future else None)
         controls = self.encode_controls(batch.controls, streams) if streams else None
-        return z_ref, x1, controls, self.context(batch.actions)
+        return z_ref, x1, controls, self.context(batch.actions), self.encode_first_frame(batch)
 
     def forward(self, batch: ChunkBatch, *, generator: torch.Generator | None = None,
                 tau: torch.Tensor | None = None, noise: torch.Tensor | None = None,
@@ -165,7 +183,7 @@ class WorldModel(nn.Module):
         they do not depend on how the global batch is split."""
         if batch.future is None:
             raise ValueError("ChunkBatch.future is needed for the loss")
-        z_ref, x1, controls, context = self._inputs(batch, with_future=True, streams=streams)
+        z_ref, x1, controls, context, z_first = self._inputs(batch, with_future=True, streams=streams)
         B, dev = x1.shape[0], x1.device
         r, n = rows
         Bg = B * n
@@ -180,11 +198,13 @@ class WorldModel(nn.Module):
         weight = (flow.focus_weight(z_ref, x1, fc.focus_weight, fc.focus_threshold, fc.focus_dilation)
                   if fc.focus_weight > 0 else None)  # from the clean reference, before its noise
         if self.training and self.spec.flow.reference_noise > 0:  # release option: jitter the clean reference
+            # (the first frame stays clean: it is always a recorded one)
             scale = torch.rand(Bg, generator=generator, device=gen_dev)[r::n].to(dev) * self.spec.flow.reference_noise
             eps = torch.randn((Bg, *z_ref.shape[1:]), generator=generator, device=gen_dev)[r::n].to(dev, z_ref.dtype)
             z_ref = z_ref + scale.view(B, 1, 1, 1, 1) * eps
         x_tau = flow.interpolate(x0, x1, tau)
-        v = self.velocity(x_tau, tau, reference_latent=z_ref, control_latents=controls, context=context)
+        v = self.velocity(x_tau, tau, reference_latent=z_ref, control_latents=controls, context=context,
+                          first_latent=z_first)
         target = flow.target_velocity(x0, x1)
         valid = torch.cat([torch.ones_like(batch.valid_mask()[:, :1]), batch.valid_mask()], dim=1)
         mask = self.backbone.latent_frame_mask(valid)[:, 1:]
@@ -196,7 +216,7 @@ class WorldModel(nn.Module):
                generator: torch.Generator | None = None, noise: torch.Tensor | None = None,
                streams: tuple[str, ...] | None = None) -> SampleOutput:
         """Generate the future chunk of ``batch`` (its ``future`` is ignored)."""
-        z_ref, _, controls, context = self._inputs(batch, with_future=False, streams=streams)
+        z_ref, _, controls, context, z_first = self._inputs(batch, with_future=False, streams=streams)
         B = z_ref.shape[0]
         F_future = self.backbone.latent_frames(self.spec.chunk + 1) - 1
         shape = (B, z_ref.shape[1], F_future, *z_ref.shape[3:])
@@ -206,7 +226,8 @@ class WorldModel(nn.Module):
         x0 = noise.to(z_ref.device, z_ref.dtype)
 
         def velocity(x, tau):
-            return self.velocity(x, tau, reference_latent=z_ref, control_latents=controls, context=context)
+            return self.velocity(x, tau, reference_latent=z_ref, control_latents=controls, context=context,
+                                 first_latent=z_first)
 
         latents = flow.euler_sample(velocity, x0, steps=steps or self.spec.flow.sample_steps,
                                     shift=shift if shift is not None else self.spec.flow.sample_shift)

@@ -137,7 +137,7 @@ def sample_rollout(model, first: ChunkBatch, actions: torch.Tensor, online: Onli
     controls for chunk 1 (recorded, e.g. a dataset's), ``"online"`` rebuilds them too (from the
     first reference's depth; ``include_reference_step`` when it is an episode's frame 0).
     Each chunk's noise is drawn from ``seed + n`` (or given in ``noise``), so two calls that
-    differ only in their actions get the same noise.
+    differ only in their actions get the same noise. Every chunk keeps ``first.first_frame``.
     """
     from tqdm.auto import tqdm
 
@@ -168,7 +168,7 @@ def sample_rollout(model, first: ChunkBatch, actions: torch.Tensor, online: Onli
                 invalid.append(float(rebuilt.invalid_fraction.mean()))
         else:
             controls, q_future = {}, None
-        batch = ChunkBatch(reference=reference, actions=a, controls=controls)
+        batch = ChunkBatch(reference=reference, actions=a, controls=controls, first_frame=first.first_frame)
         if noise is not None:
             out = base.sample(batch, steps=steps, noise=noise[n])
         else:

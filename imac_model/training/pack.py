@@ -71,6 +71,12 @@ class Pack:
         held = self.tensors.pop("held_out").bool()
         self.train = torch.nonzero(~held).flatten()
         self.heldout = torch.nonzero(held).flatten()
+        # each chunk's episode's first chunk (the pack keeps an episode's chunks together, in time order)
+        episode = self.tensors["episode_index"]
+        begins = torch.ones_like(episode, dtype=torch.bool)
+        begins[1:] = episode[1:] != episode[:-1]
+        position = torch.arange(len(episode), device=episode.device)
+        self.first_chunk = torch.cummax(torch.where(begins, position, 0), dim=0).values
 
     def clips(self, length: int) -> torch.Tensor:
         """``(n, length)`` indices of every run of ``length`` consecutive training chunks of one
@@ -82,21 +88,26 @@ class Pack:
         return self.train[first[:, None] + torch.arange(length, device=first.device)]
 
     def batch(self, index: torch.Tensor, streams: tuple[str, ...]) -> ChunkBatch:
-        """Float mosaics in [0, 1], controls duplicated back into both rows."""
+        """Float mosaics in [0, 1], controls duplicated back into both rows; each chunk's
+        episode's first frame."""
         t = self.tensors
         controls = {s: torch.cat([t[f"control.{s}"][index]] * 2, dim=-2).float() / 255.0 for s in streams}
         return ChunkBatch(reference=t["reference"][index].float() / 255.0, actions=t["actions"][index],
                           controls=controls, future=t["future"][index].float() / 255.0,
-                          future_valid=t["future_valid"][index])
+                          future_valid=t["future_valid"][index],
+                          first_frame=t["reference"][self.first_chunk[index]].float() / 255.0)
 
 
-def spec_for_mode(spec: ModelSpec, mode: str, focus_weight: float | None = None) -> ModelSpec:
+def spec_for_mode(spec: ModelSpec, mode: str, focus_weight: float | None = None,
+                  first_frame: bool | None = None) -> ModelSpec:
     """The pack's spec with another conditioning mode (and, for an ablation, another
-    ``flow.focus_weight``)."""
+    ``flow.focus_weight`` or ``conditioning.first_frame``)."""
     data = spec.to_dict()
     data["conditioning"]["mode"] = mode
     if focus_weight is not None:
         data["flow"]["focus_weight"] = float(focus_weight)
+    if first_frame is not None:
+        data["conditioning"]["first_frame"] = bool(first_frame)
     return parse(ModelSpec, data, "")
 
 
@@ -126,7 +137,7 @@ def heldout_loss(model: WorldModel, pack: Pack, streams: tuple[str, ...], batch_
 def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, batch_size: int = 128,
                lr: float = 6e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
                log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
-               progress=print) -> dict:
+               first_frame: bool | None = None, progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
@@ -136,7 +147,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     model's own estimate of chunk r-1's last frame and keeps its recorded contact images (no renderer
     here to rebuild them)."""
     device = pack.tensors["reference"].device
-    spec = spec_for_mode(pack.spec, mode, focus_weight)
+    spec = spec_for_mode(pack.spec, mode, focus_weight, first_frame)
     streams = streams_of_mode(mode)
     torch.manual_seed(seed)
     model = WorldModel(spec).to(device).train()
@@ -192,7 +203,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     log.append({"step": step, "heldout_loss": final, "elapsed_s": round(time.time() - t0, 1), "samples": samples,
                 "weights": "ema"})
     save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
-    summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "rollout_chunks": rollout_chunks, "steps": step,
+    summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "rollout_chunks": rollout_chunks,
+               "first_frame": spec.conditioning.first_frame, "steps": step,
                "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1), "heldout_loss": final,
                "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
@@ -216,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--focus-weight", type=float, help="override the pack's flow.focus_weight (an ablation: 0)")
     t.add_argument("--rollout-chunks", type=int, default=1,
                    help="training-time rollout over clips of this many chunks (1: none; docs/ranking.md)")
+    t.add_argument("--first-frame", action="store_true",
+                   help="condition on the episode's first frame (conditioning.first_frame; docs/world-model.md)")
     t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     t.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
@@ -226,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.backends.cudnn.benchmark = True
     pack = Pack(args.pack, args.device)
     summary = train_pack(pack, args.mode, args.output, minutes=args.minutes, batch_size=args.batch_size, lr=args.lr,
-                         seed=args.seed, focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks)
+                         seed=args.seed, focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks,
+                         first_frame=args.first_frame or None)
     print(json.dumps(summary))
     return 0
 
