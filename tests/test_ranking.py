@@ -353,10 +353,11 @@ def test_a_run_that_misses_the_early_gate_stops_and_reports_it(toy_run, tmp_path
     assert (plan.docs / "gate.png").is_file() and (plan.docs / "training_loss.png").is_file()
 
 
-def test_a_cpu_ablation_arm_continues_the_gated_run_with_one_change(toy_run, tmp_path):
+def test_a_cpu_ablation_arm_continues_the_gated_run_with_one_change(toy_run, tmp_path, capsys):
     """benchmarks.cpu_ablation on the toy: the arm is the gated run's checkpoint and log up to the
     branch point, trained on with training-time rollout and nothing else changed, to the same CPU
-    budget; its gate replays the same held-out rollouts, labelled by the simulator."""
+    budget; its gate replays the same held-out rollouts, labelled by the simulator. A first-frame
+    arm past the budget starts from the widened checkpoint."""
     work, _ = toy_run
     shutil.copytree(work, tmp_path / "work", ignore=shutil.ignore_patterns("wm"))
     plan = RankingPlan.load(work / "plan.json")
@@ -398,6 +399,18 @@ def test_a_cpu_ablation_arm_continues_the_gated_run_with_one_change(toy_run, tmp
     assert len(json.loads((arm / "gates.json").read_text())) == 1
     with pytest.raises(InputError, match="--from-step 1: .* does not exist"):
         cpu_ablation.branch(plan, "another_arm", 1)
+
+    # past the preset's budget, a first-frame arm: its branch is the widened checkpoint, its baseline another arm
+    minutes = plan.cpu_minutes + 1
+    argv = ["first-frame", "--work", str(plan.work), "--from-step", str(from_step), "--minutes", f"{minutes:g}",
+            "--baseline", "reference-noise"]
+    assert cpu_ablation.main(argv) == 0
+    assert "its baseline motion_contact_noise03_to" in capsys.readouterr().out  # not trained yet: said, not raised
+    arm = plan.work / "runs" / f"motion_contact_first_frame_to{minutes:g}"
+    model, spec = load_world_model(arm)
+    assert spec.conditioning.first_frame and spec.flow.reference_noise == 0.3 and model.clean_frames == 2
+    (gate,) = json.loads((arm / "gates.json").read_text())
+    assert gate["budget_minutes"] == minutes and gate["step"] == from_step + 2
 
 
 def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
