@@ -98,12 +98,7 @@ def centroid_error(model: WorldModel) -> float:
     batch, target = batch_of(torch.Generator().manual_seed(2), 12)
     if not model.streams:
         batch.controls = {}
-    frames = model.sample(batch, generator=torch.Generator().manual_seed(3)).frames[:, -1, :, :SIDE]  # (B, 3, S, S)
-    weight = frames.mean(dim=1).clamp_min(0) ** 2
-    ys, xs = torch.meshgrid(torch.arange(SIDE).float(), torch.arange(SIDE).float(), indexing="ij")
-    total = weight.sum(dim=(-1, -2)).clamp_min(1e-6)
-    centre = torch.stack([(weight * ys).sum(dim=(-1, -2)) / total, (weight * xs).sum(dim=(-1, -2)) / total], dim=-1)
-    return float((centre - target).norm(dim=-1).mean())
+    return square_error(model.sample(batch, generator=torch.Generator().manual_seed(3)).frames, target)
 
 
 def test_unet_paints_a_small_square_where_the_control_puts_it():
