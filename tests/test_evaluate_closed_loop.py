@@ -49,11 +49,12 @@ TINY = {"backbone.small.dim": 32, "backbone.small.depth": 1, "backbone.small.hea
         "flow.sample_steps": 2, "data.held_out_episodes": [1]}
 
 
-def _checkpoint(root, out: Path, mode: str) -> Path:
+def _checkpoint(root, out: Path, mode: str, **changes) -> Path:
     from imac_model.models.world_model import WorldModel
     from imac_model.training import train as train_cli
 
-    run = RunConfig().replace(**{"data.dataset": REPO, "data.root": str(root), "conditioning.mode": mode, **TINY})
+    run = RunConfig().replace(**{"data.dataset": REPO, "data.root": str(root), "conditioning.mode": mode, **TINY,
+                                 **changes})
     spec, _ = train_cli.model_spec(run, open_metadata(run.data))
     torch.manual_seed(0)
     model = WorldModel(spec)
@@ -95,6 +96,30 @@ def test_replaying_the_recorded_actions_is_the_open_loop_rollout(world):
     # not vacuous: other actions (hold still) give other frames
     hold = list(rollout_episode(model, online, lambda obs: obs["observation.state"][None], start))
     assert not torch.equal(hold[0].frames, records[0].frames)
+
+
+def test_a_closed_loop_keeps_its_start_frame_for_a_model_conditioned_on_the_first_frame(world, tmp_path):
+    """``conditioning.first_frame``: every chunk of a closed loop is the rollout with the start frame as
+    the episode's first frame, and another first frame gives other frames (the model reads it)."""
+    root, _, _, spec, chunks, online = world
+    model, spec = load_world_model(_checkpoint(root, tmp_path / "ckpt", "motion+contact",
+                                               **{"conditioning.first_frame": True}))
+    start = episode_starts(chunks, [0], seed=3, horizon_chunks=2)[0]
+    records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start))
+    H = spec.chunk
+    actions = start.recorded_actions[:2 * H].reshape(1, 2, H, -1)
+
+    def rollout(first_frame):
+        first = ChunkBatch(reference=start.reference[None], actions=actions[:, 0], state=start.state[None],
+                           first_frame=first_frame)
+        return sample_rollout(model, first, actions, online, q0=start.state[None], seed=3, first_controls="online",
+                              include_reference_step=True).frames[0]
+
+    ref = rollout(start.reference[None])
+    for n, rec in enumerate(records):
+        assert torch.equal(rec.frames, ref[n].clamp(0, 1))
+    later = chunks.batch([chunks.episode_chunks(0)[-1]]).reference  # a frame other than the start
+    assert not torch.equal(rollout(later)[1], ref[1])
 
 
 def test_closed_loop_cli_writes_a_lerobot_dataset_of_generated_episodes(world, tmp_path, capsys):
