@@ -1,6 +1,8 @@
 """The world model on both backbones (the small DiT, and Wan2.2-TI2V through diffusers with a
 tiny random config): control injection as paper eq. 2, the loss mask, sampling."""
 
+import dataclasses
+
 import pytest
 import torch
 from torch import nn
@@ -212,4 +214,7 @@ def test_controls_with_a_resolution_the_backbone_cannot_patchify_are_refused():
         WorldModel(bad)
     bad = ModelSpec(**{**spec.__dict__, "chunk": 6})
     with pytest.raises(InputError, match="data.chunk"):
+        WorldModel(bad)
+    bad = ModelSpec(**{**spec.__dict__, "conditioning": dataclasses.replace(spec.conditioning, first_frame=True)})
+    with pytest.raises(InputError, match="conditioning.first_frame: .* wan compresses time by 4"):
         WorldModel(bad)

@@ -31,7 +31,7 @@ from torch import nn
 from imac_data.errors import InputError
 from imac_model.config import ModelSpec
 from imac_model.data.batch import ChunkBatch
-from imac_model.models.backbones.build import Backbone, build_backbone
+from imac_model.models.backbones.build import Backbone, build_backbone, temporal_factor
 from imac_model.models.controls import ActionEncoder, ControlInjector
 from imac_model.schedulers import flow
 
@@ -65,11 +65,12 @@ class WorldModel(nn.Module):
         self.spec = spec
         mode = spec.conditioning.mode
         self.clean_frames = 2 if spec.conditioning.first_frame else 1  # [first frame,] reference
+        factor = backbone.temporal_factor if backbone is not None else temporal_factor(spec.backbone)
+        if self.clean_frames > 1 and factor != 1:
+            raise InputError(f"conditioning.first_frame: needs a backbone that keeps every frame (unet, small); "
+                             f"{spec.backbone.kind} compresses time by {factor}")
         self.backbone = backbone or build_backbone(spec.backbone, with_context=mode == "action-vector",
                                                    num_frames=spec.chunk + self.clean_frames)
-        if self.clean_frames > 1 and self.backbone.temporal_factor != 1:
-            raise InputError(f"conditioning.first_frame: needs a backbone that keeps every frame (unet, small); "
-                             f"{spec.backbone.kind} compresses time by {self.backbone.temporal_factor}")
         m = self.backbone.spatial_multiple
         H, W = spec.mosaic_hw
         if H % m or W % m:
