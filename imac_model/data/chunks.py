@@ -155,6 +155,7 @@ class ChunkDataset(Dataset):
             self.success[e] = None if success[e] is None else bool(success[e])
             self.index += [(int(starts[e]) + r, e, r) for r in chunk_starts(int(lengths[e]), H)]
         self.first_item = {e: i for i, (_, e, r) in enumerate(self.index) if r == 0}  # episode -> its chunk 0
+        self._first_frames: dict[int, torch.Tensor] = {}
         self.cache: dict[int, dict] | None = {} if cache == "memory" else None
         self.cache_file = None
         if self.cache is not None and cache_dir is not None:
@@ -256,8 +257,15 @@ class ChunkDataset(Dataset):
     def batch(self, indices: Sequence[int]):
         """A :class:`~imac_model.data.batch.ChunkBatch` of the given items, each with its
         episode's first frame."""
-        items = [dict(self[i], first_frame=self[self.first_item[self.index[i][1]]]["reference"]) for i in indices]
+        items = [dict(self[i], first_frame=self.first_frame(self.index[i][1])) for i in indices]
         return collate(items)
+
+    def first_frame(self, episode: int) -> torch.Tensor:
+        """The episode's first frame ``(3, 2h, V w)`` uint8: its first chunk's reference (kept, so
+        that a dataset without the chunk cache decodes that chunk once)."""
+        if episode not in self._first_frames:
+            self._first_frames[episode] = self[self.first_item[episode]]["reference"]
+        return self._first_frames[episode]
 
 
 class _Uncached(Dataset):

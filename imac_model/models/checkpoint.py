@@ -25,6 +25,7 @@ import json
 import os
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -291,8 +292,6 @@ def add_first_frame(path: str | Path) -> None:
     (``conditioning.first_frame``), in place: the first frame is the first of the frame sequence, so
     every weight sized by it grows a zero slice at its front (weights, EMA, the optimizer's moments),
     and the model computes what it did until training teaches it to look (an ablation's branch)."""
-    from dataclasses import replace
-
     import yaml
     from safetensors.torch import save_file
 
