@@ -114,9 +114,13 @@ def ablate(plan: RankingPlan, ablation: str, from_step: int, minutes: float | No
                               else arm_run(plan, baseline, minutes))
     base_gate = final_gate(plan, base_run, from_step, minutes)
     if base_gate is None:
-        how = (f"run the CPU preset to the end of its budget (imac-model ranking --work {plan.work})"
-               if baseline is None else f"python -m benchmarks.cpu_ablation {baseline} --from-step {from_step} "
-                                        f"--minutes {minutes:g}")
+        if baseline is not None:
+            how = f"python -m benchmarks.cpu_ablation {baseline} --from-step {from_step} --minutes {minutes:g}"
+        elif minutes > plan.cpu_minutes:
+            how = (f"the preset stops at {plan.cpu_minutes:g}, so name another arm trained to {minutes:g} as the "
+                   f"baseline (--baseline ARM)")
+        else:
+            how = f"run the CPU preset to the end of its budget (imac-model ranking --work {plan.work})"
         print(f"[ablation] {arm} is gated; its baseline {base_run} has no gate at {minutes:g} CPU-minutes after "
               f"step {from_step} yet: {how}, then this again")
         return None
