@@ -532,6 +532,46 @@ def test_a_pool_worker_interrupted_while_encoding_stays_quiet(tmp_path, process)
         assert "deinit called without sending EOS" in done.stderr
 
 
+WRITER_AFTER_LEROBOT = """
+import sys
+from pathlib import Path
+
+import numpy as np
+from lerobot.datasets.video_utils import get_video_info
+
+from imac_data.console import quiet_libraries
+from imac_data.dataset.videos import VideoEncoding, VideoWriter, encode_video
+
+quiet_libraries()
+tmp, how = Path(sys.argv[1]), sys.argv[2]
+camera = encode_video(tmp / "a.mp4", np.zeros((4, 64, 64, 3), np.uint8), fps=10, encoding=VideoEncoding.lerobot_default())
+writer = VideoWriter(tmp / "b.mp4", VideoEncoding.lossless_rgb(), 10, 16, 16)
+writer.write(np.zeros((3, 16, 16, 3), np.uint8))
+get_video_info(camera)  # as LeRobot reads a camera video mid-build: it puts FFmpeg's own callback back
+if how == "abort":
+    writer.abort()  # an interrupted build's clean-up
+elif how == "close":
+    writer.close()
+else:  # the writer's container closed without its guard
+    writer.container.close()
+"""
+
+
+@pytest.mark.parametrize("how", ["abort", "close", "unguarded"])
+def test_a_video_writer_stays_quiet_after_lerobot_restores_ffmpegs_logging(tmp_path, how):
+    """LeRobot's ``get_video_info`` puts FFmpeg's own log callback back, which prints x264's
+    statistics (INFO) to fd 2 as an encoder closes; an interrupted build printed them above its
+    one line. A VideoWriter's close and abort stay quiet; ``unguarded``, the same close without
+    the writer's guard, shows the statistics, so the quiet is the guard's doing."""
+    done = subprocess.run([sys.executable, "-c", WRITER_AFTER_LEROBOT, str(tmp_path), how], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    if how == "unguarded":
+        assert "libx264rgb" in done.stderr
+    else:
+        assert done.stderr == ""
+
+
 def test_environment_errors_are_recognised_however_they_arrive():
     """From a pool worker (pickled), wrapped by a library (chained), or with only the text kept
     (pyarrow, PyAV): still an environment fault; anything else is a bug."""

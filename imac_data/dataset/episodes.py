@@ -25,7 +25,7 @@ import numpy as np
 
 from imac_data import lerobot_compat as lr
 from imac_data.dataset.files import write_parquet_atomic
-from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter, quiet_libav
+from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter
 from imac_data.errors import InputError
 from imac_data.layout import STATS_COLUMNS, episodes_dir
 
@@ -66,17 +66,15 @@ class _FrameEncoder:
             self._dirs[video_key] = d
             w = self._writers[video_key] = VideoWriter(d / f"{video_key}.mp4", self.encoding, self.fps,
                                                        frame.shape[0], frame.shape[1], style="lerobot")
-        with quiet_libav():
-            w.write(frame[None])
+        w.write(frame[None])
         self._stats[video_key].update(frame[None])
 
     def finish_episode(self) -> dict[str, tuple[Path, dict]]:
         out = {}
-        with quiet_libav():
-            for key in self._keys:
-                w = self._writers.pop(key)
-                w.close()
-                out[key] = (w.path, self._stats[key].stats())
+        for key in self._keys:
+            w = self._writers.pop(key)
+            w.close()
+            out[key] = (w.path, self._stats[key].stats())
         self._dirs.clear()
         self.length = None
         return out

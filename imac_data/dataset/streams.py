@@ -33,7 +33,6 @@ from imac_data.dataset.videos import (
     VideoWriter,
     code_batches,
     frame_batches,
-    quiet_libav,
 )
 from imac_data.errors import InputError
 from imac_data.layout import (
@@ -333,13 +332,12 @@ class StreamWriter:
         if unknown:
             raise InputError(f"episode {self.episodes_done}: keys {unknown} are not streams of this writer "
                              f"({self.keys})")
-        with quiet_libav():
-            if self._pool is None or len(frames) == 1:
-                for key, f in frames.items():
-                    self.streams[key].write(f)
-            else:
-                for job in [self._pool.submit(self.streams[k].write, f) for k, f in frames.items()]:
-                    job.result()
+        if self._pool is None or len(frames) == 1:
+            for key, f in frames.items():
+                self.streams[key].write(f)
+        else:
+            for job in [self._pool.submit(self.streams[k].write, f) for k, f in frames.items()]:
+                job.result()
 
     def end_episode(self) -> None:
         for s in self.streams.values():
@@ -374,9 +372,8 @@ class StreamWriter:
                     n = round((row[video_column(s.key, "to_timestamp")] - row[video_column(s.key, "from_timestamp")]) * s.fps)
                     if n != lengths[ep]:
                         raise InputError(f"episode {ep} {s.key!r}: {n} frames, but the episode has {lengths[ep]}")
-            with quiet_libav():
-                for s in self.streams.values():
-                    s.close()
+            for s in self.streams.values():
+                s.close()
 
             # 1. metadata, written next to the originals first
             features = {}

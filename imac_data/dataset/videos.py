@@ -34,7 +34,7 @@ from imac_data.core.depth_map import QMAX
 from imac_data.errors import InputError
 
 __all__ = ["VideoEncoding", "VideoWriter", "ImageStats", "encode_video", "read_video_frames", "encoder_versions",
-           "frame_batches", "code_batches", "quiet_libav", "SUBSAMPLED_CHROMA"]
+           "frame_batches", "code_batches", "SUBSAMPLED_CHROMA"]
 
 SUBSAMPLED_CHROMA = ("420", "422", "411", "410", "nv12", "nv21", "nv16")
 
@@ -227,8 +227,9 @@ def code_batches(frames, where: str) -> Iterator[np.ndarray]:
 # ------------------------------------------------------------------------------ encoding
 @contextmanager
 def quiet_libav():
-    """FFmpeg's own log at ERROR while we encode (x264 prints its statistics at INFO);
-    the previous level is restored."""
+    """FFmpeg's log through PyAV at ERROR while we encode (x264 prints its statistics at INFO);
+    the previous level is restored. Every :class:`VideoWriter` call runs inside it, since LeRobot
+    (``get_video_info``) puts FFmpeg's own callback back, which prints at INFO to fd 2."""
     import av.logging
 
     previous = av.logging.get_level()
@@ -281,13 +282,14 @@ class VideoWriter:
     def write(self, batch: np.ndarray) -> None:
         import av
 
-        for frame in batch:
-            vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format=self.frame_format)
-            if self.style == "imac":
-                vf.pts = self.frames
-                vf.time_base = self.time_base
-            self._mux(self.stream.encode(vf))
-            self.frames += 1
+        with quiet_libav():
+            for frame in batch:
+                vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format=self.frame_format)
+                if self.style == "imac":
+                    vf.pts = self.frames
+                    vf.time_base = self.time_base
+                self._mux(self.stream.encode(vf))
+                self.frames += 1
 
     def _mux(self, packets) -> None:
         for packet in packets:
@@ -295,16 +297,18 @@ class VideoWriter:
             self.container.mux(packet)
 
     def close(self) -> None:
-        try:
-            self._mux(self.stream.encode(None))
-        finally:
-            self.container.close()
+        with quiet_libav():  # x264 prints its statistics as the encoder closes
+            try:
+                self._mux(self.stream.encode(None))
+            finally:
+                self.container.close()
 
     def abort(self) -> None:
-        try:
-            self.container.close()
-        except Exception:  # noqa: BLE001 - already failing; the file is deleted anyway
-            pass
+        with quiet_libav():
+            try:
+                self.container.close()
+            except Exception:  # noqa: BLE001 - already failing; the file is deleted anyway
+                pass
 
 
 def encode_video(path: str | Path, frames, *, fps: int, encoding: VideoEncoding | None = None) -> Path:
@@ -315,14 +319,13 @@ def encode_video(path: str | Path, frames, *, fps: int, encoding: VideoEncoding 
     encoding = encoding or VideoEncoding.lossless_rgb()
     writer = None
     try:
-        with quiet_libav():
-            for batch in frame_batches(frames, str(path)):
-                if writer is None:
-                    writer = VideoWriter(path, encoding, int(fps), batch.shape[1], batch.shape[2])
-                writer.write(batch)
+        for batch in frame_batches(frames, str(path)):
             if writer is None:
-                raise InputError(f"{path}: no frames to encode")
-            writer.close()
+                writer = VideoWriter(path, encoding, int(fps), batch.shape[1], batch.shape[2])
+            writer.write(batch)
+        if writer is None:
+            raise InputError(f"{path}: no frames to encode")
+        writer.close()
     except BaseException:
         if writer is not None:
             writer.abort()
