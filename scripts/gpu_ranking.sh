@@ -15,6 +15,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PACK=${PACK:-runs/ranking_gpu/gpu/pack.npz}
 MINUTES=${MINUTES:-8}
+BATCH=${BATCH:-128}  # chunks a step (the tests run the script at toy size with fewer)
 ABLATION=${ABLATION:-0}
 ROLLOUT=${ROLLOUT:-1}
 : "${OUT:?set OUT to the directory for the checkpoints}"
@@ -40,7 +41,7 @@ pids=()
 for run in "${runs[@]}"; do
   set -- $run
   name=$1; shift
-  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --output "$OUT/$name" \
+  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --output "$OUT/$name" \
     > "$OUT/$name.stdout" 2>&1 &
   pids+=($!)
 done

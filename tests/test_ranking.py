@@ -443,8 +443,8 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
     with pytest.raises(InputError, match="needs the dataset's OnlineControls"):
         rollout_loss(model, clip, None)
     # with the first frame as memory (ABLATION=first-frame), every chunk of a clip keeps its episode's first frame
-    summary = train_pack(pack, "motion+contact", tmp_path / "first_frame", minutes=0.001, rollout_chunks=2,
-                         first_frame=True, progress=lambda row: None)
+    summary = train_pack(pack, "motion+contact", tmp_path / "first_frame", minutes=0.001, batch_size=16,
+                         rollout_chunks=2, first_frame=True, progress=lambda row: None)
     assert summary["first_frame"] and summary["steps"] >= 1
     assert load_world_model(tmp_path / "first_frame")[1].conditioning.first_frame
 
@@ -454,7 +454,7 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
                           cwd=ROOT).stdout.strip() == "[]"
 
     out = tmp_path / "gpu_out"
-    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ROLLOUT": "2", "ABLATION": "rollout",
+    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ROLLOUT": "2", "ABLATION": "rollout", "BATCH": "16",
            "PACK": str(plan.pack), "PYTHON": sys.executable}
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -462,7 +462,7 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
         with tarfile.open(out / f"{name}.tar") as archive:
             summary = json.loads(archive.extractfile("log.jsonl").read().decode().splitlines()[-1])["summary"]
         assert summary["rollout_chunks"] == rollout and summary["steps"] >= 1
-        assert summary["samples"] == summary["steps"] * (128 // rollout) * rollout
+        assert summary["batch_size"] == 16 and summary["samples"] == summary["steps"] * (16 // rollout) * rollout
 
 
 def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
@@ -489,7 +489,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     assert torch.equal(pack.batch(torch.tensor(some), ()).first_frame, chunks.batch(some).first_frame)
 
     out = tmp_path / "gpu_out"
-    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ABLATION": "1", "PACK": str(plan.pack),
+    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ABLATION": "1", "BATCH": "16", "PACK": str(plan.pack),
            "PYTHON": sys.executable}
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -503,7 +503,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         model, spec = load_world_model(work / "runs" / name, weights="ema")
         assert spec.conditioning.mode == mode and spec.flow.focus_weight == focus
         log = [json.loads(line) for line in (work / "runs" / name / "log.jsonl").read_text().splitlines()]
-        again = heldout_loss(model.float(), pack, streams_of_mode(mode), 128, 0)
+        again = heldout_loss(model.float(), pack, streams_of_mode(mode), 16, 0)
         assert again == pytest.approx(log[-1]["summary"]["heldout_loss"], rel=1e-3)  # float16 weights
     # the loss-weighting ablation's figures on the imported runs: the gate measured for each, the replays
     assert ablation.main(["focus", "--work", str(work), "--json", str(tmp_path / "focus.json")]) == 0
