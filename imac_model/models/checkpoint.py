@@ -304,17 +304,22 @@ def add_first_frame(path: str | Path) -> None:
     spec = replace(spec, conditioning=replace(spec.conditioning, first_frame=True))
     model = WorldModel(spec)
     shapes = {k: v.shape for k, v in model.state_dict().items()}
-    save_file(_widen_front(read_weights(path / WEIGHTS), shapes), str(path / WEIGHTS))
+    tmp = path.with_name(path.name + ".widening")  # widened beside it, then swapped in whole
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(path, tmp)
+    save_file(_widen_front(read_weights(path / WEIGHTS), shapes), str(tmp / WEIGHTS))
     if (path / EMA).is_file():
-        save_file(_widen_front(read_weights(path / EMA), shapes), str(path / EMA))
+        save_file(_widen_front(read_weights(path / EMA), shapes), str(tmp / EMA))
     state = read_trainer_state(path)
     names = [k for k, p in model.named_parameters() if p.requires_grad]  # the optimizer's parameter order
     for i, moments in state["optimizer"]["state"].items():
         tensors = {m: v for m, v in moments.items() if torch.is_tensor(v) and v.ndim}
         moments.update(_widen_front(tensors, {m: shapes[names[int(i)]] for m in tensors}))
-    torch.save(state, path / STATE)
-    save_config(spec, path / SPEC)
+    torch.save(state, tmp / STATE)
+    save_config(spec, tmp / SPEC)
     run = run_config_of(path)
     if run is not None:
         run.setdefault("conditioning", {})["first_frame"] = True
-        (path / CONFIG).write_text(yaml.safe_dump(run, sort_keys=False))
+        (tmp / CONFIG).write_text(yaml.safe_dump(run, sort_keys=False))
+    shutil.rmtree(path)
+    os.replace(tmp, path)
