@@ -41,6 +41,8 @@ ARMS = {  # ablation -> plan -> (the arm's run, what it changes)
     # memory beyond one frame; with the reference noise above, so the clean first frame has something to add
     "first-frame": lambda plan: ("motion_contact_first_frame", {"flow.reference_noise": 0.3,
                                                                 "conditioning.first_frame": True}),
+    # a tenth of the samples without controls, so the arm can be sampled with classifier-free guidance
+    "guidance": lambda plan: ("motion_contact_guidance", {"flow.reference_noise": 0.3, "conditioning.dropout": 0.1}),
 }
 
 
@@ -58,15 +60,18 @@ def respec(checkpoint: Path, changes: dict) -> None:
     spec = json.loads((checkpoint / SPEC).read_text())
     for key, value in changes.items():
         section, _, name = key.rpartition(".")
-        if section in spec and name in spec[section]:
+        if section in spec:  # (a run's settings, such as rollout.chunks, are not the model's)
             spec[section][name] = value
     (checkpoint / SPEC).write_text(json.dumps(spec, indent=1) + "\n")
 
 
-def branch(plan: RankingPlan, arm: str, from_step: int, changes: dict | None = None) -> Path:
-    """``<work>/runs/<arm>``: a copy of the preset's motion+contact run at ``from_step`` (its
-    checkpoint, the log up to it, its config), unless it exists; a first-frame arm's checkpoint widened."""
-    base, run = plan.run_dir(GATED_MODE), plan.work / "runs" / arm
+def branch(plan: RankingPlan, arm: str, from_step: int, changes: dict | None = None,
+           source: str | None = None) -> Path:
+    """``<work>/runs/<arm>``: a copy of the preset's motion+contact run (or of the run ``source``)
+    at ``from_step`` (its checkpoint, the log up to it), unless it exists; a first-frame arm's
+    checkpoint widened."""
+    base = plan.run_dir(GATED_MODE) if source is None else plan.work / "runs" / source
+    run = plan.work / "runs" / arm
     if (run / "branch.json").is_file():
         return run
     source = base / "checkpoints" / f"step_{from_step:06d}"
@@ -100,12 +105,13 @@ def final_gate(plan: RankingPlan, run_name: str, from_step: int, minutes: float)
 
 
 def ablate(plan: RankingPlan, ablation: str, from_step: int, minutes: float | None = None,
-           baseline: str | None = None) -> dict | None:
-    """Branch, train and gate the arm; its figures beside the baseline's (the preset's run, or the arm
-    ``baseline`` at the same budget), or None while the baseline has no gate there yet."""
+           baseline: str | None = None, source: str | None = None) -> dict | None:
+    """Branch (from the preset's run, or the run ``source``), train and gate the arm; its figures
+    beside the baseline's (the preset's run, or the arm ``baseline`` at the same budget), or None
+    while the baseline has no gate there yet."""
     minutes = float(plan.cpu_minutes if minutes is None else minutes)
     arm, changes = arm_run(plan, ablation, minutes)
-    run = branch(plan, arm, from_step, changes)
+    run = branch(plan, arm, from_step, changes, source)
     train_arm(plan, run, changes, minutes)
     if final_gate(plan, arm, from_step, minutes) is None:
         run_all([(f"gate {arm}", internal(plan, "gate", f"{minutes:g}", arm),
@@ -148,10 +154,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--minutes", type=float, help="the CPU budget to train to (default: the preset's)")
     p.add_argument("--baseline", choices=sorted(ARMS),
                    help="compare with this arm at the same budget (default: the preset's own run)")
+    p.add_argument("--from-run", help="branch from this run of the work directory (default: the preset's)")
     p.add_argument("--json", help="write the figures here")
     args = p.parse_args(argv)
     plan = RankingPlan.load(Path(args.work) / "plan.json")
-    result = ablate(plan, args.ablation, args.from_step, args.minutes, args.baseline)
+    result = ablate(plan, args.ablation, args.from_step, args.minutes, args.baseline, args.from_run)
     if result is None:
         return 0
     for name in ("baseline", "arm"):

@@ -141,10 +141,24 @@ class ConditioningConfig:
     # memory beyond one frame (not in the paper): the episode's first recorded frame goes in as one more clean
     # frame ahead of the reference, so a chunk whose generated reference lost the object still sees where it began
     first_frame: bool = False
+    # classifier-free guidance (not in the paper): in training, this share of the samples gets no controls (no
+    # action tokens in the action-vector mode), so the model also learns the unconditional velocity; in sampling,
+    # v = v_uncond + guidance (v_cond - v_uncond), so the controls' effect is scaled (1 = the conditional model)
+    dropout: float = 0.0
+    guidance: float = 1.0
 
     def __post_init__(self) -> None:
         _positive(self, "action_hidden", "conditioning")
         _positive(self, "action_layers", "conditioning")
+        if not 0 <= self.dropout < 1:
+            raise InputError(f"conditioning.dropout: a share in [0, 1) (got {self.dropout})")
+        if self.guidance < 0:
+            raise InputError(f"conditioning.guidance: must be >= 0 (got {self.guidance})")
+        if self.guidance != 1 and self.dropout == 0:
+            raise InputError(f"conditioning.guidance: {self.guidance} needs a model trained with conditioning.dropout > 0 "
+                             "(without it the unconditional velocity is never learned)")
+        if self.mode == "none" and (self.dropout or self.guidance != 1):
+            raise InputError("conditioning.dropout / guidance: mode none has no conditioning to drop or guide by")
 
     @property
     def streams(self) -> tuple[str, ...]:

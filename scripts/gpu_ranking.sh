@@ -6,7 +6,8 @@
 # ABLATION=1 (or focus) also trains motion+contact with a uniform loss (focus_weight 0) as motion_contact_uniform,
 # the loss-weighting ablation (python -m benchmarks.ablation focus); ABLATION=rollout trains motion+contact without
 # rollout as motion_contact_no_rollout, the rollout ablation; ABLATION=first-frame trains motion+contact conditioned
-# on the episode's first frame as motion_contact_first_frame, the memory ablation. PyYAML and safetensors travel as wheels
+# on the episode's first frame as motion_contact_first_frame, the memory ablation. DROPOUT=P trains every run with a
+# share P of its samples without controls (conditioning.dropout), so the models can be sampled with guidance. PyYAML and safetensors travel as wheels
 # beside the pack (runs/ranking_gpu/gpu/wheels/) when the machine lacks them. Each run comes back as one
 # file, $OUT/<run>.tar (model.json, model.safetensors: float16 EMA weights, log.jsonl), since the GPU
 # machine returns few files; `imac-model ranking --preset gpu --import-gpu DIR` puts them back here.
@@ -18,6 +19,7 @@ MINUTES=${MINUTES:-8}
 BATCH=${BATCH:-128}  # chunks a step (the tests run the script at toy size with fewer)
 ABLATION=${ABLATION:-0}
 ROLLOUT=${ROLLOUT:-1}
+DROPOUT=${DROPOUT:-0}
 : "${OUT:?set OUT to the directory for the checkpoints}"
 mkdir -p "$OUT"
 PY=${PYTHON:-$(command -v python3 || command -v python)}
@@ -41,7 +43,7 @@ pids=()
 for run in "${runs[@]}"; do
   set -- $run
   name=$1; shift
-  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --output "$OUT/$name" \
+  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --dropout "$DROPOUT" --output "$OUT/$name" \
     > "$OUT/$name.stdout" 2>&1 &
   pids+=($!)
 done

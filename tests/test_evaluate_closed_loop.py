@@ -122,6 +122,26 @@ def test_a_closed_loop_keeps_its_start_frame_for_a_model_conditioned_on_the_firs
     assert not torch.equal(rollout(later)[1], ref[1])
 
 
+def test_a_scene_frame_replaces_the_reference_only_in_the_contact_images(world):
+    """``scene(n)`` (the gate's diagnosis): chunk n's contact images are the ones rebuilt from that
+    frame's depth (OnlineControls called on it directly), its motion images and reference stay."""
+    root, ckpt, model, spec, chunks, online = world
+    start = episode_starts(chunks, [0], seed=3, horizon_chunks=2)[0]
+    items = chunks.episode_chunks(0)
+    recorded = [chunks.batch([i]).reference for i in items[:2]]
+    policy = recorded_actions_policy(start.recorded_actions)
+    plain = list(rollout_episode(model, online, policy, start))
+    records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,
+                                   scene=lambda n: recorded[n][0]))
+    assert torch.equal(records[0].frames, plain[0].frames)  # chunk 1's reference is the recorded frame anyway
+    rec = records[1]
+    assert not torch.equal(rec.reference, recorded[1][0])  # the model went on from its own frame
+    want = online.controls(recorded[1], rec.state[None], rec.actions[None], streams=("contact_s2g", "contact_r2s"))
+    for s in ("contact_s2g", "contact_r2s"):
+        assert torch.equal(rec.controls[s], mosaic.control_views(want.controls[s][0], len(spec.views)))
+    assert torch.equal(rec.controls["motion"], plain[1].controls["motion"])
+
+
 def test_closed_loop_cli_writes_a_lerobot_dataset_of_generated_episodes(world, tmp_path, capsys):
     root, ckpt, model, spec, chunks, online = world
     out = tmp_path / "generated"

@@ -6,14 +6,20 @@
   reference shows it at one place, the motion control at another; after a fixed budget the
   generated square's centroid lies near the control's, and the same model without controls
   (``none``) misses it.
+* Classifier-free guidance: trained with a share of the samples without controls, the model
+  samples the controlled square at guidance 1, and at guidance 0 it is exactly the model without
+  its controls, which misses it.
 * The same for the episode's first frame (``conditioning.first_frame``): a square only that frame
   shows is painted where it shows it, and another first frame moves it; a checkpoint widened for it
   computes what it did."""
+
+from dataclasses import replace
 
 import pytest
 import torch
 
 from imac_data.core.depth import DepthCodec
+from imac_data.errors import InputError
 from imac_model.config import BackboneConfig, ConditioningConfig, FlowConfig, ModelSpec, UNetConfig
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.backbones.build import build_backbone
@@ -74,10 +80,10 @@ def batch_of(g: torch.Generator, B: int) -> tuple[ChunkBatch, torch.Tensor]:
     return batch, target.float()
 
 
-def train(mode: str, steps: int = 150) -> WorldModel:
+def train(mode: str, steps: int = 150, dropout: float = 0.0) -> WorldModel:
     torch.manual_seed(0)
     spec = ModelSpec(backbone=BackboneConfig(kind="unet", unet=UNetConfig(channels=(16, 32), blocks=1, frame_dim=8)),
-                     conditioning=ConditioningConfig(mode=mode), flow=FlowConfig(prediction="data", sample_steps=8),
+                     conditioning=ConditioningConfig(mode=mode, dropout=dropout), flow=FlowConfig(prediction="data", sample_steps=8),
                      views=("cam",), view_height=SIDE, view_width=SIDE, chunk=H, action_dim=1, fps=10.0)
     model = WorldModel(spec)
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
@@ -106,6 +112,30 @@ def test_unet_paints_a_small_square_where_the_control_puts_it():
     seen, blind = centroid_error(train("motion")), centroid_error(train("none"))
     assert seen < 1.5, seen  # within a pixel or so of the controlled place
     assert blind > 3.0, blind  # without the control the model can only guess (random places: about 5 px off)
+
+
+def test_guidance_scales_what_the_controls_do_and_at_zero_is_the_model_without_them():
+    torch.set_num_threads(1)
+    model = train("motion", dropout=0.2)
+
+    def guided(w):
+        model.spec = replace(model.spec, conditioning=replace(model.spec.conditioning, guidance=w))
+        return model
+
+    assert centroid_error(guided(1.0)) < 1.5
+    assert centroid_error(guided(2.0)) < 1.5
+    # at guidance 0 the sample is the unconditional model's: the same weights with the control injector removed
+    batch, target = batch_of(torch.Generator().manual_seed(2), 12)
+    unguided = guided(0.0).sample(batch, generator=torch.Generator().manual_seed(3)).frames
+    (injector, streams), (model.controls, model.streams) = (model.controls, model.streams), (None, ())
+    without = guided(1.0).sample(replace(batch, controls={}), generator=torch.Generator().manual_seed(3)).frames
+    model.controls, model.streams = injector, streams
+    assert torch.equal(unguided, without)
+    assert square_error(unguided, target) > 3.0  # and it misses the controlled place
+    with pytest.raises(InputError, match="conditioning.guidance: 2.0 needs a model trained with conditioning.dropout"):
+        ConditioningConfig(guidance=2.0)
+    with pytest.raises(InputError, match="conditioning.dropout"):
+        ConditioningConfig(dropout=1.0)
 
 
 # --------------------------------------------------------------------------- the episode's first frame as memory

@@ -22,7 +22,7 @@ from dm_control.mujoco.engine import Physics
 from gym_aloha.tasks.sim import TransferCubeTask
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from benchmarks import ablation, cpu_ablation
+from benchmarks import ablation, cpu_ablation, gate_diagnosis
 from imac_data.cli import main as imac_main
 from imac_data.cli.parser import TASKS as CLI_TASKS
 from imac_data.core.cameras import save_calibration
@@ -328,6 +328,13 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     assert gate["budget_minutes"] == plan.cpu_minutes and set(gate["from_chunk"]) == {"0", "1"}
     assert [len(c) for c in gate["cube"]["recorded"]] == [plan.chunks] * len(gate["episodes"])
     assert [len(v) for v in gate["cube_at_chunk_end"].values()] == [plan.chunks] * 2
+    # every replay sampled with each of the gate's seeds, pooled; the diagnosis replays them the same way
+    assert gate["seeds"] == plan.gate_seeds == 2
+    assert all(c["n"] == 2 * len(gate["episodes"]) and len(c["balanced_accuracy_per_seed"]) == 2
+               for c in gate["from_chunk"].values())
+    diagnosis = gate_diagnosis.diagnose(plan, "motion_contact", seeds=2, ways=("generated",))
+    assert [x for row in diagnosis["generated"]["judged_lifted"] for x in row] == \
+        [int(x) for x in gate["from_chunk"]["0"]["predicted"]]
     report = (docs / "README.md").read_text()
     assert "## The early gate" in report and "Where the cube goes wrong" in report and (docs / "gate.png").is_file()
     # a second run finds every stage's outputs and only writes the report again
@@ -399,6 +406,12 @@ def test_a_cpu_ablation_arm_continues_the_gated_run_with_one_change(toy_run, tmp
     assert len(json.loads((arm / "gates.json").read_text())) == 1
     with pytest.raises(InputError, match="--from-step 1: .* does not exist"):
         cpu_ablation.branch(plan, "another_arm", 1)
+    # an arm may branch from another arm (--from-run); a field its saved spec predates is added (guidance's dropout)
+    _, changes = cpu_ablation.arm_run(plan, "guidance", plan.cpu_minutes)
+    guided = cpu_ablation.branch(plan, "guided_arm", from_step + 2, changes, source=arm.name)
+    assert json.loads((guided / "branch.json").read_text())["from"] == f"runs/{arm.name}"
+    spec = load_world_model(guided)[1]
+    assert spec.conditioning.dropout == 0.1 and spec.flow.reference_noise == 0.3
 
     # past the preset's budget, a first-frame arm: its branch is the widened checkpoint, its baseline another arm
     minutes = plan.cpu_minutes + 1
@@ -442,11 +455,13 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
         assert torch.equal(result.controls[1][s], clip[1].controls[s])
     with pytest.raises(InputError, match="needs the dataset's OnlineControls"):
         rollout_loss(model, clip, None)
-    # with the first frame as memory (ABLATION=first-frame), every chunk of a clip keeps its episode's first frame
+    # with the first frame as memory (ABLATION=first-frame), every chunk of a clip keeps its episode's first frame;
+    # with DROPOUT, a share of the samples goes without controls, and the checkpoint can be sampled with guidance
     summary = train_pack(pack, "motion+contact", tmp_path / "first_frame", minutes=0.001, batch_size=16,
-                         rollout_chunks=2, first_frame=True, progress=lambda row: None)
-    assert summary["first_frame"] and summary["steps"] >= 1
-    assert load_world_model(tmp_path / "first_frame")[1].conditioning.first_frame
+                         rollout_chunks=2, first_frame=True, dropout=0.1, progress=lambda row: None)
+    assert summary["first_frame"] and summary["dropout"] == 0.1 and summary["steps"] >= 1
+    spec = load_world_model(tmp_path / "first_frame")[1]
+    assert spec.conditioning.first_frame and spec.conditioning.dropout == 0.1
 
     probe = "import sys, imac_model.training.pack; print([m for m in ('mujoco', 'trimesh', 'lerobot', 'scipy', " \
             "'open3d', 'diffusers', 'cv2') if m in sys.modules])"

@@ -124,12 +124,14 @@ class ChunkRecord:
 
 @torch.no_grad()
 def rollout_episode(model, online, policy, start: Start, *, steps: int | None = None,
-                    views: Sequence[str] | None = None, intervene=None) -> Iterator[ChunkRecord]:
+                    views: Sequence[str] | None = None, intervene=None, scene=None) -> Iterator[ChunkRecord]:
     """Run ``policy`` in the world model from ``start`` for ``start.chunks`` chunks (see the
     module docstring), yielding each chunk as it is generated. ``policy``: a callable or an
     :class:`ActionQueue`. ``intervene(reference, n) -> reference``, at each later chunk
     boundary ``n`` before the policy looks, may replace the frame the world model goes on from
-    (an intervention test: the policy should act on what it is shown)."""
+    (an intervention test: the policy should act on what it is shown). ``scene(n) -> frame``
+    ``(3, 2h, V w)`` gives the frame whose depth chunk ``n``'s contact images are rebuilt from,
+    instead of its reference (a diagnosis: the recorded frame where the model's is generated)."""
     base = getattr(model, "module", model)
     spec = base.spec
     views = tuple(views or spec.views)
@@ -150,7 +152,8 @@ def rollout_episode(model, online, policy, start: Start, *, steps: int | None = 
                            first_frame=start_frame)
         out = sample_rollout(base, first, actions[:, None].to(device), online, q0=q.to(device), steps=steps,
                              seed=start.seed + n, first_controls="online",
-                             include_reference_step=(n == 0 and start.frame == 0))
+                             include_reference_step=(n == 0 and start.frame == 0),
+                             scene=None if scene is None else scene(n)[None].to(device))
         configurations = online.configurations(q, actions)  # (1, H, D)
         frames = out.frames[0, 0].clamp(0, 1)
         yield ChunkRecord(index=n, reference=reference[0].cpu(), state=q[0].cpu(), actions=actions[0].cpu(),

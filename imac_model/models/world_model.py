@@ -18,7 +18,10 @@ Conditioning modes (``ModelSpec.conditioning.mode``): ``none``, ``motion``,
 ``motion+contact`` (control images, :class:`~imac_model.models.controls.ControlInjector`) and
 ``action-vector`` (raw actions through an MLP, cross-attended). With
 ``conditioning.first_frame`` the episode's first recorded frame goes in as one more clean frame
-ahead of the reference (memory beyond one frame; a backbone that keeps every frame).
+ahead of the reference (memory beyond one frame; a backbone that keeps every frame). With
+``conditioning.dropout`` a share of the training samples goes without its controls (or action
+tokens), and :meth:`WorldModel.sample` can guide by them (``conditioning.guidance``,
+classifier-free guidance).
 """
 
 from __future__ import annotations
@@ -133,10 +136,12 @@ class WorldModel(nn.Module):
 
     def velocity(self, x_future: torch.Tensor, tau: torch.Tensor, *, reference_latent: torch.Tensor,
                  control_latents: dict[str, torch.Tensor] | None = None,
-                 context: torch.Tensor | None = None, first_latent: torch.Tensor | None = None) -> torch.Tensor:
+                 context: torch.Tensor | None = None, first_latent: torch.Tensor | None = None,
+                 keep: torch.Tensor | None = None) -> torch.Tensor:
         """Predicted velocity of the future latents at ``tau`` ``(B,)``: the reference
         latent (after ``first_latent``, for a model conditioned on the first frame) goes in
-        clean at timestep 0, the controls onto the future tokens."""
+        clean at timestep 0, the controls onto the future tokens. ``keep (B,)``: 1 keeps a
+        sample's controls and action tokens, 0 drops them (the unconditional velocity)."""
         if (first_latent is not None) != (self.clean_frames > 1):
             raise ValueError("first_latent: given exactly when the model is conditioned on the first frame "
                              f"(conditioning.first_frame: {self.clean_frames > 1})")
@@ -147,6 +152,10 @@ class WorldModel(nn.Module):
         t = flow.wan_timestep(tau.float())[:, None].expand(B, Fr).clone()
         t[:, :k] = 0.0
         tokens = (self.controls(control_latents, tuple(control_latents)) if self.controls is not None else None)
+        if keep is not None:
+            keep = keep.to(latents.dtype)
+            tokens = None if tokens is None else tokens * keep.view(B, *[1] * (tokens.ndim - 1))
+            context = None if context is None else context * keep.view(B, *[1] * (context.ndim - 1))
         if tokens is not None and k > 1:  # no control on the first frame
             tokens = torch.cat([torch.zeros_like(tokens[:, :, :k - 1]), tokens], dim=2)
         out = self.backbone.denoise(latents, t, control_tokens=tokens, context=context)[:, :, k:]
@@ -203,9 +212,13 @@ class WorldModel(nn.Module):
             scale = torch.rand(Bg, generator=generator, device=gen_dev)[r::n].to(dev) * self.spec.flow.reference_noise
             eps = torch.randn((Bg, *z_ref.shape[1:]), generator=generator, device=gen_dev)[r::n].to(dev, z_ref.dtype)
             z_ref = z_ref + scale.view(B, 1, 1, 1, 1) * eps
+        keep = None
+        if self.training and self.spec.conditioning.dropout > 0:  # the unconditional velocity guidance needs
+            drop = torch.rand(Bg, generator=generator, device=gen_dev)[r::n].to(dev) < self.spec.conditioning.dropout
+            keep = (~drop).float()
         x_tau = flow.interpolate(x0, x1, tau)
         v = self.velocity(x_tau, tau, reference_latent=z_ref, control_latents=controls, context=context,
-                          first_latent=z_first)
+                          first_latent=z_first, keep=keep)
         target = flow.target_velocity(x0, x1)
         valid = torch.cat([torch.ones_like(batch.valid_mask()[:, :1]), batch.valid_mask()], dim=1)
         mask = self.backbone.latent_frame_mask(valid)[:, 1:]
@@ -226,9 +239,16 @@ class WorldModel(nn.Module):
             noise = torch.randn(shape, generator=generator, device=gen_dev)
         x0 = noise.to(z_ref.device, z_ref.dtype)
 
+        guidance = self.spec.conditioning.guidance
+
         def velocity(x, tau):
-            return self.velocity(x, tau, reference_latent=z_ref, control_latents=controls, context=context,
-                                 first_latent=z_first)
+            v = self.velocity(x, tau, reference_latent=z_ref, control_latents=controls, context=context,
+                              first_latent=z_first)
+            if guidance == 1:
+                return v
+            v_uncond = self.velocity(x, tau, reference_latent=z_ref, control_latents=controls, context=context,
+                                     first_latent=z_first, keep=torch.zeros(B, device=x.device))
+            return v_uncond + guidance * (v - v_uncond)
 
         latents = flow.euler_sample(velocity, x0, steps=steps or self.spec.flow.sample_steps,
                                     shift=shift if shift is not None else self.spec.flow.sample_shift)

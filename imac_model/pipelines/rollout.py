@@ -127,7 +127,7 @@ def sample_rollout(model, first: ChunkBatch, actions: torch.Tensor, online: Onli
                    q0: torch.Tensor | None = None, states: torch.Tensor | None = None,
                    steps: int | None = None, seed: int = 0, first_controls: str = "given",
                    include_reference_step: bool = False, noise: Sequence[torch.Tensor] | None = None,
-                   progress: bool = False) -> SampledRollout:
+                   scene: torch.Tensor | None = None, progress: bool = False) -> SampledRollout:
     """Roll out ``N = actions.shape[1]`` chunks from ``first.reference``.
 
     ``actions (B, N, H, D)``: every chunk's actions; ``q0 (B, D)``: the state at the first
@@ -138,6 +138,8 @@ def sample_rollout(model, first: ChunkBatch, actions: torch.Tensor, online: Onli
     first reference's depth; ``include_reference_step`` when it is an episode's frame 0).
     Each chunk's noise is drawn from ``seed + n`` (or given in ``noise``), so two calls that
     differ only in their actions get the same noise. Every chunk keeps ``first.first_frame``.
+    ``scene (B, 3, 2h, V w)``: the frame whose depth chunk 1's contact images are rebuilt from,
+    instead of its reference (a diagnosis gives the recorded frame where the reference is generated).
     """
     from tqdm.auto import tqdm
 
@@ -160,7 +162,8 @@ def sample_rollout(model, first: ChunkBatch, actions: torch.Tensor, online: Onli
             controls = {s: first.controls[s] for s in streams}
             q_future = online.configurations(q_ref, a) if (online is not None and q_ref is not None) else None
         elif streams:
-            rebuilt = online.controls(reference, q_ref, a, streams=streams,
+            rebuilt = online.controls(scene if (n == 0 and scene is not None) else reference, q_ref, a,
+                                      streams=streams,
                                       include_reference_step=include_reference_step and n == 0)
             controls = rebuilt.controls
             q_future = rebuilt.configurations

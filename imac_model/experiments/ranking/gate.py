@@ -40,6 +40,7 @@ from imac_model.pipelines.sampling import open_chunks
 from imac_model.training.log import read_log
 
 GATED_MODE = "motion+contact"
+SEED_STRIDE = 100_003  # seed s of a replay: its start's seed + s * SEED_STRIDE
 
 
 def gate_minutes(plan: RankingPlan) -> list[float]:
@@ -122,6 +123,24 @@ def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[in
     return np.concatenate(rows, axis=0)
 
 
+def _measure_cube(chunks, start, records, spec, cube: dict, judged: bool, outcome: bool, picture: bool):
+    """Append a full replay's cube at each chunk's end (recorded, generated) to ``cube``; its
+    picture strip when ``picture``."""
+    items = chunks.episode_chunks(start.episode)[:len(records)]
+    recorded = torch.cat([chunks[i]["future"] for i in items])
+    recorded = recorded.float() / 255.0 if recorded.dtype == torch.uint8 else recorded.float()
+    generated = torch.cat([r.frames for r in records])
+    H = spec.chunk
+    ends = [H * (n + 1) - 1 for n in range(len(records))]
+    for name, frames in (("recorded", recorded), ("generated", generated)):
+        cube[name].append(cube_in_view(frames[ends], spec))
+    if not picture:
+        return None
+    captions = (f"ep {start.episode}: {'success' if outcome else 'failure'}",
+                f"judged {'lifted' if judged else 'not lifted'}")
+    return _strip(recorded, generated, spec, [H // 2 - 1] + ends, captions)
+
+
 def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MODE, pictures: int = 4) -> dict:
     """The gate on ``mode``'s latest checkpoint (EMA weights), trained to ``budget_minutes`` (one of
     :func:`gate_minutes`), appended to ``runs/<mode>/gates.json`` with a picture ``gate_<step>.png``
@@ -142,36 +161,34 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     cube = {"recorded": [], "generated": []}  # per full replay: the cube at each chunk's last frame
     shown = {True: 0, False: 0}
     strips = []
-    for start in episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks):
-        for k in range(min(plan.chunks, len(chunks.episode_chunks(start.episode)))):
-            s = _from_chunk(start, chunks, k)
-            records = list(rollout_episode(model, online, recorded_actions_policy(s.recorded_actions), s,
-                                           steps=plan.steps))
-            last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
-            outcome = labels[start.episode]
-            verdicts[k].append((bool(judge.judge([judged_frames(s.episode, last, spec.views, s.task, online)])[0]),
-                                outcome))
-            if k > 0:
-                continue
-            items = chunks.episode_chunks(start.episode)[:len(records)]
-            recorded = torch.cat([chunks[i]["future"] for i in items])
-            recorded = recorded.float() / 255.0 if recorded.dtype == torch.uint8 else recorded.float()
-            generated = torch.cat([r.frames for r in records])
-            H = spec.chunk
-            ends = [H * (n + 1) - 1 for n in range(len(records))]
-            for name, frames in (("recorded", recorded), ("generated", generated)):
-                cube[name].append(cube_in_view(frames[ends], spec))
-            if shown[outcome] < pictures // 2:
-                shown[outcome] += 1
-                times = [H // 2 - 1] + ends
-                captions = (f"ep {start.episode}: {'success' if outcome else 'failure'}",
-                            f"judged {'lifted' if verdicts[0][-1][0] else 'not lifted'}")
-                strips.append(_strip(recorded, generated, spec, times, captions))
+    for seed in range(plan.gate_seeds):
+        for start in episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks):
+            start = dataclasses.replace(start, seed=start.seed + SEED_STRIDE * seed)  # seed 0: the single-seed gate's
+            for k in range(min(plan.chunks, len(chunks.episode_chunks(start.episode)))):
+                s = _from_chunk(start, chunks, k)
+                records = list(rollout_episode(model, online, recorded_actions_policy(s.recorded_actions), s,
+                                               steps=plan.steps))
+                last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
+                outcome = labels[start.episode]
+                judged = bool(judge.judge([judged_frames(s.episode, last, spec.views, s.task, online)])[0])
+                verdicts[k].append((judged, outcome))
+                if k == 0 and seed == 0:
+                    strip = _measure_cube(chunks, start, records, spec, cube, judged, outcome,
+                                          picture=shown[outcome] < pictures // 2)
+                    if strip is not None:
+                        shown[outcome] += 1
+                        strips.append(strip)
     truth = [labels[e] for e in episodes]
-    from_chunk = {str(k): verdict_scores(*zip(*v)) for k, v in verdicts.items() if v}
+    from_chunk = {}
+    for k, v in verdicts.items():
+        if v:  # pooled over the seeds, and each seed's own (the replays of one seed are consecutive)
+            n = len(v) // plan.gate_seeds
+            from_chunk[str(k)] = {**verdict_scores(*zip(*v)), "balanced_accuracy_per_seed": [
+                verdict_scores(*zip(*v[i * n:(i + 1) * n]))["balanced_accuracy"] for i in range(plan.gate_seeds)]}
     gate = {"budget_minutes": float(budget_minutes),
             "cpu_minutes": round(trained["cpu_s"] / 60, 2) if "cpu_s" in trained else None, "step": int(trained["step"]),
             "checkpoint": checkpoint.name, "episodes": episodes, "labels": truth, "sampler_steps": plan.steps,
+            "seeds": plan.gate_seeds,
             "from_chunk": from_chunk, "cube": cube, "cube_at_chunk_end": cube_summary(cube), "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
     gates = [g for g in read_gates(plan, mode) if g["budget_minutes"] != budget_minutes] + [gate]
     path = gates_path(plan, mode)

@@ -55,6 +55,8 @@ class RankingPlan:
     gate_every: float | None = 60.0
     gate_min: float = 0.7
     gate_by: float = 180.0
+    # noise seeds per gate replay, pooled: one seed decides 9-10 of 16 replays' verdicts by itself (docs/ranking.md)
+    gate_seeds: int = 3
     chunks: int = 4  # world-model chunks per episode (8 frames each)
     steps: int = 10  # Euler steps of the evaluation sampler
     check_steps: int = 20  # the training default: the judges are checked at both
@@ -86,7 +88,7 @@ class RankingPlan:
         self.views = tuple(self.views)
         if len(self.view_size) != 2 or min(self.view_size) < 8:
             raise InputError(f"ranking: view_size must be (height, width) of at least 8, got {self.view_size}")
-        for name in ("groups", "chunks", "steps", "check_steps", "jobs"):
+        for name in ("groups", "chunks", "steps", "check_steps", "jobs", "gate_seeds"):
             if getattr(self, name) < 1:
                 raise InputError(f"ranking: {name} must be >= 1")
         if self.gate_every is not None and not 0 < self.gate_every <= self.cpu_minutes:
@@ -169,6 +171,6 @@ def toy_plan(work: Path, docs: Path) -> RankingPlan:
                                                             for p in ("closed_loop", "open_loop_3cm")),
                        groups=2, real_per_group=2, wm_per_group=1, train_episodes=4, held_out=1,
                        modes=("motion+contact", "none"), cpu_minutes=1.0, none_minutes=1.0, chunks=2, steps=2, check_steps=2,
-                       recorded=2, toy=True, gate_every=1.0, gate_min=0.0)
+                       recorded=2, toy=True, gate_every=1.0, gate_min=0.0, gate_seeds=2)
 
 

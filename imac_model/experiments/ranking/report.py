@@ -316,15 +316,16 @@ def _gate(plan: RankingPlan, r: dict) -> list[str]:
              f"The recorded actions of the {plan.held_out} held-out training rollouts replayed in the world model, the "
              "lift judge against MuJoCo's labels. Balanced accuracy (mean recall of successes and failures: painting "
              "one outcome everywhere scores 0.5); \"from chunk k\": the replay starts again at the recorded frame of "
-             f"chunk k (the drift before it taken away). {when}", "",
-             "| mode | budget (min) | step | episodes (successes) | "
-             + " | ".join(f"from chunk {i + 1}" for i in range(k)) + " | accuracy from chunk 1 |", "|" + "---|" * (5 + k)]
+             f"chunk k (the drift before it taken away). Each replay is sampled with every noise seed and the "
+             f"verdicts are pooled, since one seed decides many verdicts by itself. {when}", "",
+             "| mode | budget (min) | step | episodes (successes) | seeds | "
+             + " | ".join(f"from chunk {i + 1}" for i in range(k)) + " | accuracy from chunk 1 |", "|" + "---|" * (6 + k)]
     for mode, rows in gates.items():
         for g in rows:
             cells = [_fmt(g["from_chunk"][str(i)]["balanced_accuracy"], 2) if str(i) in g["from_chunk"] else ""
                      for i in range(k)]
             lines.append(f"| {mode} | {g['budget_minutes']:g} | {g['step']} | {len(g['labels'])} ({sum(g['labels'])}) | "
-                         + " | ".join(cells) + f" | {_fmt(g['from_chunk']['0']['accuracy'], 2)} |")
+                         f"{g.get('seeds', 1)} | " + " | ".join(cells) + f" | {_fmt(g['from_chunk']['0']['accuracy'], 2)} |")
     cubes = [(mode, g) for mode, rows in gates.items() for g in rows if g.get("cube_at_chunk_end")]
     if cubes:
         n = max(len(g["cube_at_chunk_end"]["kept"]) for _, g in cubes)
