@@ -58,10 +58,7 @@ def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] 
     torch.set_num_threads(1)
     t0 = time.time()
     checkpoint = list_checkpoints(plan.work / "runs" / run)[-1]
-    model, spec = load_world_model(checkpoint, weights="ema", device=plan.device)
-    if guidance is not None:  # (refused for a run trained without conditioning.dropout)
-        model.spec = spec = dataclasses.replace(spec, conditioning=dataclasses.replace(spec.conditioning,
-                                                                                       guidance=guidance))
+    model, spec = load_world_model(checkpoint, weights="ema", device=plan.device, guidance=guidance)
     labels = dataset_success_labels(lr.LeRobotDataset(TRAIN_REPO, root=plan.train_dataset))
     episodes = [e for e in plan.held_out_episodes() if labels.get(e) is not None]
     chunks = open_chunks(spec, TRAIN_REPO, str(plan.train_dataset), episodes=episodes)

@@ -337,6 +337,11 @@ def test_the_output_of_a_user_and_a_staging_path_not_ours_are_refused_before_any
     assert (mine / "notes.txt").read_text() == "a user's file\n" and sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
     assert (staged / "thesis.tex").read_text() == "not ours\n" and sorted(p.name for p in staged.iterdir()) == ["thesis.tex"]
     assert not (tmp_path / "generated").exists() and not list(tmp_path.glob(".*.lock"))
+    # guidance on a model trained without conditioning.dropout: refused, naming the field, and nothing written
+    assert model_main(["evaluate", "closed-loop", "--checkpoint", str(ckpt), "--policy", "recorded", "--guidance", "2",
+                       "--output", str(tmp_path / "guided"), "--episodes", "0", "--no-progress"]) == 2
+    assert "conditioning.guidance: 2.0 needs a model trained with conditioning.dropout" in capsys.readouterr().err
+    assert not (tmp_path / "guided").exists()
 
 
 def test_overwrite_replaces_a_generated_dataset_through_the_staged_flow(world, tmp_path):

@@ -49,9 +49,10 @@ from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import online_controls_for, open_chunks
 
 
-def load_checkpoint(path: str, *, mode: str | None = None, weights: str = "ema", device: str = "cpu"):
+def load_checkpoint(path: str, *, mode: str | None = None, weights: str = "ema", device: str = "cpu",
+                    guidance: float | None = None):
     """``(model, spec, checkpoint dir, run config)``; with ``mode``, refuse a checkpoint
-    trained with another conditioning mode."""
+    trained with another conditioning mode; ``guidance``: the sampler's, instead of the saved one."""
     ckpt = resolve_checkpoint(path)
     spec = read_spec(ckpt)
     if mode is not None:
@@ -61,7 +62,7 @@ def load_checkpoint(path: str, *, mode: str | None = None, weights: str = "ema",
             raise InputError(f"{ckpt}: the checkpoint was trained with conditioning mode "
                              f"{spec.conditioning.mode!r}, not {mode!r} (its model.json); evaluate it with "
                              f"--mode {spec.conditioning.mode} or pick a {mode} checkpoint")
-    model, spec = load_world_model(ckpt, weights=weights, device=device)
+    model, spec = load_world_model(ckpt, weights=weights, device=device, guidance=guidance)
     return model, spec, ckpt, run_config_of(ckpt) or {}
 
 
@@ -102,7 +103,8 @@ def _camera_map(items) -> dict[str, str] | None:
 def cmd_closed_loop(args) -> int:
     # a user's directory given as --output, or a staging path next to it that is not ours: refused before any work
     check_output(Path(args.output), overwrite=args.overwrite, what="--output")
-    model, spec, ckpt, run = load_checkpoint(args.checkpoint, mode=args.mode, weights=args.weights, device=args.device)
+    model, spec, ckpt, run = load_checkpoint(args.checkpoint, mode=args.mode, weights=args.weights, device=args.device,
+                                             guidance=args.guidance)
     chunks = open_source(spec, run, args.dataset, args.root)
     episodes = args.episodes if args.episodes is not None else default_episodes(chunks, run)
     config = ClosedLoopConfig(episodes=tuple(episodes), horizon_chunks=args.horizon_chunks,
@@ -155,7 +157,8 @@ def cmd_simulator(args) -> int:
 
 
 def cmd_video_metrics(args) -> int:
-    model, spec, ckpt, run = load_checkpoint(args.checkpoint, mode=args.mode, weights=args.weights, device=args.device)
+    model, spec, ckpt, run = load_checkpoint(args.checkpoint, mode=args.mode, weights=args.weights, device=args.device,
+                                             guidance=args.guidance)
     chunks = open_source(spec, run, args.dataset, args.root)
     episodes = args.episodes if args.episodes is not None else default_episodes(chunks, run)
     bad = [e for e in episodes if not 0 <= e < chunks.lerobot.meta.total_episodes]

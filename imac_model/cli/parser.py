@@ -49,6 +49,9 @@ def _sample(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", help="mp4 path (default: <checkpoint>/samples/episode_<N>_chunk_<C>.mp4)")
     p.add_argument("--png", help="also write a still of the first, middle and last future frame here")
     p.add_argument("--steps", type=int, help="Euler steps (default: the model's flow.sample_steps)")
+    p.add_argument("--guidance", type=float,
+                   help="classifier-free guidance by the controls (default: the model's conditioning.guidance, 1; "
+                        "needs a model trained with conditioning.dropout)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--weights", choices=("ema", "raw"), default="ema")
     p.add_argument("--scale", type=int, default=2, help="pixel upscale of the written images")
@@ -63,6 +66,9 @@ def _model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, nargs="+",
                    help="start episodes (default: the run's held-out episodes, else all)")
     p.add_argument("--steps", type=int, help="sampler (Euler) steps (default: the model's flow.sample_steps)")
+    p.add_argument("--guidance", type=float,
+                   help="classifier-free guidance by the controls (default: the model's conditioning.guidance, 1; "
+                        "needs a model trained with conditioning.dropout)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--weights", choices=("ema", "raw"), default="ema")
     p.add_argument("--device", default="cpu")

@@ -31,7 +31,7 @@ def _sample(args: argparse.Namespace) -> int:
     if len(args.episode) > 1 and not args.evaluate:
         raise InputError("several --episode values need --evaluate")
     path = resolve_checkpoint(args.checkpoint)
-    model, spec = load_world_model(path, weights=args.weights)
+    model, spec = load_world_model(path, weights=args.weights, guidance=args.guidance)
     run = run_config_of(path) or {}
     dataset = args.dataset or spec.dataset
     root = args.root if args.root is not None else (run.get("data", {}).get("root") if not args.dataset else None)

@@ -373,6 +373,7 @@ def run_closed_loop(model, chunks, online, policy, output: str | Path, *, config
         "views": list(spec.views),
         "samples": len(starts),
         "sampler_steps": config.sampler_steps or spec.flow.sample_steps,
+        "guidance": spec.conditioning.guidance,
         "seed": config.seed,
         "seed_rule": "episode e, chunk n: noise from seed + e + n",
         "horizon_chunks": [s.chunks for s in starts],

@@ -219,11 +219,15 @@ def load_weights_into(model, file: Path, *, ema: bool = False) -> None:
     model.load_state_dict(state, strict=False)
 
 
-def load_world_model(path: str | Path, *, weights: str = "ema", device=None):
+def load_world_model(path: str | Path, *, weights: str = "ema", device=None, guidance: float | None = None):
     """``(WorldModel, ModelSpec)`` from a checkpoint directory (or a run directory: its
-    latest checkpoint). ``weights``: ``ema`` (if saved, else the raw weights) or ``raw``."""
+    latest checkpoint). ``weights``: ``ema`` (if saved, else the raw weights) or ``raw``.
+    ``guidance``: sample with this ``conditioning.guidance`` instead of the saved one (refused
+    for a model trained without ``conditioning.dropout``)."""
     path = resolve_checkpoint(path)
     spec = read_spec(path)
+    if guidance is not None:
+        spec = replace(spec, conditioning=replace(spec.conditioning, guidance=float(guidance)))
     if weights not in ("ema", "raw"):
         raise ValueError(f"weights must be 'ema' or 'raw', got {weights!r}")
     model = WorldModel(spec)
