@@ -49,6 +49,10 @@ def _frame(item: dict) -> torch.Tensor:
     return ref.float() / 255.0 if ref.dtype == torch.uint8 else ref.float()
 
 
+def _share(x: np.ndarray) -> float | None:
+    return round(float(x.mean()), 4) if x.size else None  # None: no episode of that outcome
+
+
 def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] = WAYS, from_chunk: int = 0,
              guidance: float | None = None) -> dict:
     """Replays of the held-out training rollouts in ``<work>/runs/<run>`` (latest checkpoint, EMA
@@ -90,8 +94,8 @@ def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] 
         lifted = judged[way].mean(axis=0)  # per episode: the share of seeds judged lifted
         result[way] = {"balanced_accuracy": [round(x, 4) for x in scores], "mean": round(float(np.mean(scores)), 4),
                        "episodes_that_flip": flips, "judged_lifted": judged[way].astype(int).tolist(),
-                       "lifted_share_of_successes": round(float(lifted[np.array(truth)].mean()), 4),
-                       "lifted_share_of_failures": round(float(lifted[~np.array(truth)].mean()), 4)}
+                       "lifted_share_of_successes": _share(lifted[np.array(truth)]),
+                       "lifted_share_of_failures": _share(lifted[~np.array(truth)])}
     return result
 
 
@@ -110,8 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     for way in args.ways:
         r = result[way]
         print(f"{args.run} (guidance {result['guidance']:g}) {way:15s} balanced accuracy {' '.join(f'{x:.2f}' for x in r['balanced_accuracy'])} "
-              f"(mean {r['mean']:.2f}); judged lifted in {r['lifted_share_of_successes']:.2f} of the successes' "
-              f"replays, {r['lifted_share_of_failures']:.2f} of the failures'; {r['episodes_that_flip']} of "
+              f"(mean {r['mean']:.2f}); judged lifted in {r['lifted_share_of_successes']} of the successes' "
+              f"replays, {r['lifted_share_of_failures']} of the failures'; {r['episodes_that_flip']} of "
               f"{len(result['episodes'])} episodes flip between seeds")
     if args.json:
         path = Path(args.json)
