@@ -31,6 +31,7 @@ import torch
 
 from imac_data import lerobot_compat as lr
 from imac_data.metadata import dataset_info
+from imac_model.data.batch import unit_frames
 from imac_model.evaluate.closed_loop import episode_starts, judged_frames, rollout_episode
 from imac_model.evaluate.policies import recorded_actions_policy
 from imac_model.evaluate.success import dataset_success_labels, verdict_scores
@@ -42,11 +43,6 @@ from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import open_chunks
 
 WAYS = ("generated", "recorded-scene")
-
-
-def _frame(item: dict) -> torch.Tensor:
-    ref = item["reference"]
-    return ref.float() / 255.0 if ref.dtype == torch.uint8 else ref.float()
 
 
 def _share(x: np.ndarray) -> float | None:
@@ -75,7 +71,7 @@ def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] 
         for s in range(seeds):
             for j, start in enumerate(starts):
                 items = chunks.episode_chunks(start.episode)[from_chunk:]
-                scene = (lambda n, items=items: _frame(chunks[items[n]])) if way == "recorded-scene" else None
+                scene = (lambda n, items=items: unit_frames(chunks[items[n]]["reference"])) if way == "recorded-scene" else None
                 start = _from_chunk(start, chunks, from_chunk) if from_chunk else start
                 start = dataclasses.replace(start, seed=start.seed + SEED_STRIDE * s)  # seed 0 is the single-seed gate's
                 records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,

@@ -79,13 +79,17 @@ class ChunkBatch:
             expect(f"controls[{s!r}]", self.controls[s], (B, horizon, 3, *mosaic_hw))
 
 
+def unit_frames(x: torch.Tensor) -> torch.Tensor:
+    """Frames as float in [0, 1]: uint8 ones (a chunk cache's) scaled, float ones as they are."""
+    return x.float() / 255.0 if x.dtype == torch.uint8 else x.float()
+
+
 def collate(items: list[dict]) -> ChunkBatch:
     """Stack dataset items (:class:`imac_model.data.chunks.ChunkDataset`; frames as uint8 or
     float) into a float [0, 1] :class:`ChunkBatch`."""
 
     def frames(key):
-        x = torch.stack([it[key] for it in items])
-        return x.float() / 255.0 if x.dtype == torch.uint8 else x.float()
+        return unit_frames(torch.stack([it[key] for it in items]))
 
     def opt(key):
         return torch.stack([torch.as_tensor(it[key]) for it in items]) if key in items[0] else None

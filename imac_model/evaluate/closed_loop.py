@@ -29,7 +29,7 @@ from imac_data.errors import InputError
 from imac_data.layout import ACTION, EPISODE_COLUMNS, SUCCESS_COLUMN, control_key, depth_key, image_key
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
-from imac_model.data.batch import ChunkBatch
+from imac_model.data.batch import ChunkBatch, unit_frames
 from imac_model.evaluate.policies import (
     STATE_KEY,
     ActionQueue,
@@ -89,7 +89,7 @@ def episode_starts(chunks, episodes: Sequence[int], *, seed: int = 0, horizon_ch
         tasks = meta.episodes["tasks"][e]
         ref = item["reference"]
         out.append(Start(episode=int(e), frame=int(frame),
-                         reference=ref.float() / 255.0 if ref.dtype == torch.uint8 else ref.float(),
+                         reference=unit_frames(ref),
                          state=item["state"].float(), chunks=int(n), seed=int(seed) + int(e),
                          task=tasks[0] if tasks else "", recorded_actions=actions))
     return out

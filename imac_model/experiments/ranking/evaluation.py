@@ -22,6 +22,7 @@ from imac_data.core.contact.images import JET_LUT
 from imac_data.layout import image_key
 from imac_data.metadata import dataset_info
 from imac_model.data import mosaic
+from imac_model.data.batch import unit_frames
 from imac_model.evaluate import open_loop
 from imac_model.evaluate.closed_loop import (
     ClosedLoopConfig,
@@ -144,7 +145,7 @@ def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int
         errors, moving, by_view, depth = [], [], [], []
         for n, record in enumerate(records):
             item = chunks[items[n]]
-            recorded, reference = _unit(item["future"]), _unit(item["reference"])
+            recorded, reference = unit_frames(item["future"]), unit_frames(item["reference"])
             h = spec.view_height
             errors.append(float(((record.frames[:, :, :h] - recorded[:, :, :h]) ** 2).mean()))
             moving.append(_moving_error(record.frames[:, :, :h], recorded[:, :, :h], reference[:, :h]))
@@ -177,11 +178,6 @@ def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int
             "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
 
 
-def _unit(x: torch.Tensor) -> torch.Tensor:
-    """A chunk item's frames (uint8 from the cache, or float) as floats in [0, 1]."""
-    return x.float() / 255.0 if x.dtype == torch.uint8 else x.float()
-
-
 def _contact_level(rgb: torch.Tensor) -> torch.Tensor:
     """Contact colours ``(..., 3, h, w)`` in [0, 1] -> the JET level ``1 - d / cap`` of the nearest
     colour of the table (:func:`imac_data.core.contact.images.colorize`), NaN where black (no value)."""
@@ -207,8 +203,8 @@ def _chunk_two_contact(records, chunks, items, spec) -> dict:
     reference (what the model was given) and recorded in the dataset, each judged on its own reference."""
     v, V = spec.views.index(WORKSPACE), len(spec.views)
     item = chunks[items[1]]
-    recorded = mosaic.control_views(_unit(item["control.contact_s2g"]), V)[:, v]
-    recorded_ref = mosaic.split(_unit(item["reference"]), V)[0][v]
+    recorded = mosaic.control_views(unit_frames(item["control.contact_s2g"]), V)[:, v]
+    recorded_ref = mosaic.split(unit_frames(item["reference"]), V)[0][v]
     rebuilt_ref = mosaic.split(records[1].reference, V)[0][v]
     return {"recorded": _cube_contact(recorded, recorded_ref),
             "rebuilt": _cube_contact(records[1].controls["contact_s2g"][:, v], rebuilt_ref)}

@@ -26,6 +26,7 @@ import torch
 from imac_data import lerobot_compat as lr
 from imac_data.metadata import dataset_info
 from imac_model.data import mosaic
+from imac_model.data.batch import unit_frames
 from imac_model.evaluate.closed_loop import episode_starts, judged_frames, rollout_episode
 from imac_model.evaluate.pictures import label
 from imac_model.evaluate.policies import recorded_actions_policy
@@ -78,7 +79,7 @@ def _from_chunk(start, chunks, k: int):
     H = chunks.layout.chunk
     ref = item["reference"]
     return dataclasses.replace(start, frame=start.frame + k * H, chunks=start.chunks - k,
-                               reference=ref.float() / 255.0 if ref.dtype == torch.uint8 else ref.float(),
+                               reference=unit_frames(ref),
                                state=item["state"].float(), recorded_actions=start.recorded_actions[k * H:])
 
 
@@ -127,8 +128,7 @@ def _measure_cube(chunks, start, records, spec, cube: dict, judged: bool, outcom
     """Append a full replay's cube at each chunk's end (recorded, generated) to ``cube``; its
     picture strip when ``picture``."""
     items = chunks.episode_chunks(start.episode)[:len(records)]
-    recorded = torch.cat([chunks[i]["future"] for i in items])
-    recorded = recorded.float() / 255.0 if recorded.dtype == torch.uint8 else recorded.float()
+    recorded = unit_frames(torch.cat([chunks[i]["future"] for i in items]))
     generated = torch.cat([r.frames for r in records])
     H = spec.chunk
     ends = [H * (n + 1) - 1 for n in range(len(records))]
