@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", default="runs/ranking_cpu", help="the ranking benchmark's work directory")
     p.add_argument("--seeds", type=int, default=3, help="noise seeds per way (the first is the gate's)")
     p.add_argument("--ways", nargs="+", choices=WAYS, default=list(WAYS))
-    p.add_argument("--from-chunk", type=int, default=0, help="start from this chunk's recorded frame (0: full replays)")
+    p.add_argument("--from-chunk", type=int, default=0, help="start from the recorded frame of chunk K, counted from 0 (0: full replays; 1: t=H)")
     p.add_argument("--guidance", type=float, help="classifier-free guidance (a run trained with conditioning.dropout)")
     p.add_argument("--json", help="write the figures here (a list: this run's entry is replaced or added)")
     args = p.parse_args(argv)
