@@ -151,7 +151,9 @@ class WorldModel(nn.Module):
         B, Fr, k = latents.shape[0], latents.shape[2], len(clean)
         t = flow.wan_timestep(tau.float())[:, None].expand(B, Fr).clone()
         t[:, :k] = 0.0
-        tokens = (self.controls(control_latents, tuple(control_latents)) if self.controls is not None else None)
+        dropped = keep is not None and not bool(keep.any())  # guidance's unconditional pass: no tokens to build
+        tokens = (self.controls(control_latents, tuple(control_latents))
+                  if self.controls is not None and not dropped else None)  # (added: none is the same as zeros)
         if keep is not None:
             keep = keep.to(latents.dtype)
             tokens = None if tokens is None else tokens * keep.view(B, *[1] * (tokens.ndim - 1))
