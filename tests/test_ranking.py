@@ -40,9 +40,9 @@ from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking.benchmark import GateStop, import_gpu_runs, stage_train
 from imac_model.experiments.ranking.judge import LiftJudge
-from imac_model.experiments.ranking.plan import RankingPlan
+from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
-from imac_model.models.checkpoint import load_world_model, save_checkpoint
+from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.rollout import last_frame, rollout_loss
@@ -326,8 +326,9 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
                  for r in json.loads((part / "outcomes.json").read_text())}
     assert gate["episodes"] == plan.held_out_episodes() and gate["labels"] == [simulated[e] for e in gate["episodes"]]
     assert gate["budget_minutes"] == plan.cpu_minutes and set(gate["from_chunk"]) == {"0", "1"}
-    assert [len(c) for c in gate["cube"]["recorded"]] == [plan.chunks] * len(gate["episodes"])
-    assert [len(v) for v in gate["cube_at_chunk_end"].values()] == [plan.chunks] * 2
+    assert set(gate["cube"]) == set(gate["cube_at_chunk_end"]) == set(plan.views)  # every view the model generates
+    assert all([len(c) for c in gate["cube"][v]["recorded"]] == [plan.chunks] * len(gate["episodes"]) for v in plan.views)
+    assert all([len(x) for x in c.values()] == [plan.chunks] * 2 for c in gate["cube_at_chunk_end"].values())
     # every replay sampled with each of the gate's seeds, pooled; the diagnosis replays them the same way
     assert gate["seeds"] == plan.gate_seeds == 2
     assert all(c["n"] == 2 * len(gate["episodes"]) and len(c["balanced_accuracy_per_seed"]) == 2
@@ -342,6 +343,34 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs)]) == 0
     again = json.loads((work / "stages.json").read_text())[len(stages):]
     assert all(e["cpu_s"] < 5 for e in again if e["stage"] != "report"), again
+
+
+def test_the_diagnosis_oracle_restores_one_recorded_view_at_the_chosen_boundaries(toy_run):
+    work, _ = toy_run
+    plan = RankingPlan.load(work / "plan.json")
+    assert gate_diagnosis.replayed_episodes(plan, "training") == [plan.held_out_episodes()[0] - 1]
+    spec = load_world_model(list_checkpoints(plan.run_dir("motion+contact"))[-1], weights="ema")[1]
+    chunks = open_chunks(spec, TRAIN_REPO, str(plan.train_dataset), episodes=[0])
+    items = chunks.episode_chunks(0)
+    reference = chunks[items[1]]["reference"]  # the dataset's own frame at t=H, as the chunk cache keeps it
+    assert reference.dtype == torch.uint8
+    recorded = reference.float() / 255
+    ours = torch.rand(1, *recorded.shape)  # a "generated" frame
+    w = spec.view_width
+    for v, view in enumerate(spec.views):
+        scene, intervene = gate_diagnosis._oracles(f"recorded:{view}", chunks, items, spec, boundaries=(1,))
+        out = intervene(ours, 1)
+        assert scene is None and torch.equal(out[0, :, :, v * w:(v + 1) * w], recorded[:, :, v * w:(v + 1) * w])
+        others = [c for c in range(out.shape[-1]) if not v * w <= c < (v + 1) * w]
+        assert torch.equal(out[..., others], ours[..., others]) and torch.equal(intervene(ours, 2), ours)
+    scene, intervene = gate_diagnosis._oracles("recorded-scene", chunks, items, spec)
+    assert intervene is None and torch.equal(scene(1), recorded)
+    with pytest.raises(ValueError, match="views"):
+        gate_diagnosis._oracles("recorded:cam_high", chunks, items, spec)
+    result = gate_diagnosis.diagnose(plan, "motion_contact", seeds=1, ways=(f"recorded:{spec.views[0]}",),
+                                     split="training", boundaries=(1,))
+    assert result["episodes"] == gate_diagnosis.replayed_episodes(plan, "training") and result["boundaries"] == [1]
+    assert len(result[f"recorded:{spec.views[0]}"]["judged_lifted"][0]) == 1
 
 
 def test_a_run_that_misses_the_early_gate_stops_and_reports_it(toy_run, tmp_path):

@@ -83,10 +83,10 @@ def _from_chunk(start, chunks, k: int):
                                state=item["state"].float(), recorded_actions=start.recorded_actions[k * H:])
 
 
-def cube_in_view(frames: torch.Tensor, spec) -> list[list[float]]:
-    """The cube in the workspace view of each of ``frames (T, 3, 2h, V w)``: ``[pixels, row, col]``,
-    its red pixels and their centroid (None without any)."""
-    v = spec.views.index(WORKSPACE) if WORKSPACE in spec.views else 0
+def cube_in_view(frames: torch.Tensor, spec, view: str) -> list[list[float]]:
+    """The cube in ``view`` of each of ``frames (T, 3, 2h, V w)``: ``[pixels, row, col]``, its red
+    pixels and their centroid (None without any)."""
+    v = spec.views.index(view)
     rgb, _ = mosaic.split(frames, len(spec.views))
     red = (redness(rgb[:, v].clamp(0, 1)) > RED_THRESHOLD).float()
     n = red.sum(dim=(-2, -1))
@@ -109,6 +109,13 @@ def cube_summary(cube: dict[str, list[list[list[float]]]], share: float = 0.5) -
     return {"kept": kept, "offset_px": offset}
 
 
+def cube_by_view(gate: dict) -> dict[str, dict]:
+    """A gate's ``cube_at_chunk_end`` per view (gates written before views were measured have the
+    workspace view's alone)."""
+    c = gate["cube_at_chunk_end"]
+    return {WORKSPACE: c} if "kept" in c else c
+
+
 def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[int],
            captions: tuple[str, str]) -> np.ndarray:
     """Two rows (recorded, generated) of the workspace view at ``times``, each row's first cell
@@ -125,15 +132,16 @@ def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[in
 
 
 def _measure_cube(chunks, start, records, spec, cube: dict, judged: bool, outcome: bool, picture: bool):
-    """Append a full replay's cube at each chunk's end (recorded, generated) to ``cube``; its
-    picture strip when ``picture``."""
+    """Append a full replay's cube at each chunk's end (recorded, generated), in every view, to
+    ``cube[view]``; its picture strip when ``picture``."""
     items = chunks.episode_chunks(start.episode)[:len(records)]
     recorded = unit_frames(torch.cat([chunks[i]["future"] for i in items]))
     generated = torch.cat([r.frames for r in records])
     H = spec.chunk
     ends = [H * (n + 1) - 1 for n in range(len(records))]
-    for name, frames in (("recorded", recorded), ("generated", generated)):
-        cube[name].append(cube_in_view(frames[ends], spec))
+    for view in spec.views:  # the wrist view too: it carries the grasp (docs/ranking.md)
+        for name, frames in (("recorded", recorded), ("generated", generated)):
+            cube.setdefault(view, {"recorded": [], "generated": []})[name].append(cube_in_view(frames[ends], spec, view))
     if not picture:
         return None
     captions = (f"ep {start.episode}: {'success' if outcome else 'failure'}",
@@ -158,7 +166,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     online = OnlineControls.from_dataset(plan.train_dataset, spec, info=dataset_info(chunks.lerobot.meta))
     judge = LiftJudge()
     verdicts: dict[int, list[tuple[bool, bool]]] = {k: [] for k in range(plan.chunks)}  # (judged, label)
-    cube = {"recorded": [], "generated": []}  # per full replay: the cube at each chunk's last frame
+    cube: dict[str, dict] = {}  # per view, per full replay: the cube at each chunk's last frame
     shown = {True: 0, False: 0}
     strips = []
     for seed in range(plan.gate_seeds):
@@ -189,7 +197,8 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
             "cpu_minutes": round(trained["cpu_s"] / 60, 2) if "cpu_s" in trained else None, "step": int(trained["step"]),
             "checkpoint": checkpoint.name, "episodes": episodes, "labels": truth, "sampler_steps": plan.steps,
             "seeds": plan.gate_seeds,
-            "from_chunk": from_chunk, "cube": cube, "cube_at_chunk_end": cube_summary(cube), "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
+            "from_chunk": from_chunk, "cube": cube,
+            "cube_at_chunk_end": {view: cube_summary(c) for view, c in cube.items()}, "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
     gates = [g for g in read_gates(plan, mode) if g["budget_minutes"] != budget_minutes] + [gate]
     path = gates_path(plan, mode)
     if strips:

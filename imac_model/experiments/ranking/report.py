@@ -18,7 +18,7 @@ from imac_data.layout import image_key
 from imac_model.evaluate.pictures import label
 from imac_model.evaluate.statistics import STATISTICS, plot_policy_scatter, policy_correlation
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
-from imac_model.experiments.ranking.gate import GATED_MODE, gate_verdict, read_gates
+from imac_model.experiments.ranking.gate import GATED_MODE, cube_by_view, gate_verdict, read_gates
 from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, slug
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 from imac_model.models.checkpoint import list_checkpoints, read_spec
@@ -328,17 +328,17 @@ def _gate(plan: RankingPlan, r: dict) -> list[str]:
                          f"{g.get('seeds', 1)} | " + " | ".join(cells) + f" | {_fmt(g['from_chunk']['0']['accuracy'], 2)} |")
     cubes = [(mode, g) for mode, rows in gates.items() for g in rows if g.get("cube_at_chunk_end")]
     if cubes:
-        n = max(len(g["cube_at_chunk_end"]["kept"]) for _, g in cubes)
+        n = max(len(c["kept"]) for _, g in cubes for c in cube_by_view(g).values())
         lines += ["", "Where the cube goes wrong, at the last frame of each chunk of the full replays (from chunk 1), in "
-                  "the workspace view: the share of replays whose generated view keeps at least half of the recorded "
+                  "each view: the share of replays whose generated view keeps at least half of the recorded "
                   "cube's pixels / the median distance (px) between the generated and recorded cubes' centres "
-                  "(a 10 cm lift moves the cube 15-20 px):", "",
-                  "| mode | budget (min) | step | " + " | ".join(f"end of chunk {i + 1}" for i in range(n)) + " |",
-                  "|" + "---|" * (3 + n)]
+                  "(a 10 cm lift moves the cube 15-20 px in the workspace view):", "",
+                  "| mode | budget (min) | step | view | " + " | ".join(f"end of chunk {i + 1}" for i in range(n)) + " |",
+                  "|" + "---|" * (4 + n)]
         for mode, g in cubes:
-            c = g["cube_at_chunk_end"]
-            lines.append(f"| {mode} | {g['budget_minutes']:g} | {g['step']} | "
-                         + " | ".join(f"{_fmt(k, 2)} / {_fmt(d, 1)}" for k, d in zip(c["kept"], c["offset_px"])) + " |")
+            for view, c in cube_by_view(g).items():
+                lines.append(f"| {mode} | {g['budget_minutes']:g} | {g['step']} | {view} | "
+                             + " | ".join(f"{_fmt(k, 2)} / {_fmt(d, 1)}" for k, d in zip(c["kept"], c["offset_px"])) + " |")
     if plan.gate_every and GATED_MODE in gates:
         lines += ["", f"**Verdict:** {gate_verdict(plan, gates[GATED_MODE])}."]
     lines += ["", f"The latest gate of `{next(iter(gates))}` (workspace view; top recorded, bottom generated):", "",
