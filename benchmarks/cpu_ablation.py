@@ -41,6 +41,9 @@ ARMS = {  # ablation -> plan -> (the arm's run, what it changes)
     # memory beyond one frame; with the reference noise above, so the clean first frame has something to add
     "first-frame": lambda plan: ("motion_contact_first_frame", {"flow.reference_noise": 0.3,
                                                                 "conditioning.first_frame": True}),
+    # clips of two chunks, with the reference noise of the arm it continues: every later chunk, the grasp chunk
+    # among them, from the model's own last frame, whose wrist view loses the grasp (docs/ranking.md)
+    "rollout2": lambda plan: ("motion_contact_rollout2", {"flow.reference_noise": 0.3, "rollout.chunks": 2}),
     # a tenth of the samples without controls, so the arm can be sampled with classifier-free guidance
     "guidance": lambda plan: ("motion_contact_guidance", {"flow.reference_noise": 0.3, "conditioning.dropout": 0.1}),
 }

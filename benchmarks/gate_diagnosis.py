@@ -42,7 +42,7 @@ from imac_model.data.batch import unit_frames
 from imac_model.evaluate.closed_loop import episode_starts, judged_frames, rollout_episode
 from imac_model.evaluate.policies import recorded_actions_policy
 from imac_model.evaluate.success import dataset_success_labels, verdict_scores
-from imac_model.experiments.ranking.gate import SEED_STRIDE, _from_chunk
+from imac_model.experiments.ranking.gate import SEED_STRIDE, _from_chunk, _measure_cube, cube_summary
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
 from imac_model.models.checkpoint import list_checkpoints, load_world_model
@@ -117,6 +117,7 @@ def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] 
     starts = episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks)
     truth = [labels[st.episode] for st in starts]
     judged = {w: np.zeros((seeds, len(starts)), dtype=bool) for w in ways}
+    cubes: dict[str, dict] = {w: {} for w in ways}  # full replays: the cube at each chunk's end, per view
     for way in ways:
         for s in range(seeds):
             for j, start in enumerate(starts):
@@ -126,6 +127,8 @@ def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] 
                 start = dataclasses.replace(start, seed=start.seed + SEED_STRIDE * s)  # seed 0 is the single-seed gate's
                 records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,
                                                steps=plan.steps, scene=scene, intervene=intervene))
+                if from_chunk == 0:
+                    _measure_cube(chunks, start, records, spec, cubes[way], False, False, picture=False)
                 last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
                 judged[way][s, j] = judge.judge([judged_frames(start.episode, last, spec.views, start.task, online)])[0]
             score = verdict_scores(judged[way][s].tolist(), truth)["balanced_accuracy"]
@@ -142,13 +145,15 @@ def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] 
         result[way] = {"balanced_accuracy": [round(x, 4) for x in scores], "mean": round(float(np.mean(scores)), 4),
                        "episodes_that_flip": flips, "judged_lifted": judged[way].astype(int).tolist(),
                        "lifted_share_of_successes": _share(lifted[np.array(truth)]),
-                       "lifted_share_of_failures": _share(lifted[~np.array(truth)])}
+                       "lifted_share_of_failures": _share(lifted[~np.array(truth)]),
+                       "cube_at_chunk_end": {v: cube_summary(c) for v, c in cubes[way].items()} or None}
     return result
 
 
 def _key(entry: dict) -> tuple:
     """What a JSON entry is a measurement of: one entry per key (entries older than a field lack it)."""
-    return (entry.get("work", "ranking_cpu"), entry["run"], entry["from_chunk"], entry["guidance"], entry.get("split", "held-out"), entry.get("boundaries"),
+    return (entry.get("work", "ranking_cpu"), entry["run"], entry["from_chunk"], entry["guidance"], entry.get("split", "held-out"),
+            None if entry.get("boundaries") is None else tuple(entry["boundaries"]),
             tuple(sorted(w for w in entry if w in WAYS or w.startswith("recorded:"))))
 
 
@@ -175,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
               f"(mean {r['mean']:.2f}); judged lifted in {r['lifted_share_of_successes']} of the successes' "
               f"replays, {r['lifted_share_of_failures']} of the failures'; {r['episodes_that_flip']} of "
               f"{len(result['episodes'])} episodes flip between seeds")
+        for view, c in (r["cube_at_chunk_end"] or {}).items():
+            print(f"  the cube in {view} at each chunk's end: kept {c['kept']}, centre off {c['offset_px']} px (median)")
     if args.json:
         path = Path(args.json)
         entries = [e for e in (json.loads(path.read_text()) if path.is_file() else [])

@@ -371,6 +371,8 @@ def test_the_diagnosis_oracle_restores_one_recorded_view_at_the_chosen_boundarie
                                      split="training", boundaries=(1,))
     assert result["episodes"] == gate_diagnosis.replayed_episodes(plan, "training") and result["boundaries"] == [1]
     assert len(result[f"recorded:{spec.views[0]}"]["judged_lifted"][0]) == 1
+    cube = result[f"recorded:{spec.views[0]}"]["cube_at_chunk_end"]  # a full replay's cube, in every view
+    assert set(cube) == set(spec.views) and all(len(c["kept"]) == plan.chunks for c in cube.values())
 
 
 def test_a_run_that_misses_the_early_gate_stops_and_reports_it(toy_run, tmp_path):
