@@ -68,9 +68,9 @@ def test_a_second_run_on_the_same_work_directory_is_refused(tmp_path, capsys):
     assert not (work / "plan.json").exists()
 
 
-def test_the_cube_is_found_in_the_workspace_view_only():
-    """cube_in_view against painted rectangles of known area and centre: red in the workspace view
-    counts; red in the wrist view or in the depth row, and a faint red below the threshold, do not."""
+def test_the_cube_is_found_in_the_view_asked_for_only():
+    """cube_in_view against painted rectangles of known area and centre: red in the view asked for
+    counts; red in the other view or in the depth row, and a faint red below the threshold, do not."""
     h, w, T = 12, 16, 3
     spec = SimpleNamespace(views=("cam_right_wrist", "cam_workspace"))  # the workspace view second: looked up
     rgb, depth = torch.full((T, 2, 3, h, w), 0.3), torch.full((T, 2, 3, h, w), 0.3)
@@ -80,10 +80,11 @@ def test_the_cube_is_found_in_the_workspace_view_only():
     rgb[:, 0, :, :4, :4] = torch.tensor([1.0, 0.0, 0.0])[:, None, None]  # the wrist view's red
     depth[:, 1, 0] = 1.0  # a red depth colour
     rgb[:, 1, :, 10:, 12:] = torch.tensor([0.45, 0.35, 0.35])[:, None, None]  # redness 0.1
-    got = cube_in_view(mosaic.assemble(rgb, depth), spec)
+    got = cube_in_view(mosaic.assemble(rgb, depth), spec, "cam_workspace")
     for (r, c, a, b), (n, cy, cx) in zip(boxes, got):
         assert (n, cy, cx) == (a * b, r + (a - 1) / 2, c + (b - 1) / 2)
     assert got[2] == [0, None, None]
+    assert cube_in_view(mosaic.assemble(rgb, depth), spec, "cam_right_wrist") == [[16, 1.5, 1.5]] * T
 
 
 def test_the_cube_summary_counts_kept_cubes_and_their_offsets():
