@@ -42,7 +42,7 @@ from imac_model.data.batch import unit_frames
 from imac_model.evaluate.closed_loop import episode_starts, judged_frames, rollout_episode
 from imac_model.evaluate.policies import recorded_actions_policy
 from imac_model.evaluate.success import dataset_success_labels, verdict_scores
-from imac_model.experiments.ranking.gate import SEED_STRIDE, _from_chunk, _measure_cube, cube_summary
+from imac_model.experiments.ranking.gate import SEED_STRIDE, cube_summary, measure_cube, start_at_chunk
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
 from imac_model.models.checkpoint import list_checkpoints, load_world_model
@@ -123,12 +123,12 @@ def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] 
             for j, start in enumerate(starts):
                 items = chunks.episode_chunks(start.episode)[from_chunk:]
                 scene, intervene = _oracles(way, chunks, items, spec, boundaries)
-                start = _from_chunk(start, chunks, from_chunk) if from_chunk else start
+                start = start_at_chunk(start, chunks, from_chunk) if from_chunk else start
                 start = dataclasses.replace(start, seed=start.seed + SEED_STRIDE * s)  # seed 0 is the single-seed gate's
                 records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,
                                                steps=plan.steps, scene=scene, intervene=intervene))
                 if from_chunk == 0:
-                    _measure_cube(chunks, start, records, spec, cubes[way], False, False, picture=False)
+                    measure_cube(chunks, start, records, spec, cubes[way], False, False, picture=False)
                 last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
                 judged[way][s, j] = judge.judge([judged_frames(start.episode, last, spec.views, start.task, online)])[0]
             score = verdict_scores(judged[way][s].tolist(), truth)["balanced_accuracy"]

@@ -72,7 +72,7 @@ def gate_verdict(plan: RankingPlan, gates: list[dict]) -> str:
     return "stop" if any(g["budget_minutes"] >= deadline - 1e-6 for g in gates) else "continue"
 
 
-def _from_chunk(start, chunks, k: int):
+def start_at_chunk(start, chunks, k: int):
     """``start`` moved to the recorded frame of its ``k``-th chunk: that frame, its state, the
     actions from there, the chunks that remain."""
     item = chunks[chunks.episode_chunks(start.episode)[k]]
@@ -131,7 +131,7 @@ def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[in
     return np.concatenate(rows, axis=0)
 
 
-def _measure_cube(chunks, start, records, spec, cube: dict, judged: bool, outcome: bool, picture: bool):
+def measure_cube(chunks, start, records, spec, cube: dict, judged: bool, outcome: bool, picture: bool):
     """Append a full replay's cube at each chunk's end (recorded, generated), in every view, to
     ``cube[view]``; its picture strip when ``picture``."""
     items = chunks.episode_chunks(start.episode)[:len(records)]
@@ -173,7 +173,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
         for start in episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks):
             start = dataclasses.replace(start, seed=start.seed + SEED_STRIDE * seed)  # seed 0: the single-seed gate's
             for k in range(min(plan.chunks, len(chunks.episode_chunks(start.episode)))):
-                s = _from_chunk(start, chunks, k)
+                s = start_at_chunk(start, chunks, k)
                 records = list(rollout_episode(model, online, recorded_actions_policy(s.recorded_actions), s,
                                                steps=plan.steps))
                 last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
@@ -181,7 +181,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
                 judged = bool(judge.judge([judged_frames(s.episode, last, spec.views, s.task, online)])[0])
                 verdicts[k].append((judged, outcome))
                 if k == 0 and seed == 0:
-                    strip = _measure_cube(chunks, start, records, spec, cube, judged, outcome,
+                    strip = measure_cube(chunks, start, records, spec, cube, judged, outcome,
                                           picture=shown[outcome] < pictures // 2)
                     if strip is not None:
                         shown[outcome] += 1
