@@ -128,7 +128,7 @@ def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] 
                 records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,
                                                steps=plan.steps, scene=scene, intervene=intervene))
                 if from_chunk == 0:
-                    measure_cube(chunks, start, records, spec, cubes[way], False, False, picture=False)
+                    measure_cube(chunks, start, records, spec, cubes[way])
                 last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
                 judged[way][s, j] = judge.judge([judged_frames(start.episode, last, spec.views, start.task, online)])[0]
             score = verdict_scores(judged[way][s].tolist(), truth)["balanced_accuracy"]

@@ -131,9 +131,10 @@ def _strip(recorded: torch.Tensor, generated: torch.Tensor, spec, times: list[in
     return np.concatenate(rows, axis=0)
 
 
-def measure_cube(chunks, start, records, spec, cube: dict, judged: bool, outcome: bool, picture: bool):
+def measure_cube(chunks, start, records, spec, cube: dict, *, picture: bool = False, judged: bool = False,
+                 outcome: bool = False):
     """Append a full replay's cube at each chunk's end (recorded, generated), in every view, to
-    ``cube[view]``; its picture strip when ``picture``."""
+    ``cube[view]``; its picture strip when ``picture`` (captioned with ``outcome`` and how it was ``judged``)."""
     items = chunks.episode_chunks(start.episode)[:len(records)]
     recorded = unit_frames(torch.cat([chunks[i]["future"] for i in items]))
     generated = torch.cat([r.frames for r in records])
@@ -181,8 +182,8 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
                 judged = bool(judge.judge([judged_frames(s.episode, last, spec.views, s.task, online)])[0])
                 verdicts[k].append((judged, outcome))
                 if k == 0 and seed == 0:
-                    strip = measure_cube(chunks, start, records, spec, cube, judged, outcome,
-                                          picture=shown[outcome] < pictures // 2)
+                    strip = measure_cube(chunks, start, records, spec, cube, judged=judged, outcome=outcome,
+                                         picture=shown[outcome] < pictures // 2)
                     if strip is not None:
                         shown[outcome] += 1
                         strips.append(strip)
