@@ -9,6 +9,7 @@ explains the Ctrl-C design: worker processes, libraries that swallow the interru
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import os
@@ -26,6 +27,7 @@ INTERRUPTED = "interrupted (a build keeps its finished episodes: rerun the same 
 __all__ = ["cpu_cores", "run_command", "exit_process", "environment_problem", "interrupted", "quiet_libraries",
            "silence_progress_bars", "quiet_startup_interrupts", "note_interrupts", "interrupt_pending",
            "raise_if_interrupted", "block_interrupts_in_this_thread", "quiet_worker_interrupts", "run_as_job",
+           "native_stderr_silenced",
            "EXIT_OK", "EXIT_BUG", "EXIT_BAD_INPUT", "EXIT_ENVIRONMENT", "EXIT_INTERRUPTED", "INTERRUPTED"]
 
 # errno -> what the user can do about it
@@ -209,6 +211,20 @@ def _silence_native_stderr() -> None:
         os.dup2(null, 2)
     finally:
         os.close(null)
+
+
+@contextlib.contextmanager
+def native_stderr_silenced():
+    """fd 2 to /dev/null for the block, then back: for a native call whose message says nothing
+    to the user (an aborted encoder's complaint that it was freed before its stream ended)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        _silence_native_stderr()
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def _worker_interrupt(signum, frame) -> None:

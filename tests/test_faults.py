@@ -572,6 +572,42 @@ def test_a_video_writer_stays_quiet_after_lerobot_restores_ffmpegs_logging(tmp_p
     assert "libx264rgb" in parts["unguarded"]
 
 
+ABORTED_SVT_WRITER = """
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from imac_data.dataset.videos import VideoEncoding, VideoWriter
+
+for how in ("abort", "unguarded"):
+    writer = VideoWriter(Path(sys.argv[1]) / f"{how}.mp4", VideoEncoding.lerobot_default(), 10, 48, 64)
+    writer.write(np.zeros((5, 48, 64, 3), np.uint8))
+    print(f"--{how}--", file=sys.stderr, flush=True)
+    if how == "abort":
+        writer.abort()
+    else:  # the same close without the writer's guard, the encoder freed as its reference goes
+        writer.container.close()
+        writer.stream = None
+    writer = None  # as a build unwinds: the writer goes too
+    print(f"--{how} done--", file=sys.stderr, flush=True)
+"""
+
+
+def test_an_aborted_svt_av1_writer_stays_quiet_in_the_commands_own_process(tmp_path):
+    """The command's own process builds episodes too (the pool's first worker), without a pool
+    worker's silenced fd 2: an SVT-AV1 encoder it aborts after Ctrl-C printed "deinit called
+    without sending EOS!" above the one line (CI, the pool Ctrl-C test). ``abort`` frees the
+    encoder quietly; ``unguarded`` shows the library's line, so the quiet is abort's doing."""
+    env = {**os.environ, "SVT_LOG": "1"}  # errors only, as the commands set it
+    done = subprocess.run([sys.executable, "-c", ABORTED_SVT_WRITER, str(tmp_path)], env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    parts = done.stderr.split("--")
+    assert parts[1:4] == ["abort", "\n", "abort done"], done.stderr
+    assert "deinit called without sending EOS" in parts[6], done.stderr
+
+
 def test_environment_errors_are_recognised_however_they_arrive():
     """From a pool worker (pickled), wrapped by a library (chained), or with only the text kept
     (pyarrow, PyAV): still an environment fault; anything else is a bug."""

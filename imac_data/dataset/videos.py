@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from imac_data import lerobot_compat as lr
+from imac_data.console import native_stderr_silenced
 from imac_data.core.depth_map import PIX_FMT as DEPTH_MAP_PIX_FMT
 from imac_data.core.depth_map import QMAX
 from imac_data.errors import InputError
@@ -304,11 +305,15 @@ class VideoWriter:
                 self.container.close()
 
     def abort(self) -> None:
-        with quiet_libav():
+        """Close without ending the stream (the caller deletes the file). The encoder is freed
+        here, quietly: SVT-AV1 reports one freed mid-stream ("deinit called without sending
+        EOS!") on fd 2, which after Ctrl-C would stand above the command's one line."""
+        with quiet_libav(), native_stderr_silenced():
             try:
                 self.container.close()
             except Exception:  # noqa: BLE001 - already failing; the file is deleted anyway
                 pass
+            self.stream = None  # the last reference: the encoder is freed now, inside the silence
 
 
 def encode_video(path: str | Path, frames, *, fps: int, encoding: VideoEncoding | None = None) -> Path:
