@@ -15,8 +15,8 @@ Past the preset's budget (``--minutes``) the preset has no gate; the baseline is
     python -m benchmarks.cpu_ablation first-frame --from-step 5627 --minutes 240 --baseline reference-noise
 
 The arm lives in ``<work>/runs/<arm>`` (checkpoint, log, gates); an interrupted call resumes. The
-first-frame arm's branch widens the checkpoint (:func:`imac_model.models.checkpoint.add_first_frame`),
-so it starts as the model it branches from. The GPU preset's ablations, trained side by side on the
+first-frame and scene-warp arms' branches widen the checkpoint (:func:`imac_model.models.checkpoint.add_first_frame`,
+:func:`~imac_model.models.checkpoint.add_scene_warp`), so they start as the model they branch from. The GPU preset's ablations, trained side by side on the
 pack, are :mod:`benchmarks.ablation`."""
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from imac_model.experiments.ranking.benchmark import internal, train_command
 from imac_model.experiments.ranking.gate import GATED_MODE, read_gates
 from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.stages import run_all
-from imac_model.models.checkpoint import SPEC, add_first_frame
+from imac_model.models.checkpoint import SPEC, add_first_frame, add_scene_warp
 from imac_model.training.log import read_log, write_log
 
 ARMS = {  # ablation -> plan -> (the arm's run, what it changes)
@@ -44,6 +44,10 @@ ARMS = {  # ablation -> plan -> (the arm's run, what it changes)
     # clips of two chunks, with the reference noise of the arm it continues: every later chunk, the grasp chunk
     # among them, from the model's own last frame, whose wrist view loses the grasp (docs/ranking.md)
     "rollout2": lambda plan: ("motion_contact_rollout2", {"flow.reference_noise": 0.3, "rollout.chunks": 2}),
+    # the reference scene splatted into the future cameras, with the reference noise of the arm it continues: tells
+    # the wrist view where the cube lands as the camera moves over it (docs/world-model.md, "The scene-warp stream")
+    "scene-warp": lambda plan: ("motion_contact_scene_warp", {"flow.reference_noise": 0.3,
+                                                              "conditioning.scene_warp": True}),
     # a tenth of the samples without controls, so the arm can be sampled with classifier-free guidance
     "guidance": lambda plan: ("motion_contact_guidance", {"flow.reference_noise": 0.3, "conditioning.dropout": 0.1}),
 }
@@ -60,6 +64,8 @@ def respec(checkpoint: Path, changes: dict) -> None:
     trainer resumes it as the arm's model; a first-frame arm's weights widened first."""
     if changes.get("conditioning.first_frame"):
         add_first_frame(checkpoint)
+    if changes.get("conditioning.scene_warp"):
+        add_scene_warp(checkpoint)
     spec = json.loads((checkpoint / SPEC).read_text())
     for key, value in changes.items():
         section, _, name = key.rpartition(".")

@@ -24,7 +24,10 @@ from imac_data.errors import InputError
 
 MODES = ("none", "motion", "motion+contact", "action-vector")
 CONTROL_STREAMS = ("motion", "contact_s2g", "contact_r2s")  # the order of paper eq. 2: P_m, P_s2g, P_r2s
-CONTACT_STREAMS = CONTROL_STREAMS[1:]  # those rebuilt from the scene's depth at a chunk boundary
+CONTACT_STREAMS = CONTROL_STREAMS[1:]  # those the dataset stores that are rebuilt from the scene's depth
+SCENE_WARP = "scene_warp"  # not in the paper: the reference scene splatted into the future cameras (data.scene_warp)
+DERIVED_STREAMS = (SCENE_WARP,)  # made from a chunk's reference, state and actions, never stored in the dataset
+REBUILT_STREAMS = CONTACT_STREAMS + DERIVED_STREAMS  # those a rollout rebuilds from the reference frame's depth
 
 
 def streams_of_mode(mode: str) -> tuple[str, ...]:
@@ -146,9 +149,15 @@ class ConditioningConfig:
     # v = v_uncond + guidance (v_cond - v_uncond), so the controls' effect is scaled (1 = the conditional model)
     dropout: float = 0.0
     guidance: float = 1.0
+    # one more control stream (not in the paper): the reference frame's scene, robot removed, splatted into each
+    # view's camera at each future configuration, so a moving wrist camera is told where the scene lands
+    scene_warp: bool = False
 
     def __post_init__(self) -> None:
         _positive(self, "action_hidden", "conditioning")
+        if self.scene_warp and not streams_of_mode(self.mode):
+            raise InputError(f"conditioning.scene_warp: a control stream, so it needs a mode with control images "
+                             f"(motion or motion+contact), not {self.mode!r}")
         _positive(self, "action_layers", "conditioning")
         if not 0 <= self.dropout < 1:
             raise InputError(f"conditioning.dropout: a share in [0, 1) (got {self.dropout})")
@@ -162,7 +171,7 @@ class ConditioningConfig:
 
     @property
     def streams(self) -> tuple[str, ...]:
-        return streams_of_mode(self.mode)
+        return streams_of_mode(self.mode) + ((SCENE_WARP,) if self.scene_warp else ())
 
 
 @dataclass(frozen=True)

@@ -22,16 +22,17 @@ from imac_data.core.depth import DepthCodec
 from imac_data.errors import InputError
 from imac_model.config import BackboneConfig, ConditioningConfig, FlowConfig, ModelSpec, UNetConfig
 from imac_model.data.batch import ChunkBatch
+from imac_model.data.depth import decode_depth
 from imac_model.models.backbones.build import build_backbone
 from imac_model.models.checkpoint import (
     add_first_frame,
+    add_scene_warp,
     load_world_model,
     read_spec,
     read_trainer_state,
     save_checkpoint,
 )
 from imac_model.models.world_model import WorldModel
-from imac_model.pipelines.online_controls import decode_depth
 
 H, SIDE, SQUARE = 2, 16, 3
 CODEC = DepthCodec.preset("manipulation")
@@ -228,3 +229,43 @@ def test_a_checkpoint_widened_for_the_first_frame_computes_what_it_did(tmp_path)
     wide(batch, generator=g).loss.backward()
     resumed.step()
     assert wide.backbone.conv_in.weight[:, :8].abs().sum() > 0  # training reaches the first frame's slice
+
+
+def test_a_checkpoint_given_the_scene_warp_computes_what_it_did(tmp_path):
+    """``add_scene_warp`` (an ablation's branch): the new stream's projection is zero, so the model gives
+    the original's loss and samples whatever warp it is shown; every parameter's AdamW moments stay
+    with it though the new layer sits between them; training reaches the new layer."""
+    torch.manual_seed(0)
+    spec = unet_spec()
+    spec = ModelSpec(**{**spec.__dict__, "conditioning": ConditioningConfig(mode="motion")})
+    model = WorldModel(spec)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
+    g = torch.Generator().manual_seed(1)
+    batch, _ = batch_of(g, 4)
+    model(batch, generator=g).loss.backward()
+    opt.step()
+    path = save_checkpoint(tmp_path / "step_000001", model=model, spec=spec,
+                           trainer_state={"optimizer": opt.state_dict(), "step": 1})
+    add_scene_warp(path)
+    assert read_spec(path).conditioning.streams == ("motion", "scene_warp")
+    wide, _ = load_world_model(path, weights="raw")
+    assert not wide.controls.layers["scene_warp"].weight.any()
+    batch.controls["scene_warp"] = torch.rand(batch.controls["motion"].shape, generator=g)
+    model.eval()
+    wide.eval()
+    tau, noise = torch.full((4,), 0.4), torch.randn(4, 4, H, SIDE, SIDE, generator=g)
+    with torch.no_grad():
+        assert torch.allclose(wide(batch, tau=tau, noise=noise).loss, model(batch, tau=tau, noise=noise).loss)
+    assert torch.allclose(model.sample(batch, noise=noise).frames, wide.sample(batch, noise=noise).frames, atol=1e-6)
+    resumed = torch.optim.AdamW(wide.parameters(), lr=1e-3)
+    resumed.load_state_dict(read_trainer_state(path)["optimizer"])
+    before = dict(zip([k for k, _ in model.named_parameters()], opt.state_dict()["state"].values()))
+    after = {k: resumed.state_dict()["state"].get(i) for i, (k, _) in enumerate(wide.named_parameters())}
+    assert set(before) == {k for k, v in after.items() if v is not None}
+    for k, moments in before.items():
+        assert torch.equal(after[k]["exp_avg"], moments["exp_avg"]), k
+    wide.train()
+    wide(batch, generator=g).loss.backward()
+    resumed.step()
+    assert wide.controls.layers["scene_warp"].weight.abs().sum() > 0
+

@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from imac_data.core.cameras import Camera, camera_from_dict, load_calibration
-from imac_data.core.contact.clouds import DEFAULT_GRIPPER_SPACING, GripperSurface
+from imac_data.core.contact.clouds import DEFAULT_DILATE_PX, DEFAULT_GRIPPER_SPACING, GripperSurface, scene_cloud
 from imac_data.core.contact.images import ContactChunk, contact_chunk
 from imac_data.core.contact.workspace import Workspace, as_workspace, resolve_workspace, saturation_depth
 from imac_data.core.depth import DepthCodec, resize_depth
@@ -31,6 +31,7 @@ from imac_data.core.render import make_renderer
 from imac_data.core.robot.description import check_description, description_manifest
 from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.core.robot.platforms import platform as get_platform
+from imac_data.core.scene_warp import DEFAULT_FILL, splat
 from imac_data.errors import InputError
 from imac_data.layout import URDF_NAME, description_dir
 from imac_data.metadata import RIG_KEYS, dataset_root, imac_block
@@ -213,6 +214,14 @@ class Rig:
         rig._renderer, rig._gripper = self._renderer, self._gripper
         return rig
 
+    def for_views(self, views) -> Rig:
+        """The same rig with the cameras ``views`` alone, in that order (a model's views)."""
+        missing = [v for v in views if v not in self.cameras]
+        if missing:
+            raise InputError(f"rig: no camera(s) {missing} (has {self.names})")
+        return Rig(self.robot, {v: self.cameras[v] for v in views}, self.controller, self.state_names,
+                   self.gripper_spacing, self.threads, self.workspace)
+
     # ------------------------------------------------------------------ parts
 
     @property
@@ -371,6 +380,29 @@ class Rig:
         return contact_chunk(on(ref_depth.to(torch.float32)), on(self.intrinsics(hw)), on(seen.T_world_cam[0]),
                              on(seen.mask[0]), on(drawn.depth), on(drawn.T_world_cam), on(drawn.gripper_points),
                              device=device, **options)
+
+    def scene_warp(self, ref_rgb, ref_depth, seen: RobotViews, poses, *, dilate_px: int = DEFAULT_DILATE_PX,
+                   fill: int = DEFAULT_FILL) -> torch.Tensor:
+        """The scene-warp images of one chunk, uint8 ``(S, V, h, w, 3)``: the reference RGB
+        ``(V, h, w, 3)`` uint8 and depth ``(V, h, w)`` metres, the robot (``seen``'s mask, grown by
+        ``dilate_px``) removed and cropped to the rig's workspace, splatted into every camera at
+        ``poses (S, V, 4, 4)`` (:meth:`camera_poses` of the chunk's configurations); black where
+        no scene lands (:func:`~imac_data.core.scene_warp.splat`)."""
+        ref_rgb = torch.as_tensor(ref_rgb)
+        hw = tuple(ref_rgb.shape[1:3])
+        ref_depth = torch.as_tensor(ref_depth, dtype=torch.float32)
+        if tuple(ref_depth.shape[-2:]) != hw:
+            ref_depth = resize_depth(ref_depth, hw, name="reference depth")
+        if tuple(seen.mask.shape[-2:]) != hw:
+            raise InputError(f"scene warp: the robot was rendered at {tuple(seen.mask.shape[-2:])}, the reference "
+                             f"images are {hw}")
+        K = self.intrinsics(hw)
+        cloud = scene_cloud(ref_depth, K, seen.T_world_cam[0].float(), seen.mask[0], dilate_px=dilate_px,
+                            workspace=self.workspace)
+        colours = ref_rgb.reshape(-1, ref_rgb.shape[-1]).index_select(0, cloud.flat)
+        images, _ = splat(cloud.points, colours, K, torch.as_tensor(poses, dtype=torch.float32), hw,
+                          source_view=cloud.flat // (hw[0] * hw[1]), fill=fill)
+        return images
 
     def __repr__(self) -> str:
         return (f"Rig(robot={self.robot.name!r}, dof={self.dof}, cameras={self.names}, "

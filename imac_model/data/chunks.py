@@ -37,10 +37,11 @@ from torch.utils.data import Dataset
 
 from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
-from imac_model.config import CONTROL_STREAMS, DataConfig
+from imac_model.config import CONTROL_STREAMS, DERIVED_STREAMS, SCENE_WARP, DataConfig
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
 from imac_model.data.batch import collate
+from imac_model.data.scene_warp import SceneWarp
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,7 @@ def resolve_layout(info: dict, data: DataConfig, streams: Sequence[str], *, spat
     views = tuple(data.views) if data.views else dataset_meta.camera_names(info)
     if not views:
         raise InputError("the dataset has no camera streams (observation.images.*)")
-    needed = ("rgb", "depth") + tuple(streams)
+    needed = ("rgb", "depth") + tuple(s for s in streams if s not in DERIVED_STREAMS)
     missing = dataset_meta.missing_features(info, needed, views)
     if missing:
         raise InputError(f"the dataset lacks streams that conditioning mode {mode!r} needs: {missing}; build it "
@@ -133,6 +134,11 @@ class ChunkDataset(Dataset):
     def __init__(self, repo_id: str, layout: ChunkLayout, *, root=None, episodes: Sequence[int] | None = None,
                  cache: str = "memory", cache_dir=None, video_backend: str | None = None):
         self.layout = layout
+        # derived streams are made from the decoded items, which are cached without them (so that runs with and
+        # without them share the decoding)
+        self.derived = tuple(s for s in layout.streams if s in DERIVED_STREAMS)
+        layout = self.decoded_layout = replace(layout, streams=tuple(s for s in layout.streams
+                                                                     if s not in DERIVED_STREAMS))
         H, fps = layout.chunk, layout.fps
         frames = [k / fps for k in range(H + 1)]
         delta = {dataset_meta.ACTION: [k / fps for k in range(H)]}
@@ -154,6 +160,12 @@ class ChunkDataset(Dataset):
         for e in eps:
             self.success[e] = None if success[e] is None else bool(success[e])
             self.index += [(int(starts[e]) + r, e, r) for r in chunk_starts(int(lengths[e]), H)]
+        if self.derived and not self.has_state:
+            raise InputError(f"{repo_id}: stream(s) {list(self.derived)} are made from each chunk's reference state, "
+                             f"and the dataset has no {dataset_meta.STATE!r}")
+        self.scene_warp = (SceneWarp.from_dataset(meta, self.lerobot.root, layout.views, layout.view_hw)
+                           if SCENE_WARP in self.derived else None)
+        self._derived: dict[int, dict] = {}
         self.first_item = {e: i for i, (_, e, r) in enumerate(self.index) if r == 0}  # episode -> its chunk 0
         self._first_frames: dict[int, torch.Tensor] = {}
         self.cache: dict[int, dict] | None = {} if cache == "memory" else None
@@ -174,7 +186,7 @@ class ChunkDataset(Dataset):
         ``streams`` instead of the layout's own, if given)."""
         root = Path(self.lerobot.root)
         files = sorted(p for p in (root / "meta").rglob("*") if p.is_file())
-        layout = self.layout if streams is None else replace(self.layout, streams=tuple(streams))
+        layout = self.decoded_layout if streams is None else replace(self.decoded_layout, streams=tuple(streams))
         h = hashlib.sha256(repr((asdict(layout), self.index)).encode())
         for p in files:
             h.update(p.name.encode())
@@ -186,16 +198,28 @@ class ChunkDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict:
         if self.cache is not None and i in self.cache:
-            return self.cache[i]
-        item = self._load(i)
-        if self.cache is not None:
-            self.cache[i] = item
-        return item
+            item = self.cache[i]
+        else:
+            item = self._load(i)
+            if self.cache is not None:
+                self.cache[i] = item
+        return self._with_derived(i, item) if self.derived else item
+
+    def _with_derived(self, i: int, item: dict) -> dict:
+        """``item`` with its derived streams (kept beside the cache, which holds decoded items)."""
+        if i not in self._derived:
+            warp = self.scene_warp.images(item["reference"][None].float() / 255.0, item["state"][None],
+                                          item["actions"][None])[0]
+            extra = {f"control.{SCENE_WARP}": _to_uint8(mosaic.controls(warp))}
+            if self.cache is None:
+                return {**item, **extra}
+            self._derived[i] = extra
+        return {**item, **self._derived[i]}
 
     def _load(self, i: int) -> dict:
         row, episode, frame = self.index[i]
         raw = self.lerobot[row]
-        L = self.layout
+        L = self.decoded_layout
         rgb = torch.stack([mosaic.resize_frames(raw[dataset_meta.stream_key("rgb", v)], L.view_hw)
                            for v in L.views], dim=1)
         depth = torch.stack([mosaic.resize_frames(raw[dataset_meta.stream_key("depth", v)], L.view_hw, kind="depth")
@@ -230,6 +254,7 @@ class ChunkDataset(Dataset):
 
         todo = [i for i in range(len(self)) if i not in self.cache]
         if not todo:
+            self._preload_derived(progress)
             return
         loader = DataLoader(Subset(_Uncached(self), todo), batch_size=None, num_workers=num_workers)
         for i, item in zip(todo, tqdm(loader, total=len(todo), desc="decoding chunks", disable=not progress,
@@ -240,6 +265,15 @@ class ChunkDataset(Dataset):
             tmp = self.cache_file.with_suffix(f".{os.getpid()}.tmp")  # processes of one run may write it at once
             torch.save(self.cache, tmp)
             os.replace(tmp, self.cache_file)
+        self._preload_derived(progress)
+
+    def _preload_derived(self, progress: bool) -> None:
+        from tqdm.auto import tqdm
+
+        if self.derived:
+            for i in tqdm(range(len(self)), desc=f"deriving {', '.join(self.derived)}", disable=not progress,
+                          unit="chunk"):
+                self[i]
 
     def episode_chunks(self, episode: int) -> list[int]:
         """Item indices of one episode's chunks, in time order."""

@@ -25,8 +25,8 @@ from imac_data import lerobot_compat as lr
 from imac_data.core.depth import depth_codec_of
 from imac_data.errors import InputError
 from imac_data.layout import IMAGE_PREFIX, STATE, SUCCESS_COLUMN, depth_key, video_column
+from imac_model.data.depth import decode_depth
 from imac_model.evaluate.policies import python_object
-from imac_model.pipelines.online_controls import decode_depth
 
 
 @dataclass(frozen=True)

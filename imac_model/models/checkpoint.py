@@ -296,34 +296,62 @@ def add_first_frame(path: str | Path) -> None:
     (``conditioning.first_frame``), in place: the first frame is the first of the frame sequence, so
     every weight sized by it grows a zero slice at its front (weights, EMA, the optimizer's moments),
     and the model computes what it did until training teaches it to look (an ablation's branch)."""
-    import yaml
-    from safetensors.torch import save_file
-
     path = resolve_checkpoint(path)
-    if is_sharded(path):
-        raise InputError(f"{path}: a sharded checkpoint cannot be widened here; widen a plain one")
     spec = read_spec(path)
     if spec.conditioning.first_frame:
         return
-    spec = replace(spec, conditioning=replace(spec.conditioning, first_frame=True))
-    model = WorldModel(spec)
+    model = WorldModel(replace(spec, conditioning=replace(spec.conditioning, first_frame=True)))
     shapes = {k: v.shape for k, v in model.state_dict().items()}
-    tmp = path.with_name(path.name + ".widening")  # widened beside it, then swapped in whole
-    shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(path, tmp)
-    save_file(_widen_front(read_weights(path / WEIGHTS), shapes), str(tmp / WEIGHTS))
-    if (path / EMA).is_file():
-        save_file(_widen_front(read_weights(path / EMA), shapes), str(tmp / EMA))
     state = read_trainer_state(path)
     names = [k for k, p in model.named_parameters() if p.requires_grad]  # the optimizer's parameter order
     for i, moments in state["optimizer"]["state"].items():
         tensors = {m: v for m, v in moments.items() if torch.is_tensor(v) and v.ndim}
         moments.update(_widen_front(tensors, {m: shapes[names[int(i)]] for m in tensors}))
+    _rewrite(path, model.spec, lambda weights: _widen_front(weights, shapes), state, "first_frame")
+
+
+def add_scene_warp(path: str | Path) -> None:
+    """Turn a plain checkpoint into one of the same model with the scene-warp control stream
+    (``conditioning.scene_warp``), in place: the stream's projection is zero like any new control
+    layer's (weights and EMA), the optimizer's moments follow their parameters to their new
+    places, so the model computes what it did until training teaches it to look (an ablation's branch)."""
+    path = resolve_checkpoint(path)
+    spec = read_spec(path)
+    if spec.conditioning.scene_warp:
+        return
+    model = WorldModel(replace(spec, conditioning=replace(spec.conditioning, scene_warp=True)))
+    fresh = model.state_dict()
+    before = [k for k, p in WorldModel(spec).named_parameters() if p.requires_grad]
+    after = [k for k, p in model.named_parameters() if p.requires_grad]
+    state = read_trainer_state(path)
+    optimizer = state["optimizer"]
+    optimizer["state"] = {after.index(before[int(i)]): m for i, m in optimizer["state"].items()}
+    if len(optimizer["param_groups"]) != 1:
+        raise InputError(f"{path}: the optimizer has {len(optimizer['param_groups'])} parameter groups; "
+                         "the scene warp is added to checkpoints with one")
+    optimizer["param_groups"][0]["params"] = list(range(len(after)))
+    _rewrite(path, model.spec, lambda weights: {k: weights.get(k, fresh[k]) for k in fresh}, state, "scene_warp")
+
+
+def _rewrite(path: Path, spec: ModelSpec, weights_of, state: dict, switch: str) -> None:
+    """Write a branched checkpoint beside ``path`` and swap it in whole: its weights and EMA through
+    ``weights_of``, the trainer ``state``, the ``spec`` and the run's ``conditioning.<switch>`` on."""
+    import yaml
+    from safetensors.torch import save_file
+
+    if is_sharded(path):
+        raise InputError(f"{path}: a sharded checkpoint cannot be branched here; branch a plain one")
+    tmp = path.with_name(path.name + ".widening")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(path, tmp)
+    save_file(weights_of(read_weights(path / WEIGHTS)), str(tmp / WEIGHTS))
+    if (path / EMA).is_file():
+        save_file(weights_of(read_weights(path / EMA)), str(tmp / EMA))
     torch.save(state, tmp / STATE)
     save_config(spec, tmp / SPEC)
     run = run_config_of(path)
     if run is not None:
-        run.setdefault("conditioning", {})["first_frame"] = True
+        run.setdefault("conditioning", {})[switch] = True
         (tmp / CONFIG).write_text(yaml.safe_dump(run, sort_keys=False))
     shutil.rmtree(path)
     os.replace(tmp, path)

@@ -22,42 +22,18 @@ from pathlib import Path
 
 import torch
 
-from imac_data.core.depth import resize_depth, walk_distance
+from imac_data.core.contact.clouds import DEFAULT_DILATE_PX
+from imac_data.core.depth import resize_depth
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
 from imac_data.recipes import AugmentSettings
-from imac_model.config import CONTACT_STREAMS
+from imac_model.config import CONTACT_STREAMS, CONTROL_STREAMS, DERIVED_STREAMS, SCENE_WARP
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
+from imac_model.data.depth import DEFAULT_MAX_WALK_DISTANCE, decode_depth
+from imac_model.data.scene_warp import SceneWarp
 
-DEFAULT_MAX_WALK_DISTANCE = 0.1  # RGB units in [0, 1]: about 25 8-bit levels off the codec's colour walk
-DEFAULT_INVALID_CODES = 2.0  # walk positions within 2 codes of black (depth < 0.6 mm, manipulation) = invalid
 RESOLUTIONS = ("model", "dataset")
-
-
-# --------------------------------------------------------------------------- depth
-
-
-def decode_depth(colour: torch.Tensor, codec, *, max_walk_distance: float = DEFAULT_MAX_WALK_DISTANCE,
-                 invalid_codes: float = DEFAULT_INVALID_CODES) -> tuple[torch.Tensor, torch.Tensor]:
-    """Generated colour depth ``(..., 3, h, w)`` (float, nominally [0, 1]) -> ``(metres (..., h, w)
-    float32, invalid (..., h, w) bool)``: metres are 0 wherever ``invalid``, which holds for
-    colours farther than ``max_walk_distance`` from the codec's walk, (near-)black colours and
-    non-finite values. Never NaN."""
-    if not 0 < max_walk_distance:
-        raise InputError(f"max_walk_distance must be > 0 (RGB units), got {max_walk_distance}")
-    colour = torch.as_tensor(colour)
-    if colour.ndim < 3 or colour.shape[-3] != 3:
-        raise InputError(f"decode_depth: colours must be (..., 3, h, w), got {tuple(colour.shape)}")
-    if not colour.is_floating_point():
-        colour = colour.float() / 255.0
-    colour = colour.float()
-    finite = torch.isfinite(colour).all(dim=-3)
-    safe = torch.where(finite[..., None, :, :], colour, torch.zeros_like(colour))
-    off_walk = ~(walk_distance(safe, channel_axis=-3) <= max_walk_distance)
-    metres = codec.decode(safe, channel_axis=-3, invalid_codes=invalid_codes).float()
-    invalid = ~finite | off_walk | ~(metres > 0) | ~torch.isfinite(metres)
-    return torch.where(invalid, torch.zeros_like(metres), metres), invalid
 
 
 # --------------------------------------------------------------------------- results
@@ -103,16 +79,13 @@ class OnlineControls:
     def __init__(self, rig, codec, views: Sequence[str], view_hw: tuple[int, int], source_hw: tuple[int, int], *,
                  contact: Mapping | None = None, resolution: str = "model",
                  max_walk_distance: float = DEFAULT_MAX_WALK_DISTANCE, device=None):
-        missing = [v for v in views if v not in rig.cameras]
-        if missing:
-            raise InputError(f"online controls: the rig has no camera(s) {missing} (has {rig.names})")
         if resolution not in RESOLUTIONS:
             raise InputError(f"rollout.resolution: must be one of {list(RESOLUTIONS)}, got {resolution!r}")
         if not 0 < max_walk_distance:
             raise InputError(f"rollout.max_walk_distance: must be > 0, got {max_walk_distance}")
-        cams = {v: rig.cameras[v] for v in views}
-        self.rig = Rig(rig.robot, cams, rig.controller, rig.state_names, rig.gripper_spacing, rig.threads,
-                       rig.workspace)
+        self.rig = rig.for_views(views)
+        self.scene = SceneWarp(self.rig, codec, views, view_hw, dilate_px=dict(contact or {}).get("dilate_px", DEFAULT_DILATE_PX),
+                               max_walk_distance=max_walk_distance)
         self.codec = codec
         self.views = tuple(views)
         self.view_hw = tuple(int(x) for x in view_hw)
@@ -224,15 +197,15 @@ class OnlineControls:
         return decode_depth(colour, self.codec, max_walk_distance=self.max_walk_distance)
 
     def controls(self, reference: torch.Tensor, q_ref: torch.Tensor, actions: torch.Tensor,
-                 streams: Sequence[str] = ("motion",) + CONTACT_STREAMS, *, motion: torch.Tensor | None = None,
+                 streams: Sequence[str] = CONTROL_STREAMS, *, motion: torch.Tensor | None = None,
                  include_reference_step: bool = False) -> OnlineChunkControls:
         """The control mosaics of the chunks that start at ``reference`` ``(B, 3, 2h, V w)`` (a
         generated or recorded mosaic frame in [0, 1]) from the reference states ``q_ref (B, D)``
         and the chunk's actions ``(B, H, D)``: ``streams`` of ``motion``, ``contact_s2g``,
-        ``contact_r2s``. ``motion``: per-view motion images ``(B, H, V, 3, h, w)`` to use instead of
+        ``contact_r2s``, ``scene_warp`` (always at the model's view size). ``motion``: per-view motion images ``(B, H, V, 3, h, w)`` to use instead of
         rendering them (e.g. a dataset's stored ones, which are the same function of the actions).
         Outputs are on the reference's device."""
-        unknown = [s for s in streams if s not in ("motion",) + CONTACT_STREAMS]
+        unknown = [s for s in streams if s not in CONTROL_STREAMS + DERIVED_STREAMS]
         if unknown:
             raise InputError(f"online controls: unknown stream(s) {unknown}")
         dev = reference.device
@@ -249,6 +222,8 @@ class OnlineControls:
             out["contact_s2g"] = mosaic.controls(c.s2g.to(dev))
             out["contact_r2s"] = mosaic.controls(c.r2s.to(dev))
             caps = c.caps
+        if SCENE_WARP in streams:
+            out[SCENE_WARP] = mosaic.controls(self.scene.images(reference, q_ref, actions, q_future=q_future).to(dev))
         return OnlineChunkControls(controls={s: out[s] for s in streams}, configurations=q_future,
                                    next_state=q_future[:, -1], depth=depth, invalid_fraction=invalid_fraction,
                                    caps=caps)

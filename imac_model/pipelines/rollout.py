@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from imac_data.errors import InputError
-from imac_model.config import CONTACT_STREAMS
+from imac_model.config import REBUILT_STREAMS
 from imac_model.data.batch import ChunkBatch
 
 if TYPE_CHECKING:  # the rig and its renderer are not needed to train from a pack (the GPU machine lacks them)
@@ -36,7 +36,7 @@ class RolloutOutput:
 
 
 def _contact_active(streams: Sequence[str]) -> bool:
-    return any(s in streams for s in CONTACT_STREAMS)
+    return any(s in streams for s in REBUILT_STREAMS)
 
 
 def last_frame(model, out) -> torch.Tensor:
@@ -87,7 +87,7 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
                                          "chunk; contact images cannot be rebuilt")
                     q_ref = online.configurations(q_prev, actions_prev)[:, -1].to(batch.actions)
                 rebuilt = online.controls(reference, q_ref, batch.actions,
-                                          streams=tuple(s for s in streams if s in CONTACT_STREAMS))
+                                          streams=tuple(s for s in streams if s in REBUILT_STREAMS))
                 controls.update(rebuilt.controls)
                 result.invalid_depth.append(float(rebuilt.invalid_fraction.mean()))
             chunk = replace(batch, reference=reference, controls=controls)

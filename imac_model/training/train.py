@@ -25,7 +25,7 @@ import torch
 
 from imac_data.errors import InputError
 from imac_data.metadata import dataset_info
-from imac_model.config import CONTACT_STREAMS, ModelSpec, RunConfig, save_config
+from imac_model.config import REBUILT_STREAMS, ModelSpec, RunConfig, save_config
 from imac_model.data.chunks import ChunkDataset, action_stats, open_metadata, resolve_layout, split_episodes
 from imac_model.models import checkpoint as ckpt
 from imac_model.models.backbones.build import spatial_multiple, temporal_factor
@@ -341,7 +341,7 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
     model, optimizer = runtime.prepare(model, optimizer)
     device = runtime.device
     online = None
-    if rc.chunks > 1 and any(s in spec.conditioning.streams for s in CONTACT_STREAMS):
+    if rc.chunks > 1 and any(s in spec.conditioning.streams for s in REBUILT_STREAMS):
         contact_device = device if rc.device == "auto" else torch.device(rc.device)
         online = OnlineControls.from_dataset(train_set.lerobot.root, spec, info=dataset_info(meta),
                                              resolution=rc.resolution, max_walk_distance=rc.max_walk_distance,

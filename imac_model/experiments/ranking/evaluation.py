@@ -23,6 +23,7 @@ from imac_data.layout import image_key
 from imac_data.metadata import dataset_info
 from imac_model.data import mosaic
 from imac_model.data.batch import unit_frames
+from imac_model.data.depth import decode_depth
 from imac_model.evaluate import open_loop
 from imac_model.evaluate.closed_loop import (
     ClosedLoopConfig,
@@ -45,7 +46,7 @@ from imac_model.experiments.ranking.perception import RED_THRESHOLD, interior, r
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan, slug
 from imac_model.experiments.ranking.policies import WORKSPACE
 from imac_model.models.checkpoint import load_world_model
-from imac_model.pipelines.online_controls import OnlineControls, decode_depth
+from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.schedulers import flow
 
