@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from imac_data.errors import InputError
-from imac_model.config import CONTROL_STREAMS, ModelSpec, parse, streams_of_mode
+from imac_model.config import ModelSpec, parse, streams_of_mode
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.checkpoint import save_checkpoint
 from imac_model.models.world_model import WorldModel
@@ -51,8 +51,8 @@ def export_pack(items: list[dict], held_out: list[bool], spec: ModelSpec, path: 
         "held_out": np.asarray(held_out, dtype=bool),
         SPEC_KEY: np.array(json.dumps(spec.to_dict())),
     }
-    for s in CONTROL_STREAMS:
-        arrays[f"control.{s}"] = np.stack([it[f"control.{s}"][:, :, :h].numpy() for it in items])
+    for key in [k for k in items[0] if k.startswith("control.")]:  # every stream the items carry, derived ones too
+        arrays[key] = np.stack([it[key][:, :, :h].numpy() for it in items])
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp.npz")
