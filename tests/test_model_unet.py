@@ -193,18 +193,24 @@ def test_a_model_conditioned_on_the_first_frame_paints_what_only_that_frame_show
         model.sample(ChunkBatch(reference=batch.reference, actions=batch.actions))
 
 
-def test_a_checkpoint_widened_for_the_first_frame_computes_what_it_did(tmp_path):
-    """``add_first_frame`` (an ablation's branch): the widened checkpoint's model gives the original's
-    loss and samples whatever first frame it is shown, and its trainer state resumes an AdamW."""
+def trained_one_step() -> tuple[WorldModel, torch.optim.AdamW, ChunkBatch, torch.Generator]:
+    """A motion-mode U-Net after one AdamW step (what a branch starts from)."""
     torch.manual_seed(0)
     spec = unet_spec()
-    spec = ModelSpec(**{**spec.__dict__, "conditioning": ConditioningConfig(mode="motion")})
-    model = WorldModel(spec)
+    model = WorldModel(ModelSpec(**{**spec.__dict__, "conditioning": ConditioningConfig(mode="motion")}))
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
     g = torch.Generator().manual_seed(1)
     batch, _ = batch_of(g, 4)
     model(batch, generator=g).loss.backward()
     opt.step()
+    return model, opt, batch, g
+
+
+def test_a_checkpoint_widened_for_the_first_frame_computes_what_it_did(tmp_path):
+    """``add_first_frame`` (an ablation's branch): the widened checkpoint's model gives the original's
+    loss and samples whatever first frame it is shown, and its trainer state resumes an AdamW."""
+    model, opt, batch, g = trained_one_step()
+    spec = model.spec
     ema = {k: v.detach() * 0.5 for k, v in model.named_parameters()}
     path = save_checkpoint(tmp_path / "step_000001", model=model, spec=spec, ema=ema,
                            trainer_state={"optimizer": opt.state_dict(), "step": 1})
@@ -235,15 +241,8 @@ def test_a_checkpoint_given_the_scene_warp_computes_what_it_did(tmp_path):
     """``add_scene_warp`` (an ablation's branch): the new stream's projection is zero, so the model gives
     the original's loss and samples whatever warp it is shown; every parameter's AdamW moments stay
     with it though the new layer sits between them; training reaches the new layer."""
-    torch.manual_seed(0)
-    spec = unet_spec()
-    spec = ModelSpec(**{**spec.__dict__, "conditioning": ConditioningConfig(mode="motion")})
-    model = WorldModel(spec)
-    opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
-    g = torch.Generator().manual_seed(1)
-    batch, _ = batch_of(g, 4)
-    model(batch, generator=g).loss.backward()
-    opt.step()
+    model, opt, batch, g = trained_one_step()
+    spec = model.spec
     path = save_checkpoint(tmp_path / "step_000001", model=model, spec=spec,
                            trainer_state={"optimizer": opt.state_dict(), "step": 1})
     add_scene_warp(path)
