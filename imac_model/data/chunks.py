@@ -7,6 +7,8 @@ rule: chunk c has reference frame ``cH`` and future frames ``cH+1 .. cH+H``):
 * the reference frame and the H future frames, RGB and colour depth, every view,
   resized to the model's view size and laid out as six-panel mosaics;
 * the three control streams of the H future frames, duplicated vertically;
+* a derived stream (``scene_warp``, :mod:`imac_model.data.scene_warp`), made from the item's reference,
+  state and actions, and kept beside the cache of decoded items;
 * the actions ``a_{cH} .. a_{cH+H-1}``, the state at the reference, the episode's
   success label.
 
