@@ -25,6 +25,7 @@ mkdir -p "$OUT"
 PY=${PYTHON:-$(command -v python3 || command -v python)}
 [ -f "$PACK" ] || { echo "gpu_ranking: no tensor pack at $PACK (imac-model ranking --stages simulate,build,decode,pack)" >&2; exit 2; }
 echo "[gpu] $($PY --version) at $PY; torch $($PY -c 'import torch; print(torch.__version__, torch.cuda.is_available())')"
+"$PY" -c "import lzma" 2>/dev/null || { echo "gpu_ranking: $PY has no lzma module, and the pack's arrays are LZMA-compressed (imac_model/training/pack.py)" >&2; exit 2; }
 site=$(mktemp -d)
 if ! "$PY" -c "import yaml, safetensors" 2>/dev/null; then
   for wheel in "$(dirname "$PACK")"/wheels/*.whl; do "$PY" -m zipfile -e "$wheel" "$site"; done
