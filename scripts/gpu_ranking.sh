@@ -6,7 +6,8 @@
 # ABLATION=1 (or focus) also trains motion+contact with a uniform loss (focus_weight 0) as motion_contact_uniform,
 # the loss-weighting ablation (python -m benchmarks.ablation focus); ABLATION=rollout trains motion+contact without
 # rollout as motion_contact_no_rollout, the rollout ablation; ABLATION=first-frame trains motion+contact conditioned
-# on the episode's first frame as motion_contact_first_frame, the memory ablation. DROPOUT=P trains every run with a
+# on the episode's first frame as motion_contact_first_frame, the memory ablation; ABLATION=scene-warp trains it with the
+# scene-warp stream as motion_contact_scene_warp. DROPOUT=P trains every run with a
 # share P of its samples without controls (conditioning.dropout), so the models can be sampled with guidance. PyYAML and safetensors travel as wheels
 # beside the pack (runs/ranking_gpu/gpu/wheels/) when the machine lacks them. Each run comes back as one
 # file, $OUT/<run>.tar (model.json, model.safetensors: float16 EMA weights, log.jsonl), since the GPU
@@ -37,8 +38,9 @@ case "$ABLATION" in
   1|focus) runs+=("motion_contact_uniform motion+contact --focus-weight 0 --rollout-chunks $ROLLOUT") ;;
   rollout) runs+=("motion_contact_no_rollout motion+contact --rollout-chunks 1") ;;
   first-frame) runs+=("motion_contact_first_frame motion+contact --first-frame --rollout-chunks $ROLLOUT") ;;
+  scene-warp) runs+=("motion_contact_scene_warp motion+contact --scene-warp --rollout-chunks $ROLLOUT") ;;
   0) ;;
-  *) echo "gpu_ranking: ABLATION must be 0, 1 (focus), rollout or first-frame, got $ABLATION" >&2; exit 2 ;;
+  *) echo "gpu_ranking: ABLATION must be 0, 1 (focus), rollout, first-frame or scene-warp, got $ABLATION" >&2; exit 2 ;;
 esac
 pids=()
 for run in "${runs[@]}"; do

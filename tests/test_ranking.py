@@ -34,7 +34,9 @@ from imac_data.metadata import dataset_info
 from imac_data.sources.hdf5 import write_episode
 from imac_model.cli import main as model_main
 from imac_model.config import CONTROL_STREAMS, RunConfig, streams_of_mode
+from imac_model.data import mosaic
 from imac_model.data.chunks import open_metadata
+from imac_model.data.scene_warp import SceneWarp
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
@@ -488,11 +490,16 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
         rollout_loss(model, clip, None)
     # with the first frame as memory (ABLATION=first-frame), every chunk of a clip keeps its episode's first frame;
     # with DROPOUT, a share of the samples goes without controls, and the checkpoint can be sampled with guidance
+    # and with the scene-warp stream (ABLATION=scene-warp), which the pack carries, derived from the recorded chunks
     summary = train_pack(pack, "motion+contact", tmp_path / "first_frame", minutes=0.001, batch_size=16,
-                         rollout_chunks=2, first_frame=True, dropout=0.1, progress=lambda row: None)
-    assert summary["first_frame"] and summary["dropout"] == 0.1 and summary["steps"] >= 1
+                         rollout_chunks=2, first_frame=True, dropout=0.1, scene_warp=True, progress=lambda row: None)
+    assert summary["first_frame"] and summary["dropout"] == 0.1 and summary["scene_warp"] and summary["steps"] >= 1
     spec = load_world_model(tmp_path / "first_frame")[1]
-    assert spec.conditioning.first_frame and spec.conditioning.dropout == 0.1
+    assert spec.conditioning.first_frame and spec.conditioning.dropout == 0.1 and spec.conditioning.scene_warp
+    warp = pack.tensors.pop("control.scene_warp")
+    with pytest.raises(InputError, match=r"carries no \['scene_warp'\]"):
+        train_pack(pack, "motion+contact", tmp_path / "no_warp", minutes=0.001, scene_warp=True)
+    pack.tensors["control.scene_warp"] = warp
 
     probe = "import sys, imac_model.training.pack; print([m for m in ('mujoco', 'trimesh', 'lerobot', 'scipy', " \
             "'open3d', 'diffusers', 'cv2') if m in sys.modules])"
@@ -530,6 +537,11 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         h = pack.spec.view_height
         for s in CONTROL_STREAMS:
             assert torch.equal(pack.tensors[f"control.{s}"][i], item[f"control.{s}"][:, :, :h])
+        warp = SceneWarp.from_dataset(chunks.lerobot.meta, run.data.root, pack.spec.views,
+                                      (h, pack.spec.view_width)).images(item["reference"][None] / 255.0,
+                                                                         item["state"][None], item["actions"][None])
+        derived = (mosaic.controls(warp[0]) * 255).round().to(torch.uint8)[:, :, :h]
+        assert torch.equal(pack.tensors["control.scene_warp"][i], derived)
     assert sorted(pack.tensors["episode_index"][pack.heldout].unique().tolist()) == list(run.data.held_out_episodes)
     some = [1, len(chunks) // 2, len(chunks) - 1]  # each chunk's episode's first frame, as the CPU trainer's batch
     assert torch.equal(pack.batch(torch.tensor(some), ()).first_frame, chunks.batch(some).first_frame)

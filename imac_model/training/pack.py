@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from imac_data.errors import InputError
-from imac_model.config import ModelSpec, parse, streams_of_mode
+from imac_model.config import ModelSpec, parse
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.checkpoint import save_checkpoint
 from imac_model.models.world_model import WorldModel
@@ -105,11 +105,14 @@ class Pack:
 
 
 def spec_for_mode(spec: ModelSpec, mode: str, focus_weight: float | None = None,
-                  first_frame: bool | None = None, dropout: float | None = None) -> ModelSpec:
+                  first_frame: bool | None = None, dropout: float | None = None,
+                  scene_warp: bool | None = None) -> ModelSpec:
     """The pack's spec with another conditioning mode (and, for an ablation, another
-    ``flow.focus_weight``, ``conditioning.first_frame`` or ``conditioning.dropout``)."""
+    ``flow.focus_weight``, ``conditioning.first_frame``, ``dropout`` or ``scene_warp``)."""
     data = spec.to_dict()
     data["conditioning"]["mode"] = mode
+    if scene_warp is not None:
+        data["conditioning"]["scene_warp"] = bool(scene_warp)
     if focus_weight is not None:
         data["flow"]["focus_weight"] = float(focus_weight)
     if first_frame is not None:
@@ -145,7 +148,8 @@ def heldout_loss(model: WorldModel, pack: Pack, streams: tuple[str, ...], batch_
 def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, batch_size: int = 128,
                lr: float = 6e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
                log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
-               first_frame: bool | None = None, dropout: float | None = None, progress=print) -> dict:
+               first_frame: bool | None = None, dropout: float | None = None, scene_warp: bool | None = None,
+               progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
@@ -155,8 +159,12 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     model's own estimate of chunk r-1's last frame and keeps its recorded contact images (no renderer
     here to rebuild them)."""
     device = pack.tensors["reference"].device
-    spec = spec_for_mode(pack.spec, mode, focus_weight, first_frame, dropout)
-    streams = streams_of_mode(mode)
+    spec = spec_for_mode(pack.spec, mode, focus_weight, first_frame, dropout, scene_warp)
+    streams = spec.conditioning.streams
+    missing = [s for s in streams if f"control.{s}" not in pack.tensors]
+    if missing:
+        raise InputError(f"the pack carries no {missing} stream(s) (it has "
+                         f"{sorted(k[len('control.'):] for k in pack.tensors if k.startswith('control.'))})")
     torch.manual_seed(seed)
     model = WorldModel(spec).to(device).train()
     params = [p for p in model.parameters() if p.requires_grad]
@@ -212,7 +220,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                 "weights": "ema"})
     save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
     summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "rollout_chunks": rollout_chunks,
-               "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout, "steps": step,
+               "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
+               "scene_warp": spec.conditioning.scene_warp, "steps": step,
                "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1), "heldout_loss": final,
                "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
@@ -238,6 +247,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="training-time rollout over clips of this many chunks (1: none; docs/ranking.md)")
     t.add_argument("--first-frame", action="store_true",
                    help="condition on the episode's first frame (conditioning.first_frame; docs/world-model.md)")
+    t.add_argument("--scene-warp", action="store_true",
+                   help="the scene-warp control stream (conditioning.scene_warp; docs/world-model.md)")
     t.add_argument("--dropout", type=float,
                    help="share of samples trained without controls, for guidance (conditioning.dropout)")
     t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -251,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
     pack = Pack(args.pack, args.device)
     summary = train_pack(pack, args.mode, args.output, minutes=args.minutes, batch_size=args.batch_size, lr=args.lr,
                          seed=args.seed, focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks,
-                         first_frame=args.first_frame or None, dropout=args.dropout)
+                         first_frame=args.first_frame or None, dropout=args.dropout,
+                         scene_warp=args.scene_warp or None)
     print(json.dumps(summary))
     return 0
 

@@ -24,6 +24,7 @@ import os
 import shutil
 import sys
 import tarfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ import torch
 
 from imac_data.errors import InputError
 from imac_data.layout import info_path
-from imac_model.config import CONTROL_STREAMS
+from imac_model.config import CONTROL_STREAMS, SCENE_WARP
 from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner, run_policy
 from imac_model.experiments.ranking.gate import GATED_MODE, gate_minutes, gate_verdict, read_gates
@@ -166,6 +167,7 @@ def export_training_pack(plan: RankingPlan) -> None:
     run = plan.run_config("motion+contact")
     meta = open_metadata(run.data)
     spec, layout = model_spec(run, meta)
+    layout = replace(layout, streams=layout.streams + (SCENE_WARP,))  # derived here: the GPU machine cannot render
     train, held = split_episodes(meta.total_episodes, run.data.held_out_episodes)
     ds = ChunkDataset(TRAIN_REPO, layout, root=run.data.root, episodes=train + held, cache="memory",
                       cache_dir=run.data.cache_dir)
