@@ -53,10 +53,11 @@ class SceneWarp:
                    dilate_px=dilate, **options)
 
     def images(self, reference: torch.Tensor, q_ref: torch.Tensor, actions: torch.Tensor, *,
-               q_future: torch.Tensor | None = None) -> torch.Tensor:
+               q_future: torch.Tensor | None = None, depth: torch.Tensor | None = None) -> torch.Tensor:
         """The warps of B chunks, ``(B, H, V, 3, h, w)`` float in [0, 1] (8-bit levels, as stored
         controls are): reference mosaics ``(B, 3, 2h, V w)`` in [0, 1], reference states
-        ``q_ref (B, D)`` and actions ``(B, H, D)`` (or their configurations ``q_future (B, H, D)``)."""
+        ``q_ref (B, D)`` and actions ``(B, H, D)`` (or their configurations ``q_future (B, H, D)``);
+        ``depth (B, V, h, w)``: the references' depth already decoded by :func:`decode_depth`."""
         reference = torch.as_tensor(reference).detach().float().cpu()
         q_ref = torch.as_tensor(q_ref).float().cpu()
         if q_future is None:
@@ -64,7 +65,9 @@ class SceneWarp:
         q_future = torch.as_tensor(q_future).float().cpu()
         B, V = reference.shape[0], len(self.views)
         rgb, colour = mosaic.split(reference, V)  # (B, V, 3, h, w) each
-        depth, _ = decode_depth(colour, self.codec, max_walk_distance=self.max_walk_distance)
+        if depth is None:
+            depth, _ = decode_depth(colour, self.codec, max_walk_distance=self.max_walk_distance)
+        depth = torch.as_tensor(depth).float().cpu()
         rgb = (rgb.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 1, 3, 4, 2)  # (B, V, h, w, 3)
         seen = self.rig.robot_views(q_ref, resolution=self.view_hw, gripper=False)
         poses = self.rig.camera_poses(q_future)  # (B, H, V, 4, 4)

@@ -202,9 +202,9 @@ class OnlineControls:
         """The control mosaics of the chunks that start at ``reference`` ``(B, 3, 2h, V w)`` (a
         generated or recorded mosaic frame in [0, 1]) from the reference states ``q_ref (B, D)``
         and the chunk's actions ``(B, H, D)``: ``streams`` of ``motion``, ``contact_s2g``,
-        ``contact_r2s``, ``scene_warp`` (always at the model's view size). ``motion``: per-view motion images ``(B, H, V, 3, h, w)`` to use instead of
-        rendering them (e.g. a dataset's stored ones, which are the same function of the actions).
-        Outputs are on the reference's device."""
+        ``contact_r2s``, ``scene_warp`` (always at the model's view size). ``motion``: per-view motion
+        images ``(B, H, V, 3, h, w)`` to use instead of rendering them (e.g. a dataset's stored ones,
+        which are the same function of the actions). Outputs are on the reference's device."""
         unknown = [s for s in streams if s not in CONTROL_STREAMS + DERIVED_STREAMS]
         if unknown:
             raise InputError(f"online controls: unknown stream(s) {unknown}")
@@ -223,7 +223,8 @@ class OnlineControls:
             out["contact_r2s"] = mosaic.controls(c.r2s.to(dev))
             caps = c.caps
         if SCENE_WARP in streams:
-            out[SCENE_WARP] = mosaic.controls(self.scene.images(reference, q_ref, actions, q_future=q_future).to(dev))
+            warp = self.scene.images(reference, q_ref, actions, q_future=q_future, depth=depth)  # depth decoded once
+            out[SCENE_WARP] = mosaic.controls(warp.to(dev))
         return OnlineChunkControls(controls={s: out[s] for s in streams}, configurations=q_future,
                                    next_state=q_future[:, -1], depth=depth, invalid_fraction=invalid_fraction,
                                    caps=caps)
