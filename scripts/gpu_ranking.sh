@@ -9,7 +9,9 @@
 # on the episode's first frame as motion_contact_first_frame, the memory ablation; ABLATION=scene-warp trains it with the
 # scene-warp stream as motion_contact_scene_warp. DROPOUT=P trains every run with a
 # share P of its samples without controls (conditioning.dropout), so the models can be sampled with guidance. PyYAML and safetensors travel as wheels
-# beside the pack (runs/ranking_gpu/gpu/wheels/) when the machine lacks them. Each run comes back as one
+# beside the pack (runs/ranking_gpu/gpu/wheels/) when the machine lacks them. COMPILE=1 trains every run through
+# torch.compile of the U-Net's trunk (--compile; the compilation counts in each run's minutes); SPEED=1 then measures
+# eager against compiled alone on the GPU (python -m benchmarks.pack_speed) into $OUT/speed.json. Each run comes back as one
 # file, $OUT/<run>.tar (model.json, model.safetensors: float16 EMA weights, log.jsonl), since the GPU
 # machine returns few files; `imac-model ranking --preset gpu --import-gpu DIR` puts them back here.
 #   OUT=/tmp/gpu_out MINUTES=8 bash scripts/gpu_ranking.sh
@@ -21,6 +23,8 @@ BATCH=${BATCH:-128}  # chunks a step (the tests run the script at toy size with 
 ABLATION=${ABLATION:-0}
 ROLLOUT=${ROLLOUT:-1}
 DROPOUT=${DROPOUT:-0}
+COMPILE=${COMPILE:-0}
+SPEED=${SPEED:-0}
 : "${OUT:?set OUT to the directory for the checkpoints}"
 mkdir -p "$OUT"
 PY=${PYTHON:-$(command -v python3 || command -v python)}
@@ -33,6 +37,8 @@ if ! "$PY" -c "import yaml, safetensors" 2>/dev/null; then
 fi
 export PYTHONPATH="$PWD:$site${PYTHONPATH:+:$PYTHONPATH}"
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,memory.used --format=csv,noheader
+extra=""
+[ "$COMPILE" = 1 ] && extra="--compile"
 runs=("motion_contact motion+contact --rollout-chunks $ROLLOUT" "action_vector action-vector --rollout-chunks $ROLLOUT")
 case "$ABLATION" in
   1|focus) runs+=("motion_contact_uniform motion+contact --focus-weight 0 --rollout-chunks $ROLLOUT") ;;
@@ -46,7 +52,7 @@ pids=()
 for run in "${runs[@]}"; do
   set -- $run
   name=$1; shift
-  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --dropout "$DROPOUT" --output "$OUT/$name" \
+  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --dropout "$DROPOUT" $extra --output "$OUT/$name" \
     > "$OUT/$name.stdout" 2>&1 &
   pids+=($!)
 done
@@ -58,9 +64,13 @@ for run in "${runs[@]}"; do
   tail -n 3 "$OUT/$1.stdout"
   ckpt=$(ls -d "$dir"/checkpoints/step_* 2>/dev/null | tail -n 1) || true
   if [ -n "$ckpt" ]; then
-    tar -cf "$OUT/$1.tar" -C "$ckpt" model.json model.safetensors -C "$dir" log.jsonl
+    tar -cf "$OUT/$1.tar" -C "$ckpt" model.json model.safetensors -C "$dir" log.jsonl -C "$OUT" "$1.stdout"
     rm -r "$dir" "$OUT/$1.stdout"
   fi
 done
+if [ "$SPEED" = 1 ]; then  # after the checkpoints are safe: a budget of its own, and its caches are warm
+  timeout 100 "$PY" -m benchmarks.pack_speed --pack "$PACK" --rollout-chunks "$ROLLOUT" --batch-size "$BATCH" \
+    --json "$OUT/speed.json" || echo "gpu_ranking: the speed benchmark did not finish" >&2
+fi
 ls -la "$OUT"
 exit $status

@@ -459,7 +459,7 @@ def test_a_cpu_ablation_arm_continues_the_gated_run_with_one_change(toy_run, tmp
     assert gate["budget_minutes"] == minutes and gate["step"] == from_step + 2
 
 
-def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
+def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, monkeypatch):
     """Training-time rollout as the GPU machine runs it, from the pack with torch alone: the clips
     are the dataset's own, chunk 2 starts from the model's estimate and keeps its recorded contact
     images, and scripts/gpu_ranking.sh trains with it (ROLLOUT) beside the run without (ABLATION=rollout)."""
@@ -496,6 +496,16 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path):
     assert summary["first_frame"] and summary["dropout"] == 0.1 and summary["scene_warp"] and summary["steps"] >= 1
     spec = load_world_model(tmp_path / "first_frame")[1]
     assert spec.conditioning.first_frame and spec.conditioning.dropout == 0.1 and spec.conditioning.scene_warp
+    # a compiler that fails on the GPU machine costs the run its compilation, not the run: it trains eager
+    def failing_compile(fn, **kwargs):
+        def compiled(*args):
+            raise RuntimeError("no compiler here")
+        return compiled
+    monkeypatch.setattr(torch, "compile", failing_compile)
+    summary = train_pack(pack, "motion+contact", tmp_path / "eager", minutes=0.001, batch_size=16, rollout_chunks=2,
+                         compile=True, progress=lambda row: None)
+    assert not summary["compiled"] and summary["compile_error"] == "RuntimeError: no compiler here"
+    assert summary["steps"] >= 1 and (tmp_path / "eager" / "checkpoints").is_dir()
     warp = pack.tensors.pop("control.scene_warp")
     with pytest.raises(InputError, match=r"carries no \['scene_warp'\]"):
         train_pack(pack, "motion+contact", tmp_path / "no_warp", minutes=0.001, scene_warp=True)

@@ -125,6 +125,13 @@ def spec_for_mode(spec: ModelSpec, mode: str, focus_weight: float | None = None,
 # --------------------------------------------------------------------------- training
 
 
+def fast_kernels() -> None:
+    """TF32 matrix products and cuDNN's autotuned convolutions, as the GPU preset trains."""
+    torch.backends.cuda.matmul.allow_tf32 = True
+    torch.backends.cudnn.allow_tf32 = True
+    torch.backends.cudnn.benchmark = True
+
+
 def _generator(seed: int, step: int, device) -> torch.Generator:
     return torch.Generator(device=device).manual_seed(int(np.random.SeedSequence([seed, step, 0]).generate_state(1)[0]))
 
@@ -145,11 +152,29 @@ def heldout_loss(model: WorldModel, pack: Pack, streams: tuple[str, ...], batch_
     return float(np.mean(losses)) if losses else float("nan")
 
 
+def compile_trunk(model: WorldModel, backend: str = "inductor"):
+    """Put a ``torch.compile``d U-Net trunk in the backbone's place and return it; the backbone
+    must have a ``trunk`` (tensors in, tensor out: the U-Net). Fusing its group norms, modulations
+    and SiLUs is what a small pixel-space U-Net needs on a GPU (docs/ranking.md, "The GPU preset")."""
+    backbone = model.backbone
+    if not callable(getattr(backbone, "trunk", None)):
+        raise InputError(f"compile: the {type(backbone).__name__} backbone has no trunk to compile (the U-Net has)")
+    compiled = torch.compile(backbone.trunk, backend=backend)
+    backbone.trunk = compiled  # an instance attribute: it shadows the method and leaves the weights' names alone
+    return compiled
+
+
+def _eager(model: WorldModel):
+    """The backbone's own trunk back (held-out losses run eager: other shapes, no gradient,
+    not worth a compile); returns the compiled one to put back."""
+    return model.backbone.__dict__.pop("trunk", None)
+
+
 def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, batch_size: int = 128,
                lr: float = 6e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
                log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
                first_frame: bool | None = None, dropout: float | None = None, scene_warp: bool | None = None,
-               progress=print) -> dict:
+               compile: bool = False, progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
@@ -157,7 +182,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     ``rollout_chunks`` R > 1: training-time rollout (:func:`imac_model.pipelines.rollout.rollout_loss`)
     over clips of R consecutive chunks, ``batch_size // R`` clips a step; chunk r > 1 starts from the
     model's own estimate of chunk r-1's last frame and keeps its recorded contact images (no renderer
-    here to rebuild them)."""
+    here to rebuild them). ``compile``: train through :func:`compile_trunk`; the first step's
+    compilation counts in the budget, and the log's ``first_step_s`` says how long it took."""
     device = pack.tensors["reference"].device
     spec = spec_for_mode(pack.spec, mode, focus_weight, first_frame, dropout, scene_warp)
     streams = spec.conditioning.streams
@@ -167,6 +193,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                          f"{sorted(k[len('control.'):] for k in pack.tensors if k.startswith('control.'))})")
     torch.manual_seed(seed)
     model = WorldModel(spec).to(device).train()
+    compiled = compile_trunk(model) if compile else None
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.AdamW(params, lr=lr)
     ema = [p.detach().float().clone() for p in params]
@@ -179,39 +206,58 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
     log = []
-    t0, step, samples = time.time(), 0, 0
+    t0, step, samples, first_step_s, compile_error = time.time(), 0, 0, None, None
     n = len(pack.train)
-    while time.time() - t0 < 60.0 * minutes:
+
+    def forward_backward(step: int) -> tuple[torch.Tensor, int]:
         g = _generator(seed, step, device)
-        for group in opt.param_groups:
-            group["lr"] = lr * min(1.0, (step + 1) / max(warmup, 1))
         opt.zero_grad(set_to_none=True)
         if clips is None:
             index = pack.train[torch.randint(n, (batch_size,), generator=g, device=device)]
             with autocast:
                 loss = model(pack.batch(index, streams), generator=g, streams=streams or None).loss
             loss.backward()
-            drawn = batch_size
-        else:  # backward runs per chunk inside, so memory stays that of one chunk
-            index = clips[torch.randint(len(clips), (batch_size // rollout_chunks,), generator=g, device=device)]
-            clip = [pack.batch(index[:, r], streams) for r in range(rollout_chunks)]
-            loss = rollout_loss(model, clip, None, generator=g, streams=streams or None, stored_contact=True,
-                                backward=torch.Tensor.backward, autocast=lambda: autocast).loss
-            drawn = index.numel()
+            return loss, batch_size
+        # backward runs per chunk inside, so memory stays that of one chunk
+        index = clips[torch.randint(len(clips), (batch_size // rollout_chunks,), generator=g, device=device)]
+        clip = [pack.batch(index[:, r], streams) for r in range(rollout_chunks)]
+        return rollout_loss(model, clip, None, generator=g, streams=streams or None, stored_contact=True,
+                            backward=torch.Tensor.backward, autocast=lambda: autocast).loss, index.numel()
+
+    while time.time() - t0 < 60.0 * minutes:
+        for group in opt.param_groups:
+            group["lr"] = lr * min(1.0, (step + 1) / max(warmup, 1))
+        try:
+            loss, drawn = forward_backward(step)
+        except Exception as error:  # noqa: BLE001 - a compiler that fails on this machine: eager, said once
+            if compiled is None or step > 0:
+                raise
+            compile_error = f"{type(error).__name__}: {error}"[:2000]
+            progress(json.dumps({"mode": mode, "compile_failed": compile_error}))
+            _eager(model)
+            compiled = None
+            loss, drawn = forward_backward(step)
         torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()
         d = min(ema_decay, (1 + step) / (10 + step))
         with torch.no_grad():  # one fused update: a loop over tensors launches a kernel per parameter
             torch._foreach_lerp_(ema, [p.detach().float() for p in params], 1 - d)
         step, samples = step + 1, samples + drawn
+        if first_step_s is None:
+            first_step_s = round(time.time() - t0, 1)
+            progress(json.dumps({"mode": mode, "first_step_s": first_step_s, "compiled": compiled is not None}))
         if step % log_every == 0:
             row = {"step": step, "loss": float(loss), "lr": opt.param_groups[0]["lr"],
                    "elapsed_s": round(time.time() - t0, 1), "samples": samples}
             if step % eval_every == 0:
+                _eager(model)
                 row["heldout_loss"] = heldout_loss(model, pack, streams, batch_size, seed)
+                if compiled is not None:
+                    model.backbone.trunk = compiled
             log.append(row)
             progress(json.dumps({"mode": mode, **row}))
     elapsed = time.time() - t0
+    _eager(model)
     with torch.no_grad():  # the EMA weights become the checkpoint's weights
         for p, e in zip(params, ema):
             p.copy_(e)
@@ -221,9 +267,12 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
     summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "rollout_chunks": rollout_chunks,
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
-               "scene_warp": spec.conditioning.scene_warp, "steps": step,
+               "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
+               "compile_error": compile_error, "steps": step,
                "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
-               "samples_per_s": round(samples / max(elapsed, 1e-9), 1), "heldout_loss": final,
+               "samples_per_s": round(samples / max(elapsed, 1e-9), 1),
+               "samples_per_s_after_first_step": round((samples - samples / max(step, 1)) / max(
+                   elapsed - (first_step_s or 0.0), 1e-9), 1), "heldout_loss": final,
                "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
                "torch": torch.__version__, "parameters": sum(p.numel() for p in params)}
     # the summary is the log's last row: the GPU machine returns few files
@@ -251,19 +300,19 @@ def main(argv: list[str] | None = None) -> int:
                    help="the scene-warp control stream (conditioning.scene_warp; docs/world-model.md)")
     t.add_argument("--dropout", type=float,
                    help="share of samples trained without controls, for guidance (conditioning.dropout)")
+    t.add_argument("--compile", action="store_true",
+                   help="torch.compile the U-Net's trunk (on a GPU: fused group norms; the first step compiles)")
     t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     t.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     if not str(args.device).startswith("cuda"):
         torch.set_num_threads(1)  # the script runs its trainings at once: on a CPU, threads would only contend
-    torch.backends.cuda.matmul.allow_tf32 = True
-    torch.backends.cudnn.allow_tf32 = True
-    torch.backends.cudnn.benchmark = True
+    fast_kernels()
     pack = Pack(args.pack, args.device)
     summary = train_pack(pack, args.mode, args.output, minutes=args.minutes, batch_size=args.batch_size, lr=args.lr,
                          seed=args.seed, focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks,
                          first_frame=args.first_frame or None, dropout=args.dropout,
-                         scene_warp=args.scene_warp or None)
+                         scene_warp=args.scene_warp or None, compile=args.compile)
     print(json.dumps(summary))
     return 0
 
@@ -272,4 +321,4 @@ if __name__ == "__main__":
     raise SystemExit(main())
 
 
-__all__ = ["Pack", "export_pack", "heldout_loss", "spec_for_mode", "train_pack"]
+__all__ = ["Pack", "compile_trunk", "export_pack", "fast_kernels", "heldout_loss", "spec_for_mode", "train_pack"]

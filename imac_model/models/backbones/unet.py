@@ -157,6 +157,11 @@ class UNetBackbone(Backbone):
         cond = self.time_mlp(_time_features(timesteps[:, -1]).to(x.dtype))  # the future frames' flow time
         if self.context_proj is not None and context is not None:
             cond = cond + self.context_proj(context.reshape(B, -1).to(x.dtype))
+        return self.trunk(x, cond).view(B, Fr, C, h, w).transpose(1, 2)
+
+    def trunk(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """The U-Net from ``conv_in``'s output to ``conv_out``'s: tensors in, tensor out, so it is
+        the part ``torch.compile`` takes (:func:`imac_model.training.pack.train_pack`)."""
         skips = [x]
         for blocks, down in zip(self.down, self.downsample):
             for block in blocks:
@@ -171,5 +176,4 @@ class UNetBackbone(Backbone):
             for block in blocks:
                 x = block(torch.cat([x, skips.pop()], dim=1), cond)
             x = up(x)
-        x = self.conv_out(F.silu(self.norm_out(x)))
-        return x.view(B, Fr, C, h, w).transpose(1, 2)
+        return self.conv_out(F.silu(self.norm_out(x)))

@@ -1,0 +1,61 @@
+"""Samples per second of the pack trainer, eager against ``torch.compile`` (the U-Net's trunk),
+alone on one device at the GPU preset's settings. Each variant trains from the pack for a short
+wall-clock budget through :func:`imac_model.training.pack.train_pack`; the figure is its rate
+after the first step, which holds the compilation (``first_step_s``). ``scripts/gpu_ranking.sh``
+runs it after its trainings (``SPEED=1``), when the compiler's caches are warm::
+
+    python -m benchmarks.pack_speed --pack runs/ranking_gpu2/gpu/pack.npz --rollout-chunks 4 --json speed.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import torch
+
+from imac_model.training.pack import Pack, fast_kernels, train_pack
+
+
+def measure(pack: Pack, mode: str, *, seconds: float, batch_size: int, rollout_chunks: int,
+            compile_allowance_s: float = 30.0) -> dict:
+    """Each variant's summary: eager for ``seconds``, compiled for ``seconds`` plus an allowance
+    for the compilation (the rate leaves the first step out)."""
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, compiled in (("eager", False), ("compiled", True)):
+            budget = seconds + (compile_allowance_s if compiled else 0.0)
+            summary = train_pack(pack, mode, Path(tmp) / name, minutes=budget / 60.0, batch_size=batch_size,
+                                 rollout_chunks=rollout_chunks, compile=compiled, progress=lambda _: None)
+            rows[name] = {k: summary[k] for k in ("compiled", "first_step_s", "steps", "samples",
+                                                  "samples_per_s_after_first_step", "device", "torch")}
+            print(json.dumps({name: rows[name]}), flush=True)
+    eager, fast = rows["eager"], rows["compiled"]
+    return {"mode": mode, "batch_size": batch_size, "rollout_chunks": rollout_chunks, "variants": rows,
+            "speedup": round(fast["samples_per_s_after_first_step"] / max(eager["samples_per_s_after_first_step"],
+                                                                          1e-9), 2)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.pack_speed", description=__doc__.split("\n\n")[0])
+    p.add_argument("--pack", required=True)
+    p.add_argument("--mode", default="motion+contact")
+    p.add_argument("--seconds", type=float, default=12.0, help="steady-state seconds per variant")
+    p.add_argument("--batch-size", type=int, default=128)
+    p.add_argument("--rollout-chunks", type=int, default=1)
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--json", help="write the figures here")
+    args = p.parse_args(argv)
+    fast_kernels()
+    result = measure(Pack(args.pack, args.device), args.mode, seconds=args.seconds, batch_size=args.batch_size,
+                     rollout_chunks=args.rollout_chunks)
+    print(json.dumps(result))
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
