@@ -10,7 +10,8 @@
 # scene-warp stream as motion_contact_scene_warp. DROPOUT=P trains every run with a
 # share P of its samples without controls (conditioning.dropout), so the models can be sampled with guidance. PyYAML and safetensors travel as wheels
 # beside the pack (runs/ranking_gpu/gpu/wheels/) when the machine lacks them. COMPILE=1 trains every run through
-# torch.compile of the U-Net's trunk (--compile; the compilation counts in each run's minutes); SPEED=1 then measures
+# torch.compile of the U-Net's trunk (--compile; the compilation counts in each run's minutes; the default, auto, compiles
+# on a GPU only: on a CPU the compilation takes minutes); SPEED=1 then measures
 # eager against compiled alone on the GPU (python -m benchmarks.pack_speed) into $OUT/speed.json. Each run comes back as one
 # file, $OUT/<run>.tar (model.json, model.safetensors: float16 EMA weights, log.jsonl), since the GPU
 # machine returns few files; `imac-model ranking --preset gpu --import-gpu DIR` puts them back here.
@@ -23,13 +24,16 @@ BATCH=${BATCH:-128}  # chunks a step (the tests run the script at toy size with 
 ABLATION=${ABLATION:-0}
 ROLLOUT=${ROLLOUT:-1}
 DROPOUT=${DROPOUT:-0}
-COMPILE=${COMPILE:-0}
+COMPILE=${COMPILE:-auto}
 SPEED=${SPEED:-0}
 : "${OUT:?set OUT to the directory for the checkpoints}"
 mkdir -p "$OUT"
 PY=${PYTHON:-$(command -v python3 || command -v python)}
 [ -f "$PACK" ] || { echo "gpu_ranking: no tensor pack at $PACK (imac-model ranking --stages simulate,build,decode,pack)" >&2; exit 2; }
-echo "[gpu] $($PY --version) at $PY; torch $($PY -c 'import torch; print(torch.__version__, torch.cuda.is_available())')"
+read -r torch_version cuda < <("$PY" -c 'import torch; print(torch.__version__, torch.cuda.is_available())') \
+  || { echo "gpu_ranking: $PY cannot import torch" >&2; exit 2; }
+echo "[gpu] $($PY --version) at $PY; torch $torch_version $cuda"
+[ "$COMPILE" = auto ] && { [ "$cuda" = True ] && COMPILE=1 || COMPILE=0; }
 "$PY" -c "import lzma" 2>/dev/null || { echo "gpu_ranking: $PY has no lzma module, and the pack's arrays are LZMA-compressed (imac_model/training/pack.py)" >&2; exit 2; }
 site=$(mktemp -d)
 if ! "$PY" -c "import yaml, safetensors" 2>/dev/null; then
