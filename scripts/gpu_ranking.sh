@@ -21,6 +21,7 @@ cd "$(dirname "$0")/.."
 PACK=${PACK:-runs/ranking_gpu/gpu/pack.npz}
 MINUTES=${MINUTES:-8}
 BATCH=${BATCH:-128}  # chunks a step (the tests run the script at toy size with fewer)
+LR=${LR:-6e-4}  # AdamW's peak learning rate (scale it with BATCH)
 ABLATION=${ABLATION:-0}
 ROLLOUT=${ROLLOUT:-1}
 DROPOUT=${DROPOUT:-0}
@@ -56,7 +57,7 @@ pids=()
 for run in "${runs[@]}"; do
   set -- $run
   name=$1; shift
-  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --dropout "$DROPOUT" $extra --output "$OUT/$name" \
+  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --lr "$LR" --dropout "$DROPOUT" $extra --output "$OUT/$name" \
     > "$OUT/$name.stdout" 2>&1 &
   pids+=($!)
 done
