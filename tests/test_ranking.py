@@ -585,3 +585,15 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         with tarfile.open(bad / "x.tar", "w") as archive:
             archive.add(plan.pack, arcname="pack.npz")
         import_gpu_runs(plan, bad)
+
+
+def test_the_report_records_paths_inside_the_repository_relative_to_it():
+    """results.json is committed: a path inside the repository, at any depth of what it holds, is written
+    relative to it; other paths and plain strings are left as they are."""
+    from imac_model.experiments.ranking.report import _relative
+    from imac_model.experiments.stages import REPO_ROOT
+
+    inside = REPO_ROOT / "runs" / "ranking_gpu" / "datasets" / "eval"
+    got = _relative({"root": str(inside), "runs": [inside, {"elsewhere": "/data/x", "n": 3}], "plain": "a/b"})
+    assert got == {"root": "runs/ranking_gpu/datasets/eval",
+                   "runs": ["runs/ranking_gpu/datasets/eval", {"elsewhere": "/data/x", "n": 3}], "plain": "a/b"}

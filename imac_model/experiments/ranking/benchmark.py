@@ -47,6 +47,7 @@ from imac_model.experiments.ranking.plan import (
 from imac_model.experiments.ranking.policies import WORKSPACE, WRIST, LiftPolicy
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT, python, quote, run_all, then_mark_done
+from imac_model.models.checkpoint import list_checkpoints
 from imac_model.training.log import LOG_FILE
 from imac_model.training.pack import export_pack
 from imac_model.training.train import model_spec
@@ -300,12 +301,18 @@ def stage_judges(plan: RankingPlan) -> None:
     run_all([("judges", internal(plan, "judges"), plan.work / "logs" / "judges.log")], 1, tag="ranking")
 
 
+def _gated_at_the_end(plan: RankingPlan, mode: str) -> bool:
+    """Whether a gate of ``mode`` measured its last checkpoint (the same replays, seeds and weights give
+    the same figures, so it is not measured twice)."""
+    last = list_checkpoints(plan.run_dir(mode))
+    return bool(last) and any(g.get("checkpoint") == last[-1].name for g in read_gates(plan, mode))
+
+
 def stage_evaluate(plan: RankingPlan) -> None:
     # the gate of every compared mode at the end of its training, beside motion+contact's hourly ones
     budget = plan.gpu_minutes if plan.gpu_minutes is not None else plan.cpu_minutes
     gates = [(f"gate {mode}", internal(plan, "gate", f"{budget:g}", mode), plan.work / "logs" / "gate.log")
-             for mode in plan.modes
-             if mode != "none" and not any(g["budget_minutes"] == budget for g in read_gates(plan, mode))]
+             for mode in plan.modes if mode != "none" and not _gated_at_the_end(plan, mode)]
     run_all(gates, plan.jobs, tag="ranking")
     commands = []
     for mode in plan.modes:

@@ -152,7 +152,7 @@ def write_report(plan: RankingPlan) -> Path:
                "dirty": _uncommitted_changes(docs), "written": time.strftime("%Y-%m-%d %H:%M"), "stages": stages,
                "gates": gates, "training": {m: {k: v for k, v in t.items() if k != "rows"} for m, t in training.items()}}
     if not all((plan.wm_dir(m) / "outcomes.json").is_file() for m in plan.modes):  # stopped at the early gate
-        (docs / "results.json").write_text(json.dumps(results, indent=1, default=str))
+        (docs / "results.json").write_text(json.dumps(_relative(results), indent=1, default=str))
         (docs / "README.md").write_text(_stopped_markdown(plan, results))
         return docs / "README.md"
     real = real_outcomes(plan)
@@ -168,7 +168,7 @@ def write_report(plan: RankingPlan) -> Path:
                    judges=json.loads((plan.work / "judges" / "real.json").read_text()),
                    evaluations={m: json.loads((plan.wm_dir(m) / "outcomes.json").read_text()) for m in plan.modes},
                    examples=examples)
-    (docs / "results.json").write_text(json.dumps(results, indent=1, default=str))
+    (docs / "results.json").write_text(json.dumps(_relative(results), indent=1, default=str))
     (docs / "README.md").write_text(_markdown(plan, results))
     return docs / "README.md"
 
@@ -258,6 +258,18 @@ def _uncommitted_changes(docs: Path) -> bool:
 def _shown(path: Path) -> str:
     """``path`` as the command line gave it: relative to the repository when inside it."""
     return str(path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path)
+
+
+def _relative(value):
+    """``value`` with every path inside the repository (a string or a Path, at any depth) made relative
+    to it, so a committed ``results.json`` names no machine's directories."""
+    if isinstance(value, dict):
+        return {k: _relative(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_relative(v) for v in value]
+    if isinstance(value, (str, Path)) and Path(value).is_absolute() and Path(value).is_relative_to(REPO_ROOT):
+        return _shown(Path(value))
+    return value
 
 
 def _header(plan: RankingPlan, r: dict) -> list[str]:
