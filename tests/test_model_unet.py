@@ -17,6 +17,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+import torch._dynamo
 
 from imac_data.core.depth import DepthCodec
 from imac_data.errors import InputError
@@ -33,6 +34,7 @@ from imac_model.models.checkpoint import (
     save_checkpoint,
 )
 from imac_model.models.world_model import WorldModel
+from imac_model.training.pack import _eager, compile_trunk
 
 H, SIDE, SQUARE = 2, 16, 3
 CODEC = DepthCodec.preset("manipulation")
@@ -275,10 +277,6 @@ def test_a_compiled_trunk_computes_what_the_eager_one_does_in_one_graph():
     the loss and every gradient are the eager ones, the weights keep their names, and the eager trunk
     comes back. ``aot_eager`` traces forward and backward as the GPU's inductor does, without code
     generation (a CPU compile takes minutes)."""
-    import torch._dynamo
-
-    from imac_model.training.pack import _eager, compile_trunk
-
     model, _, batch, _ = trained_one_step()
     keys = list(model.state_dict())
 

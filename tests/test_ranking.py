@@ -44,6 +44,8 @@ from imac_model.experiments.ranking.benchmark import GateStop, import_gpu_runs, 
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
+from imac_model.experiments.ranking.report import _relative
+from imac_model.experiments.stages import REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.online_controls import OnlineControls
@@ -590,9 +592,6 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
 def test_the_report_records_paths_inside_the_repository_relative_to_it():
     """results.json is committed: a path inside the repository, at any depth of what it holds, is written
     relative to it; other paths and plain strings are left as they are."""
-    from imac_model.experiments.ranking.report import _relative
-    from imac_model.experiments.stages import REPO_ROOT
-
     inside = REPO_ROOT / "runs" / "ranking_gpu" / "datasets" / "eval"
     got = _relative({"root": str(inside), "runs": [inside, {"elsewhere": "/data/x", "n": 3}], "plain": "a/b"})
     assert got == {"root": "runs/ranking_gpu/datasets/eval",
