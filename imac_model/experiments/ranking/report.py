@@ -291,8 +291,7 @@ def _header(plan: RankingPlan, r: dict) -> list[str]:
            f"{sum(t['train_s'] or 0 for t in r['training'].values()) / 60:.1f} CPU-minutes, not in that total. "
            if "train" not in r["stages"] and plan.gpu_minutes is None and r["training"] else "")
         + "Training: "
-        + (f"about {plan.gpu_minutes:g} minutes per mode on one GPU (the GPU preset; the runs' own times under "
-           "Training; not in the CPU total)."
+        + ("on one GPU (the GPU preset; each run's own time under Training; not in the CPU total)."
            if plan.gpu_minutes is not None else
            f"{plan.cpu_minutes:g} CPU-minutes per compared mode, {plan.none_minutes:g} for `none`."), "",
         f"**Sizes.** {len(plan.policies)} policies; in MuJoCo {plan.groups} groups of {plan.real_per_group} starts "
