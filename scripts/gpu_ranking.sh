@@ -22,6 +22,7 @@ PACK=${PACK:-runs/ranking_gpu/gpu/pack.npz}
 MINUTES=${MINUTES:-8}
 BATCH=${BATCH:-128}  # chunks a step (the tests run the script at toy size with fewer)
 LR=${LR:-6e-4}  # AdamW's peak learning rate (scale it with BATCH)
+REF_NOISE=${REF_NOISE:-}  # flow.reference_noise for every run (default: the pack's spec)
 ABLATION=${ABLATION:-0}
 ROLLOUT=${ROLLOUT:-1}
 DROPOUT=${DROPOUT:-0}
@@ -44,6 +45,7 @@ export PYTHONPATH="$PWD:$site${PYTHONPATH:+:$PYTHONPATH}"
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,memory.used --format=csv,noheader
 extra=""
 [ "$COMPILE" = 1 ] && extra="--compile"
+[ -n "$REF_NOISE" ] && extra="$extra --reference-noise $REF_NOISE"
 runs=("motion_contact motion+contact --rollout-chunks $ROLLOUT" "action_vector action-vector --rollout-chunks $ROLLOUT")
 case "$ABLATION" in
   1|focus) runs+=("motion_contact_uniform motion+contact --focus-weight 0 --rollout-chunks $ROLLOUT") ;;

@@ -560,7 +560,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
 
     out = tmp_path / "gpu_out"
     env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ABLATION": "1", "BATCH": "16", "PACK": str(plan.pack),
-           "PYTHON": sys.executable}
+           "PYTHON": sys.executable, "REF_NOISE": "0.3", "LR": "1e-3"}
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
     assert sorted(p.name for p in out.iterdir()) == ["action_vector.tar", "motion_contact.tar",
@@ -571,10 +571,11 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     for name, mode, focus in (("motion_contact", "motion+contact", 5.0), ("motion_contact_uniform", "motion+contact", 0.0),
                               ("action_vector", "action-vector", 5.0)):
         model, spec = load_world_model(work / "runs" / name, weights="ema")
-        assert spec.conditioning.mode == mode and spec.flow.focus_weight == focus
+        assert spec.conditioning.mode == mode and spec.flow.focus_weight == focus and spec.flow.reference_noise == 0.3
         log = [json.loads(line) for line in (work / "runs" / name / "log.jsonl").read_text().splitlines()]
         again = heldout_loss(model.float(), pack, streams_of_mode(mode), 16, 0)
         assert again == pytest.approx(log[-1]["summary"]["heldout_loss"], rel=1e-3)  # float16 weights
+        assert log[-1]["summary"]["lr"] == 1e-3 and log[-1]["summary"]["reference_noise"] == 0.3
     # the loss-weighting ablation's figures on the imported runs: the gate measured for each, the replays
     assert ablation.main(["focus", "--work", str(work), "--json", str(tmp_path / "focus.json")]) == 0
     figures = json.loads((tmp_path / "focus.json").read_text())

@@ -106,15 +106,17 @@ class Pack:
 
 def spec_for_mode(spec: ModelSpec, mode: str, focus_weight: float | None = None,
                   first_frame: bool | None = None, dropout: float | None = None,
-                  scene_warp: bool | None = None) -> ModelSpec:
+                  scene_warp: bool | None = None, reference_noise: float | None = None) -> ModelSpec:
     """The pack's spec with another conditioning mode (and, for an ablation, another
-    ``flow.focus_weight``, ``conditioning.first_frame``, ``dropout`` or ``scene_warp``)."""
+    ``flow.focus_weight``, ``flow.reference_noise``, ``conditioning.first_frame``, ``dropout`` or ``scene_warp``)."""
     data = spec.to_dict()
     data["conditioning"]["mode"] = mode
     if scene_warp is not None:
         data["conditioning"]["scene_warp"] = bool(scene_warp)
     if focus_weight is not None:
         data["flow"]["focus_weight"] = float(focus_weight)
+    if reference_noise is not None:
+        data["flow"]["reference_noise"] = float(reference_noise)
     if first_frame is not None:
         data["conditioning"]["first_frame"] = bool(first_frame)
     if dropout is not None:
@@ -174,7 +176,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                lr: float = 6e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
                log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
                first_frame: bool | None = None, dropout: float | None = None, scene_warp: bool | None = None,
-               compile: bool = False, progress=print) -> dict:
+               reference_noise: float | None = None, compile: bool = False, progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
@@ -185,7 +187,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     here to rebuild them). ``compile``: train through :func:`compile_trunk`; the first step's
     compilation counts in the budget, and the log's ``first_step_s`` says how long it took."""
     device = pack.tensors["reference"].device
-    spec = spec_for_mode(pack.spec, mode, focus_weight, first_frame, dropout, scene_warp)
+    spec = spec_for_mode(pack.spec, mode, focus_weight, first_frame, dropout, scene_warp, reference_noise)
     streams = spec.conditioning.streams
     missing = [s for s in streams if f"control.{s}" not in pack.tensors]
     if missing:
@@ -265,11 +267,12 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     log.append({"step": step, "heldout_loss": final, "elapsed_s": round(time.time() - t0, 1), "samples": samples,
                 "weights": "ema"})
     save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
-    summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "rollout_chunks": rollout_chunks,
+    summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "reference_noise": spec.flow.reference_noise,
+               "rollout_chunks": rollout_chunks,
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
                "compile_error": compile_error, "steps": step,
-               "samples": samples, "batch_size": batch_size, "train_s": round(elapsed, 1),
+               "samples": samples, "batch_size": batch_size, "lr": lr, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1),
                "samples_per_s_after_first_step": round((samples - samples / max(step, 1)) / max(
                    elapsed - (first_step_s or 0.0), 1e-9), 1), "heldout_loss": final,
@@ -292,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--batch-size", type=int, default=128)
     t.add_argument("--lr", type=float, default=6e-4)
     t.add_argument("--focus-weight", type=float, help="override the pack's flow.focus_weight (an ablation: 0)")
+    t.add_argument("--reference-noise", type=float,
+                   help="override the pack's flow.reference_noise (the CPU preset's best arm: 0.3; docs/ranking.md)")
     t.add_argument("--rollout-chunks", type=int, default=1,
                    help="training-time rollout over clips of this many chunks (1: none; docs/ranking.md)")
     t.add_argument("--first-frame", action="store_true",
@@ -312,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
     summary = train_pack(pack, args.mode, args.output, minutes=args.minutes, batch_size=args.batch_size, lr=args.lr,
                          seed=args.seed, focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks,
                          first_frame=args.first_frame or None, dropout=args.dropout,
-                         scene_warp=args.scene_warp or None, compile=args.compile)
+                         scene_warp=args.scene_warp or None, reference_noise=args.reference_noise,
+                         compile=args.compile)
     print(json.dumps(summary))
     return 0
 
