@@ -283,9 +283,13 @@ class RolloutConfig:
     reference_state: Literal["recorded", "commanded"] = "recorded"  # chunk r > 1's robot state: the dataset's,
     # or the previous chunk's last commanded configuration (what a closed loop knows)
     device: Literal["auto", "cpu", "cuda"] = "auto"  # the contact computation (auto: the model's device)
+    reference_steps: int = 0  # chunk r > 1 starts from: 0, chunk r-1's one-step estimate (paper 3.4); k, the last
+    # frame of k sampler steps on chunk r-1 (no gradient), the drift a replay has (docs/world-model.md)
 
     def __post_init__(self) -> None:
         _positive(self, "chunks", "rollout")
+        if not (isinstance(self.reference_steps, int) and self.reference_steps >= 0):
+            raise InputError(f"rollout.reference_steps: must be an integer >= 0 (got {self.reference_steps!r})")
         for name in ("warmup_epochs", "stage_one_epochs"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"rollout.{name}: must be >= 0 (got {getattr(self, name)})")

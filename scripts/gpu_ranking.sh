@@ -23,6 +23,7 @@ MINUTES=${MINUTES:-8}
 BATCH=${BATCH:-128}  # chunks a step (the tests run the script at toy size with fewer)
 LR=${LR:-6e-4}  # AdamW's peak learning rate (scale it with BATCH)
 REF_NOISE=${REF_NOISE:-}  # flow.reference_noise for every run (default: the pack's spec)
+ROLLOUT_STEPS=${ROLLOUT_STEPS:-0}  # with ROLLOUT: chunk r > 1 starts from this many sampler steps (0: the one-step estimate)
 ABLATION=${ABLATION:-0}
 ROLLOUT=${ROLLOUT:-1}
 DROPOUT=${DROPOUT:-0}
@@ -46,6 +47,7 @@ command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,mem
 extra=""
 [ "$COMPILE" = 1 ] && extra="--compile"
 [ -n "$REF_NOISE" ] && extra="$extra --reference-noise $REF_NOISE"
+extra="$extra --rollout-reference-steps $ROLLOUT_STEPS"
 runs=("motion_contact motion+contact --rollout-chunks $ROLLOUT" "action_vector action-vector --rollout-chunks $ROLLOUT")
 case "$ABLATION" in
   1|focus) runs+=("motion_contact_uniform motion+contact --focus-weight 0 --rollout-chunks $ROLLOUT") ;;

@@ -21,7 +21,7 @@ import torch._dynamo
 
 from imac_data.core.depth import DepthCodec
 from imac_data.errors import InputError
-from imac_model.config import BackboneConfig, ConditioningConfig, FlowConfig, ModelSpec, UNetConfig
+from imac_model.config import BackboneConfig, ConditioningConfig, FlowConfig, ModelSpec, RolloutConfig, UNetConfig
 from imac_model.data.batch import ChunkBatch
 from imac_model.data.depth import decode_depth
 from imac_model.models.backbones.build import build_backbone
@@ -34,6 +34,7 @@ from imac_model.models.checkpoint import (
     save_checkpoint,
 )
 from imac_model.models.world_model import WorldModel
+from imac_model.pipelines.rollout import rollout_loss
 from imac_model.training.pack import _eager, compile_trunk
 
 H, SIDE, SQUARE = 2, 16, 3
@@ -301,3 +302,25 @@ def test_a_compiled_trunk_computes_what_the_eager_one_does_in_one_graph():
     assert list(model.state_dict()) == keys
     assert _eager(model) is compiled and model.backbone.trunk.__func__ is type(model.backbone).trunk
     torch._dynamo.reset()
+
+
+def test_a_rollout_from_sampled_frames_starts_the_next_chunk_where_the_sampler_ends():
+    """``rollout.reference_steps`` k: chunk 2 starts from the last frame of k sampler steps on chunk 1
+    (the frame a replay goes on from), not from chunk 1's one-step estimate, whose noised input holds a
+    share tau of the true future."""
+    model = train("motion", steps=40)
+    g = torch.Generator().manual_seed(1)
+    batch, _ = batch_of(g, 4)
+    clip = [batch, batch]
+    taus = [torch.full((4,), 0.5)] * 2
+    noises = [torch.randn(4, 4, H, SIDE, SIDE, generator=torch.Generator().manual_seed(k)) for k in (1, 2)]
+    sampled = rollout_loss(model, clip, None, generator=torch.Generator().manual_seed(3), taus=taus, noises=noises,
+                           reference_steps=2)
+    noise = torch.randn(4, 4, H, SIDE, SIDE, generator=torch.Generator().manual_seed(3))
+    expected = model.sample(batch, steps=2, noise=noise).frames[:, -1].clamp(0, 1)
+    assert torch.allclose(sampled.references[1], expected, atol=1e-6)
+    estimate = rollout_loss(model, clip, None, taus=taus, noises=noises)
+    assert (estimate.references[1] - sampled.references[1]).abs().mean() > 1e-3
+    assert torch.equal(sampled.references[0], estimate.references[0])  # chunk 1 starts from its recording either way
+    with pytest.raises(InputError, match="rollout.reference_steps"):
+        RolloutConfig(reference_steps=-1)

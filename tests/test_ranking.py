@@ -494,8 +494,10 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
     # with DROPOUT, a share of the samples goes without controls, and the checkpoint can be sampled with guidance
     # and with the scene-warp stream (ABLATION=scene-warp), which the pack carries, derived from the recorded chunks
     summary = train_pack(pack, "motion+contact", tmp_path / "first_frame", minutes=0.001, batch_size=16,
-                         rollout_chunks=2, first_frame=True, dropout=0.1, scene_warp=True, progress=lambda row: None)
+                         rollout_chunks=2, first_frame=True, dropout=0.1, scene_warp=True, rollout_reference_steps=2,
+                         progress=lambda row: None)
     assert summary["first_frame"] and summary["dropout"] == 0.1 and summary["scene_warp"] and summary["steps"] >= 1
+    assert summary["rollout_reference_steps"] == 2
     spec = load_world_model(tmp_path / "first_frame")[1]
     assert spec.conditioning.first_frame and spec.conditioning.dropout == 0.1 and spec.conditioning.scene_warp
     # a compiler that fails on the GPU machine costs the run its compilation, not the run: it trains eager

@@ -10,6 +10,7 @@ frame. ``docs/world-model.md`` ("Training-time rollout") has the details."""
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
@@ -47,22 +48,38 @@ def last_frame(model, out) -> torch.Tensor:
     return frames[:, -1].detach().clamp(0.0, 1.0).float()
 
 
+def sampled_last_frame(model, batch: ChunkBatch, out, steps: int, generator: torch.Generator | None,
+                       streams: Sequence[str], rows: tuple[int, int] = (0, 1), autocast=None) -> torch.Tensor:
+    """The last frame ``(B, 3, 2h, V w)`` of ``steps`` Euler steps of the sampler on ``batch`` (the
+    chunk a training output ``out`` came from): what a replay goes on from. The noise is drawn for the
+    global batch and sliced to ``rows``, as :meth:`WorldModel.forward` draws its own."""
+    r, n = rows
+    shape = out.x_tau.shape
+    gen_dev = generator.device if generator is not None else out.x_tau.device
+    noise = torch.randn((shape[0] * n, *shape[1:]), generator=generator, device=gen_dev)[r::n]
+    with torch.no_grad(), (autocast or contextlib.nullcontext)():
+        frames = model.sample(batch, steps=steps, noise=noise.to(out.x_tau.device), streams=tuple(streams) or None).frames
+    return frames[:, -1].detach().clamp(0.0, 1.0).float()
+
+
 def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | None, *,
                  generator: torch.Generator | None = None, clean_reference: bool = False,
                  streams: Sequence[str] | None = None, commanded_state: bool = False,
                  backward: Callable[[torch.Tensor], None] | None = None,
                  taus: Sequence[torch.Tensor] | None = None, noises: Sequence[torch.Tensor] | None = None,
                  autocast=None, rows: tuple[int, int] = (0, 1),
-                 loss_of: Callable | None = None, stored_contact: bool = False) -> RolloutOutput:
+                 loss_of: Callable | None = None, stored_contact: bool = False,
+                 reference_steps: int = 0) -> RolloutOutput:
     """The training-time rollout loss of a batch of clips: ``clip[r]`` is chunk r of every
     clip. See the module docstring. ``backward(loss_r / R)`` is called per chunk when given
     (then the returned loss is detached). ``taus``/``noises`` fix each chunk's draws (tests).
     ``rows``: the data-parallel slice of :meth:`WorldModel.forward`; ``loss_of(out)``: the
     chunk's loss to train on (default ``out.loss``; data-parallel training rebalances it).
     ``stored_contact``: chunk r > 1 keeps its recorded contact images and only its reference is
-    the model's own (a machine without the renderer: the GPU preset's pack trainer)."""
-    import contextlib
-
+    the model's own (a machine without the renderer: the GPU preset's pack trainer).
+    ``reference_steps`` k > 0: chunk r > 1 starts from the last frame of ``k`` sampler steps on chunk
+    r-1's inputs (no gradient; noise drawn for the global batch, as the loss's) instead of the one-step
+    estimate, whose noised input holds a share tau of the true future (docs/world-model.md)."""
     R = len(clip)
     if R < 1:
         raise InputError("rollout: a clip needs at least one chunk")
@@ -104,7 +121,10 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
         result.controls.append(chunk.controls)
         result.taus.append(out.tau.detach())
         if r + 1 < R and not clean_reference:
-            reference = last_frame(base, out)
+            if reference_steps > 0:
+                reference = sampled_last_frame(base, chunk, out, reference_steps, generator, streams, rows, autocast)
+            else:
+                reference = last_frame(base, out)
         q_prev, actions_prev = q_ref, batch.actions
     result.loss = total
     return result

@@ -176,7 +176,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                lr: float = 6e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
                log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
                first_frame: bool | None = None, dropout: float | None = None, scene_warp: bool | None = None,
-               reference_noise: float | None = None, compile: bool = False, progress=print) -> dict:
+               reference_noise: float | None = None, rollout_reference_steps: int = 0, compile: bool = False,
+               progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
@@ -184,7 +185,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     ``rollout_chunks`` R > 1: training-time rollout (:func:`imac_model.pipelines.rollout.rollout_loss`)
     over clips of R consecutive chunks, ``batch_size // R`` clips a step; chunk r > 1 starts from the
     model's own estimate of chunk r-1's last frame and keeps its recorded contact images (no renderer
-    here to rebuild them). ``compile``: train through :func:`compile_trunk`; the first step's
+    here to rebuild them); with ``rollout_reference_steps`` k > 0 it starts from k sampler steps instead
+    (``rollout.reference_steps``). ``compile``: train through :func:`compile_trunk`; the first step's
     compilation counts in the budget, and the log's ``first_step_s`` says how long it took."""
     device = pack.tensors["reference"].device
     spec = spec_for_mode(pack.spec, mode, focus_weight, first_frame, dropout, scene_warp, reference_noise)
@@ -201,6 +203,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     ema = [p.detach().float().clone() for p in params]
     autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else torch.autocast(
         "cpu", enabled=False)
+    if rollout_reference_steps < 0:
+        raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
     clips = pack.clips(rollout_chunks) if rollout_chunks > 1 else None
     if clips is not None and (len(clips) == 0 or batch_size < rollout_chunks):
         raise InputError(f"rollout_chunks {rollout_chunks}: {len(clips)} training clips of that length, batch "
@@ -224,7 +228,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         index = clips[torch.randint(len(clips), (batch_size // rollout_chunks,), generator=g, device=device)]
         clip = [pack.batch(index[:, r], streams) for r in range(rollout_chunks)]
         return rollout_loss(model, clip, None, generator=g, streams=streams or None, stored_contact=True,
-                            backward=torch.Tensor.backward, autocast=lambda: autocast).loss, index.numel()
+                            backward=torch.Tensor.backward, autocast=lambda: autocast,
+                            reference_steps=rollout_reference_steps).loss, index.numel()
 
     while time.time() - t0 < 60.0 * minutes:
         for group in opt.param_groups:
@@ -268,7 +273,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                 "weights": "ema"})
     save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
     summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "reference_noise": spec.flow.reference_noise,
-               "rollout_chunks": rollout_chunks,
+               "rollout_chunks": rollout_chunks, "rollout_reference_steps": rollout_reference_steps,
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
                "compile_error": compile_error, "steps": step,
@@ -299,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="override the pack's flow.reference_noise (the CPU preset's best arm: 0.3; docs/ranking.md)")
     t.add_argument("--rollout-chunks", type=int, default=1,
                    help="training-time rollout over clips of this many chunks (1: none; docs/ranking.md)")
+    t.add_argument("--rollout-reference-steps", type=int, default=0,
+                   help="chunk r > 1 starts from this many sampler steps on chunk r-1 (0: its one-step estimate)")
     t.add_argument("--first-frame", action="store_true",
                    help="condition on the episode's first frame (conditioning.first_frame; docs/world-model.md)")
     t.add_argument("--scene-warp", action="store_true",
@@ -318,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
                          seed=args.seed, focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks,
                          first_frame=args.first_frame or None, dropout=args.dropout,
                          scene_warp=args.scene_warp or None, reference_noise=args.reference_noise,
-                         compile=args.compile)
+                         rollout_reference_steps=args.rollout_reference_steps, compile=args.compile)
     print(json.dumps(summary))
     return 0
 

@@ -418,7 +418,7 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
             result = rollout_loss(model, clip, online, generator=gen, streams=streams,
                                   commanded_state=rc.reference_state == "commanded",
                                   backward=runtime.backward, autocast=runtime.autocast, rows=(rank, world),
-                                  loss_of=loss_of)
+                                  loss_of=loss_of, reference_steps=rc.reference_steps)
             loss = result.loss
             extras.setdefault("chunk_losses", []).append([float(x) for x in result.chunk_losses])
             if result.invalid_depth:
