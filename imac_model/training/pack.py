@@ -195,6 +195,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     if missing:
         raise InputError(f"the pack carries no {missing} stream(s) (it has "
                          f"{sorted(k[len('control.'):] for k in pack.tensors if k.startswith('control.'))})")
+    if rollout_reference_steps < 0:
+        raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
     torch.manual_seed(seed)
     model = WorldModel(spec).to(device).train()
     compiled = compile_trunk(model) if compile else None
@@ -203,8 +205,6 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     ema = [p.detach().float().clone() for p in params]
     autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else torch.autocast(
         "cpu", enabled=False)
-    if rollout_reference_steps < 0:
-        raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
     clips = pack.clips(rollout_chunks) if rollout_chunks > 1 else None
     if clips is not None and (len(clips) == 0 or batch_size < rollout_chunks):
         raise InputError(f"rollout_chunks {rollout_chunks}: {len(clips)} training clips of that length, batch "
