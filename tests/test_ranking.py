@@ -42,6 +42,7 @@ from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking.benchmark import GateStop, import_gpu_runs, stage_train
 from imac_model.experiments.ranking.judge import LiftJudge
+from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
 from imac_model.experiments.ranking.report import _relative
@@ -151,6 +152,10 @@ def test_lift_judge_agrees_with_mujoco_on_real_frames(runner, lift):
     cube_z = lift["final_qpos"][0][runner.env.layout.object_qadr["box"] + 2]
     assert cube_z - 0.01 <= held <= cube_z + 0.03  # the visible faces lie up to a half side above the centre
     assert np.isnan(missed)  # the cube lies on the table, far from the lifted gripper
+    # with the cube painted out, the held cube is gone and the arm alone says nothing
+    painted = [dataclasses.replace(f, frames={c: without_cube(x) for c, x in f.frames.items()}) for f in frames]
+    assert judge.judge(painted).tolist() == [False, False]
+    assert all((redness(x) <= 0.05).all() for f in painted for x in f.frames.values())
 
 
 def test_both_runners_give_a_policy_the_same_observation(lift):
@@ -195,7 +200,7 @@ def test_moving_the_cube_moves_a_closed_loop_policys_grasp_target_in_both_runner
 
     # MuJoCo: the closed-loop policy follows the cube after frame 0; the open-loop one does not. The cube's
     # estimate is pulled towards the camera by the faces it sees (up to a half side from the workspace view, which
-    # sees the front face), so a moved cube is followed to within 1.5 cm (docs/ranking.md, "The policies")
+    # sees the near face), so a moved cube is followed to within 1.5 cm (docs/ranking.md, "The policies")
     moved = targets(closed_loop(), move)[1] - targets(closed_loop())[1]
     assert np.linalg.norm(moved - shift[:2]) < TARGET_TOLERANCE, moved
     np.testing.assert_allclose(targets(open_loop(), move), targets(open_loop()))
@@ -226,6 +231,7 @@ OUTSIDE = '''
 import torch
 
 from imac_model.experiments.ranking.judge import LiftJudge
+from imac_model.experiments.ranking.perception import redness, without_cube
 
 
 class Wave:
@@ -320,6 +326,7 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     assert set(results["statistics"]) == {"motion+contact", "none"}
     assert results["judges"]["real"]["lift_geometry"]["n"] == 8
     assert results["judges"]["real"]["lift_geometry"]["accuracy"] == 1.0  # two chunks end before any lift
+    assert results["judges"]["cube_masked"]["lift_geometry"]["n"] == 8
     assert all(results["evaluations"]["none"]["none_check"]["bit_identical"])
     assert {"simulate", "build", "decode", "train", "judges", "evaluate"} <= set(results["stages"])  # before the report
     assert (docs / "scatter_motion_contact.png").is_file() and "## Time per stage" in (docs / "README.md").read_text()

@@ -18,11 +18,13 @@ __all__ = ["CAMERA_NAMES", "WORKSPACE_CAMERA", "RIG_CAMERAS", "CONTROL_DT", "loa
 
 # MuJoCo camera -> dataset camera name (ALOHA HDF5 / LeRobot convention): the three ALOHA cameras.
 CAMERA_NAMES = {"top": "cam_high", "left_wrist": "cam_left_wrist", "right_wrist": "cam_right_wrist"}
-# A fixed, low camera in front of the table that frames where the cube starts and where it is lifted
-# (gym-aloha samples the cube over x 0-0.2 m, y 0.4-0.6 m): the head camera looks almost straight down,
-# so a lift shows mostly in its depth. At 48x64 the cube spans 6-9 px here (docs/simulation.md).
+# A fixed, low side camera that frames where the cube starts and where it is lifted (gym-aloha samples
+# the cube over x 0-0.2 m, y 0.4-0.6 m). It looks along +x, the way the right arm reaches, so the
+# gripper's fingers close across its image: a grasp's y offset, which decides the lift, shows as pixels,
+# not depth; the head camera looks almost straight down, where a lift shows mostly in depth
+# (docs/simulation.md, "A workspace camera").
 WORKSPACE_CAMERA = {"workspace": "cam_workspace"}
-WORKSPACE_POSE = {"pos": (0.1, 0.1, 0.18), "target": (0.1, 0.5, 0.07), "fovy": 34.0}
+WORKSPACE_POSE = {"pos": (-0.3, 0.5, 0.2), "target": (0.1, 0.5, 0.05), "fovy": 36.0}
 RIG_CAMERAS = {**CAMERA_NAMES, **WORKSPACE_CAMERA}  # every camera the simulated rig can record
 
 # Simulation rates of gym-aloha: 50 Hz control, 500 Hz physics.

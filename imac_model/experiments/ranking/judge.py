@@ -1,7 +1,7 @@
 """The deterministic success judge of the lift: is the cube up in the air?
 
-From the workspace view (a fixed, low camera in front of the table, where a 10 cm lift moves the
-cube by 15-20 rows at 48x64), the red pixels are lifted to the world with their depth and the camera's pose at the frame's state (edge pixels,
+From the workspace view (a fixed, low side camera, where a successful lift moves the cube by
+12-17 px at 48x64), the red pixels are lifted to the world with their depth and the camera's pose at the frame's state (edge pixels,
 which mix the cube's colour with a finger's depth, left out). The cube is
 held up when enough of those points lie near the right gripper's tool centre point (forward
 kinematics of the same state) and their median height is at least the success height (the
