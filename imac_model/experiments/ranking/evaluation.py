@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -42,7 +43,7 @@ from imac_model.evaluate.success import (
     train_success_classifier,
 )
 from imac_model.experiments.ranking.judge import LiftJudge
-from imac_model.experiments.ranking.perception import RED_THRESHOLD, interior, redness
+from imac_model.experiments.ranking.perception import RED_THRESHOLD, interior, redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan, slug
 from imac_model.experiments.ranking.policies import WORKSPACE
 from imac_model.models.checkpoint import load_world_model
@@ -87,10 +88,13 @@ def run_judges(plan: RankingPlan) -> None:
     episodes = sorted(labels)
     lift = LiftJudge()
     frames = episode_frames(evaluation, episodes, cameras(plan), 4, geometry=True)
-    real = {name: evaluate_judge(j, frames, [labels[e] for e in episodes])
-            for name, j in (("lift_geometry", lift), ("classifier", classifier)) if j is not None}
+    judges = [(name, j) for name, j in (("lift_geometry", lift), ("classifier", classifier)) if j is not None]
+    real = {name: evaluate_judge(j, frames, [labels[e] for e in episodes]) for name, j in judges}
+    # the same frames with the cube painted out: a judge of the cube, not of the arm, falls to chance
+    masked = [dataclasses.replace(f, frames={c: without_cube(x) for c, x in f.frames.items()}) for f in frames]
+    cube_masked = {name: evaluate_judge(j, masked, [labels[e] for e in episodes]) for name, j in judges}
     _write(plan.work / "judges" / "real.json", {
-        "classifier_training": training, "real": real,
+        "classifier_training": training, "real": real, "cube_masked": cube_masked,
         "heights": {int(f.episode_index): [None if np.isnan(h) else round(float(h), 4) for h in lift.heights(f)]
                     for f in frames},
         "labels": {int(e): bool(v) for e, v in labels.items()},

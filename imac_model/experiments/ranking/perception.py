@@ -26,6 +26,24 @@ def interior(mask: torch.Tensor) -> torch.Tensor:
     return m
 
 
+def without_cube(rgb: torch.Tensor, threshold: float = 0.05) -> torch.Tensor:
+    """``(..., 3, h, w)`` with the cube painted out: every reddish pixel (its antialiased edge
+    included, grown by one pixel) takes the median colour of the frame's other pixels. What a
+    judge reads from what is left, it reads from the arm and the table, not the cube."""
+    red = redness(rgb.float()) > threshold
+    grown = red.clone()
+    grown[..., 1:, :] |= red[..., :-1, :]
+    grown[..., :-1, :] |= red[..., 1:, :]
+    grown[..., :, 1:] |= red[..., :, :-1]
+    grown[..., :, :-1] |= red[..., :, 1:]
+    h, w = rgb.shape[-2:]
+    pixels = rgb.movedim(-3, -1).reshape(-1, h * w, 3).clone()  # (frames, pixels, rgb)
+    for frame, m in zip(pixels, grown.reshape(-1, h * w)):
+        if m.any() and (~m).any():
+            frame[m] = frame[~m].median(dim=0).values
+    return pixels.reshape(*rgb.shape[:-3], h, w, 3).movedim(-1, -3)
+
+
 def red_points(rgb: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
                threshold: float = RED_THRESHOLD, *, edges: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """World points ``(N, 3)`` of the red pixels with known depth, and their redness ``(N,)``;

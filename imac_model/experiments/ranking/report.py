@@ -411,14 +411,22 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
     lines += _training(r)
     lines += _gate(plan, r)
     j = r["judges"]
-    lines += ["", "## Judges", "", "Accuracy against MuJoCo's labels.", "",
-              "| judge | real evaluation episodes | classifier's own held-out split |", "|---|---|---|",
+    masked = j.get("cube_masked", {})  # judges measured before 2026-11-28 have no such check
+
+    def _masked(judge: str) -> str:
+        return _fmt(masked[judge]["balanced_accuracy"]) if judge in masked else "not measured"
+
+    lines += ["", "## Judges", "", "Accuracy against MuJoCo's labels; the last column is the balanced accuracy on the "
+              "same frames with the cube painted out (0.5 is chance: the judge reads the cube, not the arm).", "",
+              "| judge | real evaluation episodes | classifier's own held-out split | cube painted out |",
+              "|---|---|---|---|",
               f"| lift_geometry | {_fmt(j['real']['lift_geometry']['accuracy'])} "
-              f"({j['real']['lift_geometry']['n']}) | |",
+              f"({j['real']['lift_geometry']['n']}) | | {_masked('lift_geometry')} |",
               (f"| classifier | {_fmt(j['real']['classifier']['accuracy'])} ({j['real']['classifier']['n']}) | "
                f"{_fmt(j['classifier_training']['heldout']['accuracy'])} "
-               f"({j['classifier_training']['heldout']['n']} training rollouts) |" if "classifier" in j["real"]
-               else f"| classifier | not trained: {j['classifier_training']['skipped']} | |"), "",
+               f"({j['classifier_training']['heldout']['n']} training rollouts) | {_masked('classifier')} |"
+               if "classifier" in j["real"]
+               else f"| classifier | not trained: {j['classifier_training']['skipped']} | | |"), "",
               "On generated rollouts of the recorded actions (real episodes replayed in the world model, judged on "
               "the generated frames):", "", "| mode | Euler steps | episodes | lift_geometry | classifier |",
               "|---|---|---|---|---|"]
