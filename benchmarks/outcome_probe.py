@@ -1,0 +1,183 @@
+"""Can the outcome be read from what a chunk's world model is shown? A discriminative probe.
+
+The gate asks the world model to draw whether the cube is lifted, from a recorded frame and one
+chunk's conditioning. This asks a small CNN classifier the same question directly: from the
+chunk's inputs (the reference frame, RGB and depth of both views, and its control images or its
+actions), predict MuJoCo's label of the episode. If a classifier trained on the same rollouts
+cannot tell a success from a near miss, the generative model cannot be expected to draw it either,
+and the change it needs is in what it is shown (views, resolution, controls), not in training.
+
+Every rollout of the GPU preset's pack (torch alone) is scored out of fold: the episodes are split
+into folds, and each fold is predicted by a probe trained on the others. ``future`` is the answer as
+recorded (the chunk's own last frame), the probe's ceiling::
+
+    python -m benchmarks.outcome_probe --work runs/ranking_gpu2 --json benchmarks/results/outcome_probe.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from imac_data import lerobot_compat as lr
+from imac_model.evaluate.success import dataset_success_labels, verdict_scores
+from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
+from imac_model.training.pack import Pack
+
+# what each probe sees besides the chunk's reference frame (its RGB and depth rows, both views)
+INPUTS = {
+    "reference": (),
+    "actions": ("actions",),
+    "motion+contact": ("control.motion", "control.contact_s2g", "control.contact_r2s"),
+    "motion+contact+scene-warp": ("control.motion", "control.contact_s2g", "control.contact_r2s",
+                                  "control.scene_warp"),
+    "future": ("future",),
+    # what a full replay is given from its first frame: every chunk's actions, or their motion images
+    "episode-actions": ("episode.actions",),
+    "episode-motion": ("episode.control.motion",),
+}
+CHUNKS = 4  # an episode's chunks, for the ``episode-`` probes (read at its first chunk only)
+
+
+class Probe(nn.Module):
+    """Three stride-2 convolutions over the stacked images, max-pooled over the image (a grasp is
+    decided by where things are relative to each other, not where in the view), beside a linear
+    read of the actions, to one logit."""
+
+    def __init__(self, channels: int, actions: int = 0, width: int = 32):
+        super().__init__()
+        c = width
+        self.images = nn.Sequential(
+            nn.Conv2d(channels, c, 3, stride=2, padding=1), nn.GroupNorm(8, c), nn.SiLU(),
+            nn.Conv2d(c, 2 * c, 3, stride=2, padding=1), nn.GroupNorm(8, 2 * c), nn.SiLU(),
+            nn.Conv2d(2 * c, 2 * c, 3, stride=2, padding=1), nn.SiLU(), nn.AdaptiveMaxPool2d(1), nn.Flatten(),
+            nn.Dropout(0.3))
+        self.actions = nn.Linear(actions, 64) if actions else None
+        self.head = nn.Linear(2 * c + (64 if actions else 0), 1)
+
+    def forward(self, images: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
+        x = self.images(images)
+        if self.actions is not None:
+            x = torch.cat([x, torch.relu(self.actions(actions))], dim=1)
+        return self.head(x).squeeze(1)
+
+
+def probe_inputs(pack: Pack, index: torch.Tensor, what: str,
+                 views: list[str] | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``(n, C, H/2, W)`` float images (the mosaic's two rows stacked in channels, each control's
+    frames in channels; only ``views``' columns where given) and ``(n, A)`` actions or None."""
+    t = pack.tensors
+
+    def rows(mosaic: torch.Tensor) -> torch.Tensor:  # (n, 3, 2h, w) -> (n, 6, h, w)
+        n, c, h2, w = mosaic.shape
+        return mosaic.reshape(n, c, 2, h2 // 2, w).reshape(n, 2 * c, h2 // 2, w)
+
+    images, actions = [rows(t["reference"][index])], None
+    for key in INPUTS[what]:
+        if key.startswith("episode."):  # the episode's chunks are consecutive in the pack
+            index, key = index[:, None] + torch.arange(CHUNKS), key[len("episode."):]
+        if key == "actions":
+            actions = t["actions"][index].flatten(1)
+        elif key == "future":
+            images.append(rows(t["future"][index][:, -1]))
+        else:
+            images.append(t[key][index].reshape(len(index), -1, *t[key].shape[-2:]))
+    images = torch.cat(images, dim=1)
+    if views:  # the mosaic's columns are the spec's views, in order
+        w = images.shape[-1] // len(pack.spec.views)
+        images = torch.cat([images[..., w * pack.spec.views.index(v):w * (pack.spec.views.index(v) + 1)]
+                            for v in views], dim=-1)
+    return images.float() / 255.0, actions
+
+
+def fit_predict(train: tuple, labels: torch.Tensor, test: tuple, *, steps: int, seed: int) -> torch.Tensor:
+    """Out-of-fold logits of a probe trained ``steps`` steps (batch 32, AdamW, classes weighted)."""
+    torch.manual_seed(seed)
+    images, actions = train
+    scale = None
+    if actions is not None:  # the actions standardised on the training folds
+        mean, std = actions.mean(0), actions.std(0).clamp_min(1e-3)
+        scale = lambda a: (a - mean) / std  # noqa: E731
+    model = Probe(images.shape[1], 0 if actions is None else actions.shape[1])
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=0.05)
+    positive = labels.float().mean().clamp(0.05, 0.95)
+    weights = torch.where(labels, 0.5 / positive, 0.5 / (1 - positive))
+    g = torch.Generator().manual_seed(seed)
+    model.train()
+    for _ in range(steps):
+        b = torch.randint(len(labels), (32,), generator=g)
+        logits = model(images[b], None if actions is None else scale(actions[b]))
+        loss = nn.functional.binary_cross_entropy_with_logits(logits, labels[b].float(), weight=weights[b])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    with torch.no_grad():
+        return model(test[0], None if test[1] is None else scale(test[1]))
+
+
+def measure(plan: RankingPlan, inputs: list[str], chunks: list[int], folds: int, steps: int, seed: int,
+            views: list[str] | None = None) -> dict:
+    torch.set_num_threads(1)
+    pack = Pack(plan.pack)
+    labels = dataset_success_labels(lr.LeRobotDataset(TRAIN_REPO, root=plan.train_dataset))
+    episode = pack.tensors["episode_index"]
+    position = torch.arange(len(episode)) - pack.first_chunk
+    known = sorted({int(e) for e in episode if labels.get(int(e)) is not None})
+    order = np.random.default_rng(seed).permutation(known)
+    fold_of = {int(e): i % folds for i, e in enumerate(order)}
+    result = {"work": plan.work.name, "episodes": len(known), "successes": sum(labels[e] for e in known),
+              "folds": folds, "steps": steps, "seed": seed,
+              "views": views or list(pack.spec.views), "probes": {}}
+    for c in chunks:
+        index = torch.tensor([i for i in range(len(episode)) if int(position[i]) == c and int(episode[i]) in fold_of])
+        y = torch.tensor([labels[int(episode[i])] for i in index])
+        fold = torch.tensor([fold_of[int(episode[i])] for i in index])
+        for what in inputs:
+            if what.startswith("episode-") and c != 0:
+                continue
+            t0 = time.process_time()
+            images, actions = probe_inputs(pack, index, what, views)
+            logits = torch.empty(len(index))
+            for f in range(folds):
+                tr, te = fold != f, fold == f
+                logits[te] = fit_predict((images[tr], None if actions is None else actions[tr]), y[tr],
+                                         (images[te], None if actions is None else actions[te]),
+                                         steps=steps, seed=seed + f)
+            predicted = (logits > 0).tolist()
+            scores = verdict_scores(predicted, y.tolist())
+            row = {k: scores[k] for k in ("n", "balanced_accuracy", "accuracy", "majority_baseline", "confusion")}
+            row["cpu_s"] = round(time.process_time() - t0, 1)
+            result["probes"].setdefault(what, {})[str(c)] = row
+            print(json.dumps({"inputs": what, "views": result["views"], "chunk": c + 1, "t": 8 * c, **row}), flush=True)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.outcome_probe", description=__doc__.split("\n\n")[0])
+    p.add_argument("--work", default="runs/ranking_gpu2", help="the ranking benchmark's work directory (its pack)")
+    p.add_argument("--inputs", nargs="+", default=list(INPUTS), choices=list(INPUTS))
+    p.add_argument("--chunks", nargs="+", type=int, default=[1, 2, 3, 4], help="chunk positions, from 1")
+    p.add_argument("--views", nargs="+", help="only these views of the pack (default: all)")
+    p.add_argument("--folds", type=int, default=6)
+    p.add_argument("--steps", type=int, default=300, help="training steps of each probe (batch 32)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", help="append the figures to this file")
+    args = p.parse_args(argv)
+    result = measure(RankingPlan.load(Path(args.work) / "plan.json"), args.inputs, [c - 1 for c in args.chunks],
+                     args.folds, args.steps, args.seed, args.views)
+    if args.json:
+        path = Path(args.json)
+        rows = json.loads(path.read_text()) if path.is_file() else []
+        path.write_text(json.dumps([*rows, result], indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
