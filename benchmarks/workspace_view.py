@@ -7,9 +7,11 @@ first chunk boundary) and at the end. The span is the larger side of the corners
 the lift is how far the projected centre moved. The issue's bar: at least 6 px and, for a
 successful lift, at least 10 px. ``offset_px_per_cm`` is how far the resting cube's image moves when
 it moves 1 cm along world x and y: the training rollouts' lift is decided by the grasp's y offset
-(docs/ranking.md, "What the view must show")::
+(docs/ranking.md, "What the view must show"). ``--front`` measures the camera's pose before
+2026-11-28 instead; ``--picture`` draws two training rollouts (a near miss and a success) in both poses::
 
     python -m benchmarks.workspace_view --starts 12 --json benchmarks/results/workspace_view.json
+    python -m benchmarks.workspace_view --starts 0 --picture docs/workspace_view.png
 """
 
 from __future__ import annotations
@@ -20,14 +22,19 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from PIL import Image, ImageDraw
 
 from imac_data.core.cameras import project
 from imac_data.sources.sim import rig
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.experiments.ranking import policies
-from imac_model.experiments.ranking.plan import EVAL_SEED0
+from imac_model.experiments.ranking.benchmark import training_policy
+from imac_model.experiments.ranking.plan import EVAL_SEED0, TRAIN_SEED0
 
 CAMERA = next(iter(rig.WORKSPACE_CAMERA.values()))
+FRONT_POSE = {"pos": (0.1, 0.1, 0.18), "target": (0.1, 0.5, 0.07), "fovy": 34.0}  # in front, looking along +y
+PICTURED = {7: "near miss, 3.3 cm off in y", 21: "success, 0.5 cm off"}  # training rollouts (benchmark.training_policy)
+TIMES = (0, 8, 12, 16, 32)
 HALF = 0.02  # the cube's half side (m)
 
 
@@ -71,16 +78,50 @@ def measure(starts: int, view_size: tuple[int, int]) -> dict:
                                    if ok else None)}
 
 
+def picture(path: str) -> None:
+    """The workspace camera at the render size in both poses, for the :data:`PICTURED` rollouts."""
+    rows, labels = [], []
+    strips = {}
+    for name, pose in (("front (before)", FRONT_POSE), ("side (now)", rig.WORKSPACE_POSE)):
+        rig.WORKSPACE_POSE, kept = pose, rig.WORKSPACE_POSE  # read when the runner builds its model
+        with SimRunner(SimRunConfig(views=policies.VIEWS)) as runner:
+            for i in PICTURED:
+                images = runner.run_episode(training_policy(i), TRAIN_SEED0 + i).images[CAMERA]
+                strips[(i, name)] = np.concatenate([images[t] for t in TIMES], axis=1)
+        rig.WORKSPACE_POSE = kept
+    for i, outcome in PICTURED.items():
+        for name in ("front (before)", "side (now)"):
+            rows.append(strips[(i, name)])
+            labels.append((name, outcome))
+    grid = np.concatenate(rows, axis=0)
+    h, w = grid.shape[0] // len(rows), grid.shape[1] // len(TIMES)
+    image = Image.new("RGB", (170 + grid.shape[1], 16 + grid.shape[0]), "white")
+    image.paste(Image.fromarray(grid), (170, 16))
+    draw = ImageDraw.Draw(image)
+    for k, t in enumerate(TIMES):
+        draw.text((170 + k * w + w // 2 - 14, 2), f"t={t}", fill=(0, 0, 0))
+    for r, (name, outcome) in enumerate(labels):
+        draw.text((4, 16 + r * h + h // 2 - 14), f"{name}\n{outcome}", fill=(0, 0, 0))
+    image.save(path)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--starts", type=int, default=12)
     p.add_argument("--view-size", type=int, nargs=2, default=(48, 64))
+    p.add_argument("--front", action="store_true", help="measure the camera's pose before 2026-11-28")
     p.add_argument("--json")
+    p.add_argument("--picture", help="write the two poses' picture here (PNG)")
     args = p.parse_args()
-    result = measure(args.starts, tuple(args.view_size))
-    print(json.dumps({k: v for k, v in result.items() if k != "episodes"}, indent=1))
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
+    if args.picture:  # both poses, before --front changes the rig's
+        picture(args.picture)
+    if args.front:
+        rig.WORKSPACE_POSE = FRONT_POSE
+    if args.starts:
+        result = measure(args.starts, tuple(args.view_size))
+        print(json.dumps({k: v for k, v in result.items() if k != "episodes"}, indent=1))
+        if args.json:
+            Path(args.json).write_text(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":
