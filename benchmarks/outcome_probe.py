@@ -9,9 +9,12 @@ and the change it needs is in what it is shown (views, resolution, controls), no
 
 Every rollout of the GPU preset's pack (torch alone) is scored out of fold: the episodes are split
 into folds, and each fold is predicted by a probe trained on the others. ``future`` is the answer as
-recorded (the chunk's own last frame), the probe's ceiling::
+recorded (the chunk's own last frame), the probe's ceiling. ``--target offset`` regresses the
+rollout's planned grasp offset (cm) instead of its label: a number per rollout, not a bit, and the
+geometry that decides the grasp (docs/ranking.md, "What the view must show")::
 
-    python -m benchmarks.outcome_probe --work runs/ranking_gpu2 --json benchmarks/results/outcome_probe.json
+    python -m benchmarks.outcome_probe --work runs/ranking_side --inputs reference motion+contact --chunks 2 1 \
+        --target offset [--views cam_workspace] --json benchmarks/results/outcome_probe.json
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ class Probe(nn.Module):
     decided by where things are relative to each other, not where in the view), beside a linear
     read of the actions, to one logit."""
 
-    def __init__(self, channels: int, actions: int = 0, width: int = 32):
+    def __init__(self, channels: int, actions: int = 0, width: int = 32, outputs: int = 1):
         super().__init__()
         c = width
         self.images = nn.Sequential(
@@ -59,13 +62,13 @@ class Probe(nn.Module):
             nn.Conv2d(2 * c, 2 * c, 3, stride=2, padding=1), nn.SiLU(), nn.AdaptiveMaxPool2d(1), nn.Flatten(),
             nn.Dropout(0.3))
         self.actions = nn.Linear(actions, 64) if actions else None
-        self.head = nn.Linear(2 * c + (64 if actions else 0), 1)
+        self.head = nn.Linear(2 * c + (64 if actions else 0), outputs)
 
     def forward(self, images: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
         x = self.images(images)
         if self.actions is not None:
             x = torch.cat([x, torch.relu(self.actions(actions))], dim=1)
-        return self.head(x).squeeze(1)
+        return self.head(x)
 
 
 def probe_inputs(pack: Pack, index: torch.Tensor, what: str,
@@ -96,66 +99,114 @@ def probe_inputs(pack: Pack, index: torch.Tensor, what: str,
     return images.float() / 255.0, actions
 
 
-def fit_predict(train: tuple, labels: torch.Tensor, test: tuple, *, steps: int, seed: int) -> torch.Tensor:
-    """Out-of-fold logits of a probe trained ``steps`` steps (batch 32, AdamW, classes weighted)."""
+def fit_predict(train: tuple, target: torch.Tensor, test: tuple, *, steps: int, seed: int) -> torch.Tensor:
+    """Out-of-fold predictions of a probe trained ``steps`` steps (batch 32, AdamW): logits for a
+    boolean ``target`` (classes weighted), else ``(n, k)`` regressed values (standardised inside)."""
     torch.manual_seed(seed)
     images, actions = train
     scale = None
     if actions is not None:  # the actions standardised on the training folds
         mean, std = actions.mean(0), actions.std(0).clamp_min(1e-3)
         scale = lambda a: (a - mean) / std  # noqa: E731
-    model = Probe(images.shape[1], 0 if actions is None else actions.shape[1])
+    boolean = target.dtype == torch.bool
+    y = target.float()[:, None] if boolean else target.float()
+    if not boolean:
+        y_mean, y_std = y.mean(0), y.std(0).clamp_min(1e-6)
+        y = (y - y_mean) / y_std
+    model = Probe(images.shape[1], 0 if actions is None else actions.shape[1], outputs=y.shape[1])
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=0.05)
-    positive = labels.float().mean().clamp(0.05, 0.95)
-    weights = torch.where(labels, 0.5 / positive, 0.5 / (1 - positive))
+    if boolean:
+        positive = y.mean().clamp(0.05, 0.95)
+        weights = torch.where(target, 0.5 / positive, 0.5 / (1 - positive))[:, None]
     g = torch.Generator().manual_seed(seed)
     model.train()
     for _ in range(steps):
-        b = torch.randint(len(labels), (32,), generator=g)
-        logits = model(images[b], None if actions is None else scale(actions[b]))
-        loss = nn.functional.binary_cross_entropy_with_logits(logits, labels[b].float(), weight=weights[b])
+        b = torch.randint(len(y), (32,), generator=g)
+        out = model(images[b], None if actions is None else scale(actions[b]))
+        if boolean:
+            loss = nn.functional.binary_cross_entropy_with_logits(out, y[b], weight=weights[b])
+        else:
+            loss = nn.functional.mse_loss(out, y[b])
         opt.zero_grad()
         loss.backward()
         opt.step()
     model.eval()
     with torch.no_grad():
-        return model(test[0], None if test[1] is None else scale(test[1]))
+        out = model(test[0], None if test[1] is None else scale(test[1]))
+    return out[:, 0] if boolean else out * y_std + y_mean
+
+
+def grasp_offsets(plan: RankingPlan) -> dict[int, list[float]]:
+    """Each training rollout's planned grasp offset (x, y) in cm, from the simulate stage's records."""
+    rows = [r for part in sorted((plan.work / "sim" / "train").glob("part_*"))
+            for r in json.loads((part / "outcomes.json").read_text())]
+    return {int(r["index"]): [100.0 * v for v in r["offset"]] for r in rows}
+
+
+def offset_knn(offsets: dict[int, list[float]], labels: dict[int, bool | None], k: int) -> float:
+    """Balanced accuracy of the majority label of each rollout's ``k`` nearest planned offsets
+    (leave one out): what knowing the grasp offset exactly, and nothing else, tells of the outcome."""
+    episodes = [e for e in offsets if labels.get(e) is not None]
+    x = np.array([offsets[e] for e in episodes])
+    y = np.array([labels[e] for e in episodes])
+    d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    predicted = y[np.argsort(d, axis=1)[:, :k]].mean(axis=1) > 0.5
+    return float(verdict_scores(predicted.tolist(), y.tolist())["balanced_accuracy"])
+
+
+def regression_scores(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
+    """Per axis (x, y): out-of-fold R^2 and mean absolute error (cm)."""
+    sse, sst = ((predicted - truth) ** 2).sum(0), ((truth - truth.mean(0)) ** 2).sum(0)
+    mae = (predicted - truth).abs().mean(0)
+    return {"n": len(truth), **{f"r2_{a}": round(float(1 - sse[k] / sst[k]), 3) for k, a in enumerate("xy")},
+            **{f"mae_cm_{a}": round(float(mae[k]), 2) for k, a in enumerate("xy")}}
 
 
 def measure(plan: RankingPlan, inputs: list[str], chunks: list[int], folds: int, steps: int, seed: int,
-            views: list[str] | None = None) -> dict:
+            views: list[str] | None = None, target: str = "success", save=lambda result: None) -> dict:
+    """Every (chunk, inputs) probe, out of fold; ``save`` is called with the result after each."""
     torch.set_num_threads(1)
     pack = Pack(plan.pack)
     labels = dataset_success_labels(lr.LeRobotDataset(TRAIN_REPO, root=plan.train_dataset))
+    offsets = grasp_offsets(plan)
     episode = pack.tensors["episode_index"]
     position = torch.arange(len(episode)) - pack.first_chunk
     known = sorted({int(e) for e in episode if labels.get(int(e)) is not None})
     order = np.random.default_rng(seed).permutation(known)
     fold_of = {int(e): i % folds for i, e in enumerate(order)}
-    result = {"work": plan.work.name, "episodes": len(known), "successes": sum(labels[e] for e in known),
-              "folds": folds, "steps": steps, "seed": seed,
-              "views": views or list(pack.spec.views), "probes": {}}
+    result = {"work": plan.work.name, "target": target, "episodes": len(known),
+              "successes": sum(labels[e] for e in known), "folds": folds, "steps": steps, "seed": seed,
+              "views": views or list(pack.spec.views),
+              "offset_knn": {str(k): round(offset_knn(offsets, labels, k), 3) for k in (5, 9, 15)}, "probes": {}}
+    print(json.dumps({"offset_knn": result["offset_knn"]}), flush=True)
     for c in chunks:
         index = torch.tensor([i for i in range(len(episode)) if int(position[i]) == c and int(episode[i]) in fold_of])
-        y = torch.tensor([labels[int(episode[i])] for i in index])
+        if target == "offset":
+            y = torch.tensor([offsets[int(episode[i])] for i in index])
+        else:
+            y = torch.tensor([labels[int(episode[i])] for i in index])
         fold = torch.tensor([fold_of[int(episode[i])] for i in index])
         for what in inputs:
             if what.startswith("episode-") and c != 0:
                 continue
             t0 = time.process_time()
             images, actions = probe_inputs(pack, index, what, views)
-            logits = torch.empty(len(index))
+            predicted = torch.empty(y.shape)
             for f in range(folds):
                 tr, te = fold != f, fold == f
-                logits[te] = fit_predict((images[tr], None if actions is None else actions[tr]), y[tr],
-                                         (images[te], None if actions is None else actions[te]),
-                                         steps=steps, seed=seed + f)
-            predicted = (logits > 0).tolist()
-            scores = verdict_scores(predicted, y.tolist())
-            row = {k: scores[k] for k in ("n", "balanced_accuracy", "accuracy", "majority_baseline", "confusion")}
+                predicted[te] = fit_predict((images[tr], None if actions is None else actions[tr]), y[tr],
+                                            (images[te], None if actions is None else actions[te]),
+                                            steps=steps, seed=seed + f)
+            if target == "offset":
+                row = regression_scores(predicted, y)
+            else:
+                scores = verdict_scores((predicted > 0).tolist(), y.tolist())
+                row = {k: scores[k] for k in ("n", "balanced_accuracy", "accuracy", "majority_baseline", "confusion")}
             row["cpu_s"] = round(time.process_time() - t0, 1)
             result["probes"].setdefault(what, {})[str(c)] = row
             print(json.dumps({"inputs": what, "views": result["views"], "chunk": c + 1, "t": 8 * c, **row}), flush=True)
+            save(result)
     return result
 
 
@@ -168,14 +219,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--folds", type=int, default=6)
     p.add_argument("--steps", type=int, default=300, help="training steps of each probe (batch 32)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", help="append the figures to this file")
+    p.add_argument("--target", choices=("success", "offset"), default="success",
+                   help="success: MuJoCo's label (balanced accuracy); offset: the planned grasp offset (x, y) in cm (R^2)")
+    p.add_argument("--json", help="append the figures to this file (kept up to date after every probe)")
     args = p.parse_args(argv)
-    result = measure(RankingPlan.load(Path(args.work) / "plan.json"), args.inputs, [c - 1 for c in args.chunks],
-                     args.folds, args.steps, args.seed, args.views)
-    if args.json:
-        path = Path(args.json)
-        rows = json.loads(path.read_text()) if path.is_file() else []
-        path.write_text(json.dumps([*rows, result], indent=1) + "\n")
+    path = Path(args.json) if args.json else None
+    before = json.loads(path.read_text()) if path is not None and path.is_file() else []
+
+    def save(result: dict) -> None:
+        if path is not None:
+            path.write_text(json.dumps([*before, result], indent=1) + "\n")
+
+    measure(RankingPlan.load(Path(args.work) / "plan.json"), args.inputs, [c - 1 for c in args.chunks], args.folds,
+            args.steps, args.seed, args.views, args.target, save)
     return 0
 
 

@@ -343,7 +343,7 @@ def _gate(plan: RankingPlan, r: dict) -> list[str]:
         lines += ["", "Where the cube goes wrong, at the last frame of each chunk of the full replays (from chunk 1), in "
                   "each view: the share of replays whose generated view keeps at least half of the recorded "
                   "cube's pixels / the median distance (px) between the generated and recorded cubes' centres "
-                  "(a 10 cm lift moves the cube 15-20 px in the workspace view):", "",
+                  "(a successful lift moves the cube 12-17 px in the workspace view, `python -m benchmarks.workspace_view`):", "",
                   "| mode | budget (min) | step | view | " + " | ".join(f"end of chunk {i + 1}" for i in range(n)) + " |",
                   "|" + "---|" * (4 + n)]
         for mode, g in cubes:
