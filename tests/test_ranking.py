@@ -231,7 +231,6 @@ OUTSIDE = '''
 import torch
 
 from imac_model.experiments.ranking.judge import LiftJudge
-from imac_model.experiments.ranking.perception import redness, without_cube
 
 
 class Wave:
