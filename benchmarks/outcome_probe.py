@@ -3,9 +3,9 @@
 The gate asks the world model to draw whether the cube is lifted, from a recorded frame and one
 chunk's conditioning. This asks a small CNN classifier the same question directly: from the
 chunk's inputs (the reference frame, RGB and depth of both views, and its control images or its
-actions), predict MuJoCo's label of the episode. If a classifier trained on the same rollouts
-cannot tell a success from a near miss, the generative model cannot be expected to draw it either,
-and the change it needs is in what it is shown (views, resolution, controls), not in training.
+actions), predict MuJoCo's label of the episode. It learns from one bit per rollout where the
+world model learns from every pixel of its frames, so it bounds from below what the inputs hold;
+it shows where in an episode the outcome becomes readable, and which views and streams carry it.
 
 Every rollout of the GPU preset's pack (torch alone) is scored out of fold: the episodes are split
 into folds, and each fold is predicted by a probe trained on the others. ``future`` is the answer as
@@ -45,13 +45,12 @@ INPUTS = {
     "episode-actions": ("episode.actions",),
     "episode-motion": ("episode.control.motion",),
 }
-CHUNKS = 4  # an episode's chunks, for the ``episode-`` probes (read at its first chunk only)
 
 
 class Probe(nn.Module):
     """Three stride-2 convolutions over the stacked images, max-pooled over the image (a grasp is
     decided by where things are relative to each other, not where in the view), beside a linear
-    read of the actions, to one logit."""
+    read of the actions, to one logit (or ``outputs`` regressed values)."""
 
     def __init__(self, channels: int, actions: int = 0, width: int = 32, outputs: int = 1):
         super().__init__()
@@ -71,10 +70,11 @@ class Probe(nn.Module):
         return self.head(x)
 
 
-def probe_inputs(pack: Pack, index: torch.Tensor, what: str,
-                 views: list[str] | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+def probe_inputs(pack: Pack, index: torch.Tensor, what: str, views: list[str] | None = None,
+                 chunks: int = 4) -> tuple[torch.Tensor, torch.Tensor | None]:
     """``(n, C, H/2, W)`` float images (the mosaic's two rows stacked in channels, each control's
-    frames in channels; only ``views``' columns where given) and ``(n, A)`` actions or None."""
+    frames in channels; only ``views``' columns where given) and ``(n, A)`` actions or None.
+    ``episode-`` inputs take an episode's ``chunks`` chunks from its first (``index``)."""
     t = pack.tensors
 
     def rows(mosaic: torch.Tensor) -> torch.Tensor:  # (n, 3, 2h, w) -> (n, 6, h, w)
@@ -84,7 +84,7 @@ def probe_inputs(pack: Pack, index: torch.Tensor, what: str,
     images, actions = [rows(t["reference"][index])], None
     for key in INPUTS[what]:
         if key.startswith("episode."):  # the episode's chunks are consecutive in the pack
-            index, key = index[:, None] + torch.arange(CHUNKS), key[len("episode."):]
+            index, key = index[:, None] + torch.arange(chunks), key[len("episode."):]
         if key == "actions":
             actions = t["actions"][index].flatten(1)
         elif key == "future":
@@ -191,7 +191,7 @@ def measure(plan: RankingPlan, inputs: list[str], chunks: list[int], folds: int,
             if what.startswith("episode-") and c != 0:
                 continue
             t0 = time.process_time()
-            images, actions = probe_inputs(pack, index, what, views)
+            images, actions = probe_inputs(pack, index, what, views, plan.chunks)
             predicted = torch.empty(y.shape)
             for f in range(folds):
                 tr, te = fold != f, fold == f
