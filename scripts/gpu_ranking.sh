@@ -39,6 +39,7 @@ echo "[gpu] $($PY --version) at $PY; torch $torch_version $cuda"
 [ "$COMPILE" = auto ] && { [ "$cuda" = True ] && COMPILE=1 || COMPILE=0; }
 "$PY" -c "import lzma" 2>/dev/null || { echo "gpu_ranking: $PY has no lzma module, and the pack's arrays are LZMA-compressed (imac_model/training/pack.py)" >&2; exit 2; }
 site=$(mktemp -d)
+trap 'rm -rf "$site"' EXIT  # the unpacked wheels, if any
 if ! "$PY" -c "import yaml, safetensors" 2>/dev/null; then
   for wheel in "$(dirname "$PACK")"/wheels/*.whl; do "$PY" -m zipfile -e "$wheel" "$site"; done
 fi
