@@ -104,7 +104,7 @@ class Pack:
                           first_frame=t["reference"][self.first_chunk[index]].float() / 255.0)
 
 
-def spec_for_mode(spec: ModelSpec, mode: str, focus_weight: float | None = None,
+def spec_for_mode(spec: ModelSpec, mode: str, *, focus_weight: float | None = None,
                   first_frame: bool | None = None, dropout: float | None = None,
                   scene_warp: bool | None = None, reference_noise: float | None = None) -> ModelSpec:
     """The pack's spec with another conditioning mode (and, for an ablation, another
@@ -189,7 +189,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     (``rollout.reference_steps``). ``compile``: train through :func:`compile_trunk`; the first step's
     compilation counts in the budget, and the log's ``first_step_s`` says how long it took."""
     device = pack.tensors["reference"].device
-    spec = spec_for_mode(pack.spec, mode, focus_weight, first_frame, dropout, scene_warp, reference_noise)
+    spec = spec_for_mode(pack.spec, mode, focus_weight=focus_weight, first_frame=first_frame, dropout=dropout,
+                         scene_warp=scene_warp, reference_noise=reference_noise)
     streams = spec.conditioning.streams
     missing = [s for s in streams if f"control.{s}" not in pack.tensors]
     if missing:
