@@ -27,7 +27,7 @@ INTERRUPTED = "interrupted (a build keeps its finished episodes: rerun the same 
 __all__ = ["cpu_cores", "run_command", "exit_process", "environment_problem", "interrupted", "quiet_libraries",
            "silence_progress_bars", "quiet_startup_interrupts", "note_interrupts", "interrupt_pending",
            "raise_if_interrupted", "block_interrupts_in_this_thread", "quiet_worker_interrupts", "run_as_job",
-           "native_stderr_silenced",
+           "native_stderr_silenced", "scheduling_kept",
            "EXIT_OK", "EXIT_BUG", "EXIT_BAD_INPUT", "EXIT_ENVIRONMENT", "EXIT_INTERRUPTED", "INTERRUPTED"]
 
 # errno -> what the user can do about it
@@ -225,6 +225,23 @@ def native_stderr_silenced():
     finally:
         os.dup2(saved, 2)
         os.close(saved)
+
+
+@contextlib.contextmanager
+def scheduling_kept():
+    """This thread's CPU scheduling put back after the block. SVT-AV1 (LeRobot's camera codec), run as root,
+    switches the thread that opens an encoder to real-time SCHED_FIFO at priority 99 and leaves it there: every
+    process started from that thread inherits it, and two such processes busy on a 2-core machine starve the
+    rest of it (docs/building.md, "Real-time scheduling left by the AV1 encoder")."""
+    if not hasattr(os, "sched_getscheduler"):  # not Linux
+        yield
+        return
+    policy, priority = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    try:
+        yield
+    finally:
+        if (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) != (policy, priority):
+            os.sched_setscheduler(0, policy, os.sched_param(priority))  # lowering one's own needs no privilege
 
 
 def _worker_interrupt(signum, frame) -> None:

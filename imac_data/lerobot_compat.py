@@ -13,6 +13,7 @@ import inspect
 from pathlib import Path
 from typing import Any
 
+from imac_data.console import scheduling_kept
 from imac_data.errors import InputError
 
 __all__ = ["NAMES", "default_root", "version", "create_dataset", "set_streaming_encoder",
@@ -157,8 +158,9 @@ def encode_image_dir(imgs_dir: Path, video_path: Path, fps: int, *, vcodec: str,
     other defaults: 0.4.4 takes ``vcodec=``, 0.5.1 on an ``RGBEncoderConfig`` (``video_encoder=``)."""
     encode = _find("encode_video_frames")[0]
     params = inspect.signature(encode).parameters
-    if "vcodec" in params:  # 0.4.4
-        encode(imgs_dir, video_path, fps, vcodec=vcodec, overwrite=overwrite)
-    else:  # >= 0.5.1
-        config = importlib.import_module("lerobot.configs.video").RGBEncoderConfig
-        encode(imgs_dir, video_path, fps, video_encoder=config(vcodec=vcodec), overwrite=overwrite)
+    with scheduling_kept():  # SVT-AV1 leaves a root caller real-time
+        if "vcodec" in params:  # 0.4.4
+            encode(imgs_dir, video_path, fps, vcodec=vcodec, overwrite=overwrite)
+        else:  # >= 0.5.1
+            config = importlib.import_module("lerobot.configs.video").RGBEncoderConfig
+            encode(imgs_dir, video_path, fps, video_encoder=config(vcodec=vcodec), overwrite=overwrite)

@@ -4,6 +4,7 @@ validation (``imac validate``) finds each kind of damage and names it."""
 
 import hashlib
 import json
+import os
 import shutil
 
 import numpy as np
@@ -14,6 +15,7 @@ import yaml
 from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
 
 from imac_data.cli import main as imac_main
+from imac_data.console import scheduling_kept
 from imac_data.core.robot.description import DESCRIPTION_DIR
 from imac_data.dataset.info import SCHEMA_VERSION
 from imac_data.dataset.merge import merge_datasets
@@ -53,6 +55,7 @@ def test_lerobot_style_writer_is_lerobots_encoder(tmp_path):
     (tmp_path / "png").mkdir()
     for i, f in enumerate(frames):
         Image.fromarray(f).save(tmp_path / "png" / f"frame-{i:06d}.png")
+    before = _scheduling()
     encode_image_dir(tmp_path / "png", tmp_path / "lerobot.mp4", 10, vcodec="libsvtav1", overwrite=True)
     writer = VideoWriter(tmp_path / "ours.mp4", VideoEncoding.lerobot_default().with_threads(1), 10, 48, 64,
                          style="lerobot")
@@ -61,6 +64,33 @@ def test_lerobot_style_writer_is_lerobots_encoder(tmp_path):
     writer.close()
     digest = [hashlib.sha256((tmp_path / n).read_bytes()).hexdigest() for n in ("lerobot.mp4", "ours.mp4")]
     assert digest[0] == digest[1]
+    assert _scheduling() == before  # neither left this thread real-time (next test)
+
+
+def _scheduling() -> tuple[int, int]:
+    return os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+
+
+def test_the_av1_encoder_would_leave_a_root_caller_real_time(tmp_path):
+    """Why the encoders run inside ``scheduling_kept``: PyAV's SVT-AV1 encoder, opened by root, switches the
+    calling thread to SCHED_FIFO at priority 99 and leaves it so (every process started from it inherits that).
+    Measured here on the bare encoder; as another user it has no right to, and nothing changes."""
+    import av
+
+    before = _scheduling()
+    try:
+        with scheduling_kept():
+            with av.open(str(tmp_path / "bare.mp4"), "w") as container:
+                stream = container.add_stream("libsvtav1", rate=10)
+                stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+                frame = av.VideoFrame.from_ndarray(np.zeros((48, 64, 3), np.uint8), format="rgb24")
+                for packet in [*stream.encode(frame), *stream.encode(None)]:
+                    container.mux(packet)
+                inside = _scheduling()
+        assert inside == ((os.SCHED_FIFO, 99) if os.geteuid() == 0 else before)
+        assert _scheduling() == before
+    finally:
+        os.sched_setscheduler(0, before[0], os.sched_param(before[1]))
 
 
 # ----------------------------------------------------------------------------- built datasets

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from imac_data import lerobot_compat as lr
+from imac_data.console import scheduling_kept
 from imac_data.dataset.files import write_parquet_atomic
 from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter
 from imac_data.errors import InputError
@@ -148,11 +149,13 @@ class EpisodeWriter:
     def end_episode(self) -> None:
         if self._n != self._length:
             raise InputError(f"episode has {self._n} frames, expected {self._length}")
-        self.dataset.save_episode()
+        with scheduling_kept():  # LeRobot encodes its cameras here (SVT-AV1 leaves a root caller real-time)
+            self.dataset.save_episode()
         self._length = None
 
     def finish(self) -> None:
-        self.dataset.finalize()
+        with scheduling_kept():
+            self.dataset.finalize()
         self._stats_in_feature_order()
 
     def _stats_in_feature_order(self) -> None:

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from imac_data import lerobot_compat as lr
-from imac_data.console import native_stderr_silenced
+from imac_data.console import native_stderr_silenced, scheduling_kept
 from imac_data.core.depth_map import PIX_FMT as DEPTH_MAP_PIX_FMT
 from imac_data.core.depth_map import QMAX
 from imac_data.errors import InputError
@@ -283,7 +283,7 @@ class VideoWriter:
     def write(self, batch: np.ndarray) -> None:
         import av
 
-        with quiet_libav():
+        with quiet_libav(), scheduling_kept():  # the encoder opens at the first frame
             for frame in batch:
                 vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format=self.frame_format)
                 if self.style == "imac":
@@ -298,7 +298,7 @@ class VideoWriter:
             self.container.mux(packet)
 
     def close(self) -> None:
-        with quiet_libav():  # x264 prints its statistics as the encoder closes
+        with quiet_libav(), scheduling_kept():  # x264 prints its statistics as the encoder closes
             try:
                 self._mux(self.stream.encode(None))
             finally:
@@ -308,7 +308,7 @@ class VideoWriter:
         """Close without ending the stream (the caller deletes the file). The encoder is freed
         here, quietly: SVT-AV1 reports one freed mid-stream ("deinit called without sending
         EOS!") on fd 2, which after Ctrl-C would stand above the command's one line."""
-        with quiet_libav(), native_stderr_silenced():
+        with quiet_libav(), native_stderr_silenced(), scheduling_kept():
             try:
                 self.container.close()
             except Exception:  # noqa: BLE001 - already failing; the file is deleted anyway
