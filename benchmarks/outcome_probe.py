@@ -15,6 +15,10 @@ geometry that decides the grasp (docs/ranking.md, "What the view must show")::
 
     python -m benchmarks.outcome_probe --work runs/ranking_side --inputs reference motion+contact --chunks 2 1 \
         --target offset [--views cam_workspace] --json benchmarks/results/outcome_probe.json
+
+``--test evaluation`` trains each probe on every training rollout instead and tests it on the
+evaluation episodes, the policies the benchmark ranks: does the training data teach the outcomes
+those policies meet ("Training data that covers the policies" in docs/ranking.md)?
 """
 
 from __future__ import annotations
@@ -29,9 +33,11 @@ import torch
 from torch import nn
 
 from imac_data import lerobot_compat as lr
+from imac_model.data.chunks import ChunkDataset, open_metadata
 from imac_model.evaluate.success import dataset_success_labels, verdict_scores
-from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
-from imac_model.training.pack import Pack
+from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
+from imac_model.training.pack import Pack, pack_arrays
+from imac_model.training.train import model_spec
 
 # what each probe sees besides the chunk's reference frame (its RGB and depth rows, both views)
 INPUTS = {
@@ -163,6 +169,61 @@ def regression_scores(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
             **{f"mae_cm_{a}": round(float(mae[k]), 2) for k, a in enumerate("xy")}}
 
 
+def evaluation_pack(plan: RankingPlan) -> Pack:
+    """The evaluation episodes' chunks as an in-memory pack, decoded with the training pack's layout
+    (the recorded control streams; the derived scene warp is not among them)."""
+    run = plan.run_config("motion+contact")
+    spec, layout = model_spec(run, open_metadata(run.data))
+    ds = ChunkDataset(EVAL_REPO, layout, root=plan.eval_dataset, cache="memory")
+    ds.preload(num_workers=1, progress=True)
+    items = [ds[i] for i in range(len(ds))]
+    return Pack.from_arrays(pack_arrays(items, [True] * len(items), spec))
+
+
+def measure_on_evaluation(plan: RankingPlan, inputs: list[str], chunks: list[int], steps: int, seeds: list[int],
+                          views: list[str] | None = None, save=lambda result: None) -> dict:
+    """Probes trained on every labelled training rollout (one per seed), tested on the evaluation
+    episodes (the policies the benchmark ranks): balanced accuracy per seed, and each policy's
+    MuJoCo rate against the share the probes call a success, over the seeds."""
+    torch.set_num_threads(1)
+    pack, evaluation = Pack(plan.pack), evaluation_pack(plan)
+    labels = dataset_success_labels(lr.LeRobotDataset(TRAIN_REPO, root=plan.train_dataset))
+    eval_labels = dataset_success_labels(lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset))
+    per_policy = plan.groups * plan.real_per_group
+    result = {"work": plan.work.name, "target": "success", "test": "evaluation",
+              "training_offsets": plan.training_offsets, "steps": steps, "seeds": seeds,
+              "views": views or list(pack.spec.views), "probes": {}}
+
+    def at(p: Pack, known: dict, c: int) -> torch.Tensor:  # the chunks at position c of labelled episodes
+        episode = p.tensors["episode_index"]
+        position = torch.arange(len(episode)) - p.first_chunk
+        return torch.tensor([i for i in range(len(episode))
+                             if int(position[i]) == c and known.get(int(episode[i])) is not None])
+
+    for c in chunks:
+        train, test = at(pack, labels, c), at(evaluation, eval_labels, c)
+        y = torch.tensor([labels[int(pack.tensors["episode_index"][i])] for i in train])
+        truth = [eval_labels[int(evaluation.tensors["episode_index"][i])] for i in test]
+        policy = [plan.names[int(evaluation.tensors["episode_index"][i]) // per_policy] for i in test]
+        for what in inputs:
+            t0 = time.process_time()
+            train_inputs = probe_inputs(pack, train, what, views, plan.chunks)
+            test_inputs = probe_inputs(evaluation, test, what, views, plan.chunks)
+            verdicts = [(fit_predict(train_inputs, y, test_inputs, steps=steps, seed=s) > 0).tolist() for s in seeds]
+            per_seed = [verdict_scores(v, truth)["balanced_accuracy"] for v in verdicts]
+            row = {"n": len(truth), "balanced_accuracy": round(float(np.mean(per_seed)), 3),
+                   "balanced_accuracy_per_seed": [round(float(b), 3) for b in per_seed],
+                   "policies": {name: {"mujoco": round(float(np.mean([t for t, q in zip(truth, policy) if q == name])), 3),
+                                       "probe": round(float(np.mean([v[k] for v in verdicts for k, q in enumerate(policy)
+                                                                     if q == name])), 3)}
+                                for name in plan.names if name in policy},
+                   "cpu_s": round(time.process_time() - t0, 1)}
+            result["probes"].setdefault(what, {})[str(c)] = row
+            print(json.dumps({"inputs": what, "chunk": c + 1, "t": 8 * c, **row}), flush=True)
+            save(result)
+    return result
+
+
 def measure(plan: RankingPlan, inputs: list[str], chunks: list[int], folds: int, steps: int, seed: int,
             views: list[str] | None = None, target: str = "success", save=lambda result: None) -> dict:
     """Every (chunk, inputs) probe, out of fold; ``save`` is called with the result after each."""
@@ -219,8 +280,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--folds", type=int, default=6)
     p.add_argument("--steps", type=int, default=300, help="training steps of each probe (batch 32)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, default=3, help="with --test evaluation: probes trained, each its own seed")
     p.add_argument("--target", choices=("success", "offset"), default="success",
                    help="success: MuJoCo's label (balanced accuracy); offset: the planned grasp offset (x, y) in cm (R^2)")
+    p.add_argument("--test", choices=("folds", "evaluation"), default="folds",
+                   help="folds: out of fold over the training rollouts; evaluation: trained on them all, tested on "
+                        "the evaluation episodes (the ranked policies; label only)")
     p.add_argument("--json", help="append the figures to this file (kept up to date after every probe)")
     args = p.parse_args(argv)
     path = Path(args.json) if args.json else None
@@ -230,8 +295,14 @@ def main(argv: list[str] | None = None) -> int:
         if path is not None:
             path.write_text(json.dumps([*before, result], indent=1) + "\n")
 
-    measure(RankingPlan.load(Path(args.work) / "plan.json"), args.inputs, [c - 1 for c in args.chunks], args.folds,
-            args.steps, args.seed, args.views, args.target, save)
+    plan, chunks = RankingPlan.load(Path(args.work) / "plan.json"), [c - 1 for c in args.chunks]
+    if args.test == "evaluation":
+        if args.target != "success":
+            p.error("--test evaluation probes the label alone (--target success)")
+        measure_on_evaluation(plan, args.inputs, chunks, args.steps, list(range(args.seed, args.seed + args.seeds)),
+                              args.views, save)
+    else:
+        measure(plan, args.inputs, chunks, args.folds, args.steps, args.seed, args.views, args.target, save)
     return 0
 
 

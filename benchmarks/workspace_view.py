@@ -28,12 +28,12 @@ from imac_data.core.cameras import project
 from imac_data.sources.sim import rig
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.experiments.ranking import policies
-from imac_model.experiments.ranking.benchmark import training_policy
 from imac_model.experiments.ranking.plan import EVAL_SEED0, TRAIN_SEED0
+from imac_model.experiments.ranking.policies import training_policy
 
 CAMERA = next(iter(rig.WORKSPACE_CAMERA.values()))
 FRONT_POSE = {"pos": (0.1, 0.1, 0.18), "target": (0.1, 0.5, 0.07), "fovy": 34.0}  # in front, looking along +y
-PICTURED = {7: "near miss, 3.3 cm off in y", 21: "success, 0.5 cm off"}  # training rollouts (benchmark.training_policy)
+PICTURED = {7: "near miss, 3.3 cm off in y", 21: "success, 0.5 cm off"}  # training rollouts of the "disc" offsets (policies.training_policy)
 TIMES = (0, 8, 12, 16, 32)
 HALF = 0.02  # the cube's half side (m)
 

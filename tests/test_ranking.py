@@ -22,7 +22,7 @@ from dm_control.mujoco.engine import Physics
 from gym_aloha.tasks.sim import TransferCubeTask
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from benchmarks import ablation, cpu_ablation, gate_diagnosis
+from benchmarks import ablation, cpu_ablation, gate_diagnosis, outcome_probe
 from imac_data.cli import main as imac_main
 from imac_data.cli.parser import TASKS as CLI_TASKS
 from imac_data.core.cameras import save_calibration
@@ -43,7 +43,7 @@ from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking.benchmark import GateStop, import_gpu_runs, stage_train
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
-from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
+from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
 from imac_model.experiments.ranking.report import _relative
 from imac_model.experiments.stages import REPO_ROOT
@@ -102,8 +102,12 @@ def lift(runner, tmp_path_factory):
         final_qpos.append(runner.env.data.qpos.copy())
         recorders.append(rec)
     root = tmp / "dataset"
+    scheduling = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
     assert imac_main(["build", "--repo", REPO, "--recipe", str(ROOT / "recipes" / "aloha_sim_lift.yaml"), "--source",
                       str(src), "--root", str(root), "--episodes", "2", "--workers", "1", "--no-progress"]) == 0
+    # the in-process build left this process's scheduling alone (its AV1 encoder would make it real-time,
+    # and the toy benchmark's simulations, started from it, would starve each other: docs/building.md)
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == scheduling
     run = RunConfig().replace(**{"data.dataset": REPO, "data.root": str(root), "conditioning.mode": "motion+contact",
                                  "backbone.small.dim": 32, "backbone.small.depth": 1, "backbone.small.heads": 2,
                                  "data.view_height": 48, "data.views": list(VIEWS),
@@ -335,6 +339,9 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     simulated = {r["index"]: r["success"] for part in (work / "sim" / "train").glob("part_*")
                  for r in json.loads((part / "outcomes.json").read_text())}
     assert gate["episodes"] == plan.held_out_episodes() and gate["labels"] == [simulated[e] for e in gate["episodes"]]
+    offsets = [r["offset"] for part in (work / "sim" / "train").glob("part_*")
+               for r in json.loads((part / "outcomes.json").read_text())]
+    assert plan.training_offsets == "across" and all(abs(x) <= 0.02 and abs(y) <= 0.05 for x, y in offsets)
     assert gate["budget_minutes"] == plan.cpu_minutes and set(gate["from_chunk"]) == {"0", "1"}
     assert set(gate["cube"]) == set(gate["cube_at_chunk_end"]) == set(plan.views)  # every view the model generates
     assert all([len(c) for c in gate["cube"][v]["recorded"]] == [plan.chunks] * len(gate["episodes"]) for v in plan.views)
@@ -353,6 +360,15 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs)]) == 0
     again = json.loads((work / "stages.json").read_text())[len(stages):]
     assert all(e["cpu_s"] < 5 for e in again if e["stage"] != "report"), again
+
+
+def test_a_plan_saved_before_the_training_offsets_setting_loads_as_what_it_ran(tmp_path):
+    saved = RankingPlan(work=tmp_path, docs=tmp_path).to_dict()
+    del saved["training_offsets"]
+    (tmp_path / "plan.json").write_text(json.dumps(saved))
+    assert RankingPlan.load(tmp_path / "plan.json").training_offsets == "disc"
+    with pytest.raises(InputError, match="training_offsets"):
+        RankingPlan(work=tmp_path, docs=tmp_path, training_offsets="ring")
 
 
 def test_the_diagnosis_oracle_restores_one_recorded_view_at_the_chosen_boundaries(toy_run):
@@ -565,6 +581,17 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     assert sorted(pack.tensors["episode_index"][pack.heldout].unique().tolist()) == list(run.data.held_out_episodes)
     some = [1, len(chunks) // 2, len(chunks) - 1]  # each chunk's episode's first frame, as the CPU trainer's batch
     assert torch.equal(pack.batch(torch.tensor(some), ()).first_frame, chunks.batch(some).first_frame)
+    # the probe's evaluation episodes, decoded in memory: the chunks LeRobot reads, MuJoCo's rate per policy
+    evaluation = outcome_probe.evaluation_pack(plan)
+    eval_chunks = open_chunks(pack.spec, EVAL_REPO, str(plan.eval_dataset), episodes=None)
+    assert len(evaluation.tensors["reference"]) == len(eval_chunks) and len(evaluation.heldout) == len(eval_chunks)
+    for i in (0, len(eval_chunks) - 1):
+        assert torch.equal(evaluation.tensors["reference"][i], eval_chunks[i]["reference"])
+    probed = outcome_probe.measure_on_evaluation(plan, ["reference"], [1], steps=2, seeds=[0])
+    row = probed["probes"]["reference"]["1"]
+    simulated = {json.loads((plan.sim_dir(n) / "outcomes.json").read_text())["success_rate"] for n in plan.names}
+    assert row["n"] == len(plan.names) * len(plan.eval_seeds())
+    assert {p["mujoco"] for p in row["policies"].values()} == simulated
 
     out = tmp_path / "gpu_out"
     env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ABLATION": "1", "BATCH": "16", "PACK": str(plan.pack),

@@ -176,6 +176,9 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 180)")
     p.add_argument("--steps", type=int, help="Euler steps at evaluation (default 10)")
     p.add_argument("--jobs", type=int, help="processes at a time (default 2)")
+    p.add_argument("--training-offsets", choices=("across", "disc"),
+                   help="how far off the cube the world model's training rollouts grasp (default across; work "
+                        "directories made before 2026-11-28: disc; docs/ranking.md, 'Starts, seeds and data')")
     p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "
                                                        "2 chunks, 2 modes, 2 sampler steps")
     p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",

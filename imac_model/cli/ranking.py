@@ -39,7 +39,8 @@ def _plan(args: argparse.Namespace) -> RankingPlan:
     plan = toy_plan(work, docs) if args.toy else gpu_plan(work, docs) if args.preset == "gpu" else \
         RankingPlan(work=work, docs=docs)
     changes = {k: v for k, v in (("policies", tuple(args.policies or ()) or None), ("cpu_minutes", args.cpu_minutes),
-                                 ("steps", args.steps), ("jobs", args.jobs)) if v is not None}
+                                 ("steps", args.steps), ("jobs", args.jobs),
+                                 ("training_offsets", args.training_offsets)) if v is not None}
     plan = dataclasses.replace(plan, **changes)
     saved = work / "plan.json"
     if saved.is_file():

@@ -39,8 +39,8 @@ SPEC_KEY = "spec_json"
 # --------------------------------------------------------------------------- the pack
 
 
-def export_pack(items: list[dict], held_out: list[bool], spec: ModelSpec, path: str | Path) -> Path:
-    """Chunk items (``ChunkDataset`` items, every control stream) -> one ``.npz``; ``held_out``
+def pack_arrays(items: list[dict], held_out: list[bool], spec: ModelSpec) -> dict[str, np.ndarray]:
+    """Chunk items (``ChunkDataset`` items, every control stream) -> a pack's arrays; ``held_out``
     flags the held-out episodes' items. Controls keep their top row (the mosaic duplicates it)."""
     h = spec.view_height
     arrays = {
@@ -54,6 +54,12 @@ def export_pack(items: list[dict], held_out: list[bool], spec: ModelSpec, path: 
     }
     for key in [k for k in items[0] if k.startswith("control.")]:  # every stream the items carry, derived ones too
         arrays[key] = np.stack([it[key][:, :, :h].numpy() for it in items])
+    return arrays
+
+
+def export_pack(items: list[dict], held_out: list[bool], spec: ModelSpec, path: str | Path) -> Path:
+    """:func:`pack_arrays` written as one ``.npz``, atomically."""
+    arrays = pack_arrays(items, held_out, spec)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp.npz")
@@ -72,8 +78,18 @@ class Pack:
 
     def __init__(self, path: str | Path, device: torch.device | str = "cpu"):
         with np.load(path) as data:
-            self.spec = parse(ModelSpec, json.loads(str(data[SPEC_KEY])), "")
-            self.tensors = {k: torch.from_numpy(data[k]).to(device) for k in data.files if k != SPEC_KEY}
+            self._load({k: data[k] for k in data.files}, device)
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], device: torch.device | str = "cpu") -> Pack:
+        """A pack held in memory (:func:`pack_arrays`), never written."""
+        pack = cls.__new__(cls)
+        pack._load(arrays, device)
+        return pack
+
+    def _load(self, arrays: dict[str, np.ndarray], device) -> None:
+        self.spec = parse(ModelSpec, json.loads(str(arrays[SPEC_KEY])), "")
+        self.tensors = {k: torch.from_numpy(np.asarray(v)).to(device) for k, v in arrays.items() if k != SPEC_KEY}
         held = self.tensors.pop("held_out").bool()
         self.train = torch.nonzero(~held).flatten()
         self.heldout = torch.nonzero(held).flatten()
@@ -335,4 +351,5 @@ if __name__ == "__main__":
     raise SystemExit(main())
 
 
-__all__ = ["Pack", "compile_trunk", "export_pack", "fast_kernels", "heldout_loss", "spec_for_mode", "train_pack"]
+__all__ = ["Pack", "compile_trunk", "export_pack", "fast_kernels", "heldout_loss", "pack_arrays", "spec_for_mode",
+           "train_pack"]

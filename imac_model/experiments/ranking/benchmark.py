@@ -27,7 +27,6 @@ import tarfile
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from imac_data.errors import InputError
@@ -44,7 +43,7 @@ from imac_model.experiments.ranking.plan import (
     RankingPlan,
     slug,
 )
-from imac_model.experiments.ranking.policies import WORKSPACE, WRIST, LiftPolicy
+from imac_model.experiments.ranking.policies import training_policy
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT, python, quote, run_all, then_mark_done
 from imac_model.models.checkpoint import list_checkpoints
@@ -87,18 +86,6 @@ def stage_simulate(plan: RankingPlan) -> None:
     run_all(commands, plan.jobs, tag="ranking")
 
 
-def training_policy(index: int):
-    """The training rollouts' policy of episode ``index``: closed or open loop, with a grasp
-    offset of up to 3.5 cm in a random direction (successes and failures near the boundary)."""
-    rng = np.random.default_rng([index, 0x7A11])
-    kind = index % 3
-    relocalise = ((WORKSPACE, WRIST), (WORKSPACE,), None)[kind]
-    angle, radius = rng.uniform(0, 2 * np.pi), 0.035 * np.sqrt(rng.uniform())
-    offset = (float(radius * np.cos(angle)), float(radius * np.sin(angle)))
-    return LiftPolicy(f"mix_{('closed_loop', 'closed_loop_head', 'open_loop')[kind]}", relocalise=relocalise,
-                      offset=offset)
-
-
 def simulate_training_part(plan: RankingPlan, part: int) -> None:
     parts = max(1, min(plan.jobs, plan.train_episodes))
     out = plan.work / "sim" / "train" / f"part_{part}"
@@ -106,7 +93,7 @@ def simulate_training_part(plan: RankingPlan, part: int) -> None:
                                    views=plan.views)) as runner:
         rows = []
         for i in range(part, plan.train_episodes, parts):
-            p = training_policy(i)
+            p = training_policy(i, plan.training_offsets)
             rows += run_policy(p, [TRAIN_SEED0 + i], out / f"ep_{i:05d}", runner=runner, progress=False)
             rows[-1].update(index=i, policy=p.name, offset=p.offset.tolist())
     (out / "outcomes.json").write_text(json.dumps(rows, indent=1))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from imac_data.errors import InputError
 from imac_model.config import load_run_config
-from imac_model.experiments.ranking.policies import POLICIES, VIEWS
+from imac_model.experiments.ranking.policies import POLICIES, TRAINING_OFFSETS, VIEWS
 from imac_model.experiments.stages import REPO_ROOT
 
 POLICY_MODULE = "imac_model.experiments.ranking.policies"
@@ -45,6 +45,9 @@ class RankingPlan:
     wm_per_group: int = 15  # world-model episodes per policy and group (the group's first starts)
     train_episodes: int = 192  # the world model's training rollouts
     held_out: int = 16  # of them, held out of training (the held-out loss and the early gate)
+    # how far off the cube the training rollouts grasp (policies.TRAINING_OFFSETS); work directories made before
+    # 2026-11-28 used "disc"
+    training_offsets: str = "across"
     # motion is left out of the default: the comparison is motion+contact against action-vector, and none is
     # the harness check; at 8 CPU-hours a fourth equal budget does not fit (docs/ranking.md, "Modes")
     modes: tuple[str, ...] = ("motion+contact", "action-vector", "none")
@@ -84,6 +87,8 @@ class RankingPlan:
             raise InputError("ranking: wm_per_group must be between 1 and real_per_group")
         if not 0 <= self.held_out < self.train_episodes:
             raise InputError("ranking: held_out must be below train_episodes")
+        if self.training_offsets not in TRAINING_OFFSETS:
+            raise InputError(f"ranking: training_offsets {self.training_offsets!r}; choose from {list(TRAINING_OFFSETS)}")
         self.view_size = tuple(int(x) for x in self.view_size)
         self.views = tuple(self.views)
         if len(self.view_size) != 2 or min(self.view_size) < 8:
@@ -154,6 +159,7 @@ class RankingPlan:
     @classmethod
     def load(cls, path: Path) -> RankingPlan:
         data = json.loads(Path(path).read_text())
+        data.setdefault("training_offsets", "disc")  # a plan saved before the setting existed
         return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()})
 
 

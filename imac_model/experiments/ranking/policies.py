@@ -138,3 +138,31 @@ open_loop_3p5cm = _factory("open_loop_3p5cm", relocalise=None, offset=(0.0, 0.03
 open_loop_4cm = _factory("open_loop_4cm", relocalise=None, offset=(0.0, 0.04))
 
 POLICIES = ("closed_loop", "closed_loop_1p5cm", "open_loop", "open_loop_3cm", "open_loop_3p5cm", "open_loop_4cm")
+
+
+# The world model's training rollouts: how far (metres, world x along the fingers, y across them) each grasps off
+# the cube it sees. The offset across the fingers decides a grasp (docs/ranking.md, "What the view must show").
+def _disc(rng: np.random.Generator) -> tuple[float, float]:
+    """Up to 3.5 cm in any direction, uniform over the disc: the design before 2026-11-28. Only 4 of its 192
+    rollouts grasp more than 3 cm off across the fingers, where three of the six policies grasp."""
+    angle, radius = rng.uniform(0, 2 * np.pi), 0.035 * np.sqrt(rng.uniform())
+    return float(radius * np.cos(angle)), float(radius * np.sin(angle))
+
+
+def _across(rng: np.random.Generator) -> tuple[float, float]:
+    """Up to 5 cm either way across the fingers and 2 cm along them, uniform: clear misses and clear grasps
+    beside the near ones, so the model sees every regime a policy can grasp in."""
+    return float(rng.uniform(-0.02, 0.02)), float(rng.uniform(-0.05, 0.05))
+
+
+TRAINING_OFFSETS = {"disc": _disc, "across": _across}
+
+
+def training_policy(index: int, offsets: str = "across") -> LiftPolicy:
+    """The policy of training rollout ``index``: closed loop (both views or the workspace view alone) or open
+    loop in turn, grasping at an offset drawn from ``TRAINING_OFFSETS[offsets]`` with the rollout's own seed."""
+    rng = np.random.default_rng([index, 0x7A11])
+    kind = index % 3
+    relocalise = ((WORKSPACE, WRIST), (WORKSPACE,), None)[kind]
+    return LiftPolicy(f"mix_{('closed_loop', 'closed_loop_head', 'open_loop')[kind]}", relocalise=relocalise,
+                      offset=TRAINING_OFFSETS[offsets](rng))
