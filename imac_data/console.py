@@ -27,7 +27,7 @@ INTERRUPTED = "interrupted (a build keeps its finished episodes: rerun the same 
 __all__ = ["cpu_cores", "run_command", "exit_process", "environment_problem", "interrupted", "quiet_libraries",
            "silence_progress_bars", "quiet_startup_interrupts", "note_interrupts", "interrupt_pending",
            "raise_if_interrupted", "block_interrupts_in_this_thread", "quiet_worker_interrupts", "run_as_job",
-           "native_stderr_silenced", "scheduling_kept",
+           "native_stderr_silenced", "restore_scheduling", "scheduling", "scheduling_kept",
            "EXIT_OK", "EXIT_BUG", "EXIT_BAD_INPUT", "EXIT_ENVIRONMENT", "EXIT_INTERRUPTED", "INTERRUPTED"]
 
 # errno -> what the user can do about it
@@ -227,21 +227,30 @@ def native_stderr_silenced():
         os.close(saved)
 
 
+def scheduling() -> tuple[int, int] | None:
+    """This thread's CPU scheduling, (policy, priority); None where the OS has no such call (not Linux)."""
+    if not hasattr(os, "sched_getscheduler"):
+        return None
+    return os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+
+
+def restore_scheduling(saved: tuple[int, int] | None) -> None:
+    """Put back what :func:`scheduling` returned, if it changed (lowering one's own needs no privilege)."""
+    if saved is not None and scheduling() != saved:
+        os.sched_setscheduler(0, saved[0], os.sched_param(saved[1]))
+
+
 @contextlib.contextmanager
 def scheduling_kept():
     """This thread's CPU scheduling put back after the block. SVT-AV1 (LeRobot's camera codec), run as root,
     switches the thread that opens an encoder to real-time SCHED_FIFO at priority 99 and leaves it there: every
     process started from that thread inherits it, and two such processes busy on a 2-core machine starve the
     rest of it (docs/building.md, "Real-time scheduling left by the AV1 encoder")."""
-    if not hasattr(os, "sched_getscheduler"):  # not Linux
-        yield
-        return
-    policy, priority = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    saved = scheduling()
     try:
         yield
     finally:
-        if (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) != (policy, priority):
-            os.sched_setscheduler(0, policy, os.sched_param(priority))  # lowering one's own needs no privilege
+        restore_scheduling(saved)
 
 
 def _worker_interrupt(signum, frame) -> None:

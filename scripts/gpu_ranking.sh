@@ -22,6 +22,8 @@ PACK=${PACK:-runs/ranking_gpu/gpu/pack.npz}
 MINUTES=${MINUTES:-8}
 BATCH=${BATCH:-128}  # chunks a step (the tests run the script at toy size with fewer)
 LR=${LR:-6e-4}  # AdamW's peak learning rate (scale it with BATCH)
+WARMUP=${WARMUP:-200}  # steps of learning-rate warm-up (fewer at a larger BATCH: the same samples)
+EVAL_EVERY=${EVAL_EVERY:-500}  # steps between held-out losses in each run's log
 REF_NOISE=${REF_NOISE:-}  # flow.reference_noise for every run (default: the pack's spec)
 ROLLOUT_STEPS=${ROLLOUT_STEPS:-0}  # with ROLLOUT: chunk r > 1 starts from this many sampler steps (0: the one-step estimate)
 ABLATION=${ABLATION:-0}
@@ -62,7 +64,7 @@ pids=()
 for run in "${runs[@]}"; do
   set -- $run
   name=$1; shift
-  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --lr "$LR" --dropout "$DROPOUT" $extra --output "$OUT/$name" \
+  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --eval-every "$EVAL_EVERY" --dropout "$DROPOUT" $extra --output "$OUT/$name" \
     > "$OUT/$name.stdout" 2>&1 &
   pids+=($!)
 done

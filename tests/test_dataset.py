@@ -15,7 +15,7 @@ import yaml
 from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
 
 from imac_data.cli import main as imac_main
-from imac_data.console import scheduling_kept
+from imac_data.console import restore_scheduling, scheduling, scheduling_kept
 from imac_data.core.robot.description import DESCRIPTION_DIR
 from imac_data.dataset.info import SCHEMA_VERSION
 from imac_data.dataset.merge import merge_datasets
@@ -55,7 +55,7 @@ def test_lerobot_style_writer_is_lerobots_encoder(tmp_path):
     (tmp_path / "png").mkdir()
     for i, f in enumerate(frames):
         Image.fromarray(f).save(tmp_path / "png" / f"frame-{i:06d}.png")
-    before = _scheduling()
+    before = scheduling()
     encode_image_dir(tmp_path / "png", tmp_path / "lerobot.mp4", 10, vcodec="libsvtav1", overwrite=True)
     writer = VideoWriter(tmp_path / "ours.mp4", VideoEncoding.lerobot_default().with_threads(1), 10, 48, 64,
                          style="lerobot")
@@ -64,11 +64,7 @@ def test_lerobot_style_writer_is_lerobots_encoder(tmp_path):
     writer.close()
     digest = [hashlib.sha256((tmp_path / n).read_bytes()).hexdigest() for n in ("lerobot.mp4", "ours.mp4")]
     assert digest[0] == digest[1]
-    assert _scheduling() == before  # neither left this thread real-time (next test)
-
-
-def _scheduling() -> tuple[int, int]:
-    return os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    assert scheduling() == before  # neither left this thread real-time (next test)
 
 
 def test_the_av1_encoder_would_leave_a_root_caller_real_time(tmp_path):
@@ -77,7 +73,7 @@ def test_the_av1_encoder_would_leave_a_root_caller_real_time(tmp_path):
     Measured here on the bare encoder; as another user it has no right to, and nothing changes."""
     import av
 
-    before = _scheduling()
+    before = scheduling()
     try:
         with scheduling_kept():
             with av.open(str(tmp_path / "bare.mp4"), "w") as container:
@@ -86,11 +82,11 @@ def test_the_av1_encoder_would_leave_a_root_caller_real_time(tmp_path):
                 frame = av.VideoFrame.from_ndarray(np.zeros((48, 64, 3), np.uint8), format="rgb24")
                 for packet in [*stream.encode(frame), *stream.encode(None)]:
                     container.mux(packet)
-                inside = _scheduling()
+                inside = scheduling()
         assert inside == ((os.SCHED_FIFO, 99) if os.geteuid() == 0 else before)
-        assert _scheduling() == before
+        assert scheduling() == before
     finally:
-        os.sched_setscheduler(0, before[0], os.sched_param(before[1]))
+        restore_scheduling(before)
 
 
 # ----------------------------------------------------------------------------- built datasets

@@ -25,6 +25,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from benchmarks import ablation, cpu_ablation, gate_diagnosis, outcome_probe
 from imac_data.cli import main as imac_main
 from imac_data.cli.parser import TASKS as CLI_TASKS
+from imac_data.console import scheduling
 from imac_data.core.cameras import save_calibration
 from imac_data.core.depth import depth_codec_of
 from imac_data.core.robot.aloha import SIM_TASKS, mjcf_path
@@ -102,12 +103,12 @@ def lift(runner, tmp_path_factory):
         final_qpos.append(runner.env.data.qpos.copy())
         recorders.append(rec)
     root = tmp / "dataset"
-    scheduling = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    before = scheduling()
     assert imac_main(["build", "--repo", REPO, "--recipe", str(ROOT / "recipes" / "aloha_sim_lift.yaml"), "--source",
                       str(src), "--root", str(root), "--episodes", "2", "--workers", "1", "--no-progress"]) == 0
     # the in-process build left this process's scheduling alone (its AV1 encoder would make it real-time,
     # and the toy benchmark's simulations, started from it, would starve each other: docs/building.md)
-    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == scheduling
+    assert scheduling() == before
     run = RunConfig().replace(**{"data.dataset": REPO, "data.root": str(root), "conditioning.mode": "motion+contact",
                                  "backbone.small.dim": 32, "backbone.small.depth": 1, "backbone.small.heads": 2,
                                  "data.view_height": 48, "data.views": list(VIEWS),
@@ -536,6 +537,8 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
     with pytest.raises(InputError, match=r"carries no \['scene_warp'\]"):
         train_pack(pack, "motion+contact", tmp_path / "no_warp", minutes=0.001, scene_warp=True)
     pack.tensors["control.scene_warp"] = warp
+    with pytest.raises(InputError, match="eval_every 30 must be a positive multiple of log_every 50"):
+        train_pack(pack, "motion+contact", tmp_path / "bad_eval", minutes=0.001, eval_every=30)
 
     probe = "import sys, imac_model.training.pack; print([m for m in ('mujoco', 'trimesh', 'lerobot', 'scipy', " \
             "'open3d', 'diffusers', 'cv2') if m in sys.modules])"
@@ -595,7 +598,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
 
     out = tmp_path / "gpu_out"
     env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ABLATION": "1", "BATCH": "16", "PACK": str(plan.pack),
-           "PYTHON": sys.executable, "REF_NOISE": "0.3", "LR": "1e-3"}
+           "PYTHON": sys.executable, "REF_NOISE": "0.3", "LR": "1e-3", "WARMUP": "5", "EVAL_EVERY": "100"}
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
     assert sorted(p.name for p in out.iterdir()) == ["action_vector.tar", "motion_contact.tar",
@@ -611,6 +614,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         again = heldout_loss(model.float(), pack, streams_of_mode(mode), 16, 0)
         assert again == pytest.approx(log[-1]["summary"]["heldout_loss"], rel=1e-3)  # float16 weights
         assert log[-1]["summary"]["lr"] == 1e-3 and log[-1]["summary"]["reference_noise"] == 0.3
+        assert log[-1]["summary"]["warmup"] == 5
     # the loss-weighting ablation's figures on the imported runs: the gate measured for each, the replays
     assert ablation.main(["focus", "--work", str(work), "--json", str(tmp_path / "focus.json")]) == 0
     figures = json.loads((tmp_path / "focus.json").read_text())

@@ -212,6 +212,9 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     if missing:
         raise InputError(f"the pack carries no {missing} stream(s) (it has "
                          f"{sorted(k[len('control.'):] for k in pack.tensors if k.startswith('control.'))})")
+    if eval_every <= 0 or eval_every % log_every or warmup < 0:
+        raise InputError(f"eval_every {eval_every} must be a positive multiple of log_every {log_every}, and "
+                         f"warmup {warmup} at least 0")
     if rollout_reference_steps < 0:
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
     torch.manual_seed(seed)
@@ -294,7 +297,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
                "compile_error": compile_error, "steps": step,
-               "samples": samples, "batch_size": batch_size, "lr": lr, "train_s": round(elapsed, 1),
+               "samples": samples, "batch_size": batch_size, "lr": lr, "warmup": warmup, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1),
                "samples_per_s_after_first_step": round((samples - samples / max(step, 1)) / max(
                    elapsed - (first_step_s or 0.0), 1e-9), 1), "heldout_loss": final,
@@ -316,6 +319,9 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--minutes", type=float, required=True, help="wall-clock training budget")
     t.add_argument("--batch-size", type=int, default=128)
     t.add_argument("--lr", type=float, default=6e-4)
+    t.add_argument("--warmup", type=int, default=200,
+                   help="steps of linear learning-rate warm-up (keep its samples when scaling the batch)")
+    t.add_argument("--eval-every", type=int, default=500, help="steps between held-out losses in the log")
     t.add_argument("--focus-weight", type=float, help="override the pack's flow.focus_weight (an ablation: 0)")
     t.add_argument("--reference-noise", type=float,
                    help="override the pack's flow.reference_noise (the CPU preset's best arm: 0.3; docs/ranking.md)")
@@ -339,7 +345,8 @@ def main(argv: list[str] | None = None) -> int:
     fast_kernels()
     pack = Pack(args.pack, args.device)
     summary = train_pack(pack, args.mode, args.output, minutes=args.minutes, batch_size=args.batch_size, lr=args.lr,
-                         seed=args.seed, focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks,
+                         warmup=args.warmup, eval_every=args.eval_every, seed=args.seed,
+                         focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks,
                          first_frame=args.first_frame or None, dropout=args.dropout,
                          scene_warp=args.scene_warp or None, reference_noise=args.reference_noise,
                          rollout_reference_steps=args.rollout_reference_steps, compile=args.compile)
