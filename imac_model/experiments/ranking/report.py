@@ -204,7 +204,7 @@ def training_log(run: Path) -> dict:
 
 
 def plot_training(training: dict, path: Path) -> None:
-    """Training loss (smoothed over 20 logs) and held-out loss against the step, one colour per mode."""
+    """Training loss (a running mean over up to 20 logs) and held-out loss against the step, one colour per mode."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib is heavy: imported by the report only
     from matplotlib.figure import Figure
 
@@ -216,7 +216,8 @@ def plot_training(training: dict, path: Path) -> None:
         train = [(r["step"], r["loss"]) for r in t["rows"] if r.get("loss") is not None]
         if train:
             steps, loss = map(np.asarray, zip(*train))
-            smooth = np.convolve(loss, np.ones(20) / 20, mode="valid") if len(loss) >= 20 else loss
+            window = max(1, min(20, len(loss) // 8))  # a short GPU log keeps its first steps in the plot
+            smooth = np.convolve(loss, np.ones(window) / window, mode="valid")
             ax.plot(steps[len(steps) - len(smooth):], smooth, color=colour, alpha=0.6, label=f"{mode}: training")
         if t["heldout"]:
             ax.plot(*zip(*t["heldout"]), "o-", color=colour, label=f"{mode}: held out")
