@@ -304,7 +304,9 @@ def _header(plan: RankingPlan, r: dict) -> list[str]:
 
 def _training(r: dict) -> list[str]:
     lines = ["", "## Training", "", "Per mode, from its log (the held-out loss: the flow loss of the held-out "
-              "episodes' chunks at fixed times and noise; with `flow.focus_weight` it is the weighted loss).", "",
+              "episodes' chunks at fixed times and noise, each from its recorded frame; with `flow.focus_weight` it is "
+              "the weighted loss. A run trained with rollout or reference noise logs that harder loss as its "
+              "training loss, so its curve can sit above the held-out one).", "",
               "| mode | backbone | parameters | device | steps | samples | training (s: GPU wall, or CPU) | rate | "
               "final held-out loss |", "|---|---|---|---|---|---|---|---|---|"]
     for mode, t in r["training"].items():
