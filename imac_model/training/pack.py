@@ -212,9 +212,10 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     if missing:
         raise InputError(f"the pack carries no {missing} stream(s) (it has "
                          f"{sorted(k[len('control.'):] for k in pack.tensors if k.startswith('control.'))})")
-    if eval_every <= 0 or eval_every % log_every or warmup < 0:
-        raise InputError(f"eval_every {eval_every} must be a positive multiple of log_every {log_every}, and "
-                         f"warmup {warmup} at least 0")
+    if eval_every <= 0 or eval_every % log_every:
+        raise InputError(f"eval_every {eval_every} must be a positive multiple of log_every {log_every}")
+    if warmup < 0:
+        raise InputError(f"warmup: must be >= 0 (got {warmup})")
     if rollout_reference_steps < 0:
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
     torch.manual_seed(seed)
