@@ -16,6 +16,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 from collections.abc import Callable
 
 from imac_data.errors import EnvironmentFault, InputError
@@ -70,6 +71,9 @@ def quiet_libraries() -> None:
     datasets.disable_progress_bars()
 
 
+_BARS_WARNING = "Cannot enable progress bars"
+
+
 def silence_progress_bars() -> None:
     """``--no-progress``: no bar at all, LeRobot's own included. tqdm reads ``TQDM_DISABLE``
     when imported, which covers worker processes; here tqdm is usually loaded already."""
@@ -78,6 +82,11 @@ def silence_progress_bars() -> None:
     import tqdm.std
 
     os.environ.update(TQDM_DISABLE="1", HF_DATASETS_DISABLE_PROGRESS_BARS="1", HF_HUB_DISABLE_PROGRESS_BARS="1")
+    # LeRobot re-enables datasets' bars after each parquet load; with the variable set, datasets warns each time
+    quiet = f"ignore:{_BARS_WARNING}:UserWarning"
+    warnings.filterwarnings("ignore", message=_BARS_WARNING, category=UserWarning)
+    if quiet not in os.environ.get("PYTHONWARNINGS", "").split(","):  # and in the processes started from here
+        os.environ["PYTHONWARNINGS"] = ",".join(filter(None, [os.environ.get("PYTHONWARNINGS"), quiet]))
     datasets.disable_progress_bars()
     huggingface_hub.utils.disable_progress_bars()
     if not getattr(tqdm.std.tqdm, "_imac_silenced", False):  # what TQDM_DISABLE=1 does at import

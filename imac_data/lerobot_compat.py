@@ -4,6 +4,11 @@ Supported: LeRobot 0.4.4 (Python 3.11: the whole suite) and 0.5.1 to 0.6.x (Pyth
 LeRobot-facing tests under 0.6.1);
 ``docs/lerobot.md`` has the audit. Names load on first use (``lerobot_compat.LeRobotDataset``):
 LeRobot's dataset modules take over a second to import, and most commands never need them.
+
+The first use also makes HF ``datasets`` 4.x (both LeRobot lines pin ``datasets<5``) build a
+``Features`` in linear time (:func:`use_linear_features`): its own constructor is quadratic in the
+columns, and an iMaC dataset's ``meta/episodes`` table has 300-420 of them (the per-episode stats of
+every stream), so each ``LeRobotDataset`` load took seconds.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from imac_data.console import scheduling_kept
 from imac_data.errors import InputError
 
 __all__ = ["NAMES", "default_root", "version", "create_dataset", "set_streaming_encoder",
-           "close_writers", "video_backend", "convert_v21", "encode_image_dir"]
+           "close_writers", "video_backend", "convert_v21", "encode_image_dir", "use_linear_features"]
 
 # name -> the modules that define it, newest layout first
 NAMES: dict[str, tuple[str, ...]] = {
@@ -49,6 +54,7 @@ NAMES: dict[str, tuple[str, ...]] = {
 
 def _find(name: str) -> tuple[Any, str]:
     """LeRobot's ``name`` and the module it came from (the first of ``NAMES[name]`` that has it)."""
+    use_linear_features()
     tried = []
     for module in NAMES[name]:
         try:
@@ -70,6 +76,55 @@ def __getattr__(name: str):
         value = globals()[name] = _find(name)[0]
         return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+# ---------------------------------------------------------------------------- datasets 4.x, linear
+
+_ORIGINAL_FEATURES_INIT = None
+
+
+def _linear_features_init(*args, **kwargs):
+    """``datasets.Features.__init__`` doing its work once per column. Datasets 4.x's own re-assigns
+    every column through ``__setitem__``, which recomputes the decoding flag of *all* columns each
+    time (fixed in datasets 5.2). Same values (an old-style ``[feature]`` list becomes
+    ``List(feature)``), same flags."""
+    from datasets.features.features import List, _visit, require_decoding
+
+    if not args:
+        raise TypeError("descriptor '__init__' of 'Features' object needs an argument")
+    self, *args = args
+    dict.__init__(self, *args, **kwargs)
+
+    def upgrade_old_list(feature):  # datasets < 4 wrote a sequence as [feature]
+        if isinstance(feature, list):
+            return List(_visit(feature[0], upgrade_old_list))
+        return feature
+
+    for name in list(dict.keys(self)):
+        dict.__setitem__(self, name, _visit(dict.__getitem__(self, name), upgrade_old_list))
+    self._column_requires_decoding = {name: require_decoding(f) for name, f in dict.items(self)}
+
+
+def use_linear_features() -> bool:
+    """Give ``datasets`` 4.x the linear ``Features`` constructor (idempotent; tests/test_dataset.py
+    checks it against the original on a built dataset's schemas). False, and nothing changed, for
+    any other ``datasets``."""
+    global _ORIGINAL_FEATURES_INIT
+    if _ORIGINAL_FEATURES_INIT is not None:
+        return True
+    import datasets
+    from datasets.features.features import Features
+
+    if not str(datasets.__version__).startswith("4."):
+        return False
+    _ORIGINAL_FEATURES_INIT = Features.__init__
+    Features.__init__ = _linear_features_init
+    return True
+
+
+def original_features_init():
+    """``datasets``' own ``Features.__init__`` once replaced (the tests' oracle), else None."""
+    return _ORIGINAL_FEATURES_INIT
 
 
 def version() -> str:

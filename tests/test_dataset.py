@@ -180,18 +180,19 @@ def test_validation_names_the_damage(built, tmp_path, what, check, capsys):
 
 
 def test_linear_features_constructor_equals_datasets_own(built):
-    """hf_features.use_linear_features(): the same Features (values and decoding flags) as datasets' own
-    quadratic constructor, on every parquet schema of a built dataset and on old-style lists."""
+    """lerobot_compat.use_linear_features() (installed by the first LeRobot name used): the same Features
+    (values and decoding flags) as datasets' own quadratic constructor, on every parquet schema of a built
+    dataset and on old-style lists."""
     import datasets
     from datasets.features.features import Features, List, Value
 
-    from imac_data.dataset import hf_features
+    from imac_data import lerobot_compat
 
     if not str(datasets.__version__).startswith("4."):
         pytest.skip(f"datasets {datasets.__version__}: the patch is not installed there")
-    hf_features.use_linear_features()
-    assert hf_features.installed() and Features.__init__ is hf_features._linear_init
-    original = hf_features.original_init()
+    lerobot_compat.LeRobotDataset  # noqa: B018 (the first name resolved installs it)
+    assert Features.__init__ is lerobot_compat._linear_features_init and lerobot_compat.use_linear_features()
+    original = lerobot_compat.original_features_init()
 
     def both(*args, **kwargs):
         ours = Features(*args, **kwargs)

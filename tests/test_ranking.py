@@ -334,6 +334,8 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     assert all(results["evaluations"]["none"]["none_check"]["bit_identical"])
     assert {"simulate", "build", "decode", "train", "judges", "evaluate"} <= set(results["stages"])  # before the report
     assert (docs / "scatter_motion_contact.png").is_file() and "## Time per stage" in (docs / "README.md").read_text()
+    # every stage's log says what a user acts on: not the datasets library's warning at each LeRobot parquet load
+    assert not [p.name for p in (work / "logs").glob("*.log") if "Cannot enable progress bars" in p.read_text()]
     # the early gate: motion+contact measured on the held-out training rollouts, against the simulator's own outcomes
     plan = RankingPlan.load(work / "plan.json")
     (gate,) = results["gates"]["motion+contact"]  # none has no gate

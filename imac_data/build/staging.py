@@ -17,7 +17,6 @@ from pathlib import Path
 
 from imac_data.augment.timing import StageTimer
 from imac_data.dataset.files import copy_for_edit
-from imac_data.dataset.hf_features import use_linear_features
 from imac_data.dataset.info import read_info
 from imac_data.dataset.output import (
     check_output,
@@ -96,7 +95,6 @@ def staged_output(root: Path, *, overwrite: bool = False, wait: bool = False, ke
     """
     root = Path(os.path.abspath(root))
     timer = timer if timer is not None else StageTimer()
-    use_linear_features()
     with output_lock(root, wait=wait):
         if edit:
             read_info(root)

@@ -41,7 +41,6 @@ from imac_data.console import (
     run_as_job,
 )
 from imac_data.core.rig import Rig
-from imac_data.dataset.hf_features import use_linear_features
 from imac_data.layout import INFO
 from imac_data.sources.depth import make_depth_source
 
@@ -185,7 +184,6 @@ def build_shard(job: ShardJob) -> Path:
         return job.shard_dir
     raise_if_interrupted()
     pin_threads(job.threads)
-    use_linear_features()
     timer = StageTimer()
     wall, cpu = time.perf_counter(), time.process_time()
     rig = worker_rig(job.rig_block, job.description_dir, timer)
