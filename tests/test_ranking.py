@@ -365,6 +365,22 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     assert all(e["cpu_s"] < 5 for e in again if e["stage"] != "report"), again
 
 
+def test_the_stages_run_by_default_are_those_the_preset_needs(tmp_path):
+    """Without --stages: every stage, the GPU's tensor pack only with the GPU preset (it trains from it); the
+    command line's list of stages (named without importing the benchmark) is the benchmark's."""
+    from imac_model.cli.parser import RANKING_STAGES
+    from imac_model.cli.ranking import stages_to_run
+    from imac_model.experiments.ranking.plan import STAGES, gpu_plan
+
+    assert RANKING_STAGES == STAGES
+    assert stages_to_run(None, RankingPlan(work=tmp_path, docs=tmp_path)) == [s for s in STAGES if s != "pack"]
+    assert stages_to_run(None, gpu_plan(tmp_path, tmp_path)) == list(STAGES)
+    assert stages_to_run(" evaluate,report", gpu_plan(tmp_path, tmp_path)) == ["evaluate", "report"]
+    for bad in ("evaluate,judge", ","):
+        with pytest.raises(InputError, match="--stages: unknown"):
+            stages_to_run(bad, gpu_plan(tmp_path, tmp_path))
+
+
 def test_a_plan_saved_before_the_training_offsets_setting_loads_as_what_it_ran(tmp_path):
     saved = RankingPlan(work=tmp_path, docs=tmp_path).to_dict()
     del saved["training_offsets"]

@@ -52,6 +52,18 @@ def _plan(args: argparse.Namespace) -> RankingPlan:
     return plan
 
 
+def stages_to_run(given: str | None, plan: RankingPlan) -> list[str]:
+    """``--stages`` as a list, checked; without it, every stage the plan's preset needs (the tensor
+    pack only for the GPU preset, which trains from it)."""
+    if given is None:
+        return [s for s in STAGES if s != "pack" or plan.gpu_minutes is not None]
+    stages = [x.strip() for x in given.split(",") if x.strip()]
+    bad = [x for x in stages if x not in STAGES]
+    if bad or not stages:
+        raise InputError(f"--stages: unknown {bad or given!r}; choose from {list(STAGES)}")
+    return stages
+
+
 def _ranking(args: argparse.Namespace) -> int:
     if args.internal:
         plan = RankingPlan.load(Path(args.plan))
@@ -62,10 +74,7 @@ def _ranking(args: argparse.Namespace) -> int:
          "gate": lambda: measure_gate(plan, float(args.internal_args[0]), *args.internal_args[1:2])}[args.internal]()
         return 0
     plan = _plan(args)
-    stages = [x.strip() for x in args.stages.split(",") if x.strip()]
-    bad = [x for x in stages if x not in STAGES]
-    if bad:
-        raise InputError(f"--stages: unknown {bad}; choose from {list(STAGES)}")
+    stages = stages_to_run(args.stages, plan)
     plan.work.mkdir(parents=True, exist_ok=True)
     # one run per work directory at a time: two would train (or import) the same checkpoints
     with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
