@@ -14,10 +14,12 @@ demo: setup
 	$(PY) -m imac_data.build --repo local/aloha_sim_transfer_cube --overwrite
 
 # Lint first (ruff, pinned in the dev extra; its settings and the vendored LeRobot files it skips are in
-# pyproject.toml), then the suite.
+# pyproject.toml), then the suite on TEST_PROCESSES processes (pytest-xdist), a test file each at a time:
+# a file's module fixtures are built once (docs/verification.md, "The test suite").
+TEST_PROCESSES ?= 2
 test: setup
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_PROCESSES) --dist loadfile
 
 # The data layer's benchmark (benchmarks/results/latest.{json,md}), then the model and evaluation
 # benchmarks, each printing its own figures (JSON beside latest.json where the script writes one).
