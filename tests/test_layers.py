@@ -5,11 +5,16 @@
 * A module imports only its own layer and the layers below (docs/architecture.md).
 * There are no import cycles.
 * ``imac_data`` never imports ``imac_model``.
+* The heavy libraries of the renderer, the robot model and sharding are imported where they are
+  used: the suite and the benchmarks start hundreds of processes that read datasets or train and
+  never need them.
 """
 
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -170,3 +175,19 @@ def test_the_layer_check_catches_a_core_module_importing_the_dataset_layer(tmp_p
     found, _ = imports("imac_data.core.depth", bad, known)
     ranks = {t: layer_of(t)[1] for t, _, _ in found}
     assert ranks["imac_data.dataset.info"] > layer_of("imac_data.core.depth")[1]
+
+
+# imported where used; each takes 0.3-1 s to import (python -X importtime)
+HEAVY_WHERE_USED = ("pytorch_kinematics", "trimesh", "yourdfpy", "open3d", "torch.distributed.fsdp",
+                    "torch.distributed.tensor", "lerobot", "datasets")
+
+
+@pytest.mark.parametrize("module", ["imac_model.training.train", "imac_model.data.chunks",
+                                    "imac_model.experiments.ranking.judge", "imac_data.dataset.validate"])
+def test_reading_and_training_modules_import_no_renderer_robot_or_sharding_library(module):
+    """A training, judging or validating process imports the renderer's, the robot model's and
+    FSDP's libraries only when it renders, builds a robot or shards."""
+    probe = f"import sys, {module}; print([m for m in {HEAVY_WHERE_USED!r} if m in sys.modules])"
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]", f"importing {module} imports {done.stdout.strip()}"

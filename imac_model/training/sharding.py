@@ -13,28 +13,28 @@ import contextlib
 import os
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 import torch.distributed as dist
-from torch.distributed.fsdp import (
-    CPUOffloadPolicy,
-    MixedPrecisionPolicy,
-    OffloadPolicy,
-    fully_shard,
-    register_fsdp_forward_method,
-)
-from torch.distributed.tensor import DTensor, Shard
 
 from imac_data.errors import InputError
 from imac_model.config import ModelSpec, RunConfig
 from imac_model.models import checkpoint as ckpt
 from imac_model.models.world_model import WorldModel
 
+# FSDP and DTensor are imported where used: most of a second, which every unsharded training
+# process (the trainer imports this module) would pay for nothing
+if TYPE_CHECKING:
+    from torch.distributed.tensor import Shard
+
 
 def shard_placement(param: torch.nn.Parameter, world: int) -> Shard | None:
     """Dim 0 (FSDP2's default, ``None``) when it splits evenly over ``world`` ranks; else the
     largest dim that does: Wan's per-block ``scale_shift_table`` (1, 6, D) would otherwise sit
     whole on rank 0."""
+    from torch.distributed.tensor import Shard
+
     if param.ndim == 0 or param.shape[0] % world == 0:
         return None
     even = [d for d in range(param.ndim) if param.shape[d] % world == 0]
@@ -50,6 +50,14 @@ def shard_world_model(model: WorldModel, mesh, *, bf16: bool, reshard_after_forw
     checkpointed block recomputes, so forward and recompute would differ; and it would round
     Wan's float timesteps): the adapter casts latents and context to ``compute_dtype`` itself.
     The time embedder keeps fp32, as diffusers' ``_keep_in_fp32_modules`` asks."""
+    from torch.distributed.fsdp import (
+        CPUOffloadPolicy,
+        MixedPrecisionPolicy,
+        OffloadPolicy,
+        fully_shard,
+        register_fsdp_forward_method,
+    )
+
     world = mesh.size()
     backbone = model.backbone
     tr = backbone.transformer
@@ -75,6 +83,8 @@ def shard_world_model(model: WorldModel, mesh, *, bf16: bool, reshard_after_forw
 def shard_report(model: WorldModel, world: int) -> dict:
     """What every rank holds: parameters per group (each block, the rest of the transformer,
     the root's trainable weights, the VAE), in full and per rank (a collective)."""
+    from torch.distributed.tensor import DTensor
+
     tr = model.backbone.transformer
     in_blocks = {id(p) for p in tr.blocks.parameters()}
     vae = {id(p) for p in model.backbone.vae.parameters()}
