@@ -58,7 +58,10 @@ def joint_range_warning(robot, lo, hi, *, source, recipe) -> str | None:
     problems = joint_range_problems(robot, lo, hi)
     if not problems:
         return None
-    return (f"warning: {source}: recorded joint values lie outside the URDF limits of robot {robot.name!r}, so the "
-            "rendered robot will not match the images:\n  - " + "\n  - ".join(problems)
-            + f"\n  Check robot.joint_map in {recipe} (each entry maps the recorded unit to radians or metres: "
-            "q_urdf = offset + scale * value). The build goes on.")
+    # a simulator's soft limits overshoot too (MuJoCo's ALOHA fingers by 4 mm): the joint is drawn where it was
+    # recorded, so the warning says what would make the drawing wrong rather than that it is
+    return (f"warning: {source}: recorded joint values lie outside the URDF limits of robot {robot.name!r}:\n  - "
+            + "\n  - ".join(problems)
+            + f"\n  If robot.joint_map in {recipe} maps a unit wrongly (each entry maps the recorded unit to radians "
+            "or metres: q_urdf = offset + scale * value), the rendered robot will not match the images. The build "
+            "goes on and renders the joints as recorded.")
