@@ -33,7 +33,7 @@ def shard_placement(param: torch.nn.Parameter, world: int) -> Shard | None:
     """Dim 0 (FSDP2's default, ``None``) when it splits evenly over ``world`` ranks; else the
     largest dim that does: Wan's per-block ``scale_shift_table`` (1, 6, D) would otherwise sit
     whole on rank 0."""
-    from torch.distributed.tensor import Shard
+    from torch.distributed.tensor import Shard  # heavy: only when sharding
 
     if param.ndim == 0 or param.shape[0] % world == 0:
         return None
@@ -50,7 +50,7 @@ def shard_world_model(model: WorldModel, mesh, *, bf16: bool, reshard_after_forw
     checkpointed block recomputes, so forward and recompute would differ; and it would round
     Wan's float timesteps): the adapter casts latents and context to ``compute_dtype`` itself.
     The time embedder keeps fp32, as diffusers' ``_keep_in_fp32_modules`` asks."""
-    from torch.distributed.fsdp import (
+    from torch.distributed.fsdp import (  # heavy: only when sharding
         CPUOffloadPolicy,
         MixedPrecisionPolicy,
         OffloadPolicy,
@@ -83,7 +83,7 @@ def shard_world_model(model: WorldModel, mesh, *, bf16: bool, reshard_after_forw
 def shard_report(model: WorldModel, world: int) -> dict:
     """What every rank holds: parameters per group (each block, the rest of the transformer,
     the root's trainable weights, the VAE), in full and per rank (a collective)."""
-    from torch.distributed.tensor import DTensor
+    from torch.distributed.tensor import DTensor  # heavy: only when sharding
 
     tr = model.backbone.transformer
     in_blocks = {id(p) for p in tr.blocks.parameters()}

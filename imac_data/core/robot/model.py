@@ -241,7 +241,7 @@ def _file_unit(mesh: trimesh.Trimesh, path: Path) -> float:
     """Metres per unit of a mesh file that declares its unit (Collada's ``<unit meter=...>``,
     which CAD exporters set to millimetres or centimetres; RViz and Gazebo apply it); 1 for
     formats without one (STL, OBJ, PLY)."""
-    import trimesh
+    import trimesh  # heavy: only where a mesh is loaded
 
     units = getattr(mesh, "units", None)
     if not units:
@@ -254,7 +254,7 @@ def _file_unit(mesh: trimesh.Trimesh, path: Path) -> float:
 
 def _geometry_mesh(geom: yourdfpy.Geometry, visual_name: str, urdf_path: Path,
                    package_dirs: Mapping[str, Path]) -> trimesh.Trimesh:
-    import trimesh
+    import trimesh  # heavy: only where a mesh is made
 
     if geom.mesh is not None:
         path = resolve_filename(geom.mesh.filename, urdf_path, package_dirs)
@@ -305,7 +305,7 @@ class RobotModel:
             raise InputError(f"robot {config.name!r}: URDF file {path} does not exist")
         self.urdf_text = path.read_text()
         self.urdf_hash = hashlib.sha256(self.urdf_text.encode()).hexdigest()
-        import pytorch_kinematics as pk
+        import pytorch_kinematics as pk  # heavy (1 s with matplotlib): only where a robot is built
         import yourdfpy
 
         try:
@@ -359,7 +359,7 @@ class RobotModel:
     def _chain(self, dtype: torch.dtype, device: torch.device) -> pk.Chain:
         key = (dtype, str(device))
         if key not in self._chains:
-            import pytorch_kinematics as pk
+            import pytorch_kinematics as pk  # heavy: see __init__
 
             self._chains[key] = pk.build_chain_from_urdf(self._kinematic_urdf).to(dtype=dtype, device=device)
         return self._chains[key]
