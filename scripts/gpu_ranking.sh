@@ -15,6 +15,8 @@
 # eager against compiled alone on the GPU (python -m benchmarks.pack_speed) into $OUT/speed.json. Each run comes back as one
 # file, $OUT/<run>.tar (model.json, model.safetensors: float16 EMA weights, log.jsonl), since the GPU
 # machine returns few files; `imac-model ranking --preset gpu --import-gpu DIR` puts them back here.
+# INIT=DIR starts every run from the weights of DIR/<run> (a run directory of an earlier loan, as
+# `--import-gpu` put it back: its latest checkpoint), so training goes on over several loans.
 #   OUT=/tmp/gpu_out MINUTES=8 bash scripts/gpu_ranking.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -31,6 +33,7 @@ ROLLOUT=${ROLLOUT:-1}
 DROPOUT=${DROPOUT:-0}
 COMPILE=${COMPILE:-auto}
 SPEED=${SPEED:-0}
+INIT=${INIT:-}
 : "${OUT:?set OUT to the directory for the checkpoints}"
 mkdir -p "$OUT"
 PY=${PYTHON:-$(command -v python3 || command -v python)}
@@ -60,11 +63,19 @@ case "$ABLATION" in
   0) ;;
   *) echo "gpu_ranking: ABLATION must be 0, 1 (focus), rollout, first-frame or scene-warp, got $ABLATION" >&2; exit 2 ;;
 esac
+if [ -n "$INIT" ]; then  # every run's start, checked before any training
+  for run in "${runs[@]}"; do
+    set -- $run
+    [ -d "$INIT/$1" ] || { echo "gpu_ranking: INIT=$INIT has no run $1 to start from" >&2; exit 2; }
+  done
+fi
 pids=()
 for run in "${runs[@]}"; do
   set -- $run
   name=$1; shift
-  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --eval-every "$EVAL_EVERY" --dropout "$DROPOUT" $extra --output "$OUT/$name" \
+  init=""
+  [ -n "$INIT" ] && init="--init $INIT/$name"
+  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --eval-every "$EVAL_EVERY" --dropout "$DROPOUT" $extra $init --output "$OUT/$name" \
     > "$OUT/$name.stdout" 2>&1 &
   pids+=($!)
 done

@@ -27,7 +27,7 @@ import torch
 from imac_data.errors import InputError
 from imac_model.config import ModelSpec, parse
 from imac_model.data.batch import ChunkBatch
-from imac_model.models.checkpoint import save_checkpoint
+from imac_model.models.checkpoint import WEIGHTS, load_weights_into, read_spec, resolve_checkpoint, save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.rollout import rollout_loss
 from imac_model.training.log import write_log
@@ -188,12 +188,25 @@ def _eager(model: WorldModel):
     return model.backbone.__dict__.pop("trunk", None)
 
 
+def _init_checkpoint(init: str | Path, spec: ModelSpec) -> Path:
+    """The checkpoint ``init`` names, refused unless it shows the run's views and mode; weights
+    of another shape are refused when they load (the flow's settings may differ: they are training's)."""
+    path = resolve_checkpoint(init)
+    theirs = read_spec(path)
+    for name, of in (("conditioning.mode", lambda s: s.conditioning.mode), ("backbone.kind", lambda s: s.backbone.kind),
+                     ("views", lambda s: s.views), ("view size", lambda s: (s.view_height, s.view_width)),
+                     ("chunk", lambda s: s.chunk), ("action_dim", lambda s: s.action_dim)):
+        if of(theirs) != of(spec):
+            raise InputError(f"init {path}: its {name} is {of(theirs)}, this run's {of(spec)}")
+    return path
+
+
 def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, batch_size: int = 128,
                lr: float = 6e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
                log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
                first_frame: bool | None = None, dropout: float | None = None, scene_warp: bool | None = None,
                reference_noise: float | None = None, rollout_reference_steps: int = 0, compile: bool = False,
-               progress=print) -> dict:
+               init: str | Path | None = None, progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
@@ -203,7 +216,9 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     model's own estimate of chunk r-1's last frame and keeps its recorded contact images (no renderer
     here to rebuild them); with ``rollout_reference_steps`` k > 0 it starts from k sampler steps instead
     (``rollout.reference_steps``). ``compile``: train through :func:`compile_trunk`; the first step's
-    compilation counts in the budget, and the log's ``first_step_s`` says how long it took."""
+    compilation counts in the budget, and the log's ``first_step_s`` says how long it took.
+    ``init``: a checkpoint (or a run directory: its latest) of the same mode and architecture whose
+    weights start the run, so training goes on over several loans; the optimizer starts afresh."""
     device = pack.tensors["reference"].device
     spec = spec_for_mode(pack.spec, mode, focus_weight=focus_weight, first_frame=first_frame, dropout=dropout,
                          scene_warp=scene_warp, reference_noise=reference_noise)
@@ -218,8 +233,12 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         raise InputError(f"warmup: must be >= 0 (got {warmup})")
     if rollout_reference_steps < 0:
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
+    init_path = _init_checkpoint(init, spec) if init is not None else None
     torch.manual_seed(seed)
-    model = WorldModel(spec).to(device).train()
+    model = WorldModel(spec)
+    if init_path is not None:
+        load_weights_into(model, init_path / WEIGHTS)
+    model = model.to(device).train()
     compiled = compile_trunk(model) if compile else None
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.AdamW(params, lr=lr)
@@ -297,7 +316,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                "rollout_chunks": rollout_chunks, "rollout_reference_steps": rollout_reference_steps,
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
-               "compile_error": compile_error, "steps": step,
+               "compile_error": compile_error, "init": None if init_path is None else str(init_path), "steps": step,
                "samples": samples, "batch_size": batch_size, "lr": lr, "warmup": warmup, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1),
                "samples_per_s_after_first_step": round((samples - samples / max(step, 1)) / max(
@@ -338,6 +357,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="share of samples trained without controls, for guidance (conditioning.dropout)")
     t.add_argument("--compile", action="store_true",
                    help="torch.compile the U-Net's trunk (on a GPU: fused group norms; the first step compiles)")
+    t.add_argument("--init", help="start from this checkpoint's weights (a run directory: its latest checkpoint)")
     t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     t.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
@@ -350,7 +370,8 @@ def main(argv: list[str] | None = None) -> int:
                          focus_weight=args.focus_weight, rollout_chunks=args.rollout_chunks,
                          first_frame=args.first_frame or None, dropout=args.dropout,
                          scene_warp=args.scene_warp or None, reference_noise=args.reference_noise,
-                         rollout_reference_steps=args.rollout_reference_steps, compile=args.compile)
+                         rollout_reference_steps=args.rollout_reference_steps, compile=args.compile,
+                         init=args.init)
     print(json.dumps(summary))
     return 0
 
