@@ -5,6 +5,7 @@ an outside policy module through both runners, and the whole benchmark at toy si
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import shutil
@@ -21,6 +22,7 @@ import yaml
 from dm_control.mujoco.engine import Physics
 from gym_aloha.tasks.sim import TransferCubeTask
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from safetensors.torch import load_file
 
 from benchmarks import ablation, cpu_ablation, gate_diagnosis, outcome_probe
 from imac_data.cli import main as imac_main
@@ -633,6 +635,37 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         assert again == pytest.approx(log[-1]["summary"]["heldout_loss"], rel=1e-3)  # float16 weights
         assert log[-1]["summary"]["lr"] == 1e-3 and log[-1]["summary"]["reference_noise"] == 0.3
         assert log[-1]["summary"]["warmup"] == 5
+    # a later loan goes on from these weights (INIT): the weights it starts from are the imported ones, and the
+    # import continues each run's log (steps, samples, both parts' summaries)
+    first = {name: json.loads((work / "runs" / name / "log.jsonl").read_text().splitlines()[-1])["summary"]
+             for name in ("motion_contact", "action_vector")}
+    again = tmp_path / "gpu_again"
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], capture_output=True, text=True,
+                          env={**env, "OUT": str(again), "ABLATION": "0", "INIT": str(work / "runs")})
+    assert done.returncode == 0, done.stdout + done.stderr
+    started = {}
+    for name in first:
+        file = list_checkpoints(work / "runs" / name)[-1] / "model.safetensors"
+        started[name] = hashlib.sha256(file.read_bytes()).hexdigest()
+    assert sorted(import_gpu_runs(plan, again)) == ["action_vector", "motion_contact"]
+    for name, before in first.items():
+        rows = [json.loads(line) for line in (work / "runs" / name / "log.jsonl").read_text().splitlines()]
+        summary = rows[-1]["summary"]
+        assert summary["init_sha256"] == started[name]
+        assert [part["steps"] for part in summary["parts"]] == [before["steps"], summary["steps"] - before["steps"]]
+        assert summary["samples"] == sum(part["samples"] for part in summary["parts"])
+        steps = [r["step"] for r in rows if "step" in r]
+        assert steps == sorted(steps) and steps[-1] == summary["steps"]
+        assert list_checkpoints(work / "runs" / name)[-1].name == f"step_{summary['steps']:06d}"
+    # a run with no time to train hands back the weights it started from; another mode's are refused
+    start = list_checkpoints(work / "runs" / "motion_contact")[-1]
+    train_pack(pack, "motion+contact", tmp_path / "same", minutes=0, batch_size=16, init=work / "runs" / "motion_contact",
+               progress=lambda row: None)
+    theirs = load_file(str(start / "model.safetensors"))
+    ours = load_file(str(list_checkpoints(tmp_path / "same")[-1] / "model.safetensors"))
+    assert theirs.keys() == ours.keys() and all(torch.equal(theirs[k], ours[k]) for k in theirs)
+    with pytest.raises(InputError, match="conditioning.mode is motion\\+contact, this run's action-vector"):
+        train_pack(pack, "action-vector", tmp_path / "other", minutes=0, init=start, progress=lambda row: None)
     # the loss-weighting ablation's figures on the imported runs: the gate measured for each, the replays
     assert ablation.main(["focus", "--work", str(work), "--json", str(tmp_path / "focus.json")]) == 0
     figures = json.loads((tmp_path / "focus.json").read_text())

@@ -21,6 +21,7 @@ never leaves a half-written checkpoint. :func:`load_world_model` raises
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -188,6 +189,16 @@ def read_spec(path: str | Path) -> ModelSpec:
         return load_model_spec(path / SPEC)
     except InputError as e:
         raise InputError(f"{path / SPEC}: unreadable model spec: {e}") from None
+
+
+def weights_sha256(path: str | Path) -> str:
+    """The sha256 of a checkpoint's weights file: what a run that starts from it records, so the
+    run can be recognised as its continuation wherever it is imported."""
+    h = hashlib.sha256()
+    with open(resolve_checkpoint(path) / WEIGHTS, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def read_weights(file: Path) -> dict[str, torch.Tensor]:

@@ -41,3 +41,27 @@ def append_log(run: str | Path, row: dict) -> None:
     """One row at the end of ``log.jsonl``."""
     with open(Path(run) / LOG_FILE, "a") as f:
         f.write(json.dumps(row) + "\n")
+
+
+def continued_log(earlier: list[dict], later: list[dict]) -> list[dict]:
+    """One log from a run and the run that started from its last weights (``--init``): the later
+    rows' step, samples and elapsed time go on from the earlier run's end, and the summary (the last
+    row's, as the GPU pack trainer writes it) counts both, keeping each part's own as ``parts``."""
+    def summary_of(rows):
+        return next((r["summary"] for r in reversed(rows) if "summary" in r), {})
+
+    first, second = summary_of(earlier), summary_of(later)
+    last = next((r for r in reversed(earlier) if "step" in r), {})
+    offset = {"step": first.get("steps", last.get("step", 0)), "samples": first.get("samples", last.get("samples", 0)),
+              "elapsed_s": first.get("train_s", last.get("elapsed_s", 0.0))}
+    rows = [r for r in earlier if "summary" not in r]
+    for r in later:
+        if "summary" not in r:
+            rows.append({**r, **{k: r[k] + offset[k] for k in offset if r.get(k) is not None},
+                         "part": len(first.get("parts", [first])) + 1})
+    parts = first.get("parts", [first]) + [second]
+    total = {**second, "steps": offset["step"] + second.get("steps", 0),
+             "samples": offset["samples"] + second.get("samples", 0),
+             "train_s": round(offset["elapsed_s"] + second.get("train_s", 0.0), 1),
+             "parts": [{k: v for k, v in part.items() if k != "parts"} for part in parts]}
+    return [*rows, {"summary": total}]

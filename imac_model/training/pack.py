@@ -27,7 +27,15 @@ import torch
 from imac_data.errors import InputError
 from imac_model.config import ModelSpec, parse
 from imac_model.data.batch import ChunkBatch
-from imac_model.models.checkpoint import WEIGHTS, load_weights_into, read_spec, resolve_checkpoint, save_checkpoint
+from imac_model.models.checkpoint import (
+    EMA,
+    WEIGHTS,
+    load_weights_into,
+    read_spec,
+    resolve_checkpoint,
+    save_checkpoint,
+    weights_sha256,
+)
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.rollout import rollout_loss
 from imac_model.training.log import write_log
@@ -236,8 +244,10 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     init_path = _init_checkpoint(init, spec) if init is not None else None
     torch.manual_seed(seed)
     model = WorldModel(spec)
-    if init_path is not None:
+    if init_path is not None:  # a GPU run's weights are its EMA; a CPU run keeps its EMA beside them
         load_weights_into(model, init_path / WEIGHTS)
+        if (init_path / EMA).is_file():
+            load_weights_into(model, init_path / EMA, ema=True)
     model = model.to(device).train()
     compiled = compile_trunk(model) if compile else None
     params = [p for p in model.parameters() if p.requires_grad]
@@ -316,7 +326,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                "rollout_chunks": rollout_chunks, "rollout_reference_steps": rollout_reference_steps,
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
-               "compile_error": compile_error, "init": None if init_path is None else str(init_path), "steps": step,
+               "compile_error": compile_error, "init": None if init_path is None else str(init_path),
+               "init_sha256": None if init_path is None else weights_sha256(init_path), "steps": step,
                "samples": samples, "batch_size": batch_size, "lr": lr, "warmup": warmup, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1),
                "samples_per_s_after_first_step": round((samples - samples / max(step, 1)) / max(

@@ -46,8 +46,8 @@ from imac_model.experiments.ranking.plan import (
 from imac_model.experiments.ranking.policies import training_policy
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT, python, quote, run_all, then_mark_done
-from imac_model.models.checkpoint import list_checkpoints
-from imac_model.training.log import LOG_FILE
+from imac_model.models.checkpoint import list_checkpoints, weights_sha256
+from imac_model.training.log import LOG_FILE, continued_log, read_log
 from imac_model.training.pack import export_pack
 from imac_model.training.train import model_spec
 
@@ -173,8 +173,9 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
     """``scripts/gpu_ranking.sh``'s output (``<run>.tar``: model.json, model.safetensors, log.jsonl)
     -> this work directory's trained runs (``runs/<run>``), so ``judges``, ``evaluate`` and ``report``
     go on here. A run that is not one of the plan's modes (an ablation) is imported beside them; the
-    evaluations of a run it replaces (``wm/<run>``) are dropped, being of another model. Returns the
-    runs imported."""
+    evaluations of a run it replaces (``wm/<run>``) are dropped, being of another model. A run that
+    started from the weights it replaces (``INIT``: its summary's ``init_sha256`` is theirs) continues
+    that run's log, so the report shows the whole training. Returns the runs imported."""
     directory, done = Path(directory), []
     for tar in sorted(directory.glob("*.tar")):
         with tarfile.open(tar) as archive:
@@ -183,15 +184,19 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
                 raise InputError(f"{tar}: not a run of scripts/gpu_ranking.sh (it holds {sorted(names)})")
             files = {n: archive.extractfile(n).read() for n in ("model.json", "model.safetensors", LOG_FILE)}
         rows = [json.loads(line) for line in files[LOG_FILE].decode().splitlines() if line.strip()]
-        summary = rows[-1].get("summary", rows[-1])
         run = plan.work / "runs" / tar.stem
+        earlier = list_checkpoints(run)
+        started_from = rows[-1].get("summary", {}).get("init_sha256")
+        if started_from and earlier and weights_sha256(earlier[-1]) == started_from:
+            rows = continued_log(read_log(run), rows)
+        summary = rows[-1].get("summary", rows[-1])
         tmp = run.with_name(run.name + ".importing")  # the run replaces any earlier one whole, or not at all
         shutil.rmtree(tmp, ignore_errors=True)
         ckpt = tmp / "checkpoints" / f"step_{int(summary['steps']):06d}"
         ckpt.mkdir(parents=True)
         (ckpt / "model.json").write_bytes(files["model.json"])
         (ckpt / "model.safetensors").write_bytes(files["model.safetensors"])
-        (tmp / LOG_FILE).write_bytes(files[LOG_FILE])
+        (tmp / LOG_FILE).write_text("".join(json.dumps(r) + "\n" for r in rows))
         (tmp / "DONE.json").write_text(json.dumps(summary, indent=1))
         shutil.rmtree(run, ignore_errors=True)
         os.replace(tmp, run)
