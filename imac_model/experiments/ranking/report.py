@@ -204,7 +204,8 @@ def training_log(run: Path) -> dict:
 
 
 def plot_training(training: dict, path: Path) -> None:
-    """Training loss (a running mean over up to 20 logs) and held-out loss against the step, one colour per mode."""
+    """Training loss (a running mean over up to 20 logs) and held-out loss against the step, one colour per mode;
+    dotted lines where a run continued over several GPU loans starts a new part."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib is heavy: imported by the report only
     from matplotlib.figure import Figure
 
@@ -221,6 +222,10 @@ def plot_training(training: dict, path: Path) -> None:
             ax.plot(steps[len(steps) - len(smooth):], smooth, color=colour, alpha=0.6, label=f"{mode}: training")
         if t["heldout"]:
             ax.plot(*zip(*t["heldout"]), "o-", color=colour, label=f"{mode}: held out")
+        rows = [r for r in t["rows"] if "step" in r]  # a run continued over loans: where each part began
+        for before, after in zip(rows, rows[1:]):
+            if after.get("part", 1) != before.get("part", 1):
+                ax.axvline(before["step"], color=colour, linestyle=":", alpha=0.5)
     ax.set_yscale("log")
     ax.set_xlabel("step")
     ax.set_ylabel("flow loss")
