@@ -43,14 +43,16 @@ def append_log(run: str | Path, row: dict) -> None:
         f.write(json.dumps(row) + "\n")
 
 
+def log_summary(rows: list[dict]) -> dict:
+    """The summary a log ends with (the GPU pack trainer's), or ``{}``."""
+    return next((r["summary"] for r in reversed(rows) if "summary" in r), {})
+
+
 def continued_log(earlier: list[dict], later: list[dict]) -> list[dict]:
     """One log from a run and the run that started from its last weights (``--init``): the later
     rows' step, samples and elapsed time go on from the earlier run's end, and the summary (the last
     row's, as the GPU pack trainer writes it) counts both, keeping each part's own as ``parts``."""
-    def summary_of(rows):
-        return next((r["summary"] for r in reversed(rows) if "summary" in r), {})
-
-    first, second = summary_of(earlier), summary_of(later)
+    first, second = log_summary(earlier), log_summary(later)
     last = next((r for r in reversed(earlier) if "step" in r), {})
     offset = {"step": first.get("steps", last.get("step", 0)), "samples": first.get("samples", last.get("samples", 0)),
               "elapsed_s": first.get("train_s", last.get("elapsed_s", 0.0))}

@@ -47,7 +47,7 @@ from imac_model.experiments.ranking.policies import training_policy
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT, python, quote, run_all, then_mark_done
 from imac_model.models.checkpoint import list_checkpoints, weights_sha256
-from imac_model.training.log import LOG_FILE, continued_log, read_log
+from imac_model.training.log import LOG_FILE, continued_log, log_summary, read_log
 from imac_model.training.pack import export_pack
 from imac_model.training.train import model_spec
 
@@ -186,7 +186,7 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
         rows = [json.loads(line) for line in files[LOG_FILE].decode().splitlines() if line.strip()]
         run = plan.work / "runs" / tar.stem
         earlier = list_checkpoints(run)
-        started_from = rows[-1].get("summary", {}).get("init_sha256")
+        started_from = log_summary(rows).get("init_sha256")
         if started_from and earlier and weights_sha256(earlier[-1]) == started_from:
             rows = continued_log(read_log(run), rows)
         summary = rows[-1].get("summary", rows[-1])

@@ -23,7 +23,7 @@ from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, slug
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 from imac_model.models.checkpoint import list_checkpoints, read_spec
 from imac_model.models.world_model import WorldModel
-from imac_model.training.log import read_log
+from imac_model.training.log import log_summary, read_log
 
 
 def _fmt(x, digits: int = 3) -> str:
@@ -177,7 +177,7 @@ def training_log(run: Path) -> dict:
     """A trained run's log (``log.jsonl``, the CPU trainer's or the GPU pack trainer's): its rows
     with a loss, and a summary (steps, final held-out loss, device, samples where logged)."""
     rows = read_log(run)
-    summary = next((r["summary"] for r in reversed(rows) if "summary" in r), {})
+    summary = log_summary(rows)
     done = json.loads((run / "DONE.json").read_text()) if (run / "DONE.json").is_file() else {}
     held = [r for r in rows if r.get("heldout_loss") is not None]
     last = next((r for r in reversed(rows) if "step" in r), {})  # a run still training has no DONE.json yet
