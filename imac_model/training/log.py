@@ -56,12 +56,11 @@ def continued_log(earlier: list[dict], later: list[dict]) -> list[dict]:
     last = next((r for r in reversed(earlier) if "step" in r), {})
     offset = {"step": first.get("steps", last.get("step", 0)), "samples": first.get("samples", last.get("samples", 0)),
               "elapsed_s": first.get("train_s", last.get("elapsed_s", 0.0))}
+    parts = first.get("parts", [first]) + [second]
     rows = [r for r in earlier if "summary" not in r]
     for r in later:
         if "summary" not in r:
-            rows.append({**r, **{k: r[k] + offset[k] for k in offset if r.get(k) is not None},
-                         "part": len(first.get("parts", [first])) + 1})
-    parts = first.get("parts", [first]) + [second]
+            rows.append({**r, **{k: r[k] + offset[k] for k in offset if r.get(k) is not None}, "part": len(parts)})
     total = {**second, "steps": offset["step"] + second.get("steps", 0),
              "samples": offset["samples"] + second.get("samples", 0),
              "train_s": round(offset["elapsed_s"] + second.get("train_s", 0.0), 1),

@@ -28,9 +28,7 @@ from imac_data.errors import InputError
 from imac_model.config import ModelSpec, parse
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.checkpoint import (
-    EMA,
-    WEIGHTS,
-    load_weights_into,
+    load_world_model,
     read_spec,
     resolve_checkpoint,
     save_checkpoint,
@@ -242,12 +240,14 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     if rollout_reference_steps < 0:
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
     init_path = _init_checkpoint(init, spec) if init is not None else None
+    init_sha256 = weights_sha256(init_path) if init_path is not None else None  # of the file loaded, before training
     torch.manual_seed(seed)
     model = WorldModel(spec)
-    if init_path is not None:  # a GPU run's weights are its EMA; a CPU run keeps its EMA beside them
-        load_weights_into(model, init_path / WEIGHTS)
-        if (init_path / EMA).is_file():
-            load_weights_into(model, init_path / EMA, ema=True)
+    if init_path is not None:  # the checkpoint's own loader: its EMA weights where it kept them apart
+        try:
+            model.load_state_dict(load_world_model(init_path)[0].state_dict())
+        except RuntimeError as e:  # another shape: a stream or a layer this run has and it has not
+            raise InputError(f"init {init_path}: its weights do not fit this run's model: {e}") from None
     model = model.to(device).train()
     compiled = compile_trunk(model) if compile else None
     params = [p for p in model.parameters() if p.requires_grad]
@@ -327,7 +327,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
                "compile_error": compile_error, "init": None if init_path is None else str(init_path),
-               "init_sha256": None if init_path is None else weights_sha256(init_path), "steps": step,
+               "init_sha256": init_sha256, "steps": step,
                "samples": samples, "batch_size": batch_size, "lr": lr, "warmup": warmup, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1),
                "samples_per_s_after_first_step": round((samples - samples / max(step, 1)) / max(
