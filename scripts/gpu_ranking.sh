@@ -15,6 +15,8 @@
 # eager against compiled alone on the GPU (python -m benchmarks.pack_speed) into $OUT/speed.json. Each run comes back as one
 # file, $OUT/<run>.tar (model.json, model.safetensors: float16 EMA weights, log.jsonl), since the GPU
 # machine returns few files; `imac-model ranking --preset gpu --import-gpu DIR` puts them back here.
+# RUNS="name ..." trains only those of the runs above (e.g. RUNS=motion_contact), so that two calls of this script
+# with other settings can share one GPU.
 # INIT=DIR starts every run from the weights of DIR/<run> (a run directory of an earlier loan, as
 # `--import-gpu` put it back: its latest checkpoint), so training goes on over several loans.
 #   OUT=/tmp/gpu_out MINUTES=8 bash scripts/gpu_ranking.sh
@@ -34,6 +36,7 @@ DROPOUT=${DROPOUT:-0}
 COMPILE=${COMPILE:-auto}
 SPEED=${SPEED:-0}
 INIT=${INIT:-}
+RUNS=${RUNS:-}
 : "${OUT:?set OUT to the directory for the checkpoints}"
 mkdir -p "$OUT"
 PY=${PYTHON:-$(command -v python3 || command -v python)}
@@ -63,6 +66,15 @@ case "$ABLATION" in
   0) ;;
   *) echo "gpu_ranking: ABLATION must be 0, 1 (focus), rollout, first-frame or scene-warp, got $ABLATION" >&2; exit 2 ;;
 esac
+if [ -n "$RUNS" ]; then  # the chosen subset, each name checked
+  known=" $(for run in "${runs[@]}"; do set -- $run; printf '%s ' "$1"; done)"
+  chosen=()
+  for name in $RUNS; do
+    [[ "$known" == *" $name "* ]] || { echo "gpu_ranking: RUNS names $name; the runs are:$known" >&2; exit 2; }
+    for run in "${runs[@]}"; do set -- $run; [ "$1" = "$name" ] && chosen+=("$run"); done
+  done
+  runs=("${chosen[@]}")
+fi
 if [ -n "$INIT" ]; then  # every run's start, checked before any training
   for run in "${runs[@]}"; do
     set -- $run
