@@ -536,9 +536,11 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
     # with the first frame as memory (ABLATION=first-frame), every chunk of a clip keeps its episode's first frame;
     # with DROPOUT, a share of the samples goes without controls, and the checkpoint can be sampled with guidance
     # and with the scene-warp stream (ABLATION=scene-warp), which the pack carries, derived from the recorded chunks
-    summary = train_pack(pack, "motion+contact", tmp_path / "first_frame", minutes=0.001, batch_size=16,
-                         rollout_chunks=2, first_frame=True, dropout=0.1, scene_warp=True, rollout_reference_steps=2,
-                         progress=lambda row: None)
+    # (from sampled references, the recorded contact and warp images describe another scene: it says so)
+    with pytest.warns(UserWarning, match=r"keeps the recorded \['contact_s2g', 'contact_r2s', 'scene_warp'\] images"):
+        summary = train_pack(pack, "motion+contact", tmp_path / "first_frame", minutes=0.001, batch_size=16,
+                             rollout_chunks=2, first_frame=True, dropout=0.1, scene_warp=True,
+                             rollout_reference_steps=2, progress=lambda row: None)
     assert summary["first_frame"] and summary["dropout"] == 0.1 and summary["scene_warp"] and summary["steps"] >= 1
     assert summary["rollout_reference_steps"] == 2
     spec = load_world_model(tmp_path / "first_frame")[1]
@@ -641,7 +643,8 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
              for name in ("motion_contact", "action_vector")}
     again = tmp_path / "gpu_again"
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], capture_output=True, text=True,
-                          env={**env, "OUT": str(again), "ABLATION": "0", "INIT": str(work / "runs")})
+                          env={**env, "OUT": str(again), "INIT": str(work / "runs"),
+                               "RUNS": "motion_contact action_vector"})  # not the ablation ABLATION=1 adds
     assert done.returncode == 0, done.stdout + done.stderr
     started = {}
     for name in first:
@@ -687,3 +690,15 @@ def test_the_report_records_paths_inside_the_repository_relative_to_it():
     got = _relative({"root": str(inside), "runs": [inside, {"elsewhere": "/data/x", "n": 3}], "plain": "a/b"})
     assert got == {"root": "runs/ranking_gpu/datasets/eval",
                    "runs": ["runs/ranking_gpu/datasets/eval", {"elsewhere": "/data/x", "n": 3}], "plain": "a/b"}
+
+
+def test_the_gpu_script_refuses_a_run_it_does_not_train(tmp_path):
+    """RUNS names runs of scripts/gpu_ranking.sh; any other name is refused before training, with the known ones."""
+    pack = tmp_path / "pack.npz"
+    pack.write_bytes(b"")
+    env = {**os.environ, "OUT": str(tmp_path / "out"), "PACK": str(pack), "PYTHON": sys.executable,
+           "RUNS": "motion_contact motion_kontact"}
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
+    assert done.returncode == 2
+    assert "RUNS names motion_kontact; the runs are: motion_contact action_vector" in done.stderr
+    assert not any((tmp_path / "out").iterdir())

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -25,7 +26,7 @@ import numpy as np
 import torch
 
 from imac_data.errors import InputError
-from imac_model.config import ModelSpec, parse
+from imac_model.config import CONTACT_STREAMS, SCENE_WARP, ModelSpec, parse
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.checkpoint import (
     load_world_model,
@@ -239,6 +240,11 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         raise InputError(f"warmup: must be >= 0 (got {warmup})")
     if rollout_reference_steps < 0:
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
+    kept = [s for s in streams if s in (*CONTACT_STREAMS, SCENE_WARP)]
+    if rollout_chunks > 1 and rollout_reference_steps > 0 and kept:
+        # measured: motion+contact stopped drawing the lift this way (docs/ranking.md, "The sixth GPU run")
+        warnings.warn(f"rollout from {rollout_reference_steps} sampler steps keeps the recorded {kept} images, which "
+                      "then describe a scene the sampled reference may not show (docs/ranking.md)", stacklevel=2)
     init_path = _init_checkpoint(init, spec) if init is not None else None
     init_sha256 = weights_sha256(init_path) if init_path is not None else None  # of the file loaded, before training
     torch.manual_seed(seed)
