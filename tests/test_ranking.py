@@ -555,6 +555,17 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
                          compile=True, progress=lambda row: None)
     assert not summary["compiled"] and summary["compile_error"] == "RuntimeError: no compiler here"
     assert summary["steps"] >= 1 and (tmp_path / "eager" / "checkpoints").is_dir()
+    # a stream added to a trained model (INIT with ABLATION=scene-warp) starts at its zero projection, so the model
+    # starts as the checkpoint's; a checkpoint with a stream the run lacks is refused
+    summary = train_pack(pack, "motion+contact", tmp_path / "warp_added", minutes=0, batch_size=16, scene_warp=True,
+                         init=tmp_path / "eager", progress=lambda row: None)
+    assert summary["init_added"] == ["controls.layers.scene_warp.bias", "controls.layers.scene_warp.weight"]
+    theirs = load_file(str(list_checkpoints(tmp_path / "eager")[-1] / "model.safetensors"))
+    ours = load_file(str(list_checkpoints(tmp_path / "warp_added")[-1] / "model.safetensors"))
+    assert sorted(set(ours) - set(theirs)) == summary["init_added"]
+    assert all(torch.equal(theirs[k], ours[k]) for k in theirs) and not any(ours[k].any() for k in summary["init_added"])
+    with pytest.raises(InputError, match=r"this run lacks: \['controls.layers.scene_warp.bias'"):
+        train_pack(pack, "motion+contact", tmp_path / "warp_dropped", minutes=0, init=tmp_path / "warp_added")
     warp = pack.tensors.pop("control.scene_warp")
     with pytest.raises(InputError, match=r"carries no \['scene_warp'\]"):
         train_pack(pack, "motion+contact", tmp_path / "no_warp", minutes=0.001, scene_warp=True)

@@ -208,6 +208,26 @@ def _init_checkpoint(init: str | Path, spec: ModelSpec) -> Path:
     return path
 
 
+def _load_init(model: WorldModel, path: Path) -> list[str]:
+    """Load the checkpoint at ``path`` into ``model`` (its own loader: EMA weights where it kept them apart).
+    Layers the checkpoint lacks may stay as built only where they are all zeros (a control stream's
+    zero-initialised projection, added as the paper adds streams: the model starts as the checkpoint's);
+    returns their names. Any other difference is an :class:`InputError` naming the keys."""
+    theirs = load_world_model(path)[0].state_dict()
+    ours = model.state_dict()
+    added = sorted(k for k in ours if k not in theirs)
+    extra, live = sorted(k for k in theirs if k not in ours), [k for k in added if ours[k].count_nonzero()]
+    if extra or live:
+        raise InputError(f"init {path}: its weights do not fit this run's model: "
+                         + "; ".join(f"{what}: {keys[:6]}" for what, keys in
+                                     (("this run lacks", extra), ("the checkpoint lacks", live)) if keys))
+    try:
+        model.load_state_dict(theirs, strict=False)
+    except RuntimeError as e:  # a layer of another shape
+        raise InputError(f"init {path}: its weights do not fit this run's model: {e}") from None
+    return added
+
+
 def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, batch_size: int = 128,
                lr: float = 6e-4, warmup: int = 200, ema_decay: float = 0.999, seed: int = 0, eval_every: int = 500,
                log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
@@ -225,7 +245,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     (``rollout.reference_steps``). ``compile``: train through :func:`compile_trunk`; the first step's
     compilation counts in the budget, and the log's ``first_step_s`` says how long it took.
     ``init``: a checkpoint (or a run directory: its latest) of the same mode and architecture whose
-    weights start the run, so training goes on over several loans; the optimizer starts afresh."""
+    weights start the run, so training goes on over several loans; the optimizer starts afresh. A control stream
+    the checkpoint lacks starts at its zero projection (``init_added`` in the summary)."""
     device = pack.tensors["reference"].device
     spec = spec_for_mode(pack.spec, mode, focus_weight=focus_weight, first_frame=first_frame, dropout=dropout,
                          scene_warp=scene_warp, reference_noise=reference_noise)
@@ -249,11 +270,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     init_sha256 = weights_sha256(init_path) if init_path is not None else None  # of the file loaded, before training
     torch.manual_seed(seed)
     model = WorldModel(spec)
-    if init_path is not None:  # the checkpoint's own loader: its EMA weights where it kept them apart
-        try:
-            model.load_state_dict(load_world_model(init_path)[0].state_dict())
-        except RuntimeError as e:  # another shape: a stream or a layer this run has and it has not
-            raise InputError(f"init {init_path}: its weights do not fit this run's model: {e}") from None
+    added = _load_init(model, init_path) if init_path is not None else []
     model = model.to(device).train()
     compiled = compile_trunk(model) if compile else None
     params = [p for p in model.parameters() if p.requires_grad]
@@ -333,7 +350,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
                "compile_error": compile_error, "init": None if init_path is None else str(init_path),
-               "init_sha256": init_sha256, "steps": step,
+               "init_sha256": init_sha256, "init_added": added, "steps": step,
                "samples": samples, "batch_size": batch_size, "lr": lr, "warmup": warmup, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1),
                "samples_per_s_after_first_step": round((samples - samples / max(step, 1)) / max(
