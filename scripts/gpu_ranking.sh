@@ -66,13 +66,13 @@ case "$ABLATION" in
   0) ;;
   *) echo "gpu_ranking: ABLATION must be 0, 1 (focus), rollout, first-frame or scene-warp, got $ABLATION" >&2; exit 2 ;;
 esac
-if [ -n "$RUNS" ]; then  # the chosen subset, each name checked
+if [ -n "$RUNS" ]; then  # the chosen subset, in the order above, each name checked
   known=" $(for run in "${runs[@]}"; do set -- $run; printf '%s ' "$1"; done)"
-  chosen=()
   for name in $RUNS; do
     [[ "$known" == *" $name "* ]] || { echo "gpu_ranking: RUNS names $name; the runs are:$known" >&2; exit 2; }
-    for run in "${runs[@]}"; do set -- $run; [ "$1" = "$name" ] && chosen+=("$run"); done
   done
+  chosen=()
+  for run in "${runs[@]}"; do set -- $run; [[ " $RUNS " == *" $1 "* ]] && chosen+=("$run"); done
   runs=("${chosen[@]}")
 fi
 if [ -n "$INIT" ]; then  # every run's start, checked before any training
