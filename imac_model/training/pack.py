@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from imac_data.errors import InputError
-from imac_model.config import CONTACT_STREAMS, SCENE_WARP, ModelSpec, parse
+from imac_model.config import REBUILT_STREAMS, ModelSpec, parse
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.checkpoint import (
     load_world_model,
@@ -261,7 +261,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         raise InputError(f"warmup: must be >= 0 (got {warmup})")
     if rollout_reference_steps < 0:
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
-    kept = [s for s in streams if s in (*CONTACT_STREAMS, SCENE_WARP)]
+    kept = [s for s in streams if s in REBUILT_STREAMS]  # what a rollout would rebuild from its reference
     if rollout_chunks > 1 and rollout_reference_steps > 0 and kept:
         # measured: motion+contact stopped drawing the lift this way (docs/ranking.md, "The sixth GPU run")
         warnings.warn(f"rollout from {rollout_reference_steps} sampler steps keeps the recorded {kept} images, which "
