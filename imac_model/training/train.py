@@ -288,8 +288,10 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
             raise InputError(f"train.tracker: {tc.tracker} is not installed (pip install {module})")
     runtime = ShardedRuntime(run, out) if sharded else AccelerateRuntime(run, out)
     try:
-        return _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, progress, stop_after_steps,
-                      tqdm)
+        result = _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, progress, stop_after_steps,
+                        tqdm)
+        runtime.wait()  # every rank done before the group goes: Gloo torn down mid-talk aborted a rank at exit once
+        return result
     finally:
         runtime.close()
 
