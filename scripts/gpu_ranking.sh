@@ -18,7 +18,8 @@
 # RUNS="name ..." trains only those of the runs above (e.g. RUNS=motion_contact), so that two calls of this script
 # with other settings can share one GPU.
 # INIT=DIR starts every run from the weights of DIR/<run> (a run directory of an earlier loan, as
-# `--import-gpu` put it back: its latest checkpoint), so training goes on over several loans.
+# `--import-gpu` put it back: its latest checkpoint), so training goes on over several loans. KEEP_WEIGHTS=DIR also
+# leaves each run's weights in DIR/<run> as INIT reads them, so a second call on the same machine goes on from there.
 #   OUT=/tmp/gpu_out MINUTES=8 bash scripts/gpu_ranking.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -36,6 +37,7 @@ DROPOUT=${DROPOUT:-0}
 COMPILE=${COMPILE:-auto}
 SPEED=${SPEED:-0}
 INIT=${INIT:-}
+KEEP_WEIGHTS=${KEEP_WEIGHTS:-}
 RUNS=${RUNS:-}
 : "${OUT:?set OUT to the directory for the checkpoints}"
 mkdir -p "$OUT"
@@ -99,6 +101,9 @@ for run in "${runs[@]}"; do
   tail -n 3 "$OUT/$1.stdout"
   ckpt=$(ls -d "$dir"/checkpoints/step_* 2>/dev/null | tail -n 1) || true
   if [ -n "$ckpt" ]; then
+    if [ -n "$KEEP_WEIGHTS" ]; then  # after the run: its INIT may be this very directory
+      rm -rf "${KEEP_WEIGHTS:?}/$1" && mkdir -p "$KEEP_WEIGHTS/$1/checkpoints" && cp -r "$ckpt" "$KEEP_WEIGHTS/$1/checkpoints/"
+    fi
     tar -cf "$OUT/$1.tar" -C "$ckpt" model.json model.safetensors -C "$dir" log.jsonl -C "$OUT" "$1.stdout"
     rm -r "$dir" "$OUT/$1.stdout"
   fi

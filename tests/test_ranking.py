@@ -629,10 +629,11 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     assert row["n"] == len(plan.names) * len(plan.eval_seeds())
     assert {p["mujoco"] for p in row["policies"].values()} == simulated
 
-    out = tmp_path / "gpu_out"
+    out, kept = tmp_path / "gpu_out", tmp_path / "kept"
     env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ABLATION": "1", "BATCH": "16", "PACK": str(plan.pack),
            "PYTHON": sys.executable, "REF_NOISE": "0.3", "LR": "1e-3", "WARMUP": "5", "EVAL_EVERY": "100"}
-    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env={**env, "KEEP_WEIGHTS": str(kept)},
+                          capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
     assert sorted(p.name for p in out.iterdir()) == ["action_vector.tar", "motion_contact.tar",
                                                      "motion_contact_uniform.tar"]
@@ -648,13 +649,13 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         assert again == pytest.approx(log[-1]["summary"]["heldout_loss"], rel=1e-3)  # float16 weights
         assert log[-1]["summary"]["lr"] == 1e-3 and log[-1]["summary"]["reference_noise"] == 0.3
         assert log[-1]["summary"]["warmup"] == 5
-    # a later loan goes on from these weights (INIT): the weights it starts from are the imported ones, and the
-    # import continues each run's log (steps, samples, both parts' summaries)
+    # a later call goes on from these weights (INIT, here the ones KEEP_WEIGHTS left on the machine): the weights it
+    # starts from are the imported ones, and the import continues each run's log (steps, samples, both parts' summaries)
     first = {name: json.loads((work / "runs" / name / "log.jsonl").read_text().splitlines()[-1])["summary"]
              for name in ("motion_contact", "action_vector")}
     again = tmp_path / "gpu_again"
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], capture_output=True, text=True,
-                          env={**env, "OUT": str(again), "INIT": str(work / "runs"),
+                          env={**env, "OUT": str(again), "INIT": str(kept),
                                "RUNS": "motion_contact action_vector"})  # not the ablation ABLATION=1 adds
     assert done.returncode == 0, done.stdout + done.stderr
     started = {}
