@@ -7,7 +7,7 @@ from imac_data.console import cpu_cores, restore_scheduling, scheduling
 # Before anything imports mujoco or dm_control: headless EGL rendering (Mesa on the CPU).
 os.environ.setdefault("MUJOCO_GL", "egl")
 # Each pytest-xdist process, and every process it starts, gets its share of the cores for OpenMP's (and so torch's)
-# thread pools: two processes each spinning a pool of both cores cost the 2-core suite 15 % more CPU time
+# thread pools: two processes each spinning a pool of both cores made the 2-core suite 13 % slower (694 s, 616 s)
 # (docs/verification.md, "The test suite"). A value the caller set is kept.
 _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _WORKERS > 1:

@@ -23,7 +23,8 @@ mkdir -p "$OUT"
 command -v nvidia-smi >/dev/null && { nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -l 20 \
   > "$OUT/smi$CALL.csv" & smi=$!; }
 env "${common[@]}" INIT="$init_a" KEEP_WEIGHTS="$KEEP/a" ABLATION=scene-warp \
-  RUNS="motion_contact motion_contact_scene_warp" ROLLOUT=4 ROLLOUT_STEPS=0 OUT="$OUT/a" bash scripts/gpu_ranking.sh > "$OUT/a$CALL.log" 2>&1 & a=$!
+  RUNS="motion_contact motion_contact_scene_warp" ROLLOUT=4 ROLLOUT_STEPS=0 OUT="$OUT/a" \
+  bash scripts/gpu_ranking.sh > "$OUT/a$CALL.log" 2>&1 & a=$!
 env "${common[@]}" INIT="$init_b" KEEP_WEIGHTS="$KEEP/b" RUNS=action_vector ROLLOUT=2 ROLLOUT_STEPS=4 OUT="$OUT/b" \
   bash scripts/gpu_ranking.sh > "$OUT/b$CALL.log" 2>&1 & b=$!
 wait $a; ra=$?; wait $b; rb=$?
