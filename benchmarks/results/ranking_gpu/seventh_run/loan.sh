@@ -6,7 +6,7 @@
 #   b: action-vector, its best recipe: clips of 2 chunks from 4 sampler steps (ROLLOUT=2, ROLLOUT_STEPS=4).
 # CALL=1 carries the pack (PACK_DIR, default runs/side_across/gpu) and keeps it and the weights in /tmp/keep;
 # CALL=2 goes on from there (nothing carried), each run from the weights call 1 left (KEEP_WEIGHTS).
-#   OUT=/tmp/out CALL=1 MINUTES=8.8 bash benchmarks/results/ranking_gpu/seventh_run/loan.sh
+#   OUT=/tmp/out CALL=1 MINUTES=8.6 bash benchmarks/results/ranking_gpu/seventh_run/loan.sh
 set -uo pipefail
 cd "$(dirname "$0")/../../../.."
 : "${OUT:?}" "${CALL:?}" "${MINUTES:?}"
