@@ -614,6 +614,10 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
                                                                          item["state"][None], item["actions"][None])
         derived = (mosaic.controls(warp[0]) * 255).round().to(torch.uint8)[:, :, :h]
         assert torch.equal(pack.tensors["control.scene_warp"][i], derived)
+    # a chunk's reference is stored only where the previous chunk does not end on it; every one comes back
+    with np.load(plan.pack) as stored:
+        assert len(stored["reference"]) == len(set(pack.tensors["episode_index"].tolist())) < len(chunks)
+    assert all(torch.equal(pack.tensors["reference"][i], chunks[i]["reference"]) for i in range(len(chunks)))
     assert sorted(pack.tensors["episode_index"][pack.heldout].unique().tolist()) == list(run.data.held_out_episodes)
     some = [1, len(chunks) // 2, len(chunks) - 1]  # each chunk's episode's first frame, as the CPU trainer's batch
     assert torch.equal(pack.batch(torch.tensor(some), ()).first_frame, chunks.batch(some).first_frame)

@@ -41,6 +41,7 @@ from imac_model.training.log import write_log
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss (as the trainer's)
 SPEC_KEY = "spec_json"
+REFERENCE_FOLLOWS = "reference_follows"  # see _shared_references
 
 
 # --------------------------------------------------------------------------- the pack
@@ -61,12 +62,43 @@ def pack_arrays(items: list[dict], held_out: list[bool], spec: ModelSpec) -> dic
     }
     for key in [k for k in items[0] if k.startswith("control.")]:  # every stream the items carry, derived ones too
         arrays[key] = np.stack([it[key][:, :, :h].numpy() for it in items])
-    return arrays
+    return _shared_references(arrays)
+
+
+def _shared_references(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Keep only the references that are not the previous chunk's last future frame (a chunk of an
+    episode usually starts where the one before it ended): ``reference_follows`` flags the others,
+    which :class:`Pack` takes back from ``future``. At 4 chunks an episode three quarters of the references
+    go: 1.6 MB of a loan's 64 MiB."""
+    ref, future, episode = arrays["reference"], arrays["future"], arrays["episode_index"]
+    follows = np.zeros(len(ref), dtype=bool)
+    if len(ref) > 1:
+        follows[1:] = (episode[1:] == episode[:-1]) & (ref[1:] == future[:-1, -1]).reshape(len(ref) - 1, -1).all(1)
+    return {**arrays, "reference": ref[~follows], REFERENCE_FOLLOWS: follows}
+
+
+def _references(arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """Every chunk's reference frame back from :func:`_shared_references`' form (or a pack without it)."""
+    if REFERENCE_FOLLOWS not in arrays:
+        return arrays["reference"]
+    follows = np.asarray(arrays[REFERENCE_FOLLOWS], dtype=bool)
+    stored, future = arrays["reference"], arrays["future"]
+    if len(stored) != int((~follows).sum()) or (len(follows) and follows[0]):
+        raise InputError(f"pack: {len(stored)} stored reference frames for {int((~follows).sum())} chunks that "
+                         f"need one; the pack is damaged")
+    ref = np.empty((len(follows), *stored.shape[1:]), dtype=stored.dtype)
+    ref[~follows] = stored
+    ref[follows] = future[np.flatnonzero(follows) - 1, -1]
+    return ref
 
 
 def export_pack(items: list[dict], held_out: list[bool], spec: ModelSpec, path: str | Path) -> Path:
     """:func:`pack_arrays` written as one ``.npz``, atomically."""
-    arrays = pack_arrays(items, held_out, spec)
+    return write_pack(pack_arrays(items, held_out, spec), path)
+
+
+def write_pack(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
+    """A pack's arrays as one ``.npz`` whose members are LZMA-compressed, written atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp.npz")
@@ -96,7 +128,9 @@ class Pack:
 
     def _load(self, arrays: dict[str, np.ndarray], device) -> None:
         self.spec = parse(ModelSpec, json.loads(str(arrays[SPEC_KEY])), "")
-        self.tensors = {k: torch.from_numpy(np.asarray(v)).to(device) for k, v in arrays.items() if k != SPEC_KEY}
+        arrays = {**arrays, "reference": _references(arrays)}
+        self.tensors = {k: torch.from_numpy(np.asarray(v)).to(device) for k, v in arrays.items()
+                        if k not in (SPEC_KEY, REFERENCE_FOLLOWS)}
         held = self.tensors.pop("held_out").bool()
         self.train = torch.nonzero(~held).flatten()
         self.heldout = torch.nonzero(held).flatten()
@@ -263,7 +297,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
     kept = [s for s in streams if s in REBUILT_STREAMS]  # what a rollout would rebuild from its reference
     if rollout_chunks > 1 and rollout_reference_steps > 0 and kept:
-        # measured: motion+contact stopped drawing the lift this way (docs/ranking.md, "The sixth GPU run")
+        # measured: motion+contact stopped drawing the lift this way (benchmarks/results/ranking_gpu/README.md, "The sixth GPU run")
         warnings.warn(f"rollout from {rollout_reference_steps} sampler steps keeps the recorded {kept} images, which "
                       "then describe a scene the sampled reference may not show (docs/ranking.md)", stacklevel=2)
     init_path = _init_checkpoint(init, spec) if init is not None else None
@@ -415,4 +449,4 @@ if __name__ == "__main__":
 
 
 __all__ = ["Pack", "compile_trunk", "export_pack", "fast_kernels", "heldout_loss", "pack_arrays", "spec_for_mode",
-           "train_pack"]
+           "train_pack", "write_pack"]

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The sixth GPU loan, as it ran (docs/ranking.md, "The sixth GPU run"): two calls of scripts/gpu_ranking.sh side by
+# The sixth GPU loan, as it ran (benchmarks/results/ranking_gpu/README.md, "The sixth GPU run"): two calls of scripts/gpu_ranking.sh side by
 # side on one GPU, both from the fourth run's weights (runs/loan5/init):
 #   a: motion+contact, the fourth run's own recipe (ROLLOUT=4, ROLLOUT_STEPS=0): the control;
 #   b: motion+contact and action-vector over clips of 2 chunks from 4 sampler steps (ROLLOUT=2, ROLLOUT_STEPS=4):
