@@ -45,7 +45,8 @@ def summary(plan: RankingPlan, run: str) -> dict:
             "lift_judge_accuracy": gate["accuracy"]["lift_geometry"],
             "mse_per_chunk": gate["mse_per_chunk"], "mse_moving_per_chunk": gate.get("mse_moving_per_chunk"),
             "mse_per_chunk_by_view": gate["mse_per_chunk_by_view"],
-            "depth_valid_per_chunk": gate["depth_valid_per_chunk"], "replays": len(gate["rows"])}
+            "depth_valid_per_chunk": gate["depth_valid_per_chunk"], "replays": len(gate["rows"]),
+            "seeds": gate.get("seeds", 1)}
 
 
 def main(argv: list[str] | None = None) -> int:

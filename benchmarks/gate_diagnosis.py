@@ -28,7 +28,6 @@ is the sampler's rather than the model's::
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -42,7 +41,7 @@ from imac_model.data.batch import unit_frames
 from imac_model.evaluate.closed_loop import episode_starts, judged_frames, rollout_episode
 from imac_model.evaluate.policies import recorded_actions_policy
 from imac_model.evaluate.success import dataset_success_labels, verdict_scores
-from imac_model.experiments.ranking.gate import SEED_STRIDE, cube_summary, measure_cube, start_at_chunk
+from imac_model.experiments.ranking.gate import cube_summary, measure_cube, reseeded, start_at_chunk
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
 from imac_model.models.checkpoint import list_checkpoints, load_world_model
@@ -124,7 +123,7 @@ def diagnose(plan: RankingPlan, run: str, seeds: int = 3, ways: tuple[str, ...] 
                 items = chunks.episode_chunks(start.episode)[from_chunk:]
                 scene, intervene = _oracles(way, chunks, items, spec, boundaries)
                 start = start_at_chunk(start, chunks, from_chunk) if from_chunk else start
-                start = dataclasses.replace(start, seed=start.seed + SEED_STRIDE * s)  # seed 0 is the single-seed gate's
+                start = reseeded(start, s)
                 records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,
                                                steps=plan.steps, scene=scene, intervene=intervene))
                 if from_chunk == 0:

@@ -358,8 +358,16 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     diagnosis = gate_diagnosis.diagnose(plan, "motion_contact", seeds=2, ways=("generated",))
     assert [x for row in diagnosis["generated"]["judged_lifted"] for x in row] == \
         [int(x) for x in gate["from_chunk"]["0"]["predicted"]]
+    # the evaluation replays: every episode with each of the gate's seeds (drawn as the gate draws them), pooled
+    for rec in results["evaluations"]["motion+contact"]["recorded"].values():
+        n = len(rec["episodes"])
+        assert rec["seeds"] == plan.gate_seeds and [r["seed"] for r in rec["rows"]] == [0] * n + [1] * n
+        assert [r["episode"] for r in rec["rows"]] == rec["episodes"] * 2 and len(rec["labels"]) == n
+        per_seed = rec["accuracy_per_seed"]["lift_geometry"]
+        assert len(per_seed) == 2 and rec["accuracy"]["lift_geometry"] == pytest.approx(sum(per_seed) / 2)
+        assert all(a["mse_per_chunk"] != b["mse_per_chunk"] for a, b in zip(rec["rows"][:n], rec["rows"][n:]))
     report = (docs / "README.md").read_text()
-    assert "## The early gate" in report and "Where the cube goes wrong" in report and (docs / "gate.png").is_file()
+    assert "## The early gate" in report and f"({sum(rec['labels'])} successes) x 2 seeds" in report and "Where the cube goes wrong" in report and (docs / "gate.png").is_file()
     # a second run finds every stage's outputs and only writes the report again
     stages = json.loads((work / "stages.json").read_text())
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs)]) == 0
@@ -689,8 +697,8 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     assert ablation.main(["focus", "--work", str(work), "--json", str(tmp_path / "focus.json")]) == 0
     figures = json.loads((tmp_path / "focus.json").read_text())
     assert [figures[k]["focus_weight"] for k in ("focus", "uniform")] == [5.0, 0.0]
-    assert all(set(f["gate_balanced_accuracy_from_chunk"]) == {"0", "1"} and f["replays"] == plan.recorded
-               for f in figures.values())
+    assert all(set(f["gate_balanced_accuracy_from_chunk"]) == {"0", "1"} and f["seeds"] == plan.gate_seeds
+               and f["replays"] == plan.recorded * plan.gate_seeds for f in figures.values())
     with pytest.raises(InputError, match="not a run of scripts/gpu_ranking.sh"):
         bad = tmp_path / "bad"
         bad.mkdir()

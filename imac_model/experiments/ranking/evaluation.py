@@ -42,6 +42,7 @@ from imac_model.evaluate.success import (
     evaluate_judge,
     train_success_classifier,
 )
+from imac_model.experiments.ranking.gate import reseeded
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import RED_THRESHOLD, interior, redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan, slug
@@ -136,14 +137,16 @@ def _closed_loop(plan: RankingPlan, model, chunks, online, policy, out: Path, ep
 
 
 def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int], labels: dict[int, bool],
-                    steps: int, judge, classifier) -> dict:
+                    steps: int, judge, classifier, seeds: int = 1) -> dict:
     """Real evaluation episodes replayed in the world model (their recorded actions, closed
-    loop): both judges on the generated frames against MuJoCo's labels, and the RGB error of
-    every chunk against the recording (the mosaic's RGB row, [0, 1])."""
+    loop), each with ``seeds`` noise seeds (:func:`~imac_model.experiments.ranking.gate.reseeded`, as the gate
+    draws them): both judges on the generated frames against MuJoCo's labels, pooled over the seeds and per seed,
+    and the RGB error of every chunk against the recording (the mosaic's RGB row, [0, 1])."""
     t0, c0 = time.time(), time.process_time()
     spec = model.spec
     rows, mse = [], []
-    for start in episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks):
+    starts = episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks)
+    for seed, start in ((s, reseeded(st, s)) for s in range(seeds) for st in starts):
         records = list(rollout_episode(model, online, recorded_actions_policy(start.recorded_actions), start,
                                        steps=steps))
         items = chunks.episode_chunks(start.episode)
@@ -161,15 +164,18 @@ def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int
                    if len(records) > 1 and "contact_s2g" in records[1].controls else None)  # modes with contact
         last = [(f, q) for r in records for f, q in zip(r.frames.unbind(0), r.configurations.unbind(0))][-4:]
         seen = judged_frames(start.episode, last, spec.views, start.task, online)
-        row = {"episode": start.episode, "label": labels[start.episode], "lift_geometry": bool(judge.judge([seen])[0]),
+        row = {"episode": start.episode, "seed": seed, "label": labels[start.episode],
+               "lift_geometry": bool(judge.judge([seen])[0]),
                "mse_per_chunk": errors, "mse_moving_per_chunk": moving, "mse_per_chunk_by_view": by_view,
                "depth_per_chunk": depth, "chunk2_cube_contact": contact}
         if classifier is not None:
             row["classifier"] = bool(classifier.judge([seen])[0])
         rows.append(row)
     judges = [j for j in JUDGE_COLUMNS if all(j in r for r in rows)]
-    return {"episodes": episodes, "labels": [r["label"] for r in rows], "rows": rows,
+    return {"episodes": episodes, "labels": [labels[e] for e in episodes], "seeds": seeds, "rows": rows,
             "accuracy": {j: float(np.mean([r[j] == r["label"] for r in rows])) for j in judges},
+            "accuracy_per_seed": {j: [float(np.mean([r[j] == r["label"] for r in rows if r["seed"] == s]))
+                                      for s in range(seeds)] for j in judges},
             "mse_per_chunk": np.mean(mse, axis=0).tolist(),
             "mse_moving_per_chunk": np.nanmean([r["mse_moving_per_chunk"] for r in rows], axis=0).tolist(),
             "mse_per_chunk_by_view": {v: np.mean([[c[v] for c in r["mse_per_chunk_by_view"]] for r in rows], axis=0).tolist()
@@ -286,8 +292,8 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
     saved = plan.work / "judges" / "classifier"
     classifier = SuccessClassifier.load(saved) if saved.is_dir() else None
     steps_list = sorted({plan.steps, plan.check_steps} if mode == "motion+contact" else {plan.steps})
-    result = {str(k): replay_recorded(plan, model, chunks, online, replay, labels, k, LiftJudge(), classifier)
-              for k in steps_list}
+    result = {str(k): replay_recorded(plan, model, chunks, online, replay, labels, k, LiftJudge(), classifier,
+                                      seeds=plan.gate_seeds) for k in steps_list}
     _write(done, result)
     return result
 

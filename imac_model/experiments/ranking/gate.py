@@ -53,6 +53,13 @@ def gate_minutes(plan: RankingPlan) -> list[float]:
     return [float(m) for m in points] + [float(plan.cpu_minutes)]
 
 
+def reseeded(start, seed: int):
+    """Replay ``seed`` (0, 1, ...) of a closed-loop :class:`~imac_model.evaluate.closed_loop.Start`: seed 0 keeps
+    the start's own noise (the single-seed gate's), seed s adds ``s * SEED_STRIDE``. Every measure that pools
+    seeds (the gate, the evaluation replays, the diagnosis) draws them this way, so their replays match."""
+    return dataclasses.replace(start, seed=start.seed + SEED_STRIDE * int(seed))
+
+
 def gates_path(plan: RankingPlan, mode: str = GATED_MODE) -> Path:
     return plan.run_dir(mode) / "gates.json"
 
@@ -172,7 +179,7 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     strips = []
     for seed in range(plan.gate_seeds):
         for start in episode_starts(chunks, episodes, seed=plan.seed, horizon_chunks=plan.chunks):
-            start = dataclasses.replace(start, seed=start.seed + SEED_STRIDE * seed)  # seed 0: the single-seed gate's
+            start = reseeded(start, seed)
             for k in range(min(plan.chunks, len(chunks.episode_chunks(start.episode)))):
                 s = start_at_chunk(start, chunks, k)
                 records = list(rollout_episode(model, online, recorded_actions_policy(s.recorded_actions), s,
@@ -213,4 +220,4 @@ def measure_gate(plan: RankingPlan, budget_minutes: float, mode: str = GATED_MOD
     return gate
 
 
-__all__ = ["GATED_MODE", "gate_minutes", "gate_verdict", "measure_gate", "read_gates"]
+__all__ = ["GATED_MODE", "gate_minutes", "gate_verdict", "measure_gate", "read_gates", "reseeded"]

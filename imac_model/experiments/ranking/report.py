@@ -436,12 +436,21 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
                if "classifier" in j["real"]
                else f"| classifier | not trained: {j['classifier_training']['skipped']} | | |"), "",
               "On generated rollouts of the recorded actions (real episodes replayed in the world model, judged on "
-              "the generated frames):", "", "| mode | Euler steps | episodes | lift_geometry | classifier |",
+              "the generated frames; each episode with every noise seed, the verdicts pooled, each seed's own in "
+              "brackets):", "", "| mode | Euler steps | episodes | lift_geometry | classifier |",
               "|---|---|---|---|---|"]
+
+    def _replayed(rec: dict, judge: str) -> str:
+        per_seed = (rec.get("accuracy_per_seed") or {}).get(judge) or []
+        return _fmt(rec["accuracy"].get(judge)) + (f" [{', '.join(_fmt(a) for a in per_seed)}]" if len(per_seed) > 1
+                                                   else "")
+
     for mode, ev in r["evaluations"].items():
         for steps, rec in (ev.get("recorded") or {}).items():
-            lines.append(f"| {mode} | {steps} | {len(rec['episodes'])} ({sum(rec['labels'])} successes) | "
-                         f"{_fmt(rec['accuracy'].get('lift_geometry'))} | {_fmt(rec['accuracy'].get('classifier'))} |")
+            seeds = rec.get("seeds", 1)  # replays written before 2026-11-29 used one seed
+            lines.append(f"| {mode} | {steps} | {len(rec['episodes'])} ({sum(rec['labels'])} successes)"
+                         f"{f' x {seeds} seeds' if seeds > 1 else ''} | {_replayed(rec, 'lift_geometry')} | "
+                         f"{_replayed(rec, 'classifier')} |")
     lines += ["", "RGB error (MSE, [0, 1]) of those replays against the recording, per chunk of 8 frames; the controls "
                   "of every chunk after the first are rebuilt from the generated depth:", "",
               "| mode | Euler steps | " + " | ".join(f"chunk {n + 1}" for n in range(plan.chunks)) + " |",
