@@ -18,7 +18,8 @@
 # RUNS="name ..." trains only those of the runs above (e.g. RUNS=motion_contact), so that two calls of this script
 # with other settings can share one GPU.
 # INIT=DIR starts every run from the weights of DIR/<run> (a run directory of an earlier loan, as
-# `--import-gpu` put it back: its latest checkpoint), so training goes on over several loans. KEEP_WEIGHTS=DIR also
+# `--import-gpu` put it back: its latest checkpoint) or of DIR/<run>.tar.xz or DIR/<run>.tar (a run archive, as
+# `--export-runs` writes and a loan returns), so training goes on over several loans. KEEP_WEIGHTS=DIR also
 # leaves each run's weights in DIR/<run> as INIT reads them, so a second call on the same machine goes on from there.
 #   OUT=/tmp/gpu_out MINUTES=8 bash scripts/gpu_ranking.sh
 set -euo pipefail
@@ -77,10 +78,15 @@ if [ -n "$RUNS" ]; then  # the chosen subset, in the order above, each name chec
   for run in "${runs[@]}"; do set -- $run; [[ " $RUNS " == *" $1 "* ]] && chosen+=("$run"); done
   runs=("${chosen[@]}")
 fi
+init_of() {  # run $1's start under INIT: its run directory, else its run archive
+  local c
+  for c in "$INIT/$1" "$INIT/$1.tar.xz" "$INIT/$1.tar"; do [ -e "$c" ] && { echo "$c"; return 0; }; done
+  return 1
+}
 if [ -n "$INIT" ]; then  # every run's start, checked before any training
   for run in "${runs[@]}"; do
     set -- $run
-    [ -d "$INIT/$1" ] || { echo "gpu_ranking: INIT=$INIT has no run $1 to start from" >&2; exit 2; }
+    init_of "$1" >/dev/null || { echo "gpu_ranking: INIT=$INIT has no run $1 to start from ($1/, $1.tar.xz or $1.tar)" >&2; exit 2; }
   done
 fi
 pids=()
@@ -88,7 +94,7 @@ for run in "${runs[@]}"; do
   set -- $run
   name=$1; shift
   init=""
-  [ -n "$INIT" ] && init="--init $INIT/$name"
+  [ -n "$INIT" ] && init="--init $(init_of "$name")"
   "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --eval-every "$EVAL_EVERY" --dropout "$DROPOUT" $extra $init --output "$OUT/$name" \
     > "$OUT/$name.stdout" 2>&1 &
   pids+=($!)

@@ -43,7 +43,7 @@ from imac_model.data.scene_warp import SceneWarp
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
-from imac_model.experiments.ranking.benchmark import GateStop, import_gpu_runs, stage_train
+from imac_model.experiments.ranking.benchmark import GateStop, export_runs, import_gpu_runs, stage_train
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
@@ -661,13 +661,19 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         assert again == pytest.approx(log[-1]["summary"]["heldout_loss"], rel=1e-3)  # float16 weights
         assert log[-1]["summary"]["lr"] == 1e-3 and log[-1]["summary"]["reference_noise"] == 0.3
         assert log[-1]["summary"]["warmup"] == 5
-    # a later call goes on from these weights (INIT, here the ones KEEP_WEIGHTS left on the machine): the weights it
-    # starts from are the imported ones, and the import continues each run's log (steps, samples, both parts' summaries)
+    # a later call goes on from these weights (INIT: for motion_contact the run directory KEEP_WEIGHTS left on the
+    # machine, for action_vector the run archive --export-runs wrote from the imported run): the weights it starts
+    # from are the imported ones, and the import continues each run's log (steps, samples, both parts' summaries)
     first = {name: json.loads((work / "runs" / name / "log.jsonl").read_text().splitlines()[-1])["summary"]
              for name in ("motion_contact", "action_vector")}
+    starts = tmp_path / "starts"
+    shutil.copytree(kept / "motion_contact", starts / "motion_contact")
+    assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--export-runs", str(starts),
+                       "--runs", "action_vector"]) == 0
+    assert sorted(p.name for p in starts.iterdir()) == ["action_vector.tar.xz", "motion_contact"]
     again = tmp_path / "gpu_again"
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], capture_output=True, text=True,
-                          env={**env, "OUT": str(again), "INIT": str(kept),
+                          env={**env, "OUT": str(again), "INIT": str(starts),
                                "RUNS": "motion_contact action_vector"})  # not the ablation ABLATION=1 adds
     assert done.returncode == 0, done.stdout + done.stderr
     started = {}
@@ -684,6 +690,14 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         steps = [r["step"] for r in rows if "step" in r]
         assert steps == sorted(steps) and steps[-1] == summary["steps"]
         assert list_checkpoints(work / "runs" / name)[-1].name == f"step_{summary['steps']:06d}"
+    # a run archive carries a run to another machine whole: imported back, its weights and its whole log are the run's
+    kept_log = (work / "runs" / "action_vector" / "log.jsonl").read_text()
+    kept_weights = (list_checkpoints(work / "runs" / "action_vector")[-1] / "model.safetensors").read_bytes()
+    (archive,) = export_runs(plan, tmp_path / "carried", ["action_vector"])
+    shutil.rmtree(work / "runs" / "action_vector")  # as on a fresh machine
+    assert import_gpu_runs(plan, archive.parent) == ["action_vector"]
+    assert (work / "runs" / "action_vector" / "log.jsonl").read_text() == kept_log
+    assert (list_checkpoints(work / "runs" / "action_vector")[-1] / "model.safetensors").read_bytes() == kept_weights
     # a run with no time to train hands back the weights it started from; another mode's are refused
     start = list_checkpoints(work / "runs" / "motion_contact")[-1]
     train_pack(pack, "motion+contact", tmp_path / "same", minutes=0, batch_size=16, init=work / "runs" / "motion_contact",

@@ -189,8 +189,14 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stages", help=f"comma-separated subset of {','.join(RANKING_STAGES)} (default: every stage "
                                     "the preset needs; pack, the GPU's training tensors, with --preset gpu only)")
     p.add_argument("--plan", help=argparse.SUPPRESS)
-    p.add_argument("--import-gpu", metavar="DIR", help="put scripts/gpu_ranking.sh's checkpoints (DIR) into the work "
-                                                      "directory as trained runs (docs/ranking.md, 'The GPU preset')")
+    p.add_argument("--import-gpu", metavar="DIR", help="put the run archives in DIR (<run>.tar from scripts/gpu_ranking.sh, "
+                                                      "or <run>.tar.xz from --export-runs) into the work directory as "
+                                                      "trained runs (docs/ranking.md, 'The GPU preset')")
+    p.add_argument("--export-runs", metavar="DIR", help="write trained runs as DIR/<run>.tar.xz (latest checkpoint and "
+                                                       "whole log), to keep or carry to a later loan (docs/ranking.md, "
+                                                       "'Weights between loans')")
+    p.add_argument("--runs", nargs="+", metavar="RUN", help="with --export-runs: these runs under <work>/runs "
+                                                            "(default: the plan's modes')")
     p.add_argument("--internal", choices=("train-rollouts", "decode", "pack", "judges", "evaluate", "replays", "gate"),
                    help=argparse.SUPPRESS)
     p.add_argument("internal_args", nargs="*", help=argparse.SUPPRESS)

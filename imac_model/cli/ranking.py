@@ -16,6 +16,7 @@ from imac_model.experiments.ranking.benchmark import (
     STAGE_FUNCTIONS,
     GateStop,
     decode_chunks,
+    export_runs,
     export_training_pack,
     import_gpu_runs,
     simulate_training_part,
@@ -73,6 +74,8 @@ def _ranking(args: argparse.Namespace) -> int:
          "replays": lambda: replays(plan, *args.internal_args[:2]),
          "gate": lambda: measure_gate(plan, float(args.internal_args[0]), *args.internal_args[1:2])}[args.internal]()
         return 0
+    if args.runs and not args.export_runs:
+        raise InputError("--runs names the runs --export-runs writes; give --export-runs DIR")
     plan = _plan(args)
     stages = stages_to_run(args.stages, plan)
     plan.work.mkdir(parents=True, exist_ok=True)
@@ -80,6 +83,10 @@ def _ranking(args: argparse.Namespace) -> int:
     with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
         if args.import_gpu:
             print(f"imported {import_gpu_runs(plan, Path(args.import_gpu))} into {plan.work / 'runs'}")
+            return 0
+        if args.export_runs:
+            for path in export_runs(plan, Path(args.export_runs), args.runs):
+                print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
             return 0
         return _run_stages(plan, stages)
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 import time
 import warnings
 import zipfile
@@ -37,6 +38,7 @@ from imac_model.models.checkpoint import (
 )
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.rollout import rollout_loss
+from imac_model.training.archive import run_name, unpack_checkpoint
 from imac_model.training.log import write_log
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss (as the trainer's)
@@ -229,10 +231,11 @@ def _eager(model: WorldModel):
     return model.backbone.__dict__.pop("trunk", None)
 
 
-def _init_checkpoint(init: str | Path, spec: ModelSpec) -> Path:
-    """The checkpoint ``init`` names, refused unless it shows the run's views and mode; weights
-    of another shape are refused when they load (the flow's settings may differ: they are training's)."""
-    path = resolve_checkpoint(init)
+def _init_checkpoint(init: str | Path, spec: ModelSpec, scratch: Path) -> Path:
+    """The checkpoint ``init`` names (a run archive is unpacked into ``scratch``), refused unless it shows
+    the run's views and mode; weights of another shape are refused when they load (the flow's settings may
+    differ: they are training's)."""
+    path = unpack_checkpoint(init, scratch) if run_name(init) and Path(init).is_file() else resolve_checkpoint(init)
     theirs = read_spec(path)
     for name, of in (("conditioning.mode", lambda s: s.conditioning.mode), ("backbone.kind", lambda s: s.backbone.kind),
                      ("views", lambda s: s.views), ("view size", lambda s: (s.view_height, s.view_width)),
@@ -278,9 +281,9 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     here to rebuild them); with ``rollout_reference_steps`` k > 0 it starts from k sampler steps instead
     (``rollout.reference_steps``). ``compile``: train through :func:`compile_trunk`; the first step's
     compilation counts in the budget, and the log's ``first_step_s`` says how long it took.
-    ``init``: a checkpoint (or a run directory: its latest) of the same mode and architecture whose
-    weights start the run, so training goes on over several loans; the optimizer starts afresh. A control stream
-    the checkpoint lacks starts at its zero projection (``init_added`` in the summary)."""
+    ``init``: a checkpoint (a run directory: its latest; a run archive, :mod:`.archive`: its own) of the same mode
+    and architecture whose weights start the run, so training goes on over several loans; the optimizer starts
+    afresh. A control stream the checkpoint lacks starts at its zero projection (``init_added`` in the summary)."""
     device = pack.tensors["reference"].device
     spec = spec_for_mode(pack.spec, mode, focus_weight=focus_weight, first_frame=first_frame, dropout=dropout,
                          scene_warp=scene_warp, reference_noise=reference_noise)
@@ -297,14 +300,17 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
     kept = [s for s in streams if s in REBUILT_STREAMS]  # what a rollout would rebuild from its reference
     if rollout_chunks > 1 and rollout_reference_steps > 0 and kept:
-        # measured: motion+contact stopped drawing the lift this way (benchmarks/results/ranking_gpu/README.md, "The sixth GPU run")
+        # measured: motion+contact stopped drawing the lift this way (the GPU runs' record,
+        # benchmarks/results/ranking_gpu/README.md, "The sixth GPU run")
         warnings.warn(f"rollout from {rollout_reference_steps} sampler steps keeps the recorded {kept} images, which "
                       "then describe a scene the sampled reference may not show (docs/ranking.md)", stacklevel=2)
-    init_path = _init_checkpoint(init, spec) if init is not None else None
-    init_sha256 = weights_sha256(init_path) if init_path is not None else None  # of the file loaded, before training
-    torch.manual_seed(seed)
-    model = WorldModel(spec)
-    added = _load_init(model, init_path) if init_path is not None else []
+    with tempfile.TemporaryDirectory() as scratch:  # where a run archive's checkpoint is unpacked to load it
+        init_path = _init_checkpoint(init, spec, Path(scratch)) if init is not None else None
+        init_sha256 = weights_sha256(init_path) if init_path is not None else None  # of the weights loaded
+        torch.manual_seed(seed)
+        model = WorldModel(spec)
+        added = _load_init(model, init_path) if init_path is not None else []
+    init_label = None if init is None else str(init if Path(init).is_file() else init_path)
     model = model.to(device).train()
     compiled = compile_trunk(model) if compile else None
     params = [p for p in model.parameters() if p.requires_grad]
@@ -383,7 +389,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                "rollout_chunks": rollout_chunks, "rollout_reference_steps": rollout_reference_steps,
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
-               "compile_error": compile_error, "init": None if init_path is None else str(init_path),
+               "compile_error": compile_error, "init": init_label,
                "init_sha256": init_sha256, "init_added": added, "steps": step,
                "samples": samples, "batch_size": batch_size, "lr": lr, "warmup": warmup, "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1),
@@ -425,7 +431,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="share of samples trained without controls, for guidance (conditioning.dropout)")
     t.add_argument("--compile", action="store_true",
                    help="torch.compile the U-Net's trunk (on a GPU: fused group norms; the first step compiles)")
-    t.add_argument("--init", help="start from this checkpoint's weights (a run directory: its latest checkpoint)")
+    t.add_argument("--init", help="start from this checkpoint's weights (a run directory: its latest checkpoint; "
+                                  "a run archive <run>.tar or <run>.tar.xz: its checkpoint)")
     t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     t.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)

@@ -23,7 +23,6 @@ import json
 import os
 import shutil
 import sys
-import tarfile
 from dataclasses import replace
 from pathlib import Path
 
@@ -47,6 +46,7 @@ from imac_model.experiments.ranking.policies import training_policy
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT, python, quote, run_all, then_mark_done
 from imac_model.models.checkpoint import list_checkpoints, weights_sha256
+from imac_model.training.archive import archives_in, read_archive, run_name, write_archive
 from imac_model.training.log import LOG_FILE, continued_log, log_summary, read_log
 from imac_model.training.pack import export_pack
 from imac_model.training.train import model_spec
@@ -170,21 +170,20 @@ def stage_pack(plan: RankingPlan) -> None:
 
 
 def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
-    """``scripts/gpu_ranking.sh``'s output (``<run>.tar``: model.json, model.safetensors, log.jsonl)
-    -> this work directory's trained runs (``runs/<run>``), so ``judges``, ``evaluate`` and ``report``
-    go on here. A run that is not one of the plan's modes (an ablation) is imported beside them; the
-    evaluations of a run it replaces (``wm/<run>``) are dropped, being of another model. A run that
-    started from the weights it replaces (``INIT``: its summary's ``init_sha256`` is theirs) continues
-    that run's log, so the report shows the whole training. Returns the runs imported."""
+    """Run archives (:mod:`imac_model.training.archive`: ``scripts/gpu_ranking.sh``'s output, or
+    :func:`export_runs`') -> this work directory's trained runs (``runs/<run>``), so ``judges``,
+    ``evaluate`` and ``report`` go on here. A run that is not one of the plan's modes (an ablation) is
+    imported beside them; the evaluations of a run it replaces (``wm/<run>``) are dropped, being of another
+    model. A run that started from the weights it replaces (``INIT``: its summary's ``init_sha256`` is
+    theirs) continues that run's log, so the report shows the whole training. Returns the runs imported."""
     directory, done = Path(directory), []
-    for tar in sorted(directory.glob("*.tar")):
-        with tarfile.open(tar) as archive:
-            names = set(archive.getnames())
-            if not {"model.json", "model.safetensors", LOG_FILE} <= names:
-                raise InputError(f"{tar}: not a run of scripts/gpu_ranking.sh (it holds {sorted(names)})")
-            files = {n: archive.extractfile(n).read() for n in ("model.json", "model.safetensors", LOG_FILE)}
+    if not directory.is_dir():
+        raise InputError(f"--import-gpu {directory}: no such directory")
+    for tar in archives_in(directory):
+        files = read_archive(tar)
         rows = [json.loads(line) for line in files[LOG_FILE].decode().splitlines() if line.strip()]
-        run = plan.work / "runs" / tar.stem
+        name = run_name(tar)
+        run = plan.work / "runs" / name
         earlier = list_checkpoints(run)
         started_from = log_summary(rows).get("init_sha256")
         if started_from and earlier and weights_sha256(earlier[-1]) == started_from:
@@ -200,11 +199,26 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
         (tmp / "DONE.json").write_text(json.dumps(summary, indent=1))
         shutil.rmtree(run, ignore_errors=True)
         os.replace(tmp, run)
-        shutil.rmtree(plan.work / "wm" / tar.stem, ignore_errors=True)
-        done.append(tar.stem)
+        shutil.rmtree(plan.work / "wm" / name, ignore_errors=True)
+        done.append(name)
     if not done:
-        raise InputError(f"{directory}: no <run>.tar of scripts/gpu_ranking.sh")
+        raise InputError(f"{directory}: no <run>.tar or <run>.tar.xz of scripts/gpu_ranking.sh")
     return done
+
+
+def export_runs(plan: RankingPlan, directory: Path, runs: list[str] | None = None) -> list[Path]:
+    """This work directory's trained runs (default: the plan's modes') as run archives
+    ``directory/<run>.tar.xz``: the latest checkpoint and the whole log, which :func:`import_gpu_runs`
+    reads back on another machine and ``INIT`` starts a loan from. Every run is checked before any is written."""
+    names = runs or [plan.run_dir(mode).name for mode in plan.modes if mode != "none"]
+    found = {n: list_checkpoints(plan.work / "runs" / n) for n in names}
+    missing = [n for n, ckpts in found.items() if not ckpts]
+    if missing:
+        raise InputError(f"--export-runs: no trained run {missing} under {plan.work / 'runs'}")
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    return [write_archive(ckpts[-1], plan.work / "runs" / n / LOG_FILE, directory / f"{n}.tar.xz")
+            for n, ckpts in found.items()]
 
 
 def train_on_gpu(plan: RankingPlan) -> None:
