@@ -27,7 +27,7 @@ from imac_data import lerobot_compat as lr
 from imac_data.metadata import dataset_info
 from imac_model.data import mosaic
 from imac_model.data.batch import unit_frames
-from imac_model.evaluate.closed_loop import episode_starts, judged_frames, rollout_episode
+from imac_model.evaluate.closed_loop import Start, episode_starts, judged_frames, rollout_episode
 from imac_model.evaluate.pictures import label
 from imac_model.evaluate.policies import recorded_actions_policy
 from imac_model.evaluate.success import dataset_success_labels, verdict_scores
@@ -53,8 +53,8 @@ def gate_minutes(plan: RankingPlan) -> list[float]:
     return [float(m) for m in points] + [float(plan.cpu_minutes)]
 
 
-def reseeded(start, seed: int):
-    """Replay ``seed`` (0, 1, ...) of a closed-loop :class:`~imac_model.evaluate.closed_loop.Start`: seed 0 keeps
+def reseeded(start: Start, seed: int) -> Start:
+    """Replay ``seed`` (0, 1, ...) of a closed-loop start: seed 0 keeps
     the start's own noise (the single-seed gate's), seed s adds ``s * SEED_STRIDE``. Every measure that pools
     seeds (the gate, the evaluation replays, the diagnosis) draws them this way, so their replays match."""
     return dataclasses.replace(start, seed=start.seed + SEED_STRIDE * int(seed))
