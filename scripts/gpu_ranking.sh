@@ -26,6 +26,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PACK=${PACK:-runs/ranking_gpu/gpu/pack.npz}
 MINUTES=${MINUTES:-8}
+SAMPLES=${SAMPLES:-}  # each run also stops once it has trained this many samples (equal budgets in samples)
 BATCH=${BATCH:-128}  # chunks a step (the tests run the script at toy size with fewer)
 LR=${LR:-6e-4}  # AdamW's peak learning rate (scale it with BATCH)
 WARMUP=${WARMUP:-200}  # steps of learning-rate warm-up (fewer at a larger BATCH: the same samples)
@@ -59,6 +60,7 @@ command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,mem
 extra=""
 [ "$COMPILE" = 1 ] && extra="--compile"
 [ -n "$REF_NOISE" ] && extra="$extra --reference-noise $REF_NOISE"
+[ -n "$SAMPLES" ] && extra="$extra --max-samples $SAMPLES"
 extra="$extra --rollout-reference-steps $ROLLOUT_STEPS"
 runs=("motion_contact motion+contact --rollout-chunks $ROLLOUT" "action_vector action-vector --rollout-chunks $ROLLOUT")
 case "$ABLATION" in

@@ -673,7 +673,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     assert sorted(p.name for p in starts.iterdir()) == ["action_vector.tar.xz", "motion_contact"]
     again = tmp_path / "gpu_again"
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], capture_output=True, text=True,
-                          env={**env, "OUT": str(again), "INIT": str(starts),
+                          env={**env, "OUT": str(again), "INIT": str(starts), "SAMPLES": "16",  # one step of 16
                                "RUNS": "motion_contact action_vector"})  # not the ablation ABLATION=1 adds
     assert done.returncode == 0, done.stdout + done.stderr
     started = {}
@@ -687,6 +687,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         assert summary["init_sha256"] == started[name]
         assert [part["steps"] for part in summary["parts"]] == [before["steps"], summary["steps"] - before["steps"]]
         assert summary["samples"] == sum(part["samples"] for part in summary["parts"])
+        assert summary["parts"][-1]["samples"] == summary["parts"][-1]["max_samples"] == 16  # SAMPLES stopped it
         steps = [r["step"] for r in rows if "step" in r]
         assert steps == sorted(steps) and steps[-1] == summary["steps"]
         assert list_checkpoints(work / "runs" / name)[-1].name == f"step_{summary['steps']:06d}"

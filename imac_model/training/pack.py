@@ -270,7 +270,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
                first_frame: bool | None = None, dropout: float | None = None, scene_warp: bool | None = None,
                reference_noise: float | None = None, rollout_reference_steps: int = 0, compile: bool = False,
-               init: str | Path | None = None, progress=print) -> dict:
+               init: str | Path | None = None, max_samples: int | None = None, progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
@@ -283,7 +283,9 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     compilation counts in the budget, and the log's ``first_step_s`` says how long it took.
     ``init``: a checkpoint (a run directory: its latest; a run archive, :mod:`.archive`: its own) of the same mode
     and architecture whose weights start the run, so training goes on over several loans; the optimizer starts
-    afresh. A control stream the checkpoint lacks starts at its zero projection (``init_added`` in the summary)."""
+    afresh. A control stream the checkpoint lacks starts at its zero projection (``init_added`` in the summary).
+    ``max_samples``: stop as well once this many samples are trained, so that runs of different speeds sharing a
+    GPU get equal budgets in samples (the one that stops first leaves the GPU to the others)."""
     device = pack.tensors["reference"].device
     spec = spec_for_mode(pack.spec, mode, focus_weight=focus_weight, first_frame=first_frame, dropout=dropout,
                          scene_warp=scene_warp, reference_noise=reference_noise)
@@ -298,6 +300,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         raise InputError(f"warmup: must be >= 0 (got {warmup})")
     if rollout_reference_steps < 0:
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
+    if max_samples is not None and max_samples < 1:
+        raise InputError(f"max_samples: must be >= 1 (got {max_samples})")
     kept = [s for s in streams if s in REBUILT_STREAMS]  # what a rollout would rebuild from its reference
     if rollout_chunks > 1 and rollout_reference_steps > 0 and kept:
         # measured: motion+contact stopped drawing the lift this way (the GPU runs' record,
@@ -344,7 +348,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                             backward=torch.Tensor.backward, autocast=lambda: autocast,
                             reference_steps=rollout_reference_steps).loss, index.numel()
 
-    while time.time() - t0 < 60.0 * minutes:
+    while time.time() - t0 < 60.0 * minutes and (max_samples is None or samples < max_samples):
         for group in opt.param_groups:
             group["lr"] = lr * min(1.0, (step + 1) / max(warmup, 1))
         try:
@@ -391,7 +395,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
                "compile_error": compile_error, "init": init_label,
                "init_sha256": init_sha256, "init_added": added, "steps": step,
-               "samples": samples, "batch_size": batch_size, "lr": lr, "warmup": warmup, "train_s": round(elapsed, 1),
+               "samples": samples, "max_samples": max_samples, "batch_size": batch_size, "lr": lr, "warmup": warmup,
+               "train_s": round(elapsed, 1),
                "samples_per_s": round(samples / max(elapsed, 1e-9), 1),
                "samples_per_s_after_first_step": round((samples - samples / max(step, 1)) / max(
                    elapsed - (first_step_s or 0.0), 1e-9), 1), "heldout_loss": final,
@@ -411,6 +416,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--mode", required=True, choices=("none", "motion", "motion+contact", "action-vector"))
     t.add_argument("--output", required=True)
     t.add_argument("--minutes", type=float, required=True, help="wall-clock training budget")
+    t.add_argument("--max-samples", type=int,
+                   help="stop once this many samples are trained, if the minutes last (equal budgets in samples)")
     t.add_argument("--batch-size", type=int, default=128)
     t.add_argument("--lr", type=float, default=6e-4)
     t.add_argument("--warmup", type=int, default=200,
@@ -446,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
                          first_frame=args.first_frame or None, dropout=args.dropout,
                          scene_warp=args.scene_warp or None, reference_noise=args.reference_noise,
                          rollout_reference_steps=args.rollout_reference_steps, compile=args.compile,
-                         init=args.init)
+                         init=args.init, max_samples=args.max_samples)
     print(json.dumps(summary))
     return 0
 
