@@ -62,10 +62,13 @@ def internal(plan: RankingPlan, what: str, *extra: str) -> list[str]:
 # --------------------------------------------------------------------------- 1. simulate
 
 
-def stage_simulate(plan: RankingPlan) -> None:
+SIDES = ("train", "eval")  # the world model's training rollouts, the evaluation episodes
+
+
+def stage_simulate(plan: RankingPlan, sides: tuple[str, ...] = SIDES) -> None:
     # the training rollouts first: decoding and training wait on them, not on the evaluation episodes
     commands = []
-    parts = max(1, min(plan.jobs, plan.train_episodes))
+    parts = max(1, min(plan.jobs, plan.train_episodes)) if "train" in sides else 0
     for k in range(parts):
         out = plan.work / "sim" / "train" / f"part_{k}"
         if not (out / ".done").is_file():
@@ -74,7 +77,7 @@ def stage_simulate(plan: RankingPlan) -> None:
                                                                             out / ".done"),
                              plan.work / "logs" / f"sim_train_{k}.log"))
     seeds = [str(s) for _, s in plan.eval_seeds()]
-    for spec, name in zip(plan.policies, plan.names):
+    for spec, name in zip(plan.policies, plan.names) if "eval" in sides else ():
         out = plan.sim_dir(name)
         if (out / ".done").is_file():
             continue
@@ -115,21 +118,24 @@ def _link_episodes(sources: list[Path], dest: Path) -> None:
     os.replace(tmp, dest)
 
 
-def stage_build(plan: RankingPlan) -> None:
+def stage_build(plan: RankingPlan, sides: tuple[str, ...] = SIDES) -> None:
     parts = max(1, min(plan.jobs, plan.train_episodes))
     train = [plan.work / "sim" / "train" / f"part_{i % parts}" / f"ep_{i:05d}" / "episode_0.hdf5"
              for i in range(plan.train_episodes)]
     n_eval = len(plan.eval_seeds())
     evals = [plan.sim_dir(name) / f"episode_{i}.hdf5" for name in plan.names for i in range(n_eval)]
+    todo = [(repo, root, sources, src_dir) for side, repo, root, sources, src_dir in (
+        ("train", TRAIN_REPO, plan.train_dataset, train, plan.work / "sim" / "train_all"),
+        ("eval", EVAL_REPO, plan.eval_dataset, evals, plan.work / "sim" / "eval_all"))
+        if side in sides and not info_path(root).is_file()]  # a build moves its dataset into place only when complete
+    workers = plan.jobs if len(todo) == 1 else 1  # one build alone gets every process
     commands = []
-    for repo, root, sources, src_dir in ((TRAIN_REPO, plan.train_dataset, train, plan.work / "sim" / "train_all"),
-                                         (EVAL_REPO, plan.eval_dataset, evals, plan.work / "sim" / "eval_all")):
-        if info_path(root).is_file():
-            continue  # the build moves a dataset into place only when it is complete
+    for repo, root, sources, src_dir in todo:
         _link_episodes(sources, src_dir)
         argv = python() + ["-m", "imac_data.build", "--repo", repo, "--recipe", str(RECIPE), "--source", str(src_dir),
-                           "--root", str(root), "--episodes", str(len(sources)), "--workers", "1", "--no-progress",
-                           "--overwrite", "--timings", str(plan.work / f"build_timings_{root.name}.json")]
+                           "--root", str(root), "--episodes", str(len(sources)), "--workers", str(workers),
+                           "--no-progress", "--overwrite",
+                           "--timings", str(plan.work / f"build_timings_{root.name}.json")]
         commands.append((f"build {root.name}", argv, plan.work / "logs" / f"build_{root.name}.log"))
     run_all(commands, plan.jobs, tag="ranking")
 
@@ -166,6 +172,11 @@ def export_training_pack(plan: RankingPlan) -> None:
 def stage_pack(plan: RankingPlan) -> None:
     if plan.pack.is_file():
         return
+    # run before the others (--stages pack on a new work directory, a GPU waiting): only the training side, so
+    # the pack is ready in about half the time and the evaluation episodes can be made while the GPU trains
+    stage_simulate(plan, ("train",))
+    stage_build(plan, ("train",))
+    stage_decode(plan)
     run_all([("pack", internal(plan, "pack"), plan.work / "logs" / "pack.log")], 1, tag="ranking")
 
 
