@@ -48,7 +48,7 @@ from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
-from imac_model.experiments.ranking.report import _relative
+from imac_model.experiments.ranking.report import _relative, rewrite_report
 from imac_model.experiments.stages import REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
@@ -366,7 +366,12 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
         per_seed = rec["accuracy_per_seed"]["lift_geometry"]
         assert len(per_seed) == 2 and rec["accuracy"]["lift_geometry"] == pytest.approx(sum(per_seed) / 2)
         assert all(a["mse_per_chunk"] != b["mse_per_chunk"] for a, b in zip(rec["rows"][:n], rec["rows"][n:]))
+        # the views are of one size: their errors average to the whole mosaic's
+        by_view = np.array(list(rec["mse_per_chunk_by_view"].values()))
+        assert by_view.shape == (len(plan.views), plan.chunks)
+        np.testing.assert_allclose(by_view.mean(axis=0), rec["mse_per_chunk"], rtol=1e-5)
     report = (docs / "README.md").read_text()
+    assert all(f"| motion+contact | {plan.steps} | {v} |" in report for v in (*plan.views, "all views"))
     assert "## The early gate" in report and "Where the cube goes wrong" in report and (docs / "gate.png").is_file()
     assert f"({sum(rec['labels'])} successes) x 2 seeds" in report
     # a second run finds every stage's outputs and only writes the report again
@@ -460,6 +465,21 @@ def test_a_run_that_misses_the_early_gate_stops_and_reports_it(toy_run, tmp_path
     report = (plan.docs / "README.md").read_text()
     assert "**Stopped at the early gate**" in report and "**Verdict:** stop." in report
     assert (plan.docs / "gate.png").is_file() and (plan.docs / "training_loss.png").is_file()
+    (plan.docs / "README.md").unlink()  # written again from its results alone (--rewrite-report)
+    assert rewrite_report(plan.docs).read_text() == report
+
+
+def test_a_report_is_written_again_from_its_results_alone(toy_run, tmp_path):
+    """--rewrite-report: a finished run's README from its results.json, with no work directory, is the text the
+    report stage wrote (a stopped run's: the test above)."""
+    _, docs = toy_run
+    finished = tmp_path / "finished"
+    shutil.copytree(docs, finished)
+    written = (finished / "README.md").read_text()
+    (finished / "README.md").unlink()
+    assert model_main(["ranking", "--docs", str(finished), "--rewrite-report"]) == 0
+    assert (finished / "README.md").read_text() == written
+    assert model_main(["ranking", "--docs", str(tmp_path / "none"), "--rewrite-report"]) == 2  # no results.json
 
 
 def test_a_cpu_ablation_arm_continues_the_gated_run_with_one_change(toy_run, tmp_path, capsys):

@@ -197,6 +197,9 @@ def _ranking(p: argparse.ArgumentParser) -> None:
                                                        "'Weights between loans')")
     p.add_argument("--runs", nargs="+", metavar="RUN", help="with --export-runs: these runs under <work>/runs "
                                                             "(default: the plan's modes')")
+    p.add_argument("--rewrite-report", action="store_true",
+                   help="write --docs's README.md again from its results.json alone (after a change of the report's "
+                        "text; no work directory needed, no picture redrawn)")
     p.add_argument("--internal", choices=("train-rollouts", "decode", "pack", "judges", "evaluate", "replays", "gate"),
                    help=argparse.SUPPRESS)
     p.add_argument("internal_args", nargs="*", help=argparse.SUPPRESS)

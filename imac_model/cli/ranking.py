@@ -24,6 +24,7 @@ from imac_model.experiments.ranking.benchmark import (
 from imac_model.experiments.ranking.evaluation import evaluate_mode, replays, run_judges
 from imac_model.experiments.ranking.gate import measure_gate
 from imac_model.experiments.ranking.plan import STAGES, RankingPlan, gpu_plan, toy_plan
+from imac_model.experiments.ranking.report import rewrite_report
 from imac_model.experiments.stages import StageLog
 
 EXIT_GATE_STOP = 4  # the early gate stopped the benchmark (docs/ranking.md); 3 is an environment fault
@@ -76,6 +77,9 @@ def _ranking(args: argparse.Namespace) -> int:
         return 0
     if args.runs and not args.export_runs:
         raise InputError("--runs names the runs --export-runs writes; give --export-runs DIR")
+    if args.rewrite_report:
+        print(f"rewrote {rewrite_report(Path(args.docs))}")
+        return 0
     plan = _plan(args)
     stages = stages_to_run(args.stages, plan)
     plan.work.mkdir(parents=True, exist_ok=True)

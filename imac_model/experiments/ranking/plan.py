@@ -158,8 +158,12 @@ class RankingPlan:
 
     @classmethod
     def load(cls, path: Path) -> RankingPlan:
-        data = json.loads(Path(path).read_text())
-        data.setdefault("training_offsets", "disc")  # a plan saved before the setting existed
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+    @classmethod
+    def from_dict(cls, data: dict) -> RankingPlan:
+        """A plan from :meth:`to_dict`'s output (``plan.json``, or the ``plan`` of a report's ``results.json``)."""
+        data = {"training_offsets": "disc", **data}  # a plan saved before the setting existed
         return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()})
 
 

@@ -14,6 +14,7 @@ import torch
 import yaml
 
 from imac_data import lerobot_compat as lr
+from imac_data.errors import InputError
 from imac_data.layout import image_key
 from imac_model.evaluate.pictures import label
 from imac_model.evaluate.statistics import STATISTICS, plot_policy_scatter, policy_correlation
@@ -171,6 +172,19 @@ def write_report(plan: RankingPlan) -> Path:
     (docs / "results.json").write_text(json.dumps(_relative(results), indent=1, default=str))
     (docs / "README.md").write_text(_markdown(plan, results))
     return docs / "README.md"
+
+
+def rewrite_report(docs: Path) -> Path:
+    """``docs/README.md`` written again from ``docs/results.json`` alone (no work directory, no pictures
+    redrawn): a report kept in the repository follows a change of the report's text or tables."""
+    saved = Path(docs) / "results.json"
+    if not saved.is_file():
+        raise InputError(f"{saved}: no report's results to write the report from (run the report stage first)")
+    results = json.loads(saved.read_text())
+    plan = RankingPlan.from_dict(results["plan"])
+    done = "evaluations" in results  # otherwise the run stopped at the early gate, or trains on
+    (Path(docs) / "README.md").write_text(_markdown(plan, results) if done else _stopped_markdown(plan, results))
+    return Path(docs) / "README.md"
 
 
 def training_log(run: Path) -> dict:
@@ -419,6 +433,8 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
     lines += _training(r)
     lines += _gate(plan, r)
     j = r["judges"]
+    # replays written before 2026-11-29 used one noise seed
+    pooled = any(rec.get("seeds", 1) > 1 for ev in r["evaluations"].values() for rec in (ev.get("recorded") or {}).values())
     masked = j.get("cube_masked", {})  # judges measured before 2026-11-28 have no such check
 
     def _masked(judge: str) -> str:
@@ -436,9 +452,9 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
                if "classifier" in j["real"]
                else f"| classifier | not trained: {j['classifier_training']['skipped']} | | |"), "",
               "On generated rollouts of the recorded actions (real episodes replayed in the world model, judged on "
-              "the generated frames; each episode with every noise seed, the verdicts pooled, each seed's own in "
-              "brackets):", "", "| mode | Euler steps | episodes | lift_geometry | classifier |",
-              "|---|---|---|---|---|"]
+              "the generated frames" + ("; each episode with every noise seed, the verdicts pooled, each seed's own in "
+                                        "brackets):" if pooled else ", one noise seed each):"),
+              "", "| mode | Euler steps | episodes | lift_geometry | classifier |", "|---|---|---|---|---|"]
 
     def _replayed(rec: dict, judge: str) -> str:
         per_seed = (rec.get("accuracy_per_seed") or {}).get(judge) or []
@@ -451,13 +467,15 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
             lines.append(f"| {mode} | {steps} | {len(rec['episodes'])} ({sum(rec['labels'])} successes)"
                          f"{f' x {seeds} seeds' if seeds > 1 else ''} | {_replayed(rec, 'lift_geometry')} | "
                          f"{_replayed(rec, 'classifier')} |")
-    lines += ["", "RGB error (MSE, [0, 1]) of those replays against the recording, per chunk of 8 frames; the controls "
-                  "of every chunk after the first are rebuilt from the generated depth:", "",
-              "| mode | Euler steps | " + " | ".join(f"chunk {n + 1}" for n in range(plan.chunks)) + " |",
-              "|" + "---|" * (2 + plan.chunks)]
+    lines += ["", "RGB error (MSE, [0, 1]) of those replays against the recording, per chunk of 8 frames, in each view "
+                  "and over both; the controls of every chunk after the first are rebuilt from the generated depth:", "",
+              "| mode | Euler steps | view | " + " | ".join(f"chunk {n + 1}" for n in range(plan.chunks)) + " |",
+              "|" + "---|" * (3 + plan.chunks)]
     for mode, ev in r["evaluations"].items():
         for steps, rec in (ev.get("recorded") or {}).items():
-            lines.append(f"| {mode} | {steps} | " + " | ".join(_fmt(x, 4) for x in rec["mse_per_chunk"]) + " |")
+            by_view = {**(rec.get("mse_per_chunk_by_view") or {}), "all views": rec["mse_per_chunk"]}
+            for view, errors in by_view.items():
+                lines.append(f"| {mode} | {steps} | {view} | " + " | ".join(_fmt(x, 4) for x in errors) + " |")
     lines += ["", "The same replays: RGB error over the pixels that move in the recording (`mse_moving`), the share of "
                   "generated depth that decodes to metres, its median error, and chunk 2's s2g contact image in the "
                   "workspace view painting the cube near a future gripper (rebuilt online from the generated depth / "
