@@ -44,6 +44,7 @@ from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking.benchmark import GateStop, export_runs, import_gpu_runs, stage_train
+from imac_model.experiments.ranking.evaluation import evaluate_mode
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
@@ -379,6 +380,32 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs)]) == 0
     again = json.loads((work / "stages.json").read_text())[len(stages):]
     assert all(e["cpu_s"] < 5 for e in again if e["stage"] != "report"), again
+
+
+def test_the_evaluate_stage_in_a_process_per_policy_gives_what_one_process_gives(toy_run, tmp_path):
+    """The evaluate stage runs each policy's closed loop and each mode's replays in a process of its own; one process
+    making all of a mode's in turn (evaluate_mode on a work directory without them) gets the same outcomes, so no
+    state passes from one policy's closed loop to the next."""
+    work, _ = toy_run
+    plan = dataclasses.replace(RankingPlan.load(work / "plan.json"), work=tmp_path / "work", docs=tmp_path / "docs")
+    plan.work.mkdir()
+    for part in ("datasets", "judges", "runs"):
+        (plan.work / part).symlink_to(work / part)
+    mode = "motion+contact"
+    evaluate_mode(plan, mode)
+
+    def untimed(x):  # times apart, and paths inside either work directory named alike
+        if isinstance(x, dict):
+            return {k: untimed(v) for k, v in x.items() if k not in ("wall_s", "cpu_s")}
+        if isinstance(x, list):
+            return [untimed(v) for v in x]
+        return x.replace(str(plan.work), "WORK").replace(str(work), "WORK") if isinstance(x, str) else x
+
+    ours = json.loads((plan.wm_dir(mode) / "outcomes.json").read_text())
+    stage = json.loads((RankingPlan.load(work / "plan.json").wm_dir(mode) / "outcomes.json").read_text())
+    assert untimed(ours["policies"]) == untimed(stage["policies"]) and untimed(ours["recorded"]) == untimed(stage["recorded"])
+    assert [p.name for p in sorted((work / "logs").glob("evaluate_motion_contact_*.log"))] == sorted(
+        [f"evaluate_motion_contact_{n}.log" for n in plan.names] + ["evaluate_motion_contact_replays.log"])
 
 
 def test_the_pack_stage_alone_makes_only_the_training_side_and_the_same_pack(toy_run, tmp_path):

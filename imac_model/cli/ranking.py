@@ -21,7 +21,7 @@ from imac_model.experiments.ranking.benchmark import (
     import_gpu_runs,
     simulate_training_part,
 )
-from imac_model.experiments.ranking.evaluation import evaluate_mode, replays, run_judges
+from imac_model.experiments.ranking.evaluation import evaluate_mode, evaluate_policy, replays, run_judges
 from imac_model.experiments.ranking.gate import measure_gate
 from imac_model.experiments.ranking.plan import STAGES, RankingPlan, gpu_plan, toy_plan
 from imac_model.experiments.ranking.report import rewrite_report
@@ -71,7 +71,8 @@ def _ranking(args: argparse.Namespace) -> int:
         plan = RankingPlan.load(Path(args.plan))
         {"train-rollouts": lambda: simulate_training_part(plan, int(args.internal_args[0])),
          "decode": lambda: decode_chunks(plan), "pack": lambda: export_training_pack(plan), "judges": lambda: run_judges(plan),
-         "evaluate": lambda: evaluate_mode(plan, args.internal_args[0]),
+         "evaluate": lambda: (evaluate_policy(plan, *args.internal_args[:2]) if len(args.internal_args) > 1
+                              else evaluate_mode(plan, args.internal_args[0])),
          "replays": lambda: replays(plan, *args.internal_args[:2]),
          "gate": lambda: measure_gate(plan, float(args.internal_args[0]), *args.internal_args[1:2])}[args.internal]()
         return 0

@@ -33,6 +33,7 @@ from imac_data.layout import info_path
 from imac_model.config import CONTROL_STREAMS, SCENE_WARP
 from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner, run_policy
+from imac_model.experiments.ranking.evaluation import evaluated_policies, policy_dir
 from imac_model.experiments.ranking.gate import GATED_MODE, gate_minutes, gate_verdict, read_gates
 from imac_model.experiments.ranking.plan import (
     EVAL_REPO,
@@ -331,12 +332,21 @@ def stage_evaluate(plan: RankingPlan) -> None:
     gates = [(f"gate {mode}", internal(plan, "gate", f"{budget:g}", mode), plan.work / "logs" / "gate.log")
              for mode in plan.modes if mode != "none" and not _gated_at_the_end(plan, mode)]
     run_all(gates, plan.jobs, tag="ranking")
-    commands = []
-    for mode in plan.modes:
-        if not (plan.wm_dir(mode) / "outcomes.json").is_file():
-            commands.append((f"evaluate {mode}", internal(plan, "evaluate", mode),
-                             plan.work / "logs" / f"evaluate_{slug(mode.replace('+', '_'))}.log"))
-    run_all(commands, plan.jobs, tag="ranking")
+    # each mode's replays and each policy's closed loop in a process of its own, the longest first, so that the cores
+    # stay busy to the end (one process per mode left one idle while motion+contact's ran on); then each mode's
+    # outcomes from them, with the none check and the action sensitivity
+    modes = [m for m in plan.modes if not (plan.wm_dir(m) / "outcomes.json").is_file()]
+
+    def log(mode: str, what: str) -> Path:
+        return plan.work / "logs" / f"evaluate_{slug(mode.replace('+', '_'))}{what}.log"
+
+    replaying = [(f"replays {m}", internal(plan, "replays", m), log(m, "_replays")) for m in modes
+                 if m != "none" and not (plan.wm_dir(m) / "replays.json").is_file()]
+    closed_loops = [(f"evaluate {m} {slug(p)}", internal(plan, "evaluate", m, p), log(m, f"_{slug(p)}"))
+                    for m in modes for p in evaluated_policies(plan, m)
+                    if not (policy_dir(plan, m, p) / "closed_loop.json").is_file()]
+    run_all(replaying + closed_loops, plan.jobs, tag="ranking")
+    run_all([(f"evaluate {m}", internal(plan, "evaluate", m), log(m, "")) for m in modes], plan.jobs, tag="ranking")
 
 
 def stage_report(plan: RankingPlan) -> None:

@@ -115,27 +115,6 @@ def recorded_episodes(plan: RankingPlan, labels: dict[int, bool]) -> list[int]:
     return sorted(picked + rest[:plan.recorded - len(picked)])
 
 
-def _closed_loop(plan: RankingPlan, model, chunks, online, policy, out: Path, episodes: list[int], steps: int,
-                 judge, classifier, checkpoint: str) -> dict:
-    """One closed-loop evaluation (cached in ``out``), judged by both judges."""
-    done = out / "closed_loop.json"
-    if done.is_file():
-        return json.loads(done.read_text())
-    config = ClosedLoopConfig(episodes=tuple(episodes), horizon_chunks=plan.chunks, sampler_steps=steps,
-                              seed=plan.seed)
-    t0, c0 = time.time(), time.process_time()
-    result = run_closed_loop(model, chunks, online, policy, out, config=config, repo_id=f"local/{out.name}",
-                             judge=judge, checkpoint=checkpoint, overwrite=True, progress=False).to_dict()
-    if classifier is not None:
-        generated = lr.LeRobotDataset(f"local/{out.name}", root=out)
-        verdicts = classifier.judge(episode_frames(generated, None, cameras(plan), 4))
-        for row, v in zip(result["episodes"], verdicts):
-            row["success_classifier"] = bool(v)
-    result.update(wall_s=round(time.time() - t0, 1), cpu_s=round(time.process_time() - c0, 1))
-    _write(done, result)
-    return result
-
-
 def replay_recorded(plan: RankingPlan, model, chunks, online, episodes: list[int], labels: dict[int, bool],
                     steps: int, judge, classifier, seeds: int = 1) -> dict:
     """Real evaluation episodes replayed in the world model (their recorded actions, closed
@@ -288,9 +267,8 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
     labels = dataset_success_labels(lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset))
     replay = recorded_episodes(plan, labels)
     chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=replay)
-    online = OnlineControls.from_dataset(plan.eval_dataset, spec, info=dataset_info(chunks.lerobot.meta))
-    saved = plan.work / "judges" / "classifier"
-    classifier = SuccessClassifier.load(saved) if saved.is_dir() else None
+    online = _online(plan, model, chunks)
+    classifier = _classifier(plan)
     steps_list = sorted({plan.steps, plan.check_steps} if mode == "motion+contact" else {plan.steps})
     result = {str(k): replay_recorded(plan, model, chunks, online, replay, labels, k, LiftJudge(), classifier,
                                       seeds=plan.gate_seeds) for k in steps_list}
@@ -298,31 +276,82 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
     return result
 
 
+def evaluated_policies(plan: RankingPlan, mode: str) -> tuple[str, ...]:
+    """The policies run closed loop in ``mode``'s world model (``none`` is policy-blind: one, once)."""
+    return plan.policies[:1] if mode == "none" else plan.policies
+
+
+def policy_dir(plan: RankingPlan, mode: str, policy: str) -> Path:
+    """Where one policy's closed loop in one mode's world model is kept (its ``closed_loop.json`` marks it done)."""
+    return plan.wm_dir(mode) / slug(policy)
+
+
+def evaluate_policy(plan: RankingPlan, mode: str, policy: str) -> dict:
+    """One policy closed loop in one mode's world model from the evaluation starts, judged by both judges
+    (cached: :func:`policy_dir`). The evaluate stage runs each policy in a process of its own, so that the
+    machine's cores share the work evenly; :func:`evaluate_mode` then finds it done."""
+    torch.set_num_threads(1)
+    model = load_world_model(plan.run_dir(mode), weights="ema", device=plan.device)[0]
+    chunks = open_chunks(model.spec, EVAL_REPO, str(plan.eval_dataset), episodes=_start_episodes(plan))
+    return _policy_closed_loop(plan, mode, policy, model, chunks, _online(plan, model, chunks))
+
+
+def _start_episodes(plan: RankingPlan) -> list[int]:
+    return [plan.eval_episode(0, s) for s in plan.wm_starts()]
+
+
+def _online(plan: RankingPlan, model, chunks) -> OnlineControls:
+    return OnlineControls.from_dataset(plan.eval_dataset, model.spec, info=dataset_info(chunks.lerobot.meta))
+
+
+def _policy_closed_loop(plan: RankingPlan, mode: str, policy: str, model, chunks, online) -> dict:
+    """One policy's closed loop in ``model`` (cached in :func:`policy_dir`), judged by both judges."""
+    out = policy_dir(plan, mode, policy)
+    done = out / "closed_loop.json"
+    if done.is_file():
+        return json.loads(done.read_text())
+    config = ClosedLoopConfig(episodes=tuple(_start_episodes(plan)), horizon_chunks=plan.chunks,
+                              sampler_steps=plan.steps, seed=plan.seed)
+    t0, c0 = time.time(), time.process_time()
+    result = run_closed_loop(model, chunks, online, load_policy(policy), out, config=config,
+                             repo_id=f"local/{out.name}", judge=LiftJudge(), checkpoint=str(plan.run_dir(mode)),
+                             overwrite=True, progress=False).to_dict()
+    classifier = _classifier(plan)
+    if classifier is not None:
+        generated = lr.LeRobotDataset(f"local/{out.name}", root=out)
+        verdicts = classifier.judge(episode_frames(generated, None, cameras(plan), 4))
+        for row, v in zip(result["episodes"], verdicts):
+            row["success_classifier"] = bool(v)
+    result.update(wall_s=round(time.time() - t0, 1), cpu_s=round(time.process_time() - c0, 1))
+    _write(done, result)
+    return result
+
+
+def _classifier(plan: RankingPlan) -> SuccessClassifier | None:
+    """The learned judge the judges stage trained, if it trained one."""
+    saved = plan.work / "judges" / "classifier"
+    return SuccessClassifier.load(saved) if saved.is_dir() else None
+
+
 def evaluate_mode(plan: RankingPlan, mode: str) -> None:
-    """-> ``wm/<mode>/outcomes.json`` (and a dataset of generated episodes per policy)."""
+    """-> ``wm/<mode>/outcomes.json``: every policy's closed loop and the recorded actions' replays (each
+    made here unless its own process made it already), the none check, the action sensitivity."""
     torch.set_num_threads(1)
     t0, c0 = time.time(), time.process_time()
     out = plan.wm_dir(mode)
-    checkpoint = str(plan.run_dir(mode))
     model, spec = load_world_model(plan.run_dir(mode), weights="ema", device=plan.device)
     evaluation = lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
     labels = dataset_success_labels(evaluation)
-    starts = [plan.eval_episode(0, s) for s in plan.wm_starts()]
+    starts = _start_episodes(plan)
     replay = recorded_episodes(plan, labels)
     sens_episodes = replay[:4]
     chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sorted(set(starts + replay)))
-    online = OnlineControls.from_dataset(plan.eval_dataset, spec, info=dataset_info(chunks.lerobot.meta))
-    judge = LiftJudge()
-    saved = plan.work / "judges" / "classifier"
-    classifier = SuccessClassifier.load(saved) if saved.is_dir() else None
+    online = _online(plan, model, chunks)
     result = {"mode": mode, "start_episodes": starts, "sampler_steps": plan.steps, "policies": {}}
-    policies = plan.policies[:1] if mode == "none" else plan.policies
     if mode == "none":
         result["none_check"] = none_is_policy_blind(plan, model, online, chunks, starts[:2])
-    for spec_p in policies:
-        r = _closed_loop(plan, model, chunks, online, load_policy(spec_p), out / slug(spec_p), starts, plan.steps,
-                         judge, classifier, checkpoint)
-        result["policies"][slug(spec_p)] = r
+    for policy in evaluated_policies(plan, mode):
+        result["policies"][slug(policy)] = _policy_closed_loop(plan, mode, policy, model, chunks, online)
     if mode != "none":
         result["recorded"] = replays(plan, mode)
     sens_chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sens_episodes)
@@ -338,4 +367,5 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     _write(out / "outcomes.json", result)
 
 
-__all__ = ["evaluate_mode", "recorded_episodes", "replays", "run_judges"]
+__all__ = ["evaluate_mode", "evaluate_policy", "evaluated_policies", "policy_dir", "recorded_episodes", "replays",
+           "run_judges"]
