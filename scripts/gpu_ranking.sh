@@ -21,6 +21,9 @@
 # `--import-gpu` put it back: its latest checkpoint) or of DIR/<run>.tar.xz or DIR/<run>.tar (a run archive, as
 # `--export-runs` writes and a loan returns), so training goes on over several loans. KEEP_WEIGHTS=DIR also
 # leaves each run's weights in DIR/<run> as INIT reads them, so a second call on the same machine goes on from there.
+# PROGRESS_DIR=DIR: each run keeps its trained samples in DIR/<run>.json; PACE_WITH=FILE (such a file of a run of
+# another call): every run here stays within a step of that run's samples and stops at its final count, so the two
+# get equal budgets in samples and this call's waits go to the other (imac_model/training/pace.py).
 #   OUT=/tmp/gpu_out MINUTES=8 bash scripts/gpu_ranking.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -41,6 +44,8 @@ SPEED=${SPEED:-0}
 INIT=${INIT:-}
 KEEP_WEIGHTS=${KEEP_WEIGHTS:-}
 RUNS=${RUNS:-}
+PROGRESS_DIR=${PROGRESS_DIR:-}
+PACE_WITH=${PACE_WITH:-}
 : "${OUT:?set OUT to the directory for the checkpoints}"
 mkdir -p "$OUT"
 PY=${PYTHON:-$(command -v python3 || command -v python)}
@@ -61,6 +66,7 @@ extra=""
 [ "$COMPILE" = 1 ] && extra="--compile"
 [ -n "$REF_NOISE" ] && extra="$extra --reference-noise $REF_NOISE"
 [ -n "$SAMPLES" ] && extra="$extra --max-samples $SAMPLES"
+[ -n "$PACE_WITH" ] && extra="$extra --pace-with $PACE_WITH"
 extra="$extra --rollout-reference-steps $ROLLOUT_STEPS"
 runs=("motion_contact motion+contact --rollout-chunks $ROLLOUT" "action_vector action-vector --rollout-chunks $ROLLOUT")
 case "$ABLATION" in
@@ -95,9 +101,10 @@ pids=()
 for run in "${runs[@]}"; do
   set -- $run
   name=$1; shift
-  init=""
-  [ -n "$INIT" ] && init="--init $(init_of "$name")"
-  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --eval-every "$EVAL_EVERY" --dropout "$DROPOUT" $extra $init --output "$OUT/$name" \
+  own=""  # this run's own options
+  [ -n "$INIT" ] && own="--init $(init_of "$name")"
+  [ -n "$PROGRESS_DIR" ] && own="$own --report $PROGRESS_DIR/$name.json"
+  "$PY" -m imac_model.training.pack train --pack "$PACK" --mode "$@" --minutes "$MINUTES" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --eval-every "$EVAL_EVERY" --dropout "$DROPOUT" $extra $own --output "$OUT/$name" \
     > "$OUT/$name.stdout" 2>&1 &
   pids+=($!)
 done

@@ -57,6 +57,7 @@ from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.rollout import last_frame, rollout_loss
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.training import train as train_cli
+from imac_model.training.pace import read_progress, report_progress
 from imac_model.training.pack import Pack, heldout_loss, spec_for_mode, train_pack
 
 REPO = "local/lift_test"
@@ -734,11 +735,15 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--export-runs", str(starts),
                        "--runs", "action_vector"]) == 0
     assert sorted(p.name for p in starts.iterdir()) == ["action_vector.tar.xz", "motion_contact"]
-    again = tmp_path / "gpu_again"
+    again, progress, leader = tmp_path / "gpu_again", tmp_path / "progress", tmp_path / "leader.json"
+    report_progress(leader, 32, done=True)  # a run of another call that trained 32 samples
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], capture_output=True, text=True,
                           env={**env, "OUT": str(again), "INIT": str(starts), "SAMPLES": "16",  # one step of 16
-                               "RUNS": "motion_contact action_vector"})  # not the ablation ABLATION=1 adds
+                               "RUNS": "motion_contact action_vector",  # not the ablation ABLATION=1 adds
+                               "PROGRESS_DIR": str(progress), "PACE_WITH": str(leader)})
     assert done.returncode == 0, done.stdout + done.stderr
+    assert {p.name: read_progress(p) for p in progress.iterdir()} == {
+        f"{name}.json": {"samples": 16, "done": True} for name in ("motion_contact", "action_vector")}
     started = {}
     for name in first:
         file = list_checkpoints(work / "runs" / name)[-1] / "model.safetensors"
@@ -751,6 +756,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         assert [part["steps"] for part in summary["parts"]] == [before["steps"], summary["steps"] - before["steps"]]
         assert summary["samples"] == sum(part["samples"] for part in summary["parts"])
         assert summary["parts"][-1]["samples"] == summary["parts"][-1]["max_samples"] == 16  # SAMPLES stopped it
+        assert summary["parts"][-1]["paced_with"] == str(leader)
         steps = [r["step"] for r in rows if "step" in r]
         assert steps == sorted(steps) and steps[-1] == summary["steps"]
         assert list_checkpoints(work / "runs" / name)[-1].name == f"step_{summary['steps']:06d}"
@@ -769,6 +775,11 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     theirs = load_file(str(start / "model.safetensors"))
     ours = load_file(str(list_checkpoints(tmp_path / "same")[-1] / "model.safetensors"))
     assert theirs.keys() == ours.keys() and all(torch.equal(theirs[k], ours[k]) for k in theirs)
+    # paced by a run that finished at 32 samples, a run with minutes to spare stops there (equal samples)
+    paced = train_pack(pack, "action-vector", tmp_path / "paced", minutes=5, batch_size=16, pace_with=leader,
+                       report=tmp_path / "paced.json", progress=lambda row: None)
+    assert paced["samples"] == 32 and paced["paced_with"] == str(leader) and paced["pace_freed"] is None
+    assert read_progress(tmp_path / "paced.json") == {"samples": 32, "done": True}
     with pytest.raises(InputError, match="conditioning.mode is motion\\+contact, this run's action-vector"):
         train_pack(pack, "action-vector", tmp_path / "other", minutes=0, init=start, progress=lambda row: None)
     # the loss-weighting ablation's figures on the imported runs: the gate measured for each, the replays

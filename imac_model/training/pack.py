@@ -40,6 +40,7 @@ from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.rollout import rollout_loss
 from imac_model.training.archive import run_name, unpack_checkpoint
 from imac_model.training.log import write_log
+from imac_model.training.pace import Pace, report_progress
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss (as the trainer's)
 SPEC_KEY = "spec_json"
@@ -270,7 +271,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                log_every: int = 50, focus_weight: float | None = None, rollout_chunks: int = 1,
                first_frame: bool | None = None, dropout: float | None = None, scene_warp: bool | None = None,
                reference_noise: float | None = None, rollout_reference_steps: int = 0, compile: bool = False,
-               init: str | Path | None = None, max_samples: int | None = None, progress=print) -> dict:
+               init: str | Path | None = None, max_samples: int | None = None, report: str | Path | None = None,
+               pace_with: str | Path | None = None, progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
@@ -285,7 +287,9 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     and architecture whose weights start the run, so training goes on over several loans; the optimizer starts
     afresh. A control stream the checkpoint lacks starts at its zero projection (``init_added`` in the summary).
     ``max_samples``: stop as well once this many samples are trained, so that runs of different speeds sharing a
-    GPU get equal budgets in samples (the one that stops first leaves the GPU to the others)."""
+    GPU get equal budgets in samples (the one that stops first leaves the GPU to the others). ``report``: a progress
+    file this run keeps its samples in; ``pace_with``: another run's, which this run never gets more than a step
+    ahead of, stopping at its final count (:mod:`.pace`: equal samples, and the waits go to the other run)."""
     device = pack.tensors["reference"].device
     spec = spec_for_mode(pack.spec, mode, focus_weight=focus_weight, first_frame=first_frame, dropout=dropout,
                          scene_warp=scene_warp, reference_noise=reference_noise)
@@ -330,6 +334,10 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     out.mkdir(parents=True, exist_ok=True)
     log = []
     t0, step, samples, first_step_s, compile_error = time.time(), 0, 0, None, None
+    deadline = t0 + 60.0 * minutes
+    pace = Pace(pace_with) if pace_with is not None else None
+    if report is not None:
+        report_progress(report, 0)
     n = len(pack.train)
 
     def forward_backward(step: int) -> tuple[torch.Tensor, int]:
@@ -348,7 +356,9 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                             backward=torch.Tensor.backward, autocast=lambda: autocast,
                             reference_steps=rollout_reference_steps).loss, index.numel()
 
-    while time.time() - t0 < 60.0 * minutes and (max_samples is None or samples < max_samples):
+    while time.time() < deadline and (max_samples is None or samples < max_samples):
+        if pace is not None and not pace.may_step(samples, deadline):
+            break
         for group in opt.param_groups:
             group["lr"] = lr * min(1.0, (step + 1) / max(warmup, 1))
         try:
@@ -367,6 +377,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         with torch.no_grad():  # one fused update: a loop over tensors launches a kernel per parameter
             torch._foreach_lerp_(ema, [p.detach().float() for p in params], 1 - d)
         step, samples = step + 1, samples + drawn
+        if report is not None:
+            report_progress(report, samples)
         if first_step_s is None:
             first_step_s = round(time.time() - t0, 1)
             progress(json.dumps({"mode": mode, "first_step_s": first_step_s, "compiled": compiled is not None}))
@@ -381,6 +393,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
             log.append(row)
             progress(json.dumps({"mode": mode, **row}))
     elapsed = time.time() - t0
+    if report is not None:  # a run paced by this one stops at this count now
+        report_progress(report, samples, done=True)
     _eager(model)
     with torch.no_grad():  # the EMA weights become the checkpoint's weights
         for p, e in zip(params, ema):
@@ -401,7 +415,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                "samples_per_s_after_first_step": round((samples - samples / max(step, 1)) / max(
                    elapsed - (first_step_s or 0.0), 1e-9), 1), "heldout_loss": final,
                "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-               "torch": torch.__version__, "parameters": sum(p.numel() for p in params)}
+               "torch": torch.__version__, "parameters": sum(p.numel() for p in params),
+               **(pace.summary() if pace is not None else {})}
     # the summary is the log's last row: the GPU machine returns few files
     write_log(out, [*log, {"summary": summary}])
     return summary
@@ -418,6 +433,9 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--minutes", type=float, required=True, help="wall-clock training budget")
     t.add_argument("--max-samples", type=int,
                    help="stop once this many samples are trained, if the minutes last (equal budgets in samples)")
+    t.add_argument("--report", help="keep this run's trained samples in this progress file (for --pace-with)")
+    t.add_argument("--pace-with", help="another run's --report file: never train more than a step ahead of it, and "
+                                       "stop at its final count (equal samples on a shared GPU)")
     t.add_argument("--batch-size", type=int, default=128)
     t.add_argument("--lr", type=float, default=6e-4)
     t.add_argument("--warmup", type=int, default=200,
@@ -453,7 +471,8 @@ def main(argv: list[str] | None = None) -> int:
                          first_frame=args.first_frame or None, dropout=args.dropout,
                          scene_warp=args.scene_warp or None, reference_noise=args.reference_noise,
                          rollout_reference_steps=args.rollout_reference_steps, compile=args.compile,
-                         init=args.init, max_samples=args.max_samples)
+                         init=args.init, max_samples=args.max_samples, report=args.report,
+                         pace_with=args.pace_with)
     print(json.dumps(summary))
     return 0
 

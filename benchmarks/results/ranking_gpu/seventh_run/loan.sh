@@ -6,6 +6,8 @@
 #   b: action-vector, its best recipe: clips of 2 chunks from 4 sampler steps (ROLLOUT=2, ROLLOUT_STEPS=4).
 # CALL=1 carries the pack (PACK_DIR, default runs/side_across/gpu) and keeps it and the weights in /tmp/keep;
 # CALL=2 goes on from there (nothing carried), each run from the weights call 1 left (KEEP_WEIGHTS).
+# action-vector keeps pace with motion+contact (PACE_WITH: never more than a step ahead of its samples, stopping at its
+# count), so the two compared modes get equal budgets in samples and action-vector's waits go to the others.
 #   OUT=/tmp/out CALL=1 MINUTES=8.6 bash benchmarks/results/ranking_gpu/seventh_run/loan.sh
 set -uo pipefail
 cd "$(dirname "$0")/../../../.."
@@ -22,11 +24,11 @@ common=(BATCH="${BATCH:-512}" LR=1.2e-3 WARMUP=50 EVAL_EVERY="${EVAL_EVERY:-100}
 mkdir -p "$OUT"
 command -v nvidia-smi >/dev/null && { nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -l 20 \
   > "$OUT/smi$CALL.csv" & smi=$!; }
-env "${common[@]}" INIT="$init_a" KEEP_WEIGHTS="$KEEP/a" ABLATION=scene-warp \
+env "${common[@]}" INIT="$init_a" KEEP_WEIGHTS="$KEEP/a" ABLATION=scene-warp PROGRESS_DIR="$KEEP/progress$CALL" \
   RUNS="motion_contact motion_contact_scene_warp" ROLLOUT=4 ROLLOUT_STEPS=0 OUT="$OUT/a" \
   bash scripts/gpu_ranking.sh > "$OUT/a$CALL.log" 2>&1 & a=$!
 env "${common[@]}" INIT="$init_b" KEEP_WEIGHTS="$KEEP/b" RUNS=action_vector ROLLOUT=2 ROLLOUT_STEPS=4 OUT="$OUT/b" \
-  bash scripts/gpu_ranking.sh > "$OUT/b$CALL.log" 2>&1 & b=$!
+  PACE_WITH="$KEEP/progress$CALL/motion_contact.json" bash scripts/gpu_ranking.sh > "$OUT/b$CALL.log" 2>&1 & b=$!
 wait $a; ra=$?; wait $b; rb=$?
 [ -n "${smi:-}" ] && kill "$smi"
 tail -n 4 "$OUT/a$CALL.log" "$OUT/b$CALL.log"
