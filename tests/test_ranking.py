@@ -49,7 +49,7 @@ from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
-from imac_model.experiments.ranking.report import _relative, rewrite_report
+from imac_model.experiments.ranking.report import _relative, rewrite_report, verdict_pairs
 from imac_model.experiments.stages import REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
@@ -374,6 +374,14 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
         np.testing.assert_allclose(by_view.mean(axis=0), rec["mse_per_chunk"], rtol=1e-5)
     report = (docs / "README.md").read_text()
     assert all(f"| motion+contact | {plan.steps} | {v} |" in report for v in (*plan.views, "all views"))
+    # start by start: MuJoCo's verdict is the simulator's own at the start's seed, the world model's its episode's
+    for name in plan.names:
+        simulated = {row["seed"]: row["success"]
+                     for row in json.loads((plan.sim_dir(name) / "outcomes.json").read_text())["episodes"]}
+        generated = results["evaluations"]["motion+contact"]["policies"][name]["episodes"]
+        assert verdict_pairs(plan, results, "motion+contact", name) == [
+            (simulated[plan.eval_seeds()[s][1]], row["success"]) for s, row in zip(plan.wm_starts(), generated)]
+        assert f"| motion+contact | {name} | {len(generated)} |" in report
     assert "## The early gate" in report and "Where the cube goes wrong" in report and (docs / "gate.png").is_file()
     assert f"({sum(rec['labels'])} successes) x 2 seeds" in report
     # a second run finds every stage's outputs and only writes the report again

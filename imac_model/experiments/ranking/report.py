@@ -379,6 +379,36 @@ def _gate(plan: RankingPlan, r: dict) -> list[str]:
     return lines
 
 
+def verdict_pairs(plan: RankingPlan, r: dict, mode: str, name: str) -> list[tuple[bool, bool]]:
+    """``(MuJoCo, world model)`` success of policy ``name`` from each of the world model's starts (the lift judge),
+    from a report's results ``r``."""
+    run = r["evaluations"][mode]["policies"].get(name) or next(iter(r["evaluations"][mode]["policies"].values()))
+    pairs = []
+    for start, row in zip(plan.wm_starts(), run["episodes"]):
+        group, i = divmod(start, plan.real_per_group)
+        pairs.append((bool(r["real"][f"{name}/g{group}"][i]), bool(row[JUDGE_COLUMNS["lift_geometry"]])))
+    return pairs
+
+
+def _start_by_start(plan: RankingPlan, r: dict) -> list[str]:
+    """Where the verdicts part, policy by policy: MuJoCo's and the world model's on the same starts."""
+    lines = ["", "### Start by start", "",
+             "Each policy from the world model's starts, MuJoCo's outcome against the world model's (lift judge). The "
+             "open-loop policies act on the first frame alone, which both runners share (the world model's through "
+             "the dataset's video, within 1 % a pixel on average), so both get about the same actions from them: "
+             "where their verdicts part, the world model drew another outcome of those actions.", "",
+             "| mode | policy | starts | both succeed | world model only | MuJoCo only | both fail | agree |",
+             "|---|---|---|---|---|---|---|---|"]
+    for mode in plan.modes:
+        for name in plan.names:
+            pairs = verdict_pairs(plan, r, mode, name)
+            counts = [sum(p == (real, wm) for p in pairs) for real, wm in
+                      ((True, True), (False, True), (True, False), (False, False))]
+            agree = (counts[0] + counts[3]) / len(pairs)
+            lines.append(f"| {mode} | {name} | {len(pairs)} | " + " | ".join(map(str, counts)) + f" | {agree:.2f} |")
+    return lines
+
+
 def _stopped_markdown(plan: RankingPlan, r: dict) -> str:
     """The report of a run that stopped at the early gate: what the gate showed, and the training."""
     lines = _header(plan, r)
@@ -430,6 +460,7 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
     lines += ["", _verdict(r["statistics"])]
     for mode in plan.modes:
         lines += ["", f"![{mode}](scatter_{slug(mode.replace('+', '_'))}.png)"]
+    lines += _start_by_start(plan, r)
     lines += _training(r)
     lines += _gate(plan, r)
     j = r["judges"]
