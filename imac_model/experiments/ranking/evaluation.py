@@ -2,10 +2,11 @@
 
 * :func:`run_judges`: train the learned classifier on the training rollouts; both judges'
   accuracy on the real evaluation episodes;
-* :func:`evaluate_mode`: every policy closed loop in one mode's world model from the
-  evaluation starts (``none``: once, after checking that two policies get bit-identical
-  frames), the recorded actions replayed (the judges' accuracy on generated frames and the
-  error per chunk), and the mode's action sensitivity."""
+* :func:`evaluate_policy`: one policy closed loop in one mode's world model from the evaluation
+  starts; :func:`replays`: the recorded actions replayed (the judges' accuracy on generated
+  frames and the error per chunk); each in a process of its own, cached;
+* :func:`evaluate_mode`: a mode's outcomes from those (``none``: one policy, once, after checking
+  that two policies get bit-identical frames), and the mode's action sensitivity."""
 
 from __future__ import annotations
 
