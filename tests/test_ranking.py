@@ -448,13 +448,19 @@ def test_the_stages_run_by_default_are_those_the_preset_needs(tmp_path):
             stages_to_run(bad, gpu_plan(tmp_path, tmp_path))
 
 
-def test_a_plan_saved_before_the_training_offsets_setting_loads_as_what_it_ran(tmp_path):
+def test_a_plan_saved_before_the_training_offsets_and_settle_settings_loads_as_what_it_ran(tmp_path, capsys):
     saved = RankingPlan(work=tmp_path, docs=tmp_path).to_dict()
-    del saved["training_offsets"]
+    assert saved["settle_s"] == 0.3  # a new plan lets the box settle before the first frame
+    del saved["training_offsets"], saved["settle_s"]
     (tmp_path / "plan.json").write_text(json.dumps(saved))
-    assert RankingPlan.load(tmp_path / "plan.json").training_offsets == "disc"
+    before = RankingPlan.load(tmp_path / "plan.json")
+    assert before.training_offsets == "disc" and before.settle_s == 0.0
     with pytest.raises(InputError, match="training_offsets"):
         RankingPlan(work=tmp_path, docs=tmp_path, training_offsets="ring")
+    # such a work directory is refused with today's defaults, naming the settings to give
+    assert model_main(["ranking", "--work", str(tmp_path), "--docs", str(tmp_path), "--stages", "report"]) == 2
+    err = capsys.readouterr().err
+    assert "settle_s: 0.0 there, 0.3 here" in err and "training_offsets: 'disc' there, 'across' here" in err
 
 
 def test_the_diagnosis_oracle_restores_one_recorded_view_at_the_chosen_boundaries(toy_run):

@@ -19,7 +19,7 @@ from imac_data.layout import depth_key
 from imac_data.sources.hdf5 import read_episode
 from imac_data.sources.sim.env import SimEnv
 from imac_data.sources.sim.rig import CONTROL_DT
-from imac_data.sources.sim.tasks import TABLE_Z
+from imac_data.sources.sim.tasks import REST_HEIGHT, TABLE_Z
 from imac_model.cli import main as model_main
 from imac_model.evaluate.policies import load_policy
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner, parse_seeds, run_policy
@@ -201,3 +201,24 @@ def test_an_episode_re_simulates_from_its_own_file(in_tmp):
         f.attrs["sim_seed"] = "seven"
     with pytest.raises(InputError, match=r"episode_0.hdf5: attribute 'sim_seed' must be a non-negative integer"):
         read_episode(in_tmp / "sim" / "episode_0.hdf5")
+
+
+def test_settling_puts_the_box_on_the_table_before_the_first_frame():
+    """gym-aloha starts the box 3 cm above its resting height; with settle_s the first frame shows it at rest, where
+    MuJoCo keeps it (its own contact solution is the oracle: the same height a second later, no velocity), at the
+    start's x and y."""
+    rest = TABLE_Z + REST_HEIGHT["box"]
+    unsettled, settled = SimEnv("lift"), SimEnv("lift", settle_s=0.3)
+    unsettled.reset(100_000)
+    settled.reset(100_000)
+    start, first = unsettled.object_position("box"), settled.object_position("box")
+    assert start[2] == pytest.approx(rest + 0.03, abs=1e-6)  # in the air, as gym-aloha places it
+    assert first[2] == pytest.approx(rest, abs=1e-3) and np.abs(first[:2] - start[:2]).max() < 1e-3
+    assert settled.data.time == 0.0 and np.abs(settled.qpos() - unsettled.qpos()).max() < 1e-2  # the arms held
+    held = settled.qpos()
+    for _ in range(10):  # 0.4 s with the arms held: it stays
+        settled.step(held)
+    assert np.abs(settled.object_position("box") - first).max() < 1e-3
+    for bad in (-0.1, 11.0):
+        with pytest.raises(InputError, match="settle_s must be in"):
+            SimEnv("lift", settle_s=bad)

@@ -135,7 +135,7 @@ def cmd_closed_loop(args) -> int:
 def cmd_simulator(args) -> int:
     config = SimRunConfig(task=args.task, chunks=args.chunks, chunk=args.chunk, view_height=args.view_size[0],
                           view_width=args.view_size[1], render_height=args.render_size[0],
-                          render_width=args.render_size[1], views=tuple(args.views))
+                          render_width=args.render_size[1], views=tuple(args.views), settle_s=args.settle)
     seeds = parse_seeds(args.seeds)
     output = Path(args.output) if args.output else None
     if output is not None and any(output.glob("episode_*.hdf5")):

@@ -115,6 +115,9 @@ def _evaluate(p: argparse.ArgumentParser) -> None:
     m.add_argument("--views", nargs="+", default=("cam_high", "cam_left_wrist", "cam_right_wrist"),
                    help="the cameras the policy sees, in order (default the three ALOHA cameras; every camera "
                         "of the rig, cam_workspace included, is recorded)")
+    m.add_argument("--settle", type=float, default=0.0, metavar="SECONDS",
+                   help="let the physics run this long before the first frame (gym-aloha's box starts 3 cm above "
+                        "the table and falls; default 0: its start as is)")
     m.add_argument("--output", help="directory for episode_<i>.hdf5 and calibration.json (build it with imac build "
                                     "--recipe recipes/aloha_sim_lift.yaml --source DIR)")
     m.add_argument("--json", help="outcomes JSON (default <output>/outcomes.json, or none without --output)")
@@ -181,6 +184,9 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--training-offsets", choices=("across", "disc"),
                    help="how far off the cube the world model's training rollouts grasp (default across; work "
                         "directories made before 2026-11-28: disc; docs/ranking.md, 'Starts, seeds and data')")
+    p.add_argument("--settle", type=float, metavar="SECONDS",
+                   help="physics run before each episode's first frame, so the box gym-aloha starts 3 cm up rests "
+                        "on the table (default 0.3; work directories made before 2026-11-29: 0)")
     p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "
                                                        "2 chunks, 2 modes, 2 sampler steps")
     p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",

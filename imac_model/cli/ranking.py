@@ -42,15 +42,19 @@ def _plan(args: argparse.Namespace) -> RankingPlan:
         RankingPlan(work=work, docs=docs)
     changes = {k: v for k, v in (("policies", tuple(args.policies or ()) or None), ("cpu_minutes", args.cpu_minutes),
                                  ("steps", args.steps), ("jobs", args.jobs),
-                                 ("training_offsets", args.training_offsets)) if v is not None}
+                                 ("training_offsets", args.training_offsets), ("settle_s", args.settle))
+               if v is not None}
     plan = dataclasses.replace(plan, **changes)
     saved = work / "plan.json"
     if saved.is_file():
         before = RankingPlan.load(saved)
         if before.to_dict() != plan.to_dict():
-            differ = sorted(k for k, v in plan.to_dict().items() if before.to_dict().get(k) != v)
-            raise InputError(f"{saved}: the work directory holds a run with other settings ({', '.join(differ)}); "
-                             "choose another --work or delete it")
+            theirs = before.to_dict()
+            differ = [f"{k}: {theirs.get(k)!r} there, {v!r} here" for k, v in sorted(plan.to_dict().items())
+                      if theirs.get(k) != v]
+            raise InputError(f"{saved}: the work directory holds a run with other settings ({'; '.join(differ)}); "
+                             "give the same settings (e.g. --settle 0, --training-offsets disc for older ones), "
+                             "choose another --work, or delete it")
     return plan
 
 

@@ -48,6 +48,7 @@ class SimRunConfig:
     render_height: int = 96  # what is rendered and recorded
     render_width: int = 128
     views: tuple[str, ...] = tuple(CAMERA_NAMES.values())  # what the policy sees; every rig camera is recorded
+    settle_s: float = 0.0  # physics run before the first frame (gym-aloha's box starts 3 cm up; 0: its start as is)
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -100,7 +101,7 @@ class SimRunner:
         self.cameras = camera_calibration(model, c.render_width, c.render_height, RIG_CAMERAS)
         self.rig = Rig.from_platform(simulator_platform(), self.cameras, task=c.task)
         self.renderer = FrameRenderer(model, c.render_width, c.render_height, cameras=RIG_CAMERAS)
-        self.env = SimEnv(c.task, frame_stride=c.frame_stride, renderer=self.renderer)
+        self.env = SimEnv(c.task, frame_stride=c.frame_stride, renderer=self.renderer, settle_s=c.settle_s)
 
     def close(self) -> None:
         self.renderer.close()

@@ -118,8 +118,11 @@ def initial_object_poses(task: str, seed: int) -> np.ndarray:
     return np.concatenate(sample_insertion_pose(seed))
 
 
-def reset_scene(model: mujoco.MjModel, data: mujoco.MjData, layout: TaskLayout, task: str, seed: int) -> None:
-    """gym-aloha's episode start: START_ARM_POSE, ctrl = that pose, objects from its sampler."""
+def reset_scene(model: mujoco.MjModel, data: mujoco.MjData, layout: TaskLayout, task: str, seed: int,
+                settle_s: float = 0.0) -> None:
+    """gym-aloha's episode start: START_ARM_POSE, ctrl = that pose, objects from its sampler. gym-aloha
+    places the box 3 cm above its resting height, so its first frame shows it in the air, falling;
+    ``settle_s`` > 0 lets the physics run that long with the arms held first (the clock starts after)."""
     mujoco.mj_resetData(model, data)
     start = np.asarray(START_ARM_POSE, dtype=np.float64)
     data.qpos[:16] = start
@@ -128,6 +131,10 @@ def reset_scene(model: mujoco.MjModel, data: mujoco.MjData, layout: TaskLayout, 
     for (name, adr), pose in zip(layout.object_qadr.items(), poses):
         data.qpos[adr: adr + 7] = pose
     mujoco.mj_forward(model, data)
+    steps = int(round(float(settle_s) / model.opt.timestep))
+    if steps:
+        mujoco.mj_step(model, data, nstep=steps)
+        data.time = 0.0
 
 
 class SimEnv:
@@ -136,7 +143,7 @@ class SimEnv:
     :attr:`success` read off the simulator."""
 
     def __init__(self, task: str, *, frame_stride: int = 2, renderer: FrameRenderer | None = None,
-                 model: mujoco.MjModel | None = None):
+                 model: mujoco.MjModel | None = None, settle_s: float = 0.0):
         if task not in TASKS:
             raise InputError(f"unknown task {task!r}; expected one of {TASKS}")
         if renderer is not None:
@@ -147,6 +154,9 @@ class SimEnv:
             model = load_mujoco_model(task)
         if frame_stride < 1:
             raise InputError(f"frame_stride must be >= 1, got {frame_stride}")
+        if not 0.0 <= float(settle_s) <= 10.0:
+            raise InputError(f"settle_s must be in [0, 10] seconds, got {settle_s}")
+        self.settle_s = float(settle_s)
         self.task, self.frame_stride, self.renderer, self.model = task, int(frame_stride), renderer, model
         self.data = mujoco.MjData(model)
         self.layout = TaskLayout(model, task)
@@ -158,7 +168,7 @@ class SimEnv:
         return 1.0 / (self.frame_stride * CONTROL_DT)
 
     def reset(self, seed: int) -> None:
-        reset_scene(self.model, self.data, self.layout, self.task, seed)
+        reset_scene(self.model, self.data, self.layout, self.task, seed, self.settle_s)
         self.max_reward = 0
 
     def qpos(self) -> np.ndarray:

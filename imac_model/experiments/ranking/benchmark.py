@@ -85,7 +85,7 @@ def stage_simulate(plan: RankingPlan, sides: tuple[str, ...] = SIDES) -> None:
         shutil.rmtree(out, ignore_errors=True)
         argv = python() + ["-m", "imac_model", "evaluate", "simulator", "--policy", spec, "--seeds", *seeds,
                            "--chunks", str(plan.chunks), "--view-size", *map(str, plan.view_size), "--views", *plan.views,
-                           "--output", str(out), "--no-progress"]
+                           "--settle", str(plan.settle_s), "--output", str(out), "--no-progress"]
         commands.append((f"simulate {name}", then_mark_done(argv, out / ".done"), plan.work / "logs" / f"sim_{name}.log"))
     run_all(commands, plan.jobs, tag="ranking")
 
@@ -94,7 +94,7 @@ def simulate_training_part(plan: RankingPlan, part: int) -> None:
     parts = max(1, min(plan.jobs, plan.train_episodes))
     out = plan.work / "sim" / "train" / f"part_{part}"
     with SimRunner(SimRunConfig(chunks=plan.chunks, view_height=plan.view_size[0], view_width=plan.view_size[1],
-                                   views=plan.views)) as runner:
+                                   views=plan.views, settle_s=plan.settle_s)) as runner:
         rows = []
         for i in range(part, plan.train_episodes, parts):
             p = training_policy(i, plan.training_offsets)

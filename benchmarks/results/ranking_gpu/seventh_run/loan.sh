@@ -4,7 +4,7 @@
 # scripts/gpu_ranking.sh side by side:
 #   a: motion+contact and motion+contact with the scene-warp stream, one-step references (ROLLOUT=4, ROLLOUT_STEPS=0);
 #   b: action-vector, its best recipe: clips of 2 chunks from 4 sampler steps (ROLLOUT=2, ROLLOUT_STEPS=4).
-# CALL=1 carries the pack (PACK_DIR, default runs/side_across/gpu) and keeps it and the weights in /tmp/keep;
+# CALL=1 carries the pack (PACK_DIR, default runs/side_settled/gpu) and keeps it and the weights in /tmp/keep;
 # CALL=2 goes on from there (nothing carried), each run from the weights call 1 left (KEEP_WEIGHTS).
 # action-vector keeps pace with motion+contact (PACE_WITH: never more than a step ahead of its samples, stopping at its
 # count), so the two compared modes get equal budgets in samples and action-vector's waits go to the others.
@@ -15,7 +15,7 @@ cd "$(dirname "$0")/../../../.."
 KEEP=${KEEP:-/tmp/keep}
 init_a="" init_b=""
 if [ "$CALL" = 1 ]; then
-  mkdir -p "$KEEP/gpu" && cp -r "${PACK_DIR:-runs/side_across/gpu}/." "$KEEP/gpu/"
+  mkdir -p "$KEEP/gpu" && cp -r "${PACK_DIR:-runs/side_settled/gpu}/." "$KEEP/gpu/"
 else
   init_a=$KEEP/a init_b=$KEEP/b
 fi
