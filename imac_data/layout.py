@@ -62,7 +62,7 @@ POSE_PREFIX = "camera_pose."  # per frame and camera: camera-to-world, OpenCV ax
 POSE_NAMES = [f"m{r}{c}" for r in range(4) for c in range(4)]
 EPISODE_COLUMNS = ("imac/source", "imac/policy_name", "imac/checkpoint", "imac/success")  # meta/episodes
 SUCCESS_COLUMN = "imac/success"
-SIM_COLUMNS = ("imac/sim_task", "imac/sim_seed")  # meta/episodes of episodes built from HDF5: a simulated start
+SIM_COLUMNS = ("imac/sim_task", "imac/sim_seed", "imac/sim_settle_s")  # meta/episodes of episodes built from HDF5: a simulated start
 
 
 def image_key(camera: str) -> str:

@@ -299,7 +299,7 @@ def test_an_outside_policy_module_runs_through_both_runners_from_its_folder(lift
 def test_built_episodes_record_their_simulated_start(lift):
     eps = LeRobotDataset(REPO, root=lift["root"]).meta.episodes
     assert list(eps["imac/sim_seed"]) == [SEED, SEED] and list(eps["imac/sim_task"]) == ["lift", "lift"]
-    assert eps.features["imac/sim_seed"].dtype == "int64"
+    assert eps.features["imac/sim_seed"].dtype == "int64" and list(eps["imac/sim_settle_s"]) == [0.0, 0.0]
 
 
 def test_a_policy_of_another_task_is_refused_by_the_closed_loop(lift, tmp_path, monkeypatch, capsys):

@@ -181,15 +181,16 @@ def test_an_episode_re_simulates_from_its_own_file(in_tmp):
     """The start seed and task in the HDF5 attributes, the rate from its fps, the recorded
     actions: MuJoCo retraces the recorded joints bit for bit."""
     (in_tmp / "stretch_policy.py").write_text(textwrap.dedent(POLICIES))
-    rows = run_policy(load_policy("python:stretch_policy:Stretch"), [7, 8], in_tmp / "sim", progress=False)
+    rows = run_policy(load_policy("python:stretch_policy:Stretch"), [7, 8], in_tmp / "sim", progress=False,
+                      config=SimRunConfig(settle_s=0.3))  # a start at rest, as the ranking's
     assert [r["seed"] for r in rows] == [7, 8]
     for i, seed in enumerate((7, 8)):
         path = in_tmp / "sim" / f"episode_{i}.hdf5"
         with h5py.File(path) as f:
-            assert f.attrs["sim_seed"] == seed and f.attrs["sim_task"] == "lift"
+            assert f.attrs["sim_seed"] == seed and f.attrs["sim_task"] == "lift" and f.attrs["sim_settle_s"] == 0.3
         ep = read_episode(path, load_depth=False)
-        assert (ep.info.sim_seed, ep.info.sim_task) == (seed, "lift")
-        env = SimEnv(ep.info.sim_task, frame_stride=round(1 / (ep.fps * CONTROL_DT)))
+        assert (ep.info.sim_seed, ep.info.sim_task, ep.info.sim_settle_s) == (seed, "lift", 0.3)
+        env = SimEnv(ep.info.sim_task, frame_stride=round(1 / (ep.fps * CONTROL_DT)), settle_s=ep.info.sim_settle_s)
         env.reset(ep.info.sim_seed)
         qpos = [env.qpos()]
         for action in ep.action[:-1]:  # the last frame's action repeats the one before it
@@ -201,6 +202,10 @@ def test_an_episode_re_simulates_from_its_own_file(in_tmp):
         f.attrs["sim_seed"] = "seven"
     with pytest.raises(InputError, match=r"episode_0.hdf5: attribute 'sim_seed' must be a non-negative integer"):
         read_episode(in_tmp / "sim" / "episode_0.hdf5")
+    with h5py.File(in_tmp / "sim" / "episode_1.hdf5", "r+") as f:
+        f.attrs["sim_settle_s"] = -1.0
+    with pytest.raises(InputError, match=r"episode_1.hdf5: attribute 'sim_settle_s' must be a non-negative number"):
+        read_episode(in_tmp / "sim" / "episode_1.hdf5")
 
 
 def test_settling_puts_the_box_on_the_table_before_the_first_frame():

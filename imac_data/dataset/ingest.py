@@ -67,7 +67,7 @@ def episode_column_types() -> dict[str, pa.DataType]:
 
 def sim_column_types() -> dict[str, pa.DataType]:
     """The arrow types of the simulated start's columns (null for recorded episodes)."""
-    return dict(zip(SIM_COLUMNS, (pa.string(), pa.int64())))
+    return dict(zip(SIM_COLUMNS, (pa.string(), pa.int64(), pa.float64())))
 
 
 def write_rig(root: Path, rig, *, with_description: bool = True) -> None:
@@ -117,7 +117,7 @@ class BaseWriter:
         values = (info.source or o.source, info.policy_name or o.policy_name, info.checkpoint or o.checkpoint,
                   info.success)
         self.rows.append({**dict(zip(EPISODE_COLUMNS, values)),
-                          **dict(zip(SIM_COLUMNS, (info.sim_task, info.sim_seed)))})
+                          **dict(zip(SIM_COLUMNS, (info.sim_task, info.sim_seed, info.sim_settle_s)))})
 
     def add(self, state, action, qvel, images, poses) -> None:
         rows = {STATE: np.asarray(state, np.float64).astype(np.float32),

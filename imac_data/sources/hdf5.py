@@ -56,6 +56,7 @@ class EpisodeInfo:
     success: bool | None = None
     sim_task: str | None = None  # a simulated episode's task (imac_data.sources.sim.tasks.TASKS)
     sim_seed: int | None = None  # and its start seed: gym-aloha's reset(seed)
+    sim_settle_s: float | None = None  # and the physics run before its first frame (SimEnv's settle_s)
 
     def __post_init__(self) -> None:
         if self.source is not None and self.source not in SOURCES:
@@ -91,11 +92,17 @@ def episode_attributes(f: h5py.File, path: Path) -> tuple[EpisodeInfo, float | N
         if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise InputError(f"{where} 'sim_seed' must be a non-negative integer, got {seed!r}")
         seed = int(seed)
+    settle = attrs.get("sim_settle_s")
+    if settle is not None:
+        if isinstance(settle, (bool, np.bool_)) or not isinstance(settle, (int, float, np.integer, np.floating)) \
+                or not 0.0 <= float(settle) < float("inf"):
+            raise InputError(f"{where} 'sim_settle_s' must be a non-negative number of seconds, got {settle!r}")
+        settle = float(settle)
     try:
         info = EpisodeInfo(task=_str_attr(attrs.get("task")), source=_str_attr(attrs.get("source")),
                            policy_name=_str_attr(attrs.get("policy_name")),
                            checkpoint=_str_attr(attrs.get("checkpoint")), success=success,
-                           sim_task=_str_attr(attrs.get("sim_task")), sim_seed=seed)
+                           sim_task=_str_attr(attrs.get("sim_task")), sim_seed=seed, sim_settle_s=settle)
     except InputError as e:  # EpisodeInfo checks its fields; say which file
         raise InputError(f"{where} 'source': {e}") from None
     fps = None
@@ -176,6 +183,8 @@ def _write_hdf5(tmp: Path, episode: RawEpisode, *, compress: bool, jpeg_quality:
             f.attrs["success"] = bool(episode.info.success)
         if episode.info.sim_seed is not None:
             f.attrs["sim_seed"] = np.int64(episode.info.sim_seed)
+        if episode.info.sim_settle_s is not None:
+            f.attrs["sim_settle_s"] = float(episode.info.sim_settle_s)
         obs = f.create_group("observations")
         obs.create_dataset("qpos", data=episode.qpos)
         if episode.qvel is not None:

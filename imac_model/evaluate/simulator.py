@@ -75,6 +75,7 @@ class SimEpisode:
     success: bool
     max_reward: int
     policy_calls: int
+    settle_s: float  # the physics run before its first frame
     qpos: np.ndarray  # (T, 14) measured
     action: np.ndarray  # (T, 14); the last frame repeats the last action, as in the world model's datasets
     images: dict[str, np.ndarray]  # every rig camera -> (T, H, W, 3) uint8 at the render size
@@ -86,7 +87,8 @@ class SimEpisode:
         it can be re-simulated from its own file."""
         return RawEpisode(qpos=self.qpos, action=self.action, images=self.images, depth_mm=self.depth_mm,
                           info=EpisodeInfo(task=TASK_INSTRUCTIONS[task], source="policy", policy_name=name,
-                                           success=self.success, sim_task=task, sim_seed=self.seed), fps=fps)
+                                           success=self.success, sim_task=task, sim_seed=self.seed,
+                                           sim_settle_s=self.settle_s), fps=fps)
 
 
 Intervention = Callable[[SimEnv, int], None]  # (env, chunk index) at each chunk boundary, before observing
@@ -181,7 +183,8 @@ class SimRunner:
             state = self.rig.rollout(state[None], actions[None].float())[0, -1].float()
         action[frame] = action[frame - 1]
         return SimEpisode(seed=int(seed), success=env.success, max_reward=env.max_reward, policy_calls=queue.calls,
-                          qpos=qpos, action=action, images=images, depth_mm=depth, observations=observations)
+                          settle_s=env.settle_s, qpos=qpos, action=action, images=images, depth_mm=depth,
+                          observations=observations)
 
 
 def parse_seeds(tokens: Sequence[str]) -> list[int]:
