@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+from functools import partial
 from pathlib import Path
 
 from imac_data.errors import InputError
@@ -32,7 +33,7 @@ from imac_model.experiments.ranking.gate import GATED_MODE, read_gates
 from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.stages import run_all
 from imac_model.models.checkpoint import SPEC, add_first_frame, add_scene_warp
-from imac_model.training.log import read_log, write_log
+from imac_model.training.log import progress_line, read_log, write_log
 
 ARMS = {  # ablation -> plan -> (the arm's run, what it changes)
     # clips as long as the replays, every chunk after the first from the model's own last frame
@@ -104,7 +105,8 @@ def train_arm(plan: RankingPlan, run: Path, changes: dict, minutes: float) -> No
     if (run / "DONE.json").is_file():
         return
     argv = train_command(plan, GATED_MODE, minutes, changes={"train.output_dir": str(run), **changes})
-    run_all([(f"train {run.name}", argv, plan.work / "logs" / f"train_{run.name}.log")], 1, tag="ablation")
+    run_all([(f"train {run.name}", argv, plan.work / "logs" / f"train_{run.name}.log",
+              partial(progress_line, run, minutes))], 1, tag="ablation")
 
 
 def final_gate(plan: RankingPlan, run_name: str, from_step: int, minutes: float) -> dict | None:

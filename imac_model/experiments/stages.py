@@ -79,28 +79,50 @@ class StageLog:
         return out
 
 
-def run_all(commands: list[tuple[str, list[str], Path]], jobs: int, tag: str = "experiment") -> None:
-    """Run ``(name, argv, log file)`` subprocesses, ``jobs`` at a time; raise if one fails."""
-    pending, running, failed = list(commands), [], []
+HEARTBEAT_S = 300.0  # how often run_all says how its long jobs are doing
+
+
+def run_all(commands: list[tuple], jobs: int, tag: str = "experiment", heartbeat_s: float = HEARTBEAT_S) -> None:
+    """Run ``(name, argv, log file[, progress])`` subprocesses, ``jobs`` at a time; raise if one fails.
+    Every ``heartbeat_s`` each running job gets a line: how long it has run and, where it has a
+    ``progress`` callable, what that returns (a training run's step and budget), so an hours-long
+    stage is not silent."""
+    pending, running, failed = [tuple(c) + (None,) * (4 - len(c)) for c in commands], [], []
+    next_beat = time.time() + heartbeat_s
     while pending or running:
         while pending and len(running) < jobs:
-            name, argv, log = pending.pop(0)
+            name, argv, log, progress = pending.pop(0)
             log.parent.mkdir(parents=True, exist_ok=True)
             f = open(log, "a")
             proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=subprocess_env())
-            running.append((name, proc, f, log))
+            running.append((name, proc, f, log, progress, time.time()))
             print(f"[{tag}]   started {name} (log {log})", file=sys.stderr, flush=True)
-        time.sleep(0.5)
+        time.sleep(min(0.5, heartbeat_s))
         for item in list(running):
-            name, proc, f, log = item
+            name, proc, f, log, _, _ = item
             if proc.poll() is not None:
                 f.close()
                 running.remove(item)
                 if proc.returncode:
                     failed.append(f"{name} (exit {proc.returncode}, log {log})")
                 print(f"[{tag}]   finished {name} (exit {proc.returncode})", file=sys.stderr, flush=True)
+        if running and time.time() >= next_beat:
+            next_beat = time.time() + heartbeat_s
+            for name, _, _, _, progress, started in running:
+                said = _progress(progress)
+                print(f"[{tag}]   {name}: {(time.time() - started) / 60:.0f} min" + (f", {said}" if said else ""),
+                      file=sys.stderr, flush=True)
     if failed:
         raise RuntimeError("failed: " + "; ".join(failed))
+
+
+def _progress(progress: Callable[[], str | None] | None) -> str | None:
+    """What a job's progress callable says; a heartbeat never stops the jobs (a log being written
+    can be read half-way)."""
+    try:
+        return progress() if progress else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def then_mark_done(argv: list[str], marker: Path) -> list[str]:

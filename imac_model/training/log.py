@@ -48,6 +48,24 @@ def log_summary(rows: list[dict]) -> dict:
     return next((r["summary"] for r in reversed(rows) if "summary" in r), {})
 
 
+def progress_line(run: str | Path, cpu_minutes: float | None = None) -> str | None:
+    """How far ``run`` has trained, from its log: step, CPU-minutes (of ``cpu_minutes``, the budget
+    it trains to), the last losses; None before its first row."""
+    rows = [r for r in read_log(run) if "step" in r]
+    if not rows:
+        return None
+    last = rows[-1]
+    said = f"step {last['step']:,}"
+    if "cpu_s" in last:
+        said += f", {last['cpu_s'] / 60:.1f}" + (f" of {cpu_minutes:g}" if cpu_minutes else "") + " CPU-minutes"
+    if last.get("loss") is not None:
+        said += f", loss {last['loss']:.4g}"
+    held = next((r for r in reversed(rows) if r.get("heldout_loss") is not None), None)
+    if held:
+        said += f", held-out {held['heldout_loss']:.4g} (step {held['step']:,})"
+    return said
+
+
 def continued_log(earlier: list[dict], later: list[dict]) -> list[dict]:
     """One log from a run and the run that started from its last weights (``--init``): the later
     rows' step, samples and elapsed time go on from the earlier run's end, and the summary (the last

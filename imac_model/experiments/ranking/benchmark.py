@@ -24,6 +24,7 @@ import os
 import shutil
 import sys
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -48,7 +49,7 @@ from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT, python, quote, run_all, then_mark_done
 from imac_model.models.checkpoint import list_checkpoints, weights_sha256
 from imac_model.training.archive import archives_in, read_archive, run_name, write_archive
-from imac_model.training.log import LOG_FILE, continued_log, log_summary, read_log
+from imac_model.training.log import LOG_FILE, continued_log, log_summary, progress_line, read_log
 from imac_model.training.pack import export_pack
 from imac_model.training.train import model_spec
 
@@ -283,8 +284,8 @@ def train_gated(plan: RankingPlan) -> None:
     for minutes in gate_minutes(plan):
         if minutes not in measured:
             last = minutes == gate_minutes(plan)[-1]
-            run_all([(f"train {mode} to {minutes:g} CPU-minutes", train_command(plan, mode, minutes, finish=last), log),
-                     ], 1, tag="ranking")
+            run_all([(f"train {mode} to {minutes:g} CPU-minutes", train_command(plan, mode, minutes, finish=last), log,
+                      partial(progress_line, plan.run_dir(mode), minutes))], 1, tag="ranking")
             run_all([(f"gate {mode} at {minutes:g} CPU-minutes", internal(plan, "gate", f"{minutes:g}"),
                       plan.work / "logs" / "gate.log")], 1, tag="ranking")
         gates = [g for g in read_gates(plan) if g["budget_minutes"] <= minutes]  # those up to this point
@@ -305,7 +306,8 @@ def stage_train(plan: RankingPlan) -> None:
     gated = plan.gate_every is not None and GATED_MODE in plan.modes
     if gated and not (plan.run_dir(GATED_MODE) / "DONE.json").is_file():
         train_gated(plan)  # first, alone: the other modes train only once it has passed
-    commands = [(f"train {mode}", train_command(plan, mode), plan.work / "logs" / f"train_{slug(mode)}.log")
+    commands = [(f"train {mode}", train_command(plan, mode), plan.work / "logs" / f"train_{slug(mode)}.log",
+                 partial(progress_line, plan.run_dir(mode), plan.none_minutes if mode == "none" else plan.cpu_minutes))
                 for mode in plan.modes if not (plan.run_dir(mode) / "DONE.json").is_file()]
     run_all(commands, plan.jobs, tag="ranking")
 
