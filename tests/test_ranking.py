@@ -461,6 +461,9 @@ def test_a_plan_saved_before_the_training_offsets_and_settle_settings_loads_as_w
     assert model_main(["ranking", "--work", str(tmp_path), "--docs", str(tmp_path), "--stages", "report"]) == 2
     err = capsys.readouterr().err
     assert "settle_s: 0.0 there, 0.3 here" in err and "training_offsets: 'disc' there, 'across' here" in err
+    # --plan is the stages' own way to hand their processes the plan: from a user it would be ignored
+    assert model_main(["ranking", "--plan", str(tmp_path / "plan.json"), "--stages", "report"]) == 2
+    assert "only the benchmark's own processes (--internal) read a plan" in capsys.readouterr().err
 
 
 def test_the_diagnosis_oracle_restores_one_recorded_view_at_the_chosen_boundaries(toy_run):

@@ -80,6 +80,9 @@ def _ranking(args: argparse.Namespace) -> int:
          "replays": lambda: replays(plan, *args.internal_args[:2]),
          "gate": lambda: measure_gate(plan, float(args.internal_args[0]), *args.internal_args[1:2])}[args.internal]()
         return 0
+    if args.plan:  # hidden: the stages pass it to the processes they start; a user's would be ignored
+        raise InputError(f"--plan {args.plan}: only the benchmark's own processes (--internal) read a plan; "
+                         "give --work DIR (its plan.json is read and checked) and the settings to run")
     if args.runs and not args.export_runs:
         raise InputError("--runs names the runs --export-runs writes; give --export-runs DIR")
     if args.rewrite_report:
