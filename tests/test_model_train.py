@@ -189,6 +189,8 @@ def _copy_without(dataset: Path, dst: Path, prefix: str) -> Path:
                                      "view_height 80 or 128"),
     (["--set", "train.lrr=1"], "train: unknown field(s) ['lrr']"),
     (["--set", "data.held_out_episodes=[7]"], "data.held_out_episodes: [7] do not exist"),
+    (["--root", "/nonexistent/imac_dataset"], "at /nonexistent/imac_dataset (there is no meta/info.json there, so "
+                                              "LeRobot tried the hub)"),
 ])
 def test_bad_runs_fail_before_training_and_write_nothing(dataset, tmp_path, capsys, extra, message):
     out = tmp_path / "run"

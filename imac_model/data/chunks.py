@@ -39,6 +39,7 @@ from torch.utils.data import Dataset
 
 from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
+from imac_data.layout import INFO, info_path
 from imac_model.config import CONTROL_STREAMS, DERIVED_STREAMS, SCENE_WARP, DataConfig
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
@@ -66,7 +67,10 @@ def open_metadata(data: DataConfig):
         return lr.LeRobotDatasetMetadata(data.dataset, root=data.root)
     except Exception as e:  # LeRobot raises hub/HTTP/OS errors for a missing local dataset
         where = data.root or f"$HF_LEROBOT_HOME/{data.dataset}"
-        raise InputError(f"data.dataset: cannot open LeRobot dataset {data.dataset!r} at {where}: "
+        # no local dataset there makes LeRobot ask the hub: say that first, the network error after it
+        missing = f" (there is no {INFO} there, so LeRobot tried the hub)" if data.root and not \
+            info_path(data.root).is_file() else ""
+        raise InputError(f"data.dataset: cannot open LeRobot dataset {data.dataset!r} at {where}{missing}: "
                          f"{type(e).__name__}: {e}") from None
 
 
