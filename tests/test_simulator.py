@@ -225,5 +225,5 @@ def test_settling_puts_the_box_on_the_table_before_the_first_frame():
         settled.step(held)
     assert np.abs(settled.object_position("box") - first).max() < 1e-3
     for bad in (-0.1, 11.0):
-        with pytest.raises(InputError, match="settle_s must be in"):
+        with pytest.raises(InputError, match=r"settle_s \(the physics run before the first frame; --settle\) must be in"):
             SimEnv("lift", settle_s=bad)

@@ -155,7 +155,8 @@ class SimEnv:
         if frame_stride < 1:
             raise InputError(f"frame_stride must be >= 1, got {frame_stride}")
         if not 0.0 <= float(settle_s) <= 10.0:
-            raise InputError(f"settle_s must be in [0, 10] seconds, got {settle_s}")
+            raise InputError(f"settle_s (the physics run before the first frame; --settle) must be in [0, 10] seconds, "
+                             f"got {settle_s}")
         self.settle_s = float(settle_s)
         self.task, self.frame_stride, self.renderer, self.model = task, int(frame_stride), renderer, model
         self.data = mujoco.MjData(model)
