@@ -101,7 +101,7 @@ def test_classifier_trained_on_a_built_dataset(sim_dataset, tmp_path):
         loaded.judge([EpisodeFrames(0, {CAMS[0]: real[0].frames[CAMS[0]]})])
 
 
-def test_episode_frames_are_the_last_frames_of_each_episode(sim_dataset):
+def test_episode_frames_are_the_last_frames_of_each_episode_or_those_asked_for(sim_dataset):
     eps = episode_frames(sim_dataset, [1, 3], CAMS[:1], last=2)
     ends = sim_dataset.meta.episodes["dataset_to_index"]
     for ep in eps:
@@ -111,6 +111,14 @@ def test_episode_frames_are_the_last_frames_of_each_episode(sim_dataset):
         torch.testing.assert_close(frames[1], sim_dataset[last][CAMS[0]], rtol=0, atol=0)
         torch.testing.assert_close(frames[0], sim_dataset[last - 1][CAMS[0]], rtol=0, atol=0)
         assert ep.task == sim_dataset[last]["task"]
+    starts = sim_dataset.meta.episodes["dataset_from_index"]
+    for ep in episode_frames(sim_dataset, [1, 3], CAMS[:1], at=[4, 0, 2]):  # chosen frames, in the order asked
+        for k, i in enumerate([4, 0, 2]):
+            torch.testing.assert_close(ep.frames[CAMS[0]][k], sim_dataset[starts[ep.episode_index] + i][CAMS[0]],
+                                       rtol=0, atol=0)
+    length = int(sim_dataset.meta.episodes["length"][1])
+    with pytest.raises(InputError, match=f"episode 1 has {length} frames, so no frame {length}"):
+        episode_frames(sim_dataset, [1], CAMS[:1], at=[0, length])
     with pytest.raises(InputError, match=r"episodes \[9\] are not in the dataset"):
         episode_frames(sim_dataset, [9], CAMS[:1])
     with pytest.raises(InputError, match="not video features"):

@@ -35,6 +35,7 @@ from imac_data.errors import InputError
 from imac_data.layout import STATE, depth_key, image_key
 from imac_data.metadata import dataset_info
 from imac_data.sources.hdf5 import write_episode
+from imac_data.sources.sim.env import SimEnv
 from imac_model.cli import main as model_main
 from imac_model.config import CONTROL_STREAMS, RunConfig, streams_of_mode
 from imac_model.data import mosaic
@@ -44,12 +45,12 @@ from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking.benchmark import GateStop, export_runs, import_gpu_runs, stage_train
-from imac_model.experiments.ranking.evaluation import evaluate_mode
+from imac_model.experiments.ranking.evaluation import chunk_end_heights, evaluate_mode
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
-from imac_model.experiments.ranking.report import _relative, rewrite_report, verdict_pairs
+from imac_model.experiments.ranking.report import _relative, parting_chunks, rewrite_report, verdict_pairs
 from imac_model.experiments.stages import REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
@@ -165,6 +166,32 @@ def test_lift_judge_agrees_with_mujoco_on_real_frames(runner, lift):
     painted = [dataclasses.replace(f, frames={c: without_cube(x) for c, x in f.frames.items()}) for f in frames]
     assert judge.judge(painted).tolist() == [False, False]
     assert all((redness(x) <= 0.05).all() for f in painted for x in f.frames.values())
+
+
+def test_the_cube_read_at_each_chunks_end_is_where_mujoco_has_it(runner, lift):
+    """Which chunk a closed loop parts from MuJoCo in is read from the frames at the chunks' ends: there the
+    judge's cube height, read through LeRobot from the built dataset, against MuJoCo's box re-simulated from the
+    start and the recorded actions."""
+    ds = LeRobotDataset(REPO, root=lift["root"])
+    judge, chunk = LiftJudge(), runner.config.chunk
+    read = chunk_end_heights(judge, ds, [0, 1], chunk, runner.config.chunks)
+    env = SimEnv("lift", frame_stride=runner.config.frame_stride, settle_s=runner.config.settle_s)
+    lifted = []
+    for episode, heights in zip(lift["episodes"], read):
+        env.reset(SEED)
+        box = []
+        for t, action in enumerate(episode.action[:-1], start=1):  # the last frame's action repeats the one before
+            env.step(action)
+            if t % chunk == 0:
+                box.append(env.object_position("box")[2])
+        assert len(box) == len(heights) == runner.config.chunks
+        seen = ~np.isnan(heights)
+        assert (heights[seen] >= np.array(box)[seen] - 0.01).all() and (heights[seen] <= np.array(box)[seen] + 0.03).all()
+        held = (np.array(box) >= judge.lifted_z).tolist()
+        assert (heights >= judge.lifted_z).tolist() == held  # NaN compares False: a cube not near the gripper
+        lifted.append(held)
+    assert lifted[0][-1] and not any(lifted[1])  # the lift is held up at the end; the miss never
+    assert not lifted[0][0]  # and it starts on the table
 
 
 def test_both_runners_give_a_policy_the_same_observation(lift):
@@ -382,6 +409,14 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
         assert verdict_pairs(plan, results, "motion+contact", name) == [
             (simulated[plan.eval_seeds()[s][1]], row["success"]) for s, row in zip(plan.wm_starts(), generated)]
         assert f"| motion+contact | {name} | {len(generated)} |" in report
+        # which chunk: the cube at every chunk's end in both runs, and how far apart their actions were
+        assert all(len(row["chunk_held"]) == len(row["real_chunk_held"]) == len(row["action_gap"]) == plan.chunks
+                   for row in generated)
+        assert not any(x for row in generated for x in row["real_chunk_held"])  # two chunks end before any lift
+        assert all(g >= 0 for row in generated for g in row["action_gap"])
+        assert parting_chunks(plan, results, "motion+contact", name)["parted"] == sum(a != b for a, b in verdict_pairs(
+            plan, results, "motion+contact", name))
+    assert "Which chunk:" in report and "| motion+contact | closed_loop | " in report.split("Which chunk:")[1]
     assert "## The early gate" in report and "Where the cube goes wrong" in report and (docs / "gate.png").is_file()
     assert f"({sum(rec['labels'])} successes) x 2 seeds" in report
     # a second run finds every stage's outputs and only writes the report again
@@ -464,6 +499,29 @@ def test_a_plan_saved_before_the_training_offsets_and_settle_settings_loads_as_w
     # --plan is the stages' own way to hand their processes the plan: from a user it would be ignored
     assert model_main(["ranking", "--plan", str(tmp_path / "plan.json"), "--stages", "report"]) == 2
     assert "only the benchmark's own processes (--internal) read a plan" in capsys.readouterr().err
+
+
+def test_which_chunk_counts_the_first_chunk_end_where_the_cube_is_held_differently(tmp_path):
+    """Worked by hand: four starts, MuJoCo lifts in the first two; the world model drops the first lift at chunk 3's end,
+    draws the second one to its end, lifts in the third start from chunk 2 on, and agrees on the fourth. The action
+    gaps up to the parting chunk: 0.02, 0 (the whole episode), 0.03."""
+    plan = RankingPlan(work=tmp_path, docs=tmp_path, policies=("python:m:a", "python:m:b"), groups=1,
+                       real_per_group=4, wm_per_group=4, chunks=4)
+    held = {"up": [False, False, True, True], "drop": [False, False, False, False], "early": [False, True, True, True]}
+    rows = [{"success": False, "chunk_held": held["drop"], "real_chunk_held": held["up"], "action_gap": [0, .01, .02, .5]},
+            {"success": True, "chunk_held": held["up"], "real_chunk_held": held["up"], "action_gap": [0, 0, 0, 0]},
+            {"success": True, "chunk_held": held["early"], "real_chunk_held": held["drop"], "action_gap": [0, .03, .1, .1]},
+            {"success": False, "chunk_held": held["drop"], "real_chunk_held": held["drop"], "action_gap": [0, 0, 0, 0]}]
+    rows[1]["success"] = False  # its chunk ends agree: only the judge's majority over the last frames parts
+    r = {"real": {"a/g0": [True, True, False, False]}, "evaluations": {"motion+contact": {"policies": {"a": {"episodes": rows}}}}}
+    assert parting_chunks(plan, r, "motion+contact", "a") == {"parted": 3, "first_at_chunk": [0, 1, 1, 0],
+                                                              "at_no_chunk_end": 1, "action_gap_median": 0.02}
+    assert parting_chunks(plan, r, "motion+contact", "b") is None  # not run for b
+    for row in rows:
+        del row["action_gap"]
+    r["evaluations"]["motion+contact"]["policies"]["a"]["episodes"] = [
+        {k: v for k, v in row.items() if k == "success"} for row in rows]  # evaluated before the readings existed
+    assert parting_chunks(plan, r, "motion+contact", "a") is None
 
 
 def test_the_diagnosis_oracle_restores_one_recorded_view_at_the_chosen_boundaries(toy_run):

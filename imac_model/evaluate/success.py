@@ -71,11 +71,11 @@ def image_cameras(dataset) -> list[str]:
 
 
 def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequence[str] | None = None,
-                   last: int = 4, *, geometry: bool = False) -> list[EpisodeFrames]:
-    """The last ``last`` frames of each episode and camera, decoded by LeRobot's video
-    decoder from the dataset's own files (only these cameras and timestamps). With
-    ``geometry``, also each camera's depth in metres (its ``observation.depth.*`` colour video
-    through the dataset's depth codec) and the states."""
+                   last: int = 4, *, geometry: bool = False, at: Sequence[int] | None = None) -> list[EpisodeFrames]:
+    """The last ``last`` frames of each episode and camera (or, with ``at``, those frame indices of
+    each), decoded by LeRobot's video decoder from the dataset's own files (only these cameras and
+    timestamps). With ``geometry``, also each camera's depth in metres (its ``observation.depth.*``
+    colour video through the dataset's depth codec) and the states."""
     meta = dataset.meta
     cameras = list(cameras) if cameras is not None else image_cameras(dataset)
     missing = [c for c in cameras if c not in meta.video_keys]
@@ -92,6 +92,8 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
         codec = depth_codec_of(meta)
     if not isinstance(last, int) or last < 1:
         raise InputError(f"last: must be a positive integer, got {last!r}")
+    if at is not None and (not at or any(not isinstance(i, int) or i < 0 for i in at)):
+        raise InputError(f"at: must be frame indices >= 0, got {at!r}")
     table = meta.episodes
     index_of = {int(e): row for row, e in enumerate(table["episode_index"])}
     wanted = list(index_of) if episodes is None else [int(e) for e in episodes]
@@ -112,15 +114,17 @@ def episode_frames(dataset, episodes: Iterable[int] | None = None, cameras: Sequ
     for ep in wanted:
         row = index_of[ep]
         length = int(lengths[row])
-        first = max(0, length - last)
-        times = [i / meta.fps for i in range(first, length)]
+        indices = list(range(max(0, length - last), length)) if at is None else list(at)
+        if indices and max(indices) >= length:
+            raise InputError(f"{dataset.root}: episode {ep} has {length} frames, so no frame {max(indices)}")
+        times = [i / meta.fps for i in indices]
         frames = {cam: decode(ep, row, cam, times) for cam in cameras}
         depth = states = None
         if geometry:
             depth = {cam: decode_depth(decode(ep, row, depth_of[cam], times), codec)[0] for cam in cameras}
             lo = int(table["dataset_from_index"][row])
             states = torch.stack([torch.as_tensor(x, dtype=torch.float32)
-                                  for x in dataset.hf_dataset.select(range(lo + first, lo + length))[STATE]])
+                                  for x in dataset.hf_dataset.select([lo + i for i in indices])[STATE]])
         task = tasks[row][0] if tasks[row] else None
         out.append(EpisodeFrames(ep, frames, task, depth, states))
     return out

@@ -323,9 +323,53 @@ def _policy_closed_loop(plan: RankingPlan, mode: str, policy: str, model, chunks
         verdicts = classifier.judge(episode_frames(generated, None, cameras(plan), 4))
         for row, v in zip(result["episodes"], verdicts):
             row["success_classifier"] = bool(v)
+    chunk_ends(plan, policy, out, result["episodes"], chunks.layout.chunk)
     result.update(wall_s=round(time.time() - t0, 1), cpu_s=round(time.process_time() - c0, 1))
     _write(done, result)
     return result
+
+
+def chunk_ends(plan: RankingPlan, policy: str, generated_root: Path, rows: list[dict], chunk: int) -> None:
+    """Which chunk a closed loop parts from MuJoCo in: on each of ``rows`` (the world model's episodes, in the
+    order of :meth:`RankingPlan.wm_starts`), at the end of every chunk, the lift judge's cube height (m; None
+    where too few of the cube's points lie near the gripper) and whether it is held up, in the world model's
+    episode (``chunk_held``) and in MuJoCo's from the same start (``real_chunk_held``); and the largest
+    difference between the two runs' actions within each chunk (``action_gap``, rad): the open-loop policies
+    act alike in both, so their verdicts part where the world model draws another outcome."""
+    judge = LiftJudge()
+    generated = lr.LeRobotDataset(f"local/{generated_root.name}", root=generated_root)
+    real = lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
+    index = plan.names.index(slug(policy))
+    real_episodes = [plan.eval_episode(index, s) for s in plan.wm_starts()]
+    ours = list(range(len(rows)))  # the closed loop writes its episodes in the order of its starts
+    steps = plan.chunks * chunk
+    gaps = [np.abs(a[:steps] - b[:steps]).reshape(plan.chunks, chunk, -1).max(axis=(1, 2))
+            for a, b in zip(_actions(generated, ours), _actions(real, real_episodes))]
+    for key, heights in (("", chunk_end_heights(judge, generated, ours, chunk, plan.chunks)),
+                         ("real_", chunk_end_heights(judge, real, real_episodes, chunk, plan.chunks))):
+        for row, h in zip(rows, heights):
+            row[f"{key}chunk_height_m"] = [None if np.isnan(x) else round(float(x), 4) for x in h]
+            row[f"{key}chunk_held"] = [bool(x >= judge.lifted_z) for x in h]  # NaN: not held
+    for row, gap in zip(rows, gaps):
+        row["action_gap"] = [round(float(g), 5) for g in gap]
+
+
+def chunk_end_heights(judge: LiftJudge, dataset, episodes: list[int], chunk: int, chunks: int) -> list[np.ndarray]:
+    """The lift judge's cube height (m, NaN where it sees too few cube points near the gripper) at the last frame
+    of each of the first ``chunks`` chunks of ``chunk`` frames (frames ``chunk``, ``2 chunk``, ...; frame 0 is
+    the start) of each episode of ``dataset``."""
+    at = [chunk * k for k in range(1, chunks + 1)]
+    return [judge.heights(ep) for ep in episode_frames(dataset, episodes, [image_key(judge.view)], at=at,
+                                                        geometry=True)]
+
+
+def _actions(dataset, episodes: list[int]) -> list[np.ndarray]:
+    """Each episode's actions ``(T, D)``."""
+    table = dataset.meta.episodes
+    row = {int(e): i for i, e in enumerate(table["episode_index"])}
+    return [np.asarray(dataset.hf_dataset.select(range(int(table["dataset_from_index"][row[e]]),
+                                                       int(table["dataset_to_index"][row[e]])))["action"], np.float32)
+            for e in episodes]
 
 
 def _classifier(plan: RankingPlan) -> SuccessClassifier | None:

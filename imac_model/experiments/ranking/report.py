@@ -409,6 +409,49 @@ def _start_by_start(plan: RankingPlan, r: dict) -> list[str]:
     return lines
 
 
+def parting_chunks(plan: RankingPlan, r: dict, mode: str, name: str) -> dict | None:
+    """Of policy ``name``'s starts where MuJoCo's verdict and the world model's part: how many first differ at the
+    end of chunk k (``first_at_chunk``, k = 1, 2, ...) in whether the cube is held up, how many at no chunk end
+    (only the judge's majority over the last frames differs), and the median over them of the largest difference
+    between the two runs' actions up to that chunk (rad; large where the closed loop's own frames had already
+    steered the policy elsewhere). None where the results lack the readings at the chunks' ends (runs evaluated
+    before 2026-11-29) or ``mode`` did not run ``name``."""
+    run = r["evaluations"][mode]["policies"].get(name)
+    if run is None or not all("chunk_held" in row for row in run["episodes"]):
+        return None
+    first, gaps = [0] * (plan.chunks + 1), []
+    for (real, wm), row in zip(verdict_pairs(plan, r, mode, name), run["episodes"]):
+        if real != wm:
+            k = next((k for k, (a, b) in enumerate(zip(row["chunk_held"], row["real_chunk_held"])) if a != b),
+                     plan.chunks)
+            first[k] += 1
+            gaps.append(max(row["action_gap"][:k + 1]))
+    return {"parted": sum(first), "first_at_chunk": first[:-1], "at_no_chunk_end": first[-1],
+            "action_gap_median": float(np.median(gaps)) if gaps else None}
+
+
+def _which_chunk(plan: RankingPlan, r: dict) -> list[str]:
+    """Where the verdicts part, chunk by chunk (:func:`parting_chunks`); nothing for results without it."""
+    found = {(mode, name): parting_chunks(plan, r, mode, name) for mode in plan.modes for name in plan.names}
+    if not any(found.values()):
+        return []
+    chunks = " | ".join(f"chunk {k}" for k in range(1, plan.chunks + 1))
+    lines = ["", "Which chunk: of the starts where the two verdicts part, the first chunk at whose last frame the world "
+             "model holds the cube up where MuJoCo does not, or the reverse (the lift judge on that frame); \"at no "
+             "chunk end\" where only the judge's majority over the last frames differs. The action gap: over those "
+             "starts, the median of the largest difference between the two runs' actions up to that chunk (small "
+             "where the policy acted alike in both, as the open-loop ones do, and the world model drew another "
+             "outcome of the same actions).", "",
+             f"| mode | policy | parted | {chunks} | at no chunk end | action gap by then (rad) |",
+             "|---|---|---|" + "---|" * plan.chunks + "---|---|"]
+    for (mode, name), f in found.items():
+        if f:
+            lines.append(f"| {mode} | {name} | {f['parted']} | " + " | ".join(map(str, f["first_at_chunk"]))
+                         + f" | {f['at_no_chunk_end']} | "
+                         + ("" if f["action_gap_median"] is None else f"{f['action_gap_median']:.3f}") + " |")
+    return lines
+
+
 def _stopped_markdown(plan: RankingPlan, r: dict) -> str:
     """The report of a run that stopped at the early gate: what the gate showed, and the training."""
     lines = _header(plan, r)
@@ -460,7 +503,7 @@ def _markdown(plan: RankingPlan, r: dict) -> str:
     lines += ["", _verdict(r["statistics"])]
     for mode in plan.modes:
         lines += ["", f"![{mode}](scatter_{slug(mode.replace('+', '_'))}.png)"]
-    lines += _start_by_start(plan, r)
+    lines += _start_by_start(plan, r) + _which_chunk(plan, r)
     lines += _training(r)
     lines += _gate(plan, r)
     j = r["judges"]
