@@ -28,6 +28,7 @@ from benchmarks import ablation, cpu_ablation, gate_diagnosis, outcome_probe
 from imac_data.cli import main as imac_main
 from imac_data.cli.parser import TASKS as CLI_TASKS
 from imac_data.console import scheduling
+from imac_data.dataset.output import output_lock
 from imac_data.core.cameras import save_calibration
 from imac_data.core.depth import depth_codec_of
 from imac_data.core.robot.aloha import SIM_TASKS, mjcf_path
@@ -46,6 +47,7 @@ from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking.benchmark import GateStop, export_runs, import_gpu_runs, stage_train
 from imac_model.experiments.ranking.evaluation import chunk_end_heights, evaluate_mode
+from imac_model.experiments.ranking.gate import read_gates
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
@@ -522,6 +524,25 @@ def test_which_chunk_counts_the_first_chunk_end_where_the_cube_is_held_different
     r["evaluations"]["motion+contact"]["policies"]["a"]["episodes"] = [
         {k: v for k, v in row.items() if k == "success"} for row in rows]  # evaluated before the readings existed
     assert parting_chunks(plan, r, "motion+contact", "a") is None
+
+
+def test_the_status_says_where_a_run_stands_without_taking_its_lock(toy_run, tmp_path, capsys):
+    work, docs = toy_run
+    plan = RankingPlan.load(work / "plan.json")
+    with output_lock(work, who="a benchmark run"):  # one working there: the status answers all the same
+        assert model_main(["ranking", "--work", str(work), "--status"]) == 0
+    out = capsys.readouterr().out
+    assert f"working on it now: a process with PID {os.getpid()}" in out
+    assert "stages done: simulate (" in out and "report (" in out
+    assert "  motion+contact: trained, step 6, " in out and "  none: trained, step 6, " in out
+    (gate,) = read_gates(plan)
+    assert f"gates (balanced accuracy from chunk 1): 1 min {gate['from_chunk']['0']['balanced_accuracy']:.2f}" in out
+    assert "evaluated: 2 of 2 closed loops, the recorded actions' replays" in out and "evaluated: 1 of 1" in out
+    assert f"report: {docs / 'README.md'} (written " in out
+    assert model_main(["ranking", "--work", str(work), "--status"]) == 0
+    assert "working on it now: no process" in capsys.readouterr().out
+    assert model_main(["ranking", "--work", str(tmp_path), "--status"]) == 2
+    assert "no benchmark run there (no plan.json)" in capsys.readouterr().err
 
 
 def test_the_diagnosis_oracle_restores_one_recorded_view_at_the_chosen_boundaries(toy_run):

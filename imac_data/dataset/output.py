@@ -234,6 +234,22 @@ def _acquire(path: Path, root: Path, wait: bool, who: str = "build",
         os.close(fd)
 
 
+def lock_holder(root: Path) -> str | None:
+    """The PID of the process that holds ``root``'s lock now, or None: a look that takes nothing."""
+    try:
+        fd = os.open(lock_path(root), os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    except BlockingIOError:
+        return _holder(lock_path(root))
+    finally:
+        os.close(fd)
+
+
 @contextlib.contextmanager
 def output_lock(root: Path, *, wait: bool = False, who: str = "build",
                 hint: str = "wait for it to finish, or pass --wait") -> Iterator[Path]:

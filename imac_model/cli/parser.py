@@ -203,6 +203,9 @@ def _ranking(p: argparse.ArgumentParser) -> None:
                                                        "'Weights between loans')")
     p.add_argument("--runs", nargs="+", metavar="RUN", help="with --export-runs: these runs under <work>/runs "
                                                             "(default: the plan's modes')")
+    p.add_argument("--status", action="store_true",
+                   help="say where --work's run stands (stages done, training, gates, evaluation) and exit; it takes "
+                        "no lock, so it answers while a run works there")
     p.add_argument("--rewrite-report", action="store_true",
                    help="write --docs's README.md again from its results.json alone (after a change of the report's "
                         "text; no work directory needed, no picture redrawn)")

@@ -25,6 +25,7 @@ from imac_model.experiments.ranking.evaluation import evaluate_mode, evaluate_po
 from imac_model.experiments.ranking.gate import measure_gate
 from imac_model.experiments.ranking.plan import STAGES, RankingPlan, gpu_plan, toy_plan
 from imac_model.experiments.ranking.report import rewrite_report
+from imac_model.experiments.ranking.status import status
 from imac_model.experiments.stages import StageLog
 
 EXIT_GATE_STOP = 4  # the early gate stopped the benchmark (docs/ranking.md); 3 is an environment fault
@@ -85,6 +86,13 @@ def _ranking(args: argparse.Namespace) -> int:
                          "give --work DIR (its plan.json is read and checked) and the settings to run")
     if args.runs and not args.export_runs:
         raise InputError("--runs names the runs --export-runs writes; give --export-runs DIR")
+    if args.status:
+        saved = Path(args.work).resolve() / "plan.json"
+        if not saved.is_file():
+            raise InputError(f"{saved.parent}: no benchmark run there (no plan.json); start one with imac-model ranking "
+                             f"--work {args.work}")
+        print(status(RankingPlan.load(saved)))
+        return 0
     if args.rewrite_report:
         print(f"rewrote {rewrite_report(Path(args.docs))}")
         return 0
