@@ -28,10 +28,10 @@ from benchmarks import ablation, cpu_ablation, gate_diagnosis, outcome_probe
 from imac_data.cli import main as imac_main
 from imac_data.cli.parser import TASKS as CLI_TASKS
 from imac_data.console import scheduling
-from imac_data.dataset.output import output_lock
 from imac_data.core.cameras import save_calibration
 from imac_data.core.depth import depth_codec_of
 from imac_data.core.robot.aloha import SIM_TASKS, mjcf_path
+from imac_data.dataset.output import output_lock
 from imac_data.errors import InputError
 from imac_data.layout import STATE, depth_key, image_key
 from imac_data.metadata import dataset_info
@@ -52,7 +52,8 @@ from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
-from imac_model.experiments.ranking.report import _relative, parting_chunks, rewrite_report, verdict_pairs
+from imac_model.experiments.ranking.report import _relative, rewrite_report
+from imac_model.experiments.ranking.report_text import parting_chunks, verdict_pairs
 from imac_model.experiments.stages import REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel

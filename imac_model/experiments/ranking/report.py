@@ -1,5 +1,6 @@
 """The ranking benchmark's report: ``README.md``, ``results.json`` and figures in ``--docs``,
-written from the work directory's outputs only; nothing is typed in by hand."""
+written from the work directory's outputs only; nothing is typed in by hand. This module collects the
+results and draws the figures; :mod:`.report_text` writes the text from the results alone."""
 
 from __future__ import annotations
 
@@ -17,34 +18,15 @@ from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
 from imac_data.layout import image_key
 from imac_model.evaluate.pictures import label
-from imac_model.evaluate.statistics import STATISTICS, plot_policy_scatter, policy_correlation
+from imac_model.evaluate.statistics import plot_policy_scatter, policy_correlation
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
-from imac_model.experiments.ranking.gate import GATED_MODE, cube_by_view, gate_verdict, read_gates
+from imac_model.experiments.ranking.gate import read_gates
 from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, slug
+from imac_model.experiments.ranking.report_text import markdown, shown_path, stopped_markdown
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 from imac_model.models.checkpoint import list_checkpoints, read_spec
 from imac_model.models.world_model import WorldModel
 from imac_model.training.log import log_summary, read_log
-
-
-def _fmt(x, digits: int = 3) -> str:
-    return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{digits}f}"
-
-
-def _ci(ci) -> str:
-    return "" if not ci or ci[0] is None else f" [{_fmt(ci[0], 2)}, {_fmt(ci[1], 2)}]"
-
-
-def wilson(k: float, n: int, z: float = 1.96) -> tuple[float, float]:
-    """The Wilson score interval (95 %) of a success rate k / n."""
-    p = k / n
-    centre, half = (p + z * z / (2 * n)) / (1 + z * z / n), z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
-def _rate(k: float, n: int) -> str:
-    lo, hi = wilson(k, n)
-    return f"{k / n:.2f} [{lo:.2f}, {hi:.2f}] ({n})"
 
 
 def real_outcomes(plan: RankingPlan) -> dict[tuple[str, str], list[bool]]:
@@ -148,13 +130,13 @@ def write_report(plan: RankingPlan) -> Path:
         latest = plan.run_dir(shown_gate) / f"gate_{gates[shown_gate][-1]['step']:06d}.png"
         if latest.is_file():
             shutil.copy(latest, docs / "gate.png")
-    shown_plan = {k: (_shown(Path(v)) if k in ("work", "docs", "config") else v) for k, v in plan.to_dict().items()}
+    shown_plan = {k: (shown_path(Path(v)) if k in ("work", "docs", "config") else v) for k, v in plan.to_dict().items()}
     results = {"plan": shown_plan, "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
                "dirty": _uncommitted_changes(docs), "written": time.strftime("%Y-%m-%d %H:%M"), "stages": stages,
                "gates": gates, "training": {m: {k: v for k, v in t.items() if k != "rows"} for m, t in training.items()}}
     if not all((plan.wm_dir(m) / "outcomes.json").is_file() for m in plan.modes):  # stopped at the early gate
         (docs / "results.json").write_text(json.dumps(_relative(results), indent=1, default=str))
-        (docs / "README.md").write_text(_stopped_markdown(plan, results))
+        (docs / "README.md").write_text(stopped_markdown(plan, results))
         return docs / "README.md"
     real = real_outcomes(plan)
     stats = _correlations(plan, real)
@@ -170,7 +152,7 @@ def write_report(plan: RankingPlan) -> Path:
                    evaluations={m: json.loads((plan.wm_dir(m) / "outcomes.json").read_text()) for m in plan.modes},
                    examples=examples)
     (docs / "results.json").write_text(json.dumps(_relative(results), indent=1, default=str))
-    (docs / "README.md").write_text(_markdown(plan, results))
+    (docs / "README.md").write_text(markdown(plan, results))
     return docs / "README.md"
 
 
@@ -183,7 +165,7 @@ def rewrite_report(docs: Path) -> Path:
     results = json.loads(saved.read_text())
     plan = RankingPlan.from_dict(results["plan"])
     done = "evaluations" in results  # otherwise the run stopped at the early gate, or trains on
-    (Path(docs) / "README.md").write_text(_markdown(plan, results) if done else _stopped_markdown(plan, results))
+    (Path(docs) / "README.md").write_text(markdown(plan, results) if done else stopped_markdown(plan, results))
     return Path(docs) / "README.md"
 
 
@@ -249,35 +231,11 @@ def plot_training(training: dict, path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
-def _verdict(stats: dict) -> str:
-    """The goal, read off the figures: Pearson >= 0.9 and MMRV <= 0.05 for motion+contact (lift
-    judge), with action-vector clearly lower."""
-    def value(mode, name):
-        return stats.get(mode, {}).get("lift_geometry", {}).get("levels", {}).get("group", {}).get(name, {}).get("value")
-
-    p, m = value("motion+contact", "pearson"), value("motion+contact", "mmrv")
-    if p is None and m is None:
-        return "**Goal.** Not measured: no `motion+contact` run, or its world-model rates do not vary."
-    met = p is not None and m is not None and p >= 0.9 and m <= 0.05
-    text = (f"**Goal** (Pearson >= 0.9 and MMRV <= 0.05 for `motion+contact`, lift judge): "
-            f"{'met' if met else 'not met'} (Pearson {_fmt(p)}, MMRV {_fmt(m)}).")
-    a = value("action-vector", "pearson")
-    if "action-vector" in stats:
-        lower = p is not None and (a is None or a < p)
-        text += f" `action-vector`: Pearson {_fmt(a)}, {'lower' if lower else 'not lower'} than `motion+contact`."
-    return text
-
-
 def _uncommitted_changes(docs: Path) -> bool:
     """Whether tracked files differ from the commit, the report's own directory aside."""
     docs = docs.resolve()
     own = [f":(exclude){docs.relative_to(REPO_ROOT)}"] if docs.is_relative_to(REPO_ROOT) else []
     return git("status", "--porcelain", "--untracked-files=no", "--", ".", *own) not in ("", "unknown")
-
-
-def _shown(path: Path) -> str:
-    """``path`` as the command line gave it: relative to the repository when inside it."""
-    return str(path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path)
 
 
 def _relative(value):
@@ -288,300 +246,7 @@ def _relative(value):
     if isinstance(value, (list, tuple)):
         return [_relative(v) for v in value]
     if isinstance(value, (str, Path)) and Path(value).is_absolute() and Path(value).is_relative_to(REPO_ROOT):
-        return _shown(Path(value))
+        return shown_path(Path(value))
     return value
 
 
-def _header(plan: RankingPlan, r: dict) -> list[str]:
-    m = r["machine"]
-    cpu_total = sum(s["cpu_s"] for s in r["stages"].values())
-    wall_total = sum(s["wall_s"] for s in r["stages"].values())
-    lines = [
-        "# Policy ranking in simulation: does the world model rank policies the way MuJoCo does?", "",
-        "Generated by" + (" `make ranking`, i.e." if plan.gpu_minutes is None and not plan.toy else ""), "", "```bash",
-        f"python -m imac_model ranking --work {_shown(plan.work)} --docs {_shown(plan.docs)}"
-        + (" --toy" if plan.toy else "") + (" --preset gpu" if plan.gpu_minutes is not None else ""), "```", "",
-        f"(every stage cached under the work directory; a rerun resumes). Written {r['written']}, commit "
-        f"`{r['commit']}`{' (with uncommitted changes)' if r['dirty'] else ''}. Protocol: `docs/ranking.md`.", "",
-        f"**Machine.** {m['cores']} cores ({m['cpu']}), {m['memory_gb']} GB, "
-        f"{'GPU ' + m['gpu'] if m['gpu'] else 'no GPU'}; Python {m['python']}, torch {m['torch']}.", "",
-        f"**Budget.** {cpu_total / 60:.1f} CPU-minutes in all (process and children), {wall_total / 60:.1f} minutes "
-        f"wall; per stage at the end. "
-        + (f"Training has no stage time (it stopped at the early gate, or goes on): its runs logged "
-           f"{sum(t['train_s'] or 0 for t in r['training'].values()) / 60:.1f} CPU-minutes, not in that total. "
-           if "train" not in r["stages"] and plan.gpu_minutes is None and r["training"] else "")
-        + "Training: "
-        + ("on one GPU (the GPU preset; each run's own time under Training; not in the CPU total)."
-           if plan.gpu_minutes is not None else
-           f"{plan.cpu_minutes:g} CPU-minutes per compared mode, {plan.none_minutes:g} for `none`."), "",
-        f"**Sizes.** {len(plan.policies)} policies; in MuJoCo {plan.groups} groups of {plan.real_per_group} starts "
-        f"each; in the world model the first {plan.wm_per_group} starts of each group, {plan.chunks} chunks of 8 "
-        f"frames (10 fps), {plan.steps} Euler steps; {plan.train_episodes} training rollouts.", "",
-    ]
-    return lines
-
-
-def _training(r: dict) -> list[str]:
-    lines = ["", "## Training", "", "Per mode, from its log (the held-out loss: the flow loss of the held-out "
-              "episodes' chunks at fixed times and noise, each from its recorded frame; with `flow.focus_weight` it is "
-              "the weighted loss. A run trained with rollout or reference noise logs that harder loss as its "
-              "training loss, so its curve can sit above the held-out one).", "",
-              "| mode | backbone | parameters | device | steps | samples | training (s: GPU wall, or CPU) | rate | "
-              "final held-out loss |", "|---|---|---|---|---|---|---|---|---|"]
-    for mode, t in r["training"].items():
-        lines.append(f"| {mode}{'' if t['finished'] else ' (training)'} | {t['backbone']} | "
-                     f"{t['parameters'] / 1e6:.2f} M | {t['device']} | {t['steps']} | {t['samples'] or ''} | "
-                     f"{_fmt(t['train_s'], 0)} | {t['rate']} | {_fmt(t['final_heldout_loss'], 4)} |")
-    return lines + (["", "![training and held-out loss](training_loss.png)"] if r["training"] else [])
-
-
-def _gate(plan: RankingPlan, r: dict) -> list[str]:
-    """The gate's table (docs/ranking.md, "The early gate"): every mode's gates, if measured."""
-    gates = r.get("gates") or {}
-    if not gates:
-        return []
-    k = max(len(g["from_chunk"]) for rows in gates.values() for g in rows)
-    when = (f"`{GATED_MODE}` trained first, alone, and was measured after every {plan.gate_every:g} CPU-minutes; "
-            f"the other modes once, after training. Goal: {plan.gate_min:g} from chunk 1 by "
-            f"{min(plan.gate_by, plan.cpu_minutes):g} CPU-minutes." if plan.gate_every else
-            "Each mode measured once, after training.")
-    lines = ["", "## The early gate", "",
-             f"The recorded actions of the {plan.held_out} held-out training rollouts replayed in the world model, the "
-             "lift judge against MuJoCo's labels. Balanced accuracy (mean recall of successes and failures: painting "
-             "one outcome everywhere scores 0.5); \"from chunk k\": the replay starts again at the recorded frame of "
-             f"chunk k (the drift before it taken away). Each replay is sampled with every noise seed and the "
-             f"verdicts are pooled, since one seed decides many verdicts by itself. {when}", "",
-             "| mode | budget (min) | step | episodes (successes) | seeds | "
-             + " | ".join(f"from chunk {i + 1}" for i in range(k)) + " | accuracy from chunk 1 |", "|" + "---|" * (6 + k)]
-    for mode, rows in gates.items():
-        for g in rows:
-            cells = [_fmt(g["from_chunk"][str(i)]["balanced_accuracy"], 2) if str(i) in g["from_chunk"] else ""
-                     for i in range(k)]
-            lines.append(f"| {mode} | {g['budget_minutes']:g} | {g['step']} | {len(g['labels'])} ({sum(g['labels'])}) | "
-                         f"{g.get('seeds', 1)} | " + " | ".join(cells) + f" | {_fmt(g['from_chunk']['0']['accuracy'], 2)} |")
-    cubes = [(mode, g) for mode, rows in gates.items() for g in rows if g.get("cube_at_chunk_end")]
-    if cubes:
-        n = max(len(c["kept"]) for _, g in cubes for c in cube_by_view(g).values())
-        lines += ["", "Where the cube goes wrong, at the last frame of each chunk of the full replays (from chunk 1), in "
-                  "each view: the share of replays whose generated view keeps at least half of the recorded "
-                  "cube's pixels / the median distance (px) between the generated and recorded cubes' centres "
-                  "(a successful lift moves the cube 12-17 px in the workspace view, `python -m benchmarks.workspace_view`):", "",
-                  "| mode | budget (min) | step | view | " + " | ".join(f"end of chunk {i + 1}" for i in range(n)) + " |",
-                  "|" + "---|" * (4 + n)]
-        for mode, g in cubes:
-            for view, c in cube_by_view(g).items():
-                lines.append(f"| {mode} | {g['budget_minutes']:g} | {g['step']} | {view} | "
-                             + " | ".join(f"{_fmt(k, 2)} / {_fmt(d, 1)}" for k, d in zip(c["kept"], c["offset_px"])) + " |")
-    if plan.gate_every and GATED_MODE in gates:
-        lines += ["", f"**Verdict:** {gate_verdict(plan, gates[GATED_MODE])}."]
-    lines += ["", f"The latest gate of `{next(iter(gates))}` (workspace view; top recorded, bottom generated):", "",
-              "![gate](gate.png)"]
-    return lines
-
-
-def verdict_pairs(plan: RankingPlan, r: dict, mode: str, name: str) -> list[tuple[bool, bool]]:
-    """``(MuJoCo, world model)`` success of policy ``name`` from each of the world model's starts (the lift judge),
-    from a report's results ``r``."""
-    run = r["evaluations"][mode]["policies"].get(name) or next(iter(r["evaluations"][mode]["policies"].values()))
-    pairs = []
-    for start, row in zip(plan.wm_starts(), run["episodes"]):
-        group, i = divmod(start, plan.real_per_group)
-        pairs.append((bool(r["real"][f"{name}/g{group}"][i]), bool(row[JUDGE_COLUMNS["lift_geometry"]])))
-    return pairs
-
-
-def _start_by_start(plan: RankingPlan, r: dict) -> list[str]:
-    """Where the verdicts part, policy by policy: MuJoCo's and the world model's on the same starts."""
-    lines = ["", "### Start by start", "",
-             "Each policy from the world model's starts, MuJoCo's outcome against the world model's (lift judge). The "
-             "open-loop policies act on the first frame alone, which both runners share (the world model's through "
-             "the dataset's video, within 1 % a pixel on average), so both get about the same actions from them: "
-             "where their verdicts part, the world model drew another outcome of those actions.", "",
-             "| mode | policy | starts | both succeed | world model only | MuJoCo only | both fail | agree |",
-             "|---|---|---|---|---|---|---|---|"]
-    for mode in plan.modes:
-        for name in plan.names:
-            pairs = verdict_pairs(plan, r, mode, name)
-            counts = [sum(p == (real, wm) for p in pairs) for real, wm in
-                      ((True, True), (False, True), (True, False), (False, False))]
-            agree = (counts[0] + counts[3]) / len(pairs)
-            lines.append(f"| {mode} | {name} | {len(pairs)} | " + " | ".join(map(str, counts)) + f" | {agree:.2f} |")
-    return lines
-
-
-def parting_chunks(plan: RankingPlan, r: dict, mode: str, name: str) -> dict | None:
-    """Of policy ``name``'s starts where MuJoCo's verdict and the world model's part: how many first differ at the
-    end of chunk k (``first_at_chunk``, k = 1, 2, ...) in whether the cube is held up, how many at no chunk end
-    (only the judge's majority over the last frames differs), and the median over them of the largest difference
-    between the two runs' actions up to that chunk (rad; large where the closed loop's own frames had already
-    steered the policy elsewhere). None where the results lack the readings at the chunks' ends (runs evaluated
-    before 2026-11-29) or ``mode`` did not run ``name``."""
-    run = r["evaluations"][mode]["policies"].get(name)
-    if run is None or not all("chunk_held" in row for row in run["episodes"]):
-        return None
-    first, gaps = [0] * (plan.chunks + 1), []
-    for (real, wm), row in zip(verdict_pairs(plan, r, mode, name), run["episodes"]):
-        if real != wm:
-            k = next((k for k, (a, b) in enumerate(zip(row["chunk_held"], row["real_chunk_held"])) if a != b),
-                     plan.chunks)
-            first[k] += 1
-            gaps.append(max(row["action_gap"][:k + 1]))
-    return {"parted": sum(first), "first_at_chunk": first[:-1], "at_no_chunk_end": first[-1],
-            "action_gap_median": float(np.median(gaps)) if gaps else None}
-
-
-def _which_chunk(plan: RankingPlan, r: dict) -> list[str]:
-    """Where the verdicts part, chunk by chunk (:func:`parting_chunks`); nothing for results without it."""
-    found = {(mode, name): parting_chunks(plan, r, mode, name) for mode in plan.modes for name in plan.names}
-    if not any(found.values()):
-        return []
-    chunks = " | ".join(f"chunk {k}" for k in range(1, plan.chunks + 1))
-    lines = ["", "Which chunk: of the starts where the two verdicts part, the first chunk at whose last frame the world "
-             "model holds the cube up where MuJoCo does not, or the reverse (the lift judge on that frame); \"at no "
-             "chunk end\" where only the judge's majority over the last frames differs. The action gap: over those "
-             "starts, the median of the largest difference between the two runs' actions up to that chunk (small "
-             "where the policy acted alike in both, as the open-loop ones do, and the world model drew another "
-             "outcome of the same actions).", "",
-             f"| mode | policy | parted | {chunks} | at no chunk end | action gap by then (rad) |",
-             "|---|---|---|" + "---|" * plan.chunks + "---|---|"]
-    for (mode, name), f in found.items():
-        if f:
-            lines.append(f"| {mode} | {name} | {f['parted']} | " + " | ".join(map(str, f["first_at_chunk"]))
-                         + f" | {f['at_no_chunk_end']} | "
-                         + ("" if f["action_gap_median"] is None else f"{f['action_gap_median']:.3f}") + " |")
-    return lines
-
-
-def _stopped_markdown(plan: RankingPlan, r: dict) -> str:
-    """The report of a run that stopped at the early gate: what the gate showed, and the training."""
-    lines = _header(plan, r)
-    stopped = gate_verdict(plan, r["gates"].get(GATED_MODE, [])) == "stop" if plan.gate_every else False
-    lines += [("**Stopped at the early gate**" if stopped else "**Not evaluated yet** (training goes on)")
-              + ": no closed loop was run, so no ranking is reported. What the gates showed:"]
-    lines += _gate(plan, r) + _training(r) + _stage_times(r)
-    return "\n".join(lines) + "\n"
-
-
-def _stage_times(r: dict) -> list[str]:
-    cpu_total = sum(s["cpu_s"] for s in r["stages"].values())
-    wall_total = sum(s["wall_s"] for s in r["stages"].values())
-    lines = ["", "## Time per stage", "", "| stage | CPU min | wall min | commit |", "|---|---|---|---|"]
-    for stage, t in r["stages"].items():
-        lines.append(f"| {stage} | {t['cpu_s'] / 60:.1f} | {t['wall_s'] / 60:.1f} | {', '.join(t['commits'])} |")
-    lines.append(f"| total | {cpu_total / 60:.1f} | {wall_total / 60:.1f} | |")
-    return lines
-
-
-def _markdown(plan: RankingPlan, r: dict) -> str:
-    lines = _header(plan, r)
-    lines += ["## Success per policy", "",
-              "MuJoCo's success (all starts) and the world model's (lift judge), with 95 % Wilson intervals and the "
-              "number of episodes.", ""]
-    header = "| policy | MuJoCo | " + " | ".join(plan.modes) + " |"
-    lines += [header, "|" + "---|" * (2 + len(plan.modes))]
-    first = r["statistics"][plan.modes[0]]["lift_geometry"]
-    for name in plan.names:
-        real = [p for p in first["points"] if p["policy"] == name]
-        n_real = sum(p["n_real"] for p in real)
-        rate_real = sum(p["real"] * p["n_real"] for p in real) / n_real
-        cells = [_rate(rate_real * n_real, n_real)]
-        for mode in plan.modes:
-            pts = [p for p in r["statistics"][mode]["lift_geometry"]["points"] if p["policy"] == name]
-            n = sum(p["n_world_model"] for p in pts)
-            cells.append(_rate(sum(p["world_model"] * p["n_world_model"] for p in pts), n))
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    lines += ["", "## Rank agreement", "",
-              "Per mode and judge, over (policy, group) points; bootstrap 95 % intervals (bias-corrected), "
-              "episodes resampled within each point. MMRV: SIMPLER's mean maximum rank violation (0 is a perfect "
-              "ranking).", "", "| mode | judge | points | " + " | ".join(STATISTICS) + " |",
-              "|" + "---|" * (3 + len(STATISTICS))]
-    for mode in plan.modes:
-        for judge in r["statistics"][mode]:
-            g = r["statistics"][mode][judge]["levels"]["group"]
-            cells = [f"{_fmt(g[s]['value'])}{_ci(g[s]['ci'])}" for s in STATISTICS]
-            lines.append(f"| {mode} | {judge} | {g['n_points']} | " + " | ".join(cells) + " |")
-    lines += ["", _verdict(r["statistics"])]
-    for mode in plan.modes:
-        lines += ["", f"![{mode}](scatter_{slug(mode.replace('+', '_'))}.png)"]
-    lines += _start_by_start(plan, r) + _which_chunk(plan, r)
-    lines += _training(r)
-    lines += _gate(plan, r)
-    j = r["judges"]
-    # replays written before 2026-11-29 used one noise seed
-    pooled = any(rec.get("seeds", 1) > 1 for ev in r["evaluations"].values() for rec in (ev.get("recorded") or {}).values())
-    masked = j.get("cube_masked", {})  # judges measured before 2026-11-28 have no such check
-
-    def _masked(judge: str) -> str:
-        return _fmt(masked[judge]["balanced_accuracy"]) if judge in masked else "not measured"
-
-    lines += ["", "## Judges", "", "Accuracy against MuJoCo's labels; the last column is the balanced accuracy on the "
-              "same frames with the cube painted out (0.5 is chance: the judge reads the cube, not the arm).", "",
-              "| judge | real evaluation episodes | classifier's own held-out split | cube painted out |",
-              "|---|---|---|---|",
-              f"| lift_geometry | {_fmt(j['real']['lift_geometry']['accuracy'])} "
-              f"({j['real']['lift_geometry']['n']}) | | {_masked('lift_geometry')} |",
-              (f"| classifier | {_fmt(j['real']['classifier']['accuracy'])} ({j['real']['classifier']['n']}) | "
-               f"{_fmt(j['classifier_training']['heldout']['accuracy'])} "
-               f"({j['classifier_training']['heldout']['n']} training rollouts) | {_masked('classifier')} |"
-               if "classifier" in j["real"]
-               else f"| classifier | not trained: {j['classifier_training']['skipped']} | | |"), "",
-              "On generated rollouts of the recorded actions (real episodes replayed in the world model, judged on "
-              "the generated frames" + ("; each episode with every noise seed, the verdicts pooled, each seed's own in "
-                                        "brackets):" if pooled else ", one noise seed each):"),
-              "", "| mode | Euler steps | episodes | lift_geometry | classifier |", "|---|---|---|---|---|"]
-
-    def _replayed(rec: dict, judge: str) -> str:
-        per_seed = (rec.get("accuracy_per_seed") or {}).get(judge) or []
-        return _fmt(rec["accuracy"].get(judge)) + (f" [{', '.join(_fmt(a) for a in per_seed)}]" if len(per_seed) > 1
-                                                   else "")
-
-    for mode, ev in r["evaluations"].items():
-        for steps, rec in (ev.get("recorded") or {}).items():
-            seeds = rec.get("seeds", 1)  # replays written before 2026-11-29 used one seed
-            lines.append(f"| {mode} | {steps} | {len(rec['episodes'])} ({sum(rec['labels'])} successes)"
-                         f"{f' x {seeds} seeds' if seeds > 1 else ''} | {_replayed(rec, 'lift_geometry')} | "
-                         f"{_replayed(rec, 'classifier')} |")
-    lines += ["", "RGB error (MSE, [0, 1]) of those replays against the recording, per chunk of 8 frames, in each view "
-                  "and over both; the controls of every chunk after the first are rebuilt from the generated depth:", "",
-              "| mode | Euler steps | view | " + " | ".join(f"chunk {n + 1}" for n in range(plan.chunks)) + " |",
-              "|" + "---|" * (3 + plan.chunks)]
-    for mode, ev in r["evaluations"].items():
-        for steps, rec in (ev.get("recorded") or {}).items():
-            by_view = {**(rec.get("mse_per_chunk_by_view") or {}), "all views": rec["mse_per_chunk"]}
-            for view, errors in by_view.items():
-                lines.append(f"| {mode} | {steps} | {view} | " + " | ".join(_fmt(x, 4) for x in errors) + " |")
-    lines += ["", "The same replays: RGB error over the pixels that move in the recording (`mse_moving`), the share of "
-                  "generated depth that decodes to metres, its median error, and chunk 2's s2g contact image in the "
-                  "workspace view painting the cube near a future gripper (rebuilt online from the generated depth / "
-                  "recorded):", "", "| mode | Euler steps | moving-pixel MSE per chunk | depth valid per chunk | "
-                  "median depth error (mm) | chunk-2 cube contact, rebuilt / recorded |", "|---|---|---|---|---|---|"]
-    for mode, ev in r["evaluations"].items():
-        for steps, rec in (ev.get("recorded") or {}).items():
-            contact = rec.get("chunk2_cube_contact") or {}
-            cells = [", ".join(_fmt(x, 4) for x in rec.get("mse_moving_per_chunk", [])),
-                     ", ".join(_fmt(x, 4) for x in rec.get("depth_valid_per_chunk", [])),
-                     ", ".join(f"{1000 * x:.0f}" for x in rec.get("depth_median_error_m_per_chunk", [])),
-                     (f"{contact['rebuilt_present']} / {contact['recorded_present']} of {contact['replays']}"
-                      if contact.get("replays") else "no contact stream")]
-            lines.append(f"| {mode} | {steps} | " + " | ".join(cells) + " |")
-    none = r["evaluations"].get("none", {}).get("none_check")
-    if none:
-        lines += ["", f"**Negative control.** `none` from the same starts and seeds gives bit-identical frames to "
-                      f"{' and '.join(none['policies'])}: {none['bit_identical']} (starts {none['starts']}); it is run "
-                      "once per start and its verdicts stand for every policy."]
-    lines += ["", "## Action sensitivity", "",
-              "Mean |difference| of two samples that differ only in the right arm's waist and shoulder actions, "
-              "inside the region where their motion images differ and outside both robots (same noise).", "",
-              "| mode | inside | outside | ratio | samples |", "|---|---|---|---|---|"]
-    for mode, ev in r["evaluations"].items():
-        s = ev["sensitivity"]
-        lines.append(f"| {mode} | {_fmt(s['inside'], 4)} | {_fmt(s['outside'], 4)} | {_fmt(s['ratio'], 2)} | "
-                     f"{s['samples']} |")
-    if r["examples"]:
-        lines += ["", "## Rollouts side by side", ""]
-        for outcome, (policy, start) in r["examples"].items():
-            lines += [f"A start where `{policy}` {'succeeded' if outcome == 'success' else 'failed'} in MuJoCo "
-                      f"(start {start}): top MuJoCo, bottom the world model; views: {', '.join(plan.views)}.", "",
-                      f"![{outcome}](rollout_{outcome}.png)", ""]
-    lines += _stage_times(r)
-    return "\n".join(lines) + "\n"
