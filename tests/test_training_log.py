@@ -1,13 +1,9 @@
 """A run's training log (imac_model/training/log.py): a run continued from another's last weights
 (the GPU preset's INIT) reads as one run, its steps and samples going on from the first's end; a
-long stage reads its runs' logs to say how far they are."""
+training run's progress, read from its log."""
 
 from __future__ import annotations
 
-import sys
-from functools import partial
-
-from imac_model.experiments.stages import run_all
 from imac_model.training.log import continued_log, progress_line, write_log
 
 
@@ -34,21 +30,11 @@ def test_a_continued_run_counts_from_where_the_first_ended():
     assert sum("summary" in r for r in rows) == 1 and "summary" in rows[-1]
 
 
-def test_a_long_stage_says_how_its_training_run_is_doing(tmp_path, capsys):
-    """run_all's heartbeat: a job still running gets a line with what its progress callable reads
-    from the run's log (step, CPU-minutes of the budget, losses); a job without one, its time."""
+
+def test_a_runs_progress_is_read_from_its_log(tmp_path):
     run = tmp_path / "run"
     write_log(run, [{"step": 10, "loss": 0.5, "cpu_s": 30.0}, {"step": 20, "loss": 0.25, "heldout_loss": 0.3, "cpu_s": 60.0},
                     {"step": 30, "loss": 0.125, "cpu_s": 90.0}])
     assert progress_line(run, 60) == "step 30, 1.5 of 60 CPU-minutes, loss 0.125, held-out 0.3 (step 20)"
+    assert progress_line(run) == "step 30, 1.5 CPU-minutes, loss 0.125, held-out 0.3 (step 20)"
     assert progress_line(tmp_path / "none yet", 60) is None
-    (run / "log.jsonl").write_text('{"step": 1, "lo')  # half-written: a heartbeat must not stop the jobs
-    sleep = [sys.executable, "-c", "import time; time.sleep(1.2)"]
-    run_all([("train", sleep, tmp_path / "train.log", partial(progress_line, run, 60)),
-             ("gate", sleep, tmp_path / "gate.log")], 2, tag="t", heartbeat_s=0.4)
-    lines = capsys.readouterr().err.splitlines()
-    assert any(line.startswith("[t]   gate: 0 min") for line in lines)
-    assert any(line == "[t]   train: 0 min" for line in lines)  # the log half-written: its time alone
-    write_log(run, [{"step": 40, "loss": 0.1, "cpu_s": 120.0}])
-    run_all([("train", sleep, tmp_path / "train.log", partial(progress_line, run, 60))], 1, tag="t", heartbeat_s=0.4)
-    assert "[t]   train: 0 min, step 40, 2.0 of 60 CPU-minutes, loss 0.1" in capsys.readouterr().err.splitlines()

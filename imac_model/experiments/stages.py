@@ -4,13 +4,16 @@ its work, so an interrupted experiment resumes where it stopped."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
 import resource
 import shlex
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -80,40 +83,84 @@ class StageLog:
 
 
 HEARTBEAT_S = 300.0  # how often run_all says how its long jobs are doing
+STOP_GRACE_S = 10.0  # how long stopped jobs get to end on their own before they are killed
 
 
 def run_all(commands: list[tuple], jobs: int, tag: str = "experiment", heartbeat_s: float = HEARTBEAT_S) -> None:
     """Run ``(name, argv, log file[, progress])`` subprocesses, ``jobs`` at a time; raise if one fails.
     Every ``heartbeat_s`` each running job gets a line: how long it has run and, where it has a
     ``progress`` callable, what that returns (a training run's step and budget), so an hours-long
-    stage is not silent."""
+    stage is not silent. Each job runs in a process group of its own, and whatever stops this process
+    (Ctrl-C, SIGTERM, an error) stops its running jobs with it: a job left running would go on writing
+    the checkpoints that the rerun resumes from."""
     pending, running, failed = [tuple(c) + (None,) * (4 - len(c)) for c in commands], [], []
     next_beat = time.time() + heartbeat_s
-    while pending or running:
-        while pending and len(running) < jobs:
-            name, argv, log, progress = pending.pop(0)
-            log.parent.mkdir(parents=True, exist_ok=True)
-            f = open(log, "a")
-            proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=subprocess_env())
-            running.append((name, proc, f, log, progress, time.time()))
-            print(f"[{tag}]   started {name} (log {log})", file=sys.stderr, flush=True)
-        time.sleep(min(0.5, heartbeat_s))
-        for item in list(running):
-            name, proc, f, log, _, _ = item
-            if proc.poll() is not None:
-                f.close()
-                running.remove(item)
-                if proc.returncode:
-                    failed.append(f"{name} (exit {proc.returncode}, log {log})")
-                print(f"[{tag}]   finished {name} (exit {proc.returncode})", file=sys.stderr, flush=True)
-        if running and time.time() >= next_beat:
-            next_beat = time.time() + heartbeat_s
-            for name, _, _, _, progress, started in running:
-                said = _progress(progress)
-                print(f"[{tag}]   {name}: {(time.time() - started) / 60:.0f} min" + (f", {said}" if said else ""),
-                      file=sys.stderr, flush=True)
+    terminate = _terminate_on_sigterm()
+    try:
+        while pending or running:
+            while pending and len(running) < jobs:
+                name, argv, log, progress = pending.pop(0)
+                log.parent.mkdir(parents=True, exist_ok=True)
+                f = open(log, "a")
+                proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=subprocess_env(),
+                                        start_new_session=True)
+                running.append((name, proc, f, log, progress, time.time()))
+                print(f"[{tag}]   started {name} (log {log})", file=sys.stderr, flush=True)
+            time.sleep(min(0.5, heartbeat_s))
+            for item in list(running):
+                name, proc, f, log, _, _ = item
+                if proc.poll() is not None:
+                    f.close()
+                    running.remove(item)
+                    if proc.returncode:
+                        failed.append(f"{name} (exit {proc.returncode}, log {log})")
+                    print(f"[{tag}]   finished {name} (exit {proc.returncode})", file=sys.stderr, flush=True)
+            if running and time.time() >= next_beat:
+                next_beat = time.time() + heartbeat_s
+                for name, _, _, _, progress, started in running:
+                    said = _progress(progress)
+                    print(f"[{tag}]   {name}: {(time.time() - started) / 60:.0f} min" + (f", {said}" if said else ""),
+                          file=sys.stderr, flush=True)
+    except BaseException:
+        _stop([item[1] for item in running], tag)
+        raise
+    finally:
+        for item in running:
+            item[2].close()
+        terminate()
     if failed:
         raise RuntimeError("failed: " + "; ".join(failed))
+
+
+def _terminate_on_sigterm() -> Callable[[], None]:
+    """SIGTERM ends this process as an exception (exit 143) while jobs run, so that they are stopped
+    too; returns what puts the previous handler back."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def handler(signum, frame):
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    return lambda: signal.signal(signal.SIGTERM, previous)
+
+
+def _stop(procs: list[subprocess.Popen], tag: str) -> None:
+    """Stop jobs as a terminal's Ctrl-C would (SIGINT to each one's process group: a job and the
+    processes it started), and kill those still running after STOP_GRACE_S."""
+    alive = [p for p in procs if p.poll() is None]
+    if alive:
+        print(f"[{tag}]   stopping {len(alive)} running job(s)", file=sys.stderr, flush=True)
+    for sig in (signal.SIGINT, signal.SIGKILL):
+        for p in alive:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(p.pid, sig)
+        deadline = time.time() + STOP_GRACE_S
+        while alive and time.time() < deadline:
+            alive = [p for p in alive if p.poll() is None]
+            time.sleep(0.1)
+        if not alive:
+            return
 
 
 def _progress(progress: Callable[[], str | None] | None) -> str | None:
