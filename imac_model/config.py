@@ -234,7 +234,7 @@ class TrainConfig:
     grad_clip: float = 1.0
     max_steps: int = 1000
     max_minutes: float | None = None  # also stop (with a checkpoint) after this much training wall time
-    max_cpu_minutes: float | None = None  # ... or this much CPU time of the process (a budget on a shared machine)
+    max_cpu_minutes: float | None = None  # ... or this much CPU time, all processes summed (a budget on a shared machine)
     ema_decay: float = 0.999  # 0 disables EMA
     log_every: int = 10
     eval_every: int = 100  # held-out flow loss every N steps (and at the start and end)

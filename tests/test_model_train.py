@@ -2,7 +2,10 @@
 the training and sampling CLIs, exact resume, and bad input."""
 
 import json
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -19,7 +22,9 @@ from imac_model.cli import main as model_main
 from imac_model.config import DataConfig, load_run_config
 from imac_model.data.chunks import ChunkDataset, open_metadata, resolve_layout
 from imac_model.training import train as train_cli
+from imac_model.training.log import read_log
 
+ROOT = Path(__file__).resolve().parents[1]
 CHUNK = 4
 VIEWS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
 TINY = ["--set", "backbone.small.dim=32", "--set", "backbone.small.depth=1", "--set", "backbone.small.heads=2",
@@ -240,3 +245,23 @@ def test_unreadable_checkpoints_are_named(trained, tmp_path, capsys):
 
     with pytest.raises(InputError, match="holds checkpoints of another model"):
         train_cli.train(run, progress=False)
+
+
+def test_data_parallel_on_the_cpu_trains_one_run_over_both_processes(dataset, tmp_path):
+    """torchrun on a machine without a GPU: two gloo processes train one run of the global batch (not two copies
+    writing one directory): one log whose rows count both processes and their CPU time, and the held-out losses of
+    one process trained on the same batches."""
+    one, two = tmp_path / "one", tmp_path / "two"
+    args = ["--set", "train.max_steps=4", "--set", "train.eval_every=2", "--set", "train.cpu_threads=1"]
+    assert model_main(["train", *run_args(dataset, one, *args)]) == 0
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    env.pop("CUDA_VISIBLE_DEVICES", None)
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+                           "-m", "imac_model", "train", *run_args(dataset, two, *args)], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    a, b = read_log(one), read_log(two)
+    assert [r["step"] for r in b] == [r["step"] for r in a] == [0, 1, 2, 3, 4]  # one log, not one per process
+    assert [r.get("processes") for r in a[1:]] == [1] * 4 and [r.get("processes") for r in b[1:]] == [2] * 4
+    held = [(x["heldout_loss"], y["heldout_loss"]) for x, y in zip(a, b) if "heldout_loss" in x]
+    assert len(held) == 3 and all(abs(x - y) <= 2e-3 * abs(x) for x, y in held), held

@@ -167,7 +167,8 @@ def balanced_loss(out, runtime) -> torch.Tensor:
 
 class AccelerateRuntime:
     """The unsharded trainer's side of ``accelerate``: one process, or DDP over several
-    (``accelerate launch``), bf16 autocast, clipping, checkpoints as safetensors."""
+    (``accelerate launch`` or ``torchrun``; gloo on a machine without a GPU), bf16 autocast, clipping,
+    checkpoints as safetensors."""
 
     sharded = False
 
@@ -177,7 +178,11 @@ class AccelerateRuntime:
         precision = run.train.mixed_precision
         if precision == "auto":
             precision = "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"
-        self.accelerator = Accelerator(mixed_precision=precision, log_with=run.train.tracker, project_dir=str(out))
+        # several processes and no GPU (torchrun on a CPU machine): accelerate runs data-parallel over gloo only
+        # when told to use the CPU; otherwise every process would train alone, into the same directory
+        cpu = not torch.cuda.is_available() and int(os.environ.get("WORLD_SIZE", "1")) > 1
+        self.accelerator = Accelerator(mixed_precision=precision, log_with=run.train.tracker, project_dir=str(out),
+                                       cpu=cpu)
         self.tracker = self.accelerator if run.train.tracker else None
         self.main = self.accelerator.is_main_process
         self.rank, self.world = self.accelerator.process_index, self.accelerator.num_processes
@@ -363,7 +368,15 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
         write_log(out, log_rows)
     if log_rows:  # a resumed run: the logged times continue
         t_wall -= log_rows[-1].get("wall_s", 0.0)
-        t_cpu -= log_rows[-1].get("cpu_s", 0.0)
+    # the run's CPU time so far, summed over its processes (only the main one reads the log)
+    cpu_before = float(runtime.all_reduce_sum(torch.tensor(
+        [log_rows[-1].get("cpu_s", 0.0) if log_rows else 0.0], dtype=torch.float64, device=device))[0])
+
+    def cpu_seconds() -> float:
+        """Process CPU seconds of the run, every process's summed (train.max_cpu_minutes and the log's cpu_s):
+        a collective where the run has several processes, so every process calls it at the same steps."""
+        mine = torch.tensor([time.process_time() - t_cpu], dtype=torch.float64, device=device)
+        return cpu_before + float(runtime.all_reduce_sum(mine)[0])
 
     def save(at: int) -> Path | None:
         path = runtime.save(out / "checkpoints" / f"step_{at:06d}", model=model, optimizer=optimizer,
@@ -437,7 +450,7 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
         bar.update(1)
         bar.set_postfix(loss=f"{window[-1]:.4f}")
         timed_out = ((tc.max_minutes is not None and time.time() - t_wall > 60 * tc.max_minutes)
-                     or (tc.max_cpu_minutes is not None and time.process_time() - t_cpu > 60 * tc.max_cpu_minutes))
+                     or (tc.max_cpu_minutes is not None and cpu_seconds() > 60 * tc.max_cpu_minutes))
         if timed:
             timed_out = runtime.any(timed_out)
         interrupted = stop_after_steps is not None and step - start_step >= stop_after_steps
@@ -460,8 +473,8 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
             extras = {}
             if step % tc.eval_every == 0 or done:
                 row.update(evaluate())
-            row.update(wall_s=round(now - t_wall, 3), cpu_s=round(time.process_time() - t_cpu, 3),
-                       load=round(os.getloadavg()[0], 2))
+            row.update(wall_s=round(now - t_wall, 3), cpu_s=round(cpu_seconds(), 3),
+                       load=round(os.getloadavg()[0], 2), processes=world)
             emit(row)
             window, t_window = [], time.time()
         if step % tc.checkpoint_every == 0 or done:
