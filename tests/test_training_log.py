@@ -37,4 +37,7 @@ def test_a_runs_progress_is_read_from_its_log(tmp_path):
                     {"step": 30, "loss": 0.125, "cpu_s": 90.0}])
     assert progress_line(run, 60) == "step 30, 1.5 of 60 CPU-minutes, loss 0.125, held-out 0.3 (step 20)"
     assert progress_line(run) == "step 30, 1.5 CPU-minutes, loss 0.125, held-out 0.3 (step 20)"
+    # with its wall time: what is left of the budget at the CPU a wall second it has had (here half a core)
+    write_log(run, [{"step": 30, "loss": 0.125, "cpu_s": 90.0, "wall_s": 180.0}])
+    assert progress_line(run, 60) == "step 30, 1.5 of 60 CPU-minutes (about 117 min to go), loss 0.125"
     assert progress_line(tmp_path / "none yet", 60) is None

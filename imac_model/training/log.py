@@ -58,6 +58,9 @@ def progress_line(run: str | Path, cpu_minutes: float | None = None) -> str | No
     said = f"step {last['step']:,}"
     if "cpu_s" in last:
         said += f", {last['cpu_s'] / 60:.1f}" + (f" of {cpu_minutes:g}" if cpu_minutes else "") + " CPU-minutes"
+        if cpu_minutes and last.get("wall_s") and last["cpu_s"] > 0:  # at the CPU a wall second it has had so far
+            left = max(0.0, 60 * cpu_minutes - last["cpu_s"]) * last["wall_s"] / last["cpu_s"]
+            said += f" (about {left / 60:.0f} min to go)"
     if last.get("loss") is not None:
         said += f", loss {last['loss']:.4g}"
     held = next((r for r in reversed(rows) if r.get("heldout_loss") is not None), None)
