@@ -235,7 +235,8 @@ def _acquire(path: Path, root: Path, wait: bool, who: str = "build",
 
 
 def lock_holder(root: Path) -> str | None:
-    """The PID of the process that holds ``root``'s lock now, or None: a look that takes nothing."""
+    """The PID of the process that holds ``root``'s lock now, or None. It holds a shared lock for an instant
+    only, and never waits."""
     try:
         fd = os.open(lock_path(root), os.O_RDONLY | os.O_CLOEXEC)
     except FileNotFoundError:
