@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from imac_data.core.contact.batched import contact_batch
 from imac_data.core.contact.images import (
     DEFAULT_TOLERANCE,
     JET_LUT,
@@ -26,7 +27,7 @@ from imac_data.core.contact.images import (
     scene_cloud,
 )
 from imac_data.core.contact.workspace import Workspace, resolve_workspace, saturation_depth
-from imac_data.core.depth import DepthCodec
+from imac_data.core.depth import DepthCodec, resize_depth
 from imac_data.core.rig import Rig
 from imac_data.core.robot.aloha import robot_config
 from imac_data.core.robot.model import RobotModel
@@ -600,3 +601,71 @@ def test_workspace_crop_keeps_far_and_saturated_depth_out_of_the_caps(grasp):
     assert len(errors) >= 12 and errors[:, 0].min() < 0.002
     assert np.abs(errors[:, 1] - errors[:, 0]).max() <= 0.005  # the distances themselves
     assert np.abs(errors[:, 2] - errors[:, 0]).max() <= tol, errors  # what the dataset stores
+
+
+# ----------------------------------------------------------------------------- batched (the accelerator's form)
+
+
+def test_batched_contact_is_contact_chunk_on_real_frames(grasp):
+    """contact_batch (blocked brute force, what a GPU rebuilds a rollout's contact images with) against
+    contact_chunk with exact searches, per chunk, on MuJoCo's depth and the rig's renders at 30x40 (approach,
+    grasp and lift; the rig's workspace crop; every 8th gripper sample, to keep the CPU's brute force short), with
+    blocks small enough to split items and rows: the same NaN pattern, distances within 2e-6 m, the same caps,
+    colours within a level."""
+    rig, hw = grasp["rig"], (30, 40)
+    refs = [16, 24, 40]
+    frames = [list(range(r + 1, r + 5)) for r in refs]
+    seen = rig.robot_views(grasp["q"][refs], resolution=hw, gripper=False)
+    drawn = rig.robot_views(grasp["q"][sum(frames, [])], resolution=hw)
+    drawn.gripper_points = drawn.gripper_points[:, ::8]
+    V = len(rig.names)
+    depth = resize_depth(grasp["depth"][refs], hw)
+    K = rig.intrinsics(hw)
+    B, S = len(refs), 4
+    got = contact_batch(depth, K, seen.T_world_cam, seen.mask, drawn.depth.reshape(B, S, V, *hw),
+                        drawn.T_world_cam.reshape(B, S, V, 4, 4), drawn.gripper_points.reshape(B, S, -1, 3),
+                        workspace=rig.workspace, method="brute", block=200_000)
+    for b in range(B):
+        want = contact_chunk(depth[b], K, seen.T_world_cam[b], seen.mask[b], drawn.depth[b * S:(b + 1) * S],
+                             drawn.T_world_cam[b * S:(b + 1) * S], drawn.gripper_points[b * S:(b + 1) * S],
+                             tolerance=None, workspace=rig.workspace)
+        for name in ("r2s", "s2g"):
+            torch.testing.assert_close(getattr(got, name)[b], getattr(want, name), equal_nan=True, atol=2e-6, rtol=0)
+            assert (getattr(got, name + "_rgb")[b].int() - getattr(want, name + "_rgb").int()).abs().max() <= 1
+        torch.testing.assert_close(got.caps[b], want.caps, atol=2e-6, rtol=0)
+        assert torch.isfinite(want.r2s[~torch.isnan(want.r2s)]).all() and (~torch.isnan(want.s2g)).sum() > 100
+
+
+def test_batched_contact_pads_empty_scenes_and_fixed_caps_as_contact_chunk():
+    """Chunks of different sizes in one batch (one with no valid reference depth: an empty scene, one with
+    no robot at a step), percentile and fixed caps, hole filling, brute force and KD-trees: every chunk as
+    contact_chunk paints it alone (exact searches, allow_empty_scene)."""
+    g = torch.Generator().manual_seed(0)
+    B, S, V, H, W, M = 3, 3, 2, 10, 12, 40
+    K = torch.tensor([[12.0, 0, 5.5], [0, 12.0, 4.5], [0, 0, 1]]).expand(V, 3, 3).clone()
+    T_ref = torch.eye(4).expand(B, V, 4, 4).clone()
+    T_ref[..., :3, 3] = 0.05 * torch.randn(B, V, 3, generator=g)
+    T = torch.eye(4).expand(B, S, V, 4, 4).clone()
+    T[..., :3, 3] = 0.05 * torch.randn(B, S, V, 3, generator=g)
+    depth = 0.6 + 0.2 * torch.rand(B, V, H, W, generator=g)
+    depth[0, 0, :4] = 0.0
+    depth[1, 1, 2, 3] = float("nan")
+    depth[2] = 0.0  # nothing in the scene
+    mask = torch.rand(B, V, H, W, generator=g) < 0.15
+    robot = torch.rand(B, S, V, H, W, generator=g) < 0.3
+    robot[1, 2] = False  # a step without the robot in view
+    rd = torch.where(robot, 0.4 + 0.2 * torch.rand(B, S, V, H, W, generator=g), 0.0)
+    grip = 0.1 * torch.randn(B, S, M, 3, generator=g) + torch.tensor([0.0, 0.0, 0.6])
+    for cap, method in ((None, "brute"), ((0.05, 0.08), "brute"), (None, "kdtree")):
+        got = contact_batch(depth, K, T_ref, mask, rd, T, grip, cap=cap, fill_px=1, method=method)
+        for b in range(B):
+            want = contact_chunk(depth[b], K, T_ref[b], mask[b], rd[b], T[b], grip[b], cap=cap, fill_px=1,
+                                 tolerance=None, allow_empty_scene=True)
+            for name in ("r2s", "s2g"):
+                torch.testing.assert_close(getattr(got, name)[b], getattr(want, name), equal_nan=True, atol=1e-6,
+                                           rtol=0)
+                assert torch.equal(getattr(got, name + "_rgb")[b], getattr(want, name + "_rgb"))
+            torch.testing.assert_close(got.caps[b], want.caps, atol=1e-6, rtol=0)
+    assert torch.isinf(got.r2s[2][robot[2]]).all() and torch.isnan(got.s2g[2]).all()
+    with pytest.raises(InputError, match=r"gripper points must be \(B, S, M, 3\)"):
+        contact_batch(depth, K, T_ref, mask, rd, T, grip[:, :1])

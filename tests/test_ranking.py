@@ -58,6 +58,7 @@ from imac_model.experiments.stages import REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.online_controls import OnlineControls
+from imac_model.pipelines.packed_contact import PackedContact
 from imac_model.pipelines.rollout import last_frame, rollout_loss
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.training import train as train_cli
@@ -757,6 +758,66 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
             summary = json.loads(archive.extractfile("log.jsonl").read().decode().splitlines()[-1])["summary"]
         assert summary["rollout_chunks"] == rollout and summary["steps"] >= 1
         assert summary["batch_size"] == 16 and summary["samples"] == summary["steps"] * (16 // rollout) * rollout
+
+
+def test_the_pack_paints_contact_images_as_the_renderer_does(toy_run, tmp_path):
+    """CONTACT=rebuild: the pack's contact geometry, with torch alone, paints the contact images OnlineControls paints
+    with the renderer (both with exact searches) from the same references; in a rollout chunk 2 gets them painted
+    from the model's own reference, and the GPU script trains motion+contact so."""
+    work, docs = toy_run
+    assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
+    plan = RankingPlan.load(work / "plan.json")
+    pack = Pack(plan.pack)
+    packed = PackedContact.from_pack(pack)
+    online = OnlineControls.from_dataset(plan.train_dataset, pack.spec)
+    online.contact_options["tolerance"] = None
+    e = int(pack.tensors["episode_index"][pack.train[0]])
+    mine = torch.nonzero(pack.tensors["episode_index"] == e).flatten()
+    chunks = open_chunks(pack.spec, TRAIN_REPO, str(plan.train_dataset), episodes=[e])
+    items = [chunks[i] for i in range(len(chunks))]
+    assert len(items) == len(mine) >= 2
+    assert all(torch.equal(pack.tensors["reference"][j], it["reference"]) for j, it in zip(mine, items))
+    reference = torch.stack([it["reference"] for it in items]).float() / 255.0
+    got, invalid = packed.controls(reference, mine)
+    want = online.controls(reference, torch.stack([it["state"] for it in items]),
+                           torch.stack([it["actions"] for it in items]), streams=("contact_s2g", "contact_r2s"))
+    torch.testing.assert_close(invalid, want.invalid_fraction)
+    for s in ("contact_s2g", "contact_r2s"):
+        assert got[s].shape == want.controls[s].shape == (len(items), *items[0][f"control.{s}"].shape)
+        difference = (got[s] - want.controls[s]).abs()
+        assert difference.max() <= 1.5 / 255 and (difference > 0).float().mean() < 1e-3  # a colour level at ties
+        assert got[s].amax() > 0  # painted, not black
+
+    streams = streams_of_mode("motion+contact")
+    model = WorldModel(spec_for_mode(pack.spec, "motion+contact"))
+    clips = pack.clips(2)[:2]
+    clip = [pack.batch(clips[:, r], streams) for r in range(2)]
+    result = rollout_loss(model, clip, None, generator=torch.Generator().manual_seed(0),
+                          rebuild=lambda r, ref: packed.controls(ref, clips[:, r]))
+    assert not torch.equal(result.references[1], clip[1].reference)
+    painted, _ = packed.controls(result.references[1], clips[:, 1])
+    for s in ("contact_s2g", "contact_r2s"):
+        assert torch.equal(result.controls[1][s], painted[s]) and not torch.equal(painted[s], clip[1].controls[s])
+    assert torch.equal(result.controls[1]["motion"], clip[1].controls["motion"])
+    with pytest.raises(InputError, match="only a rollout"):
+        train_pack(pack, "motion+contact", tmp_path / "no_rollout", minutes=0.001, rebuild_contact=True)
+    pack.geometry = None
+    with pytest.raises(InputError, match="carries no contact geometry"):
+        train_pack(pack, "motion+contact", tmp_path / "old_pack", minutes=0.001, rollout_chunks=2, rebuild_contact=True)
+
+    out = tmp_path / "gpu_out"
+    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ROLLOUT": "2", "CONTACT": "rebuild", "BATCH": "8",
+           "ROLLOUT_STEPS": "1", "PACK": str(plan.pack), "PYTHON": sys.executable}
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "keeps the recorded" not in done.stdout + done.stderr  # nothing recorded is kept now
+    for name, rebuilt in (("motion_contact", True), ("action_vector", False)):
+        with tarfile.open(out / f"{name}.tar") as archive:
+            summary = json.loads(archive.extractfile("log.jsonl").read().decode().splitlines()[-1])["summary"]
+        assert summary["rebuild_contact"] is rebuilt and summary["steps"] >= 1
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env={**env, "ROLLOUT": "1"},
+                          capture_output=True, text=True)
+    assert done.returncode == 2 and "CONTACT=rebuild rebuilds a rollout's contact images" in done.stderr
 
 
 def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):

@@ -69,14 +69,16 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
                  taus: Sequence[torch.Tensor] | None = None, noises: Sequence[torch.Tensor] | None = None,
                  autocast=None, rows: tuple[int, int] = (0, 1),
                  loss_of: Callable | None = None, stored_contact: bool = False,
-                 reference_steps: int = 0) -> RolloutOutput:
+                 reference_steps: int = 0, rebuild: Callable | None = None) -> RolloutOutput:
     """The training-time rollout loss of a batch of clips: ``clip[r]`` is chunk r of every
     clip. See the module docstring. ``backward(loss_r / R)`` is called per chunk when given
     (then the returned loss is detached). ``taus``/``noises`` fix each chunk's draws (tests).
     ``rows``: the data-parallel slice of :meth:`WorldModel.forward`; ``loss_of(out)``: the
     chunk's loss to train on (default ``out.loss``; data-parallel training rebalances it).
     ``stored_contact``: chunk r > 1 keeps its recorded contact images and only its reference is
-    the model's own (a machine without the renderer: the GPU preset's pack trainer).
+    the model's own. ``rebuild(r, reference)``: chunk r's contact controls and invalid-depth shares
+    ``(dict, (B,))`` from its reference, instead of ``online`` (a machine without the renderer: the GPU
+    preset's pack trainer, :class:`~imac_model.pipelines.packed_contact.PackedContact`).
     ``reference_steps`` k > 0: chunk r > 1 starts from the last frame of ``k`` sampler steps on chunk
     r-1's inputs (no gradient; noise drawn for the global batch, as the loss's) instead of the one-step
     estimate, whose noised input holds a share tau of the true future (docs/world-model.md)."""
@@ -86,7 +88,7 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
     base = getattr(model, "module", model)  # under DDP the world model is .module
     streams = tuple(base.active_streams(None if streams is None else tuple(streams)))
     rebuild_contact = _contact_active(streams) and not clean_reference and not stored_contact
-    if rebuild_contact and online is None:
+    if rebuild_contact and online is None and rebuild is None:
         raise InputError("rollout: rebuilding contact images needs the dataset's OnlineControls")
     autocast = autocast or contextlib.nullcontext
     result = RolloutOutput(loss=torch.zeros(()), chunk_losses=[], references=[], controls=[])
@@ -97,7 +99,11 @@ def rollout_loss(model, clip: Sequence[ChunkBatch], online: OnlineControls | Non
             chunk = batch
         else:
             controls = dict(batch.controls)
-            if rebuild_contact:
+            if rebuild_contact and rebuild is not None:
+                rebuilt_controls, invalid = rebuild(r, reference)
+                controls.update(rebuilt_controls)
+                result.invalid_depth.append(float(invalid.mean()))
+            elif rebuild_contact:
                 if q_ref is None or commanded_state:  # what a closed loop knows: the last command
                     if q_prev is None:
                         raise InputError("rollout: no reference state (observation.state) in the clip's first "

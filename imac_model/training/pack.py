@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from imac_data.errors import InputError
-from imac_model.config import REBUILT_STREAMS, ModelSpec, parse
+from imac_model.config import CONTACT_STREAMS, REBUILT_STREAMS, ModelSpec, parse
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.checkpoint import (
     load_world_model,
@@ -37,6 +37,7 @@ from imac_model.models.checkpoint import (
     weights_sha256,
 )
 from imac_model.models.world_model import WorldModel
+from imac_model.pipelines.packed_contact import GEOMETRY_KEY, PackedContact
 from imac_model.pipelines.rollout import rollout_loss
 from imac_model.training.archive import run_name, unpack_checkpoint
 from imac_model.training.log import write_log
@@ -50,9 +51,12 @@ REFERENCE_FOLLOWS = "reference_follows"  # see _shared_references
 # --------------------------------------------------------------------------- the pack
 
 
-def pack_arrays(items: list[dict], held_out: list[bool], spec: ModelSpec) -> dict[str, np.ndarray]:
+def pack_arrays(items: list[dict], held_out: list[bool], spec: ModelSpec,
+                geometry: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Chunk items (``ChunkDataset`` items, every control stream) -> a pack's arrays; ``held_out``
-    flags the held-out episodes' items. Controls keep their top row (the mosaic duplicates it)."""
+    flags the held-out episodes' items. Controls keep their top row (the mosaic duplicates it).
+    ``geometry``: the items' contact geometry (:mod:`imac_model.pipelines.packed_contact`), so the
+    pack's trainer can rebuild contact images from its own references."""
     h = spec.view_height
     arrays = {
         "reference": np.stack([it["reference"].numpy() for it in items]),
@@ -65,6 +69,7 @@ def pack_arrays(items: list[dict], held_out: list[bool], spec: ModelSpec) -> dic
     }
     for key in [k for k in items[0] if k.startswith("control.")]:  # every stream the items carry, derived ones too
         arrays[key] = np.stack([it[key][:, :, :h].numpy() for it in items])
+    arrays.update(geometry or {})
     return _shared_references(arrays)
 
 
@@ -95,9 +100,10 @@ def _references(arrays: dict[str, np.ndarray]) -> np.ndarray:
     return ref
 
 
-def export_pack(items: list[dict], held_out: list[bool], spec: ModelSpec, path: str | Path) -> Path:
+def export_pack(items: list[dict], held_out: list[bool], spec: ModelSpec, path: str | Path,
+                geometry: dict[str, np.ndarray] | None = None) -> Path:
     """:func:`pack_arrays` written as one ``.npz``, atomically."""
-    return write_pack(pack_arrays(items, held_out, spec), path)
+    return write_pack(pack_arrays(items, held_out, spec, geometry), path)
 
 
 def write_pack(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
@@ -133,7 +139,9 @@ class Pack:
         self.spec = parse(ModelSpec, json.loads(str(arrays[SPEC_KEY])), "")
         arrays = {**arrays, "reference": _references(arrays)}
         self.tensors = {k: torch.from_numpy(np.asarray(v)).to(device) for k, v in arrays.items()
-                        if k not in (SPEC_KEY, REFERENCE_FOLLOWS)}
+                        if k not in (SPEC_KEY, REFERENCE_FOLLOWS, GEOMETRY_KEY)}
+        # the contact geometry's settings (packs written before 2026-11-29 have none)
+        self.geometry = json.loads(str(arrays[GEOMETRY_KEY])) if GEOMETRY_KEY in arrays else None
         held = self.tensors.pop("held_out").bool()
         self.train = torch.nonzero(~held).flatten()
         self.heldout = torch.nonzero(held).flatten()
@@ -272,15 +280,17 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
                first_frame: bool | None = None, dropout: float | None = None, scene_warp: bool | None = None,
                reference_noise: float | None = None, rollout_reference_steps: int = 0, compile: bool = False,
                init: str | Path | None = None, max_samples: int | None = None, report: str | Path | None = None,
-               pace_with: str | Path | None = None, progress=print) -> dict:
+               pace_with: str | Path | None = None, rebuild_contact: bool = False, progress=print) -> dict:
     """Train ``mode`` on the pack's training chunks for ``minutes`` of wall time; write the
     EMA weights (float16, so a 5 M-parameter model is an 11 MB file) as a checkpoint under
     ``output/checkpoints/`` and the log, its summary last, as ``output/log.jsonl``. Returns the summary.
 
     ``rollout_chunks`` R > 1: training-time rollout (:func:`imac_model.pipelines.rollout.rollout_loss`)
     over clips of R consecutive chunks, ``batch_size // R`` clips a step; chunk r > 1 starts from the
-    model's own estimate of chunk r-1's last frame and keeps its recorded contact images (no renderer
-    here to rebuild them); with ``rollout_reference_steps`` k > 0 it starts from k sampler steps instead
+    model's own estimate of chunk r-1's last frame and keeps its recorded contact images; with
+    ``rebuild_contact`` they are painted anew from that frame's depth and the pack's contact geometry
+    (:class:`~imac_model.pipelines.packed_contact.PackedContact`), as the CPU trainer rebuilds them with its
+    renderer. With ``rollout_reference_steps`` k > 0 chunk r starts from k sampler steps instead
     (``rollout.reference_steps``). ``compile``: train through :func:`compile_trunk`; the first step's
     compilation counts in the budget, and the log's ``first_step_s`` says how long it took.
     ``init``: a checkpoint (a run directory: its latest; a run archive, :mod:`.archive`: its own) of the same mode
@@ -306,7 +316,16 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         raise InputError(f"rollout_reference_steps: must be >= 0 (got {rollout_reference_steps})")
     if max_samples is not None and max_samples < 1:
         raise InputError(f"max_samples: must be >= 1 (got {max_samples})")
-    kept = [s for s in streams if s in REBUILT_STREAMS]  # what a rollout would rebuild from its reference
+    packed = None
+    if rebuild_contact:
+        if rollout_chunks < 2 or not any(s in CONTACT_STREAMS for s in streams):
+            raise InputError(f"rebuild_contact: only a rollout (rollout_chunks > 1, got {rollout_chunks}) of a mode "
+                             f"with contact images ({mode}: {list(streams)}) rebuilds them")
+        packed = PackedContact.from_pack(pack)
+        if tuple(packed.views) != tuple(pack.spec.views):
+            raise InputError(f"the pack's contact geometry is of views {list(packed.views)}, its model's "
+                             f"{list(pack.spec.views)}")
+    kept = [s for s in streams if s in REBUILT_STREAMS and not (packed is not None and s in CONTACT_STREAMS)]
     if rollout_chunks > 1 and rollout_reference_steps > 0 and kept:
         # measured: motion+contact stopped drawing the lift this way (the GPU runs' record,
         # benchmarks/results/ranking_gpu/README.md, "The sixth GPU run")
@@ -352,9 +371,11 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         # backward runs per chunk inside, so memory stays that of one chunk
         index = clips[torch.randint(len(clips), (batch_size // rollout_chunks,), generator=g, device=device)]
         clip = [pack.batch(index[:, r], streams) for r in range(rollout_chunks)]
-        return rollout_loss(model, clip, None, generator=g, streams=streams or None, stored_contact=True,
+        rebuild = None if packed is None else (lambda r, reference: packed.controls(
+            reference, index[:, r], [s for s in streams if s in CONTACT_STREAMS]))
+        return rollout_loss(model, clip, None, generator=g, streams=streams or None, stored_contact=packed is None,
                             backward=torch.Tensor.backward, autocast=lambda: autocast,
-                            reference_steps=rollout_reference_steps).loss, index.numel()
+                            reference_steps=rollout_reference_steps, rebuild=rebuild).loss, index.numel()
 
     while time.time() < deadline and (max_samples is None or samples < max_samples):
         if pace is not None and not pace.may_step(samples, deadline):
@@ -405,6 +426,7 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
     save_checkpoint(out / "checkpoints" / f"step_{step:06d}", model=model.half(), spec=spec)
     summary = {"mode": mode, "focus_weight": spec.flow.focus_weight, "reference_noise": spec.flow.reference_noise,
                "rollout_chunks": rollout_chunks, "rollout_reference_steps": rollout_reference_steps,
+               "rebuild_contact": rebuild_contact,
                "first_frame": spec.conditioning.first_frame, "dropout": spec.conditioning.dropout,
                "scene_warp": spec.conditioning.scene_warp, "compiled": compiled is not None, "first_step_s": first_step_s,
                "compile_error": compile_error, "init": init_label,
@@ -448,6 +470,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="training-time rollout over clips of this many chunks (1: none; docs/ranking.md)")
     t.add_argument("--rollout-reference-steps", type=int, default=0,
                    help="chunk r > 1 starts from this many sampler steps on chunk r-1 (0: its one-step estimate)")
+    t.add_argument("--rebuild-contact", action="store_true",
+                   help="in a rollout, paint chunk r > 1's contact images from its reference's depth (the pack's "
+                        "contact geometry) instead of keeping the recorded ones")
     t.add_argument("--first-frame", action="store_true",
                    help="condition on the episode's first frame (conditioning.first_frame; docs/world-model.md)")
     t.add_argument("--scene-warp", action="store_true",
@@ -472,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
                          scene_warp=args.scene_warp or None, reference_noise=args.reference_noise,
                          rollout_reference_steps=args.rollout_reference_steps, compile=args.compile,
                          init=args.init, max_samples=args.max_samples, report=args.report,
-                         pace_with=args.pace_with)
+                         pace_with=args.pace_with, rebuild_contact=args.rebuild_contact)
     print(json.dumps(summary))
     return 0
 

@@ -27,6 +27,7 @@ from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from imac_data.errors import InputError
@@ -48,6 +49,8 @@ from imac_model.experiments.ranking.policies import training_policy
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT, python, quote, run_all, then_mark_done
 from imac_model.models.checkpoint import list_checkpoints, weights_sha256
+from imac_model.pipelines.online_controls import OnlineControls
+from imac_model.pipelines.packed_contact import contact_geometry, geometry_constants
 from imac_model.training.archive import archives_in, read_archive, run_name, write_archive
 from imac_model.training.log import LOG_FILE, continued_log, log_summary, progress_line, read_log
 from imac_model.training.pack import export_pack
@@ -168,7 +171,18 @@ def export_training_pack(plan: RankingPlan) -> None:
     ds = ChunkDataset(TRAIN_REPO, layout, root=run.data.root, episodes=train + held, cache="memory",
                       cache_dir=run.data.cache_dir)
     ds.preload(num_workers=1, progress=False)
-    export_pack([ds[i] for i in range(len(ds))], [e in set(held) for _, e, _ in ds.index], spec, plan.pack)
+    items = [ds[i] for i in range(len(ds))]
+    export_pack(items, [e in set(held) for _, e, _ in ds.index], spec, plan.pack,
+                geometry=pack_geometry(OnlineControls.from_dataset(run.data.root, spec), items))
+
+
+def pack_geometry(online: OnlineControls, items: list[dict], batch: int = 64) -> dict:
+    """The items' contact geometry (:mod:`imac_model.pipelines.packed_contact`), rendered here in
+    batches: what the pack's trainer rebuilds contact images from on a machine without a renderer."""
+    parts = [contact_geometry(online, torch.stack([it["state"] for it in items[i:i + batch]]),
+                              torch.stack([it["actions"] for it in items[i:i + batch]]))
+             for i in range(0, len(items), batch)]
+    return {**geometry_constants(online), **{k: np.concatenate([p[k] for p in parts]) for k in parts[0]}}
 
 
 def stage_pack(plan: RankingPlan) -> None:
