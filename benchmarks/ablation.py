@@ -8,7 +8,9 @@ the same call of ``scripts/gpu_ranking.sh``, one with a design choice and one wi
 * ``first-frame``: the episode's first frame as memory (``motion_contact_first_frame``,
   ``conditioning.first_frame``) against none (``motion_contact``; ``ABLATION=first-frame``);
 * ``scene-warp``: the scene-warp stream (``motion_contact_scene_warp``, ``conditioning.scene_warp``) against
-  none (``motion_contact``; ``ABLATION=scene-warp``).
+  none (``motion_contact``; ``ABLATION=scene-warp``);
+* ``contact``: a rolled-out chunk's contact images painted from its own reference (``motion_contact_rebuilt``,
+  ``--rebuild-contact``) against the recorded ones (``motion_contact``; ``ABLATION=contact``).
 
 Each run is measured by the early gate (its held-out training rollouts replayed, balanced accuracy
 of the lift judge from every chunk; measured here if missing) and on the replays of the evaluation
@@ -31,7 +33,8 @@ from imac_model.experiments.ranking.plan import RankingPlan
 ABLATIONS = {"focus": {"focus": "motion_contact", "uniform": "motion_contact_uniform"},
              "rollout": {"rollout": "motion_contact", "no_rollout": "motion_contact_no_rollout"},
              "first-frame": {"first_frame": "motion_contact_first_frame", "without": "motion_contact"},
-             "scene-warp": {"scene_warp": "motion_contact_scene_warp", "without": "motion_contact"}}
+             "scene-warp": {"scene_warp": "motion_contact_scene_warp", "without": "motion_contact"},
+             "contact": {"rebuilt": "motion_contact_rebuilt", "recorded": "motion_contact"}}
 
 
 def summary(plan: RankingPlan, run: str) -> dict:
@@ -40,6 +43,8 @@ def summary(plan: RankingPlan, run: str) -> dict:
     gate = replays(plan, "motion+contact", None if plan.run_dir("motion+contact").name == run else run)[str(plan.steps)]
     return {"focus_weight": trained.get("focus_weight"), "rollout_chunks": trained.get("rollout_chunks", 1),
             "first_frame": trained.get("first_frame", False), "scene_warp": trained.get("scene_warp", False),
+            "rollout_reference_steps": trained.get("rollout_reference_steps", 0),
+            "rebuild_contact": trained.get("rebuild_contact", False),
             "steps": trained["steps"], "samples": trained["samples"], "device": trained.get("device"),
             "gate_balanced_accuracy_from_chunk": {k: v["balanced_accuracy"] for k, v in gates[-1]["from_chunk"].items()},
             "lift_judge_accuracy": gate["accuracy"]["lift_geometry"],

@@ -2,14 +2,14 @@
 # The GPU preset's training (docs/ranking.md, "The GPU preset"), run on a GPU machine that has Python,
 # torch and numpy and nothing else of ours: motion+contact and action-vector trained at once on one GPU,
 # from the tensor pack `imac-model ranking --stages ...,pack` wrote, for the same wall-clock budget each.
-# ROLLOUT=R trains every run with training-time rollout over clips of R chunks (default 1: none). CONTACT=rebuild
-# paints the contact images of a rolled-out chunk of the motion+contact runs from that chunk's own reference (the
-# pack's contact geometry; imac_model/pipelines/packed_contact.py) instead of keeping the recorded ones.
+# ROLLOUT=R trains every run with training-time rollout over clips of R chunks (default 1: none).
 # ABLATION=1 (or focus) also trains motion+contact with a uniform loss (focus_weight 0) as motion_contact_uniform,
 # the loss-weighting ablation (python -m benchmarks.ablation focus); ABLATION=rollout trains motion+contact without
 # rollout as motion_contact_no_rollout, the rollout ablation; ABLATION=first-frame trains motion+contact conditioned
 # on the episode's first frame as motion_contact_first_frame, the memory ablation; ABLATION=scene-warp trains it with the
-# scene-warp stream as motion_contact_scene_warp. DROPOUT=P trains every run with a
+# scene-warp stream as motion_contact_scene_warp; ABLATION=contact (with ROLLOUT) trains it with the contact images of
+# each rolled-out chunk painted from that chunk's own reference (the pack's contact geometry,
+# imac_model/pipelines/packed_contact.py) instead of the recorded ones, as motion_contact_rebuilt. DROPOUT=P trains every run with a
 # share P of its samples without controls (conditioning.dropout), so the models can be sampled with guidance. PyYAML and safetensors travel as wheels
 # beside the pack (runs/ranking_gpu/gpu/wheels/) when the machine lacks them. COMPILE=1 trains every run through
 # torch.compile of the U-Net's trunk (--compile; the compilation counts in each run's minutes; the default, auto, compiles
@@ -40,7 +40,6 @@ REF_NOISE=${REF_NOISE:-}  # flow.reference_noise for every run (default: the pac
 ROLLOUT_STEPS=${ROLLOUT_STEPS:-0}  # with ROLLOUT: chunk r > 1 starts from this many sampler steps (0: the one-step estimate)
 ABLATION=${ABLATION:-0}
 ROLLOUT=${ROLLOUT:-1}
-CONTACT=${CONTACT:-recorded}  # with ROLLOUT: rebuild = chunk r > 1's contact images painted from its own reference
 DROPOUT=${DROPOUT:-0}
 COMPILE=${COMPILE:-auto}
 SPEED=${SPEED:-0}
@@ -71,21 +70,16 @@ extra=""
 [ -n "$SAMPLES" ] && extra="$extra --max-samples $SAMPLES"
 [ -n "$PACE_WITH" ] && extra="$extra --pace-with $PACE_WITH"
 extra="$extra --rollout-reference-steps $ROLLOUT_STEPS"
-case "$CONTACT" in
-  recorded) contact="" ;;
-  rebuild) [ "$ROLLOUT" -gt 1 ] || { echo "gpu_ranking: CONTACT=rebuild rebuilds a rollout's contact images; set ROLLOUT > 1" >&2; exit 2; }
-           contact="--rebuild-contact" ;;
-  *) echo "gpu_ranking: CONTACT must be recorded or rebuild, got $CONTACT" >&2; exit 2 ;;
-esac
-mc="motion+contact $contact --rollout-chunks $ROLLOUT"  # the motion+contact runs that roll out
-runs=("motion_contact $mc" "action_vector action-vector --rollout-chunks $ROLLOUT")
+runs=("motion_contact motion+contact --rollout-chunks $ROLLOUT" "action_vector action-vector --rollout-chunks $ROLLOUT")
 case "$ABLATION" in
-  1|focus) runs+=("motion_contact_uniform $mc --focus-weight 0") ;;
+  1|focus) runs+=("motion_contact_uniform motion+contact --focus-weight 0 --rollout-chunks $ROLLOUT") ;;
   rollout) runs+=("motion_contact_no_rollout motion+contact --rollout-chunks 1") ;;
-  first-frame) runs+=("motion_contact_first_frame $mc --first-frame") ;;
-  scene-warp) runs+=("motion_contact_scene_warp $mc --scene-warp") ;;
+  first-frame) runs+=("motion_contact_first_frame motion+contact --first-frame --rollout-chunks $ROLLOUT") ;;
+  scene-warp) runs+=("motion_contact_scene_warp motion+contact --scene-warp --rollout-chunks $ROLLOUT") ;;
+  contact) [ "$ROLLOUT" -gt 1 ] || { echo "gpu_ranking: ABLATION=contact rebuilds a rollout's contact images; set ROLLOUT > 1" >&2; exit 2; }
+           runs+=("motion_contact_rebuilt motion+contact --rebuild-contact --rollout-chunks $ROLLOUT") ;;
   0) ;;
-  *) echo "gpu_ranking: ABLATION must be 0, 1 (focus), rollout, first-frame or scene-warp, got $ABLATION" >&2; exit 2 ;;
+  *) echo "gpu_ranking: ABLATION must be 0, 1 (focus), rollout, first-frame, scene-warp or contact, got $ABLATION" >&2; exit 2 ;;
 esac
 if [ -n "$RUNS" ]; then  # the chosen subset, in the order above, each name checked
   known=" $(for run in "${runs[@]}"; do set -- $run; printf '%s ' "$1"; done)"

@@ -761,9 +761,9 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
 
 
 def test_the_pack_paints_contact_images_as_the_renderer_does(toy_run, tmp_path):
-    """CONTACT=rebuild: the pack's contact geometry, with torch alone, paints the contact images OnlineControls paints
+    """ABLATION=contact: the pack's contact geometry, with torch alone, paints the contact images OnlineControls paints
     with the renderer (both with exact searches) from the same references; in a rollout chunk 2 gets them painted
-    from the model's own reference, and the GPU script trains motion+contact so."""
+    from the model's own reference, and the GPU script trains motion_contact_rebuilt so beside motion_contact."""
     work, docs = toy_run
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
     plan = RankingPlan.load(work / "plan.json")
@@ -806,18 +806,19 @@ def test_the_pack_paints_contact_images_as_the_renderer_does(toy_run, tmp_path):
         train_pack(pack, "motion+contact", tmp_path / "old_pack", minutes=0.001, rollout_chunks=2, rebuild_contact=True)
 
     out = tmp_path / "gpu_out"
-    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ROLLOUT": "2", "CONTACT": "rebuild", "BATCH": "8",
-           "ROLLOUT_STEPS": "1", "PACK": str(plan.pack), "PYTHON": sys.executable}
+    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ROLLOUT": "2", "ABLATION": "contact", "BATCH": "8",
+           "ROLLOUT_STEPS": "1", "RUNS": "motion_contact_rebuilt action_vector", "PACK": str(plan.pack),
+           "PYTHON": sys.executable}
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert "keeps the recorded" not in done.stdout + done.stderr  # nothing recorded is kept now
-    for name, rebuilt in (("motion_contact", True), ("action_vector", False)):
+    for name, rebuilt in (("motion_contact_rebuilt", True), ("action_vector", False)):
         with tarfile.open(out / f"{name}.tar") as archive:
             summary = json.loads(archive.extractfile("log.jsonl").read().decode().splitlines()[-1])["summary"]
+            assert "keeps the recorded" not in archive.extractfile(f"{name}.stdout").read().decode()  # none kept
         assert summary["rebuild_contact"] is rebuilt and summary["steps"] >= 1
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env={**env, "ROLLOUT": "1"},
                           capture_output=True, text=True)
-    assert done.returncode == 2 and "CONTACT=rebuild rebuilds a rollout's contact images" in done.stderr
+    assert done.returncode == 2 and "ABLATION=contact rebuilds a rollout's contact images" in done.stderr
 
 
 def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):

@@ -88,7 +88,7 @@ class PackedContact:
     """A pack's contact geometry on its device: :meth:`controls` paints the contact images of
     chunks ``index`` from any reference frames (the model's own in a rollout)."""
 
-    def __init__(self, tensors: Mapping[str, torch.Tensor], settings: Mapping):
+    def __init__(self, tensors: Mapping[str, torch.Tensor], settings: Mapping, *, method: str = "auto"):
         missing = [f"geometry.{k}" for k in (*PER_CHUNK, "K", "gripper_samples", "gripper_counts")
                    if f"geometry.{k}" not in tensors]
         if missing:
@@ -96,6 +96,7 @@ class PackedContact:
                              "written with it (imac-model ranking --stages pack)")
         self.t = {k[len("geometry."):]: v for k, v in tensors.items() if k.startswith("geometry.")}
         self.settings = dict(settings)
+        self.method = method  # the searches: contact_batch's (brute force on a GPU, KD-trees on a CPU)
         self.views = tuple(settings["views"])
         self.codec = DepthCodec.from_dict(settings["codec"], where="pack geometry codec")
         self.workspace = Workspace.from_dict(settings["workspace"], where="pack geometry workspace")
@@ -104,12 +105,12 @@ class PackedContact:
                                                       torch.as_tensor(counts, device=self.t["K"].device))
 
     @classmethod
-    def from_pack(cls, pack) -> PackedContact:
+    def from_pack(cls, pack, *, method: str = "auto") -> PackedContact:
         """The geometry of a :class:`~imac_model.training.pack.Pack`."""
         if pack.geometry is None:
             raise InputError("the pack carries no contact geometry: rebuilding contact images needs a pack written "
                              "with it (imac-model ranking --stages pack)")
-        return cls(pack.tensors, pack.geometry)
+        return cls(pack.tensors, pack.geometry, method=method)
 
     def gripper_points(self, poses: torch.Tensor) -> torch.Tensor:
         """World points ``(..., M, 3)`` of the gripper samples for link poses ``(..., L, 4, 4)``."""
@@ -125,7 +126,7 @@ class PackedContact:
                              t["robot_depth"][index].float(), t["pose"][index],
                              self.gripper_points(t["gripper_pose"][index]), cap=self.settings["cap"],
                              percentile=self.settings["percentile"], dilate_px=self.settings["dilate_px"],
-                             fill_px=self.settings["fill_px"], workspace=self.workspace)
+                             fill_px=self.settings["fill_px"], workspace=self.workspace, method=self.method)
 
     def controls(self, reference: torch.Tensor, index: torch.Tensor,
                  streams: Sequence[str] = CONTACT_STREAMS) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
