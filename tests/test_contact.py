@@ -669,3 +669,6 @@ def test_batched_contact_pads_empty_scenes_and_fixed_caps_as_contact_chunk():
     assert torch.isinf(got.r2s[2][robot[2]]).all() and torch.isnan(got.s2g[2]).all()
     with pytest.raises(InputError, match=r"gripper points must be \(B, S, M, 3\)"):
         contact_batch(depth, K, T_ref, mask, rd, T, grip[:, :1])
+    grip[0, 0, 0, 0] = float("nan")
+    with pytest.raises(InputError, match="gripper points contain NaN"):
+        contact_batch(depth, K, T_ref, mask, rd, T, grip)

@@ -801,6 +801,9 @@ def test_the_pack_paints_contact_images_as_the_renderer_does(toy_run, tmp_path):
     assert torch.equal(result.controls[1]["motion"], clip[1].controls["motion"])
     with pytest.raises(InputError, match="only a rollout"):
         train_pack(pack, "motion+contact", tmp_path / "no_rollout", minutes=0.001, rebuild_contact=True)
+    damaged = {**pack.tensors, "geometry.pose": pack.tensors["geometry.pose"][:-1]}
+    with pytest.raises(InputError, match="the pack is damaged"):
+        PackedContact(damaged, pack.geometry)
     pack.geometry = None
     with pytest.raises(InputError, match="carries no contact geometry"):
         train_pack(pack, "motion+contact", tmp_path / "old_pack", minutes=0.001, rollout_chunks=2, rebuild_contact=True)

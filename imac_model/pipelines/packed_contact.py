@@ -95,6 +95,10 @@ class PackedContact:
             raise InputError(f"the pack carries no contact geometry {missing}: rebuilding contact images needs a pack "
                              "written with it (imac-model ranking --stages pack)")
         self.t = {k[len("geometry."):]: v for k, v in tensors.items() if k.startswith("geometry.")}
+        chunks = {k: len(self.t[k]) for k in PER_CHUNK}
+        if "reference" in tensors and set(chunks.values()) != {len(tensors["reference"])}:
+            raise InputError(f"the pack's contact geometry covers {chunks} chunks, the pack holds "
+                             f"{len(tensors['reference'])}; the pack is damaged")
         self.settings = dict(settings)
         self.method = method  # the searches: contact_batch's (brute force on a GPU, KD-trees on a CPU)
         self.views = tuple(settings["views"])

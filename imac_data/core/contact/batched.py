@@ -187,6 +187,8 @@ def contact_batch(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
         raise InputError(f"contact_batch: gripper points must be (B, S, M, 3) = ({B}, {S}, M, 3), got {tuple(grip.shape)}")
     if not (torch.isfinite(K).all() and torch.isfinite(T_ref).all() and torch.isfinite(T).all()):
         raise InputError("contact_batch: K or camera poses contain NaN or inf")
+    if not torch.isfinite(grip).all():
+        raise InputError("contact_batch: gripper points contain NaN or inf")
     fixed = _resolve_cap(cap)
     HW = H * W
     rays = pixel_rays(K, H, W)  # (V, HW, 3)
