@@ -19,7 +19,7 @@ import time
 import torch
 
 from imac_model.pipelines.packed_contact import PackedContact
-from imac_model.training.pack import Pack
+from imac_model.training.pack import Pack, fast_kernels
 
 
 def _timed(fn, device: torch.device, repeats: int):
@@ -90,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.device == "cpu":
         torch.set_num_threads(1)
+    fast_kernels()  # what the trainer sets (contact_batch keeps full float32 for itself)
     methods = tuple(args.methods or (["brute"] + (["kdtree"] if _has_kdtree() else [])))
     result = measure(Pack(args.pack, args.device), args.chunks, methods, args.repeats, args.check)
     print(json.dumps(result, indent=1))

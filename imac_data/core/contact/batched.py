@@ -67,9 +67,8 @@ def nearest_batch(query: torch.Tensor, points: torch.Tensor, *, method: str = "a
     present = points.abs().amax(dim=-1) < _PAD
     count = present.sum(dim=1, keepdim=True).clamp(min=1)
     centre = (torch.where(present[..., None], points, 0.0).sum(dim=1, keepdim=True) / count[..., None])
-    q, p = query - centre, points - centre
     with _full_precision(query.device.type):
-        _nearest_blocks(q, p, out, block)
+        _nearest_blocks(query - centre, points - centre, out, block)
     return out.masked_fill_(out > _FAR, float("inf"))
 
 
@@ -161,7 +160,8 @@ def contact_batch(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
                   cap=None, percentile: float = DEFAULT_PERCENTILE, dilate_px: int = DEFAULT_DILATE_PX,
                   fill_px: int = DEFAULT_FILL_PX, workspace=None, method: str = "auto",
                   block: int = _BLOCK) -> ContactChunk:
-    """Both contact streams of B chunks, on the inputs' device.
+    """Both contact streams of B chunks, on the inputs' device, in full float32 whatever the caller set (a
+    trainer's TF32 products would move the back-projected points by millimetres).
 
     ``ref_depth (B, V, H, W)`` metres (0 / non-finite = invalid), ``K (V, 3, 3)``,
     ``ref_T_world_cam (B, V, 4, 4)``, ``ref_robot_mask (B, V, H, W)``; future steps
@@ -169,6 +169,13 @@ def contact_batch(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
     ``gripper_points (B, S, M, 3)`` world. Options as :func:`contact_chunk`'s; ``method`` and
     ``block``: :func:`nearest_batch`. A chunk with an empty scene gets what ``allow_empty_scene`` gives there. Returns a
     :class:`ContactChunk` whose tensors have a leading B (``caps (B, 2)``)."""
+    with _full_precision(torch.as_tensor(ref_depth).device.type):
+        return _paint(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam, gripper_points, cap,
+                      percentile, dilate_px, fill_px, workspace, method, block)
+
+
+def _paint(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam, gripper_points, cap, percentile,
+           dilate_px, fill_px, workspace, method, block) -> ContactChunk:
     depth = torch.as_tensor(ref_depth).float()
     if depth.ndim != 4:
         raise InputError(f"contact_batch: reference depth must be (B, V, H, W), got {tuple(depth.shape)}")
