@@ -1,4 +1,4 @@
-"""Contact images of many chunks at once, by brute force: the accelerator's form of
+"""Contact images of many chunks at once: the accelerator's form of
 :func:`~imac_data.core.contact.images.contact_chunk`, for training-time rollout, where every
 step of a batch needs the contact images of a few hundred chunks whose reference frames the
 model itself drew.
@@ -40,16 +40,19 @@ __all__ = ["contact_batch", "nearest_batch", "batch_caps"]
 
 _PAD = 1.0e4  # metres: where an absent point sits; nothing real is this far from the robot
 _FAR = 1.0e3  # a distance beyond this came from padding: nothing there (+inf)
-_BLOCK = 1 << 24  # distance-matrix entries a block (64 MiB of float32)
+# distance-matrix entries a block: on a GPU, few and large (1 GiB of float32), as a step's searches would otherwise
+# be tens of thousands of small kernels
+_BLOCK = {"cuda": 1 << 28, "cpu": 1 << 24}
 
 
 def nearest_batch(query: torch.Tensor, points: torch.Tensor, *, method: str = "auto",
-                  block: int = _BLOCK) -> torch.Tensor:
+                  block: int | None = None) -> torch.Tensor:
     """Distance from each of ``query (B, N, 3)`` to the nearest of ``points (B, P, 3)`` (the same
     item), ``(B, N)``; +inf where an item has no points (``P = 0``, or every point padded away:
     coordinates of :data:`_PAD` and beyond count as absent). ``method``: ``"brute"`` (blocked
     distance matrices, what a GPU is fast at), ``"kdtree"`` (a KD-tree per item, exact, what a
-    CPU is fast at), ``"auto"``: brute on CUDA, KD-trees elsewhere."""
+    CPU is fast at), ``"auto"``: brute on CUDA, KD-trees elsewhere. ``block``: distance-matrix entries
+    a brute-force block (default :data:`_BLOCK` of the device)."""
     if method not in ("auto", "brute", "kdtree"):
         raise InputError(f"nearest_batch: method must be 'auto', 'brute' or 'kdtree', got {method!r}")
     B, N = query.shape[:2]
@@ -67,6 +70,7 @@ def nearest_batch(query: torch.Tensor, points: torch.Tensor, *, method: str = "a
     present = points.abs().amax(dim=-1) < _PAD
     count = present.sum(dim=1, keepdim=True).clamp(min=1)
     centre = (torch.where(present[..., None], points, 0.0).sum(dim=1, keepdim=True) / count[..., None])
+    block = block or _BLOCK.get(query.device.type, _BLOCK["cpu"])
     with _full_precision(query.device.type):
         _nearest_blocks(query - centre, points - centre, out, block)
     return out.masked_fill_(out > _FAR, float("inf"))
@@ -159,7 +163,7 @@ def _world(depth: torch.Tensor, rays: torch.Tensor, T: torch.Tensor) -> torch.Te
 def contact_batch(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam, gripper_points, *,
                   cap=None, percentile: float = DEFAULT_PERCENTILE, dilate_px: int = DEFAULT_DILATE_PX,
                   fill_px: int = DEFAULT_FILL_PX, workspace=None, method: str = "auto",
-                  block: int = _BLOCK) -> ContactChunk:
+                  block: int | None = None) -> ContactChunk:
     """Both contact streams of B chunks, on the inputs' device, in full float32 whatever the caller set (a
     trainer's TF32 products would move the back-projected points by millimetres).
 
