@@ -10,7 +10,7 @@
 # CALL=2 goes on from there (nothing carried), each run from the weights call 1 left (KEEP_WEIGHTS).
 # action-vector and motion_contact_rebuilt keep pace with motion_contact (PACE_WITH: never more than a step ahead of its
 # samples, stopping at its count), so the compared runs get equal budgets in samples and their waits go to the others.
-#   OUT=/tmp/out CALL=1 MINUTES=8.6 bash benchmarks/results/ranking_gpu/seventh_run/loan.sh
+#   OUT=/tmp/out CALL=1 MINUTES=8.4 bash benchmarks/results/ranking_gpu/seventh_run/loan.sh   (then CALL=2 MINUTES=3.2)
 # CALL=2 ends with the rebuild's cost on the GPU (python -m benchmarks.packed_contact on CONTACT_CHUNKS chunks, 64:
 # $OUT/packed_contact.json), at most 40 s, so it runs 3.2 minutes instead of the sixth loan's 3.5.
 set -uo pipefail
