@@ -804,9 +804,10 @@ def test_the_pack_paints_contact_images_as_the_renderer_does(toy_run, tmp_path):
     damaged = {**pack.tensors, "geometry.pose": pack.tensors["geometry.pose"][:-1]}
     with pytest.raises(InputError, match="the pack is damaged"):
         PackedContact(damaged, pack.geometry)
-    pack.geometry = None
+    geometry, pack.geometry = pack.geometry, None
     with pytest.raises(InputError, match="carries no contact geometry"):
         train_pack(pack, "motion+contact", tmp_path / "old_pack", minutes=0.001, rollout_chunks=2, rebuild_contact=True)
+    pack.geometry = geometry
 
     out = tmp_path / "gpu_out"
     env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ROLLOUT": "2", "ABLATION": "contact", "BATCH": "8",
@@ -819,6 +820,10 @@ def test_the_pack_paints_contact_images_as_the_renderer_does(toy_run, tmp_path):
             summary = json.loads(archive.extractfile("log.jsonl").read().decode().splitlines()[-1])["summary"]
             assert "keeps the recorded" not in archive.extractfile(f"{name}.stdout").read().decode()  # none kept
         assert summary["rebuild_contact"] is rebuilt and summary["steps"] >= 1
+    summary = train_pack(pack, "motion+contact", tmp_path / "rebuilt", minutes=0.001, batch_size=4, rollout_chunks=2,
+                         rebuild_contact=True, log_every=1, eval_every=1, progress=lambda row: None)
+    rows = [json.loads(line) for line in (tmp_path / "rebuilt" / "log.jsonl").read_text().splitlines()]
+    assert summary["rebuild_contact"] and 0.0 <= rows[0]["rebuilt_invalid_depth"] <= 1.0
     done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env={**env, "ROLLOUT": "1"},
                           capture_output=True, text=True)
     assert done.returncode == 2 and "ABLATION=contact rebuilds a rollout's contact images" in done.stderr

@@ -359,6 +359,8 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         report_progress(report, 0)
     n = len(pack.train)
 
+    invalid_depth: list[float] = []  # per rebuilt chunk: its reference's share of invalid depth
+
     def forward_backward(step: int) -> tuple[torch.Tensor, int]:
         g = _generator(seed, step, device)
         opt.zero_grad(set_to_none=True)
@@ -373,9 +375,11 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         clip = [pack.batch(index[:, r], streams) for r in range(rollout_chunks)]
         rebuild = None if packed is None else (lambda r, reference: packed.controls(
             reference, index[:, r], [s for s in streams if s in CONTACT_STREAMS]))
-        return rollout_loss(model, clip, None, generator=g, streams=streams or None, stored_contact=packed is None,
-                            backward=torch.Tensor.backward, autocast=lambda: autocast,
-                            reference_steps=rollout_reference_steps, rebuild=rebuild).loss, index.numel()
+        result = rollout_loss(model, clip, None, generator=g, streams=streams or None, stored_contact=packed is None,
+                              backward=torch.Tensor.backward, autocast=lambda: autocast,
+                              reference_steps=rollout_reference_steps, rebuild=rebuild)
+        invalid_depth.extend(result.invalid_depth)
+        return result.loss, index.numel()
 
     while time.time() < deadline and (max_samples is None or samples < max_samples):
         if pace is not None and not pace.may_step(samples, deadline):
@@ -406,6 +410,9 @@ def train_pack(pack: Pack, mode: str, output: str | Path, *, minutes: float, bat
         if step % log_every == 0:
             row = {"step": step, "loss": float(loss), "lr": opt.param_groups[0]["lr"],
                    "elapsed_s": round(time.time() - t0, 1), "samples": samples}
+            if invalid_depth:  # of the references contact images were painted from, since the last row
+                row["rebuilt_invalid_depth"] = round(float(np.mean(invalid_depth)), 4)
+                invalid_depth.clear()
             if step % eval_every == 0:
                 _eager(model)
                 row["heldout_loss"] = heldout_loss(model, pack, streams, batch_size, seed)
