@@ -1,4 +1,4 @@
-"""What rebuilding contact images from a pack costs a training step (``CONTACT=rebuild``,
+"""What rebuilding contact images from a pack costs a training step (``ABLATION=contact``,
 :class:`imac_model.pipelines.packed_contact.PackedContact`): milliseconds a chunk on one device
 for a batch of the pack's chunks from their recorded references, brute force (the GPU's search)
 against KD-trees (the CPU's; where pykdtree is installed, which the GPU machine lacks), the

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from imac_data.core.contact.batched import contact_batch
+from imac_data.core.contact.clouds import posed_samples
 from imac_data.core.contact.images import DEFAULT_FILL_PX
 from imac_data.core.contact.workspace import Workspace, as_workspace
 from imac_data.core.depth import DepthCodec
@@ -104,9 +105,8 @@ class PackedContact:
         self.views = tuple(settings["views"])
         self.codec = DepthCodec.from_dict(settings["codec"], where="pack geometry codec")
         self.workspace = Workspace.from_dict(settings["workspace"], where="pack geometry workspace")
-        counts = self.t["gripper_counts"].tolist()
-        self.link_of_sample = torch.repeat_interleave(torch.arange(len(counts), device=self.t["K"].device),
-                                                      torch.as_tensor(counts, device=self.t["K"].device))
+        # the gripper's samples, link by link, as GripperSurface keeps them
+        self.samples = torch.split(self.t["gripper_samples"], self.t["gripper_counts"].tolist())
 
     @classmethod
     def from_pack(cls, pack, *, method: str = "auto") -> PackedContact:
@@ -118,9 +118,7 @@ class PackedContact:
 
     def gripper_points(self, poses: torch.Tensor) -> torch.Tensor:
         """World points ``(..., M, 3)`` of the gripper samples for link poses ``(..., L, 4, 4)``."""
-        pose = poses.index_select(-3, self.link_of_sample)  # (..., M, 4, 4)
-        p = self.t["gripper_samples"]
-        return (pose[..., :3, :3] @ p[..., None])[..., 0] + pose[..., :3, 3]
+        return posed_samples(self.samples, poses.unbind(dim=-3))
 
     def contact(self, depth: torch.Tensor, index: torch.Tensor):
         """Both streams (:class:`~imac_data.core.contact.images.ContactChunk`, leading B) of chunks

@@ -24,7 +24,7 @@ from imac_data.core.contact.workspace import as_workspace
 from imac_data.errors import InputError
 
 __all__ = ["DEFAULT_DILATE_PX", "DEFAULT_GRIPPER_SPACING", "dilate_mask", "SceneCloud", "scene_cloud",
-           "GripperSurface", "lift_pixels"]
+           "GripperSurface", "lift_pixels", "posed_samples"]
 
 DEFAULT_DILATE_PX = 2
 DEFAULT_GRIPPER_SPACING = 0.002  # metres between gripper surface samples
@@ -198,18 +198,25 @@ class GripperSurface:
         key = (ref.dtype, str(ref.device))
         if key not in self._cache:
             self._cache[key] = [torch.as_tensor(self.samples[k]).to(ref) for k in self.links]
-        # per link R p + t, column by column: no 4x4 gathered per point (B x M x 16 floats:
-        # 3 GB for 4096 configurations), and the same float operations in the same order as
-        # the per-point 3x3 product this replaced (bit-identical points and streams)
-        out = []
-        for k, p in zip(self.links, self._cache[key]):
-            R, t = link_poses[k][..., None, :3, :3], link_poses[k][..., None, :3, 3]
-            x = R[..., 0] * p[:, 0:1]
-            x += R[..., 1] * p[:, 1:2]
-            x += R[..., 2] * p[:, 2:3]
-            x += t
-            out.append(x)
-        return torch.cat(out, dim=-2)
+        return posed_samples(self._cache[key], [link_poses[k] for k in self.links])
+
+
+def posed_samples(samples: Sequence[torch.Tensor], poses: Sequence[torch.Tensor]) -> torch.Tensor:
+    """World points ``(*B, M, 3)`` of link-frame samples ``(n_l, 3)``, one tensor per link, at link
+    poses ``(*B, 4, 4)``, link after link (:meth:`GripperSurface.points`; a pack's trainer, which has
+    the samples and the poses but not the robot)."""
+    # per link R p + t, column by column: no 4x4 gathered per point (B x M x 16 floats:
+    # 3 GB for 4096 configurations), and the same float operations in the same order as
+    # the per-point 3x3 product this replaced (bit-identical points and streams)
+    out = []
+    for p, pose in zip(samples, poses):
+        R, t = pose[..., None, :3, :3], pose[..., None, :3, 3]
+        x = R[..., 0] * p[:, 0:1]
+        x += R[..., 1] * p[:, 1:2]
+        x += R[..., 2] * p[:, 2:3]
+        x += t
+        out.append(x)
+    return torch.cat(out, dim=-2)
 
 
 def _sample_mesh(vertices: np.ndarray, faces: np.ndarray, spacing: float, rng) -> np.ndarray:
