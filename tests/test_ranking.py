@@ -487,6 +487,19 @@ def test_the_stages_run_by_default_are_those_the_preset_needs(tmp_path):
             stages_to_run(bad, gpu_plan(tmp_path, tmp_path))
 
 
+def test_the_views_are_the_plans_choice_checked_before_any_work(tmp_path, capsys):
+    """--views sets what the policies, the judge and the world model see (the model's data.views); a
+    camera the rig does not record, a repeated one, or a set without the judge's workspace view is refused."""
+    plan = RankingPlan(work=tmp_path, docs=tmp_path, views=("cam_workspace",))
+    assert plan.run_config("motion+contact").data.views == ("cam_workspace",)
+    for bad in (("cam_right_wrist",), ("cam_workspace", "cam_workspace"), ("cam_workspace", "cam_back")):
+        with pytest.raises(InputError, match="views .* distinct cameras of the simulated rig"):
+            RankingPlan(work=tmp_path, docs=tmp_path, views=bad)
+    assert model_main(["ranking", "--work", str(tmp_path / "w"), "--docs", str(tmp_path), "--views", "cam_back",
+                       "cam_workspace", "--stages", "report"]) == 2
+    assert "cam_back" in capsys.readouterr().err and not (tmp_path / "w").exists()
+
+
 def test_a_plan_saved_before_the_training_offsets_and_settle_settings_loads_as_what_it_ran(tmp_path, capsys):
     saved = RankingPlan(work=tmp_path, docs=tmp_path).to_dict()
     assert saved["settle_s"] == 0.3  # a new plan lets the box settle before the first frame

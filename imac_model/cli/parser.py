@@ -187,6 +187,10 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--settle", type=float, metavar="SECONDS",
                    help="physics run before each episode's first frame, so the box gym-aloha starts 3 cm up rests "
                         "on the table (default 0.3; work directories made before 2026-11-29: 0)")
+    p.add_argument("--views", nargs="+", metavar="CAMERA",
+                   help="the cameras the policies, the judges and the world model see; the world model generates "
+                        "them (default cam_workspace cam_right_wrist; the workspace view is required: the judge "
+                        "reads it; docs/ranking.md, 'Views')")
     p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "
                                                        "2 chunks, 2 modes, 2 sampler steps")
     p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",

@@ -43,7 +43,8 @@ def _plan(args: argparse.Namespace) -> RankingPlan:
         RankingPlan(work=work, docs=docs)
     changes = {k: v for k, v in (("policies", tuple(args.policies or ()) or None), ("cpu_minutes", args.cpu_minutes),
                                  ("steps", args.steps), ("jobs", args.jobs),
-                                 ("training_offsets", args.training_offsets), ("settle_s", args.settle))
+                                 ("training_offsets", args.training_offsets), ("settle_s", args.settle),
+                                 ("views", tuple(args.views or ()) or None))
                if v is not None}
     plan = dataclasses.replace(plan, **changes)
     saved = work / "plan.json"

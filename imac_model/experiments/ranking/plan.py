@@ -9,14 +9,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from imac_data.errors import InputError
+from imac_data.sources.sim.rig import RIG_CAMERAS
 from imac_model.config import load_run_config
-from imac_model.experiments.ranking.policies import POLICIES, TRAINING_OFFSETS, VIEWS
+from imac_model.experiments.ranking.policies import POLICIES, TRAINING_OFFSETS, VIEWS, WORKSPACE
 from imac_model.experiments.stages import REPO_ROOT
 
 POLICY_MODULE = "imac_model.experiments.ranking.policies"
 JUDGE = "python:imac_model.experiments.ranking.judge:lift_judge"
 RECIPE = REPO_ROOT / "recipes" / "aloha_sim_lift.yaml"
 CONFIG = REPO_ROOT / "imac_model" / "configs" / "ranking.yaml"
+CAMERAS = tuple(RIG_CAMERAS.values())  # what the simulated rig records
 MODES = ("motion+contact", "motion", "action-vector", "none")
 STAGES = ("simulate", "build", "decode", "pack", "train", "judges", "evaluate", "report")
 EVAL_SEED0 = 100_000  # evaluation start of group g, episode i: EVAL_SEED0 + 1000 g + i
@@ -94,6 +96,9 @@ class RankingPlan:
             raise InputError(f"ranking: training_offsets {self.training_offsets!r}; choose from {list(TRAINING_OFFSETS)}")
         self.view_size = tuple(int(x) for x in self.view_size)
         self.views = tuple(self.views)
+        if WORKSPACE not in self.views or len(set(self.views)) != len(self.views) or set(self.views) - set(CAMERAS):
+            raise InputError(f"ranking: views {list(self.views)}: distinct cameras of the simulated rig "
+                             f"({sorted(CAMERAS)}), {WORKSPACE} among them (the judge reads it)")
         if len(self.view_size) != 2 or min(self.view_size) < 8:
             raise InputError(f"ranking: view_size must be (height, width) of at least 8, got {self.view_size}")
         for name in ("groups", "chunks", "steps", "check_steps", "jobs", "gate_seeds"):
