@@ -11,6 +11,8 @@
 # action-vector and motion_contact_rebuilt keep pace with motion_contact (PACE_WITH: never more than a step ahead of its
 # samples, stopping at its count), so the compared runs get equal budgets in samples and their waits go to the others.
 #   OUT=/tmp/out CALL=1 MINUTES=8.4 bash benchmarks/results/ranking_gpu/seventh_run/loan.sh   (then CALL=2 MINUTES=3.2)
+# The workspace view alone (docs/ranking.md, "The views"): PACK_DIR=runs/side_one_view/gpu WARP=0, without the
+# scene-warp arm, whose fixed camera's warp is the reference scene itself.
 # CALL=2 ends with the rebuild's cost on the GPU (python -m benchmarks.packed_contact on CONTACT_CHUNKS chunks, 64:
 # $OUT/packed_contact.json), at most 40 s, so it runs 3.2 minutes instead of the sixth loan's 3.5.
 set -uo pipefail
@@ -28,8 +30,10 @@ common=(BATCH="${BATCH:-512}" LR=1.2e-3 WARMUP=50 EVAL_EVERY="${EVAL_EVERY:-100}
 mkdir -p "$OUT"
 command -v nvidia-smi >/dev/null && { nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -l 20 \
   > "$OUT/smi$CALL.csv" & smi=$!; }
-env "${common[@]}" INIT="$init_a" KEEP_WEIGHTS="$KEEP/a" ABLATION=scene-warp PROGRESS_DIR="$KEEP/progress$CALL" \
-  RUNS="motion_contact motion_contact_scene_warp" ROLLOUT=4 ROLLOUT_STEPS=0 OUT="$OUT/a" \
+if [ "${WARP:-1}" = 1 ]; then warp=(ABLATION=scene-warp RUNS="motion_contact motion_contact_scene_warp")
+else warp=(RUNS=motion_contact); fi
+env "${common[@]}" "${warp[@]}" INIT="$init_a" KEEP_WEIGHTS="$KEEP/a" PROGRESS_DIR="$KEEP/progress$CALL" \
+  ROLLOUT=4 ROLLOUT_STEPS=0 OUT="$OUT/a" \
   bash scripts/gpu_ranking.sh > "$OUT/a$CALL.log" 2>&1 & a=$!
 env "${common[@]}" INIT="$init_b" KEEP_WEIGHTS="$KEEP/b" RUNS=action_vector ROLLOUT=2 ROLLOUT_STEPS=4 OUT="$OUT/b" \
   PACE_WITH="$KEEP/progress$CALL/motion_contact.json" bash scripts/gpu_ranking.sh > "$OUT/b$CALL.log" 2>&1 & b=$!
