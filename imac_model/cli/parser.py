@@ -190,7 +190,7 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--views", nargs="+", metavar="CAMERA",
                    help="the cameras the policies, the judges and the world model see; the world model generates "
                         "them (default cam_workspace cam_right_wrist; the workspace view is required: the judge "
-                        "reads it; docs/ranking.md, 'Views')")
+                        "reads it; docs/ranking.md, 'The views')")
     p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "
                                                        "2 chunks, 2 modes, 2 sampler steps")
     p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",
