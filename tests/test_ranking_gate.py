@@ -44,14 +44,18 @@ def _gate(budget: float, score: float) -> dict:
 
 def test_the_gate_measures_every_hour_and_stops_after_three_without_a_pass(tmp_path):
     plan = RankingPlan(work=tmp_path, docs=tmp_path)
-    assert (plan.cpu_minutes, plan.gate_every, plan.gate_min, plan.gate_by) == (180, 60, 0.7, 180)
-    assert gate_minutes(plan) == [60, 120, 180]
+    assert (plan.cpu_minutes, plan.gate_every, plan.gate_min, plan.gate_by) == (120, 60, 0.7, 180)
+    assert gate_minutes(plan) == [60, 120]
+    three_hours = dataclasses.replace(plan, cpu_minutes=180)
+    assert gate_minutes(three_hours) == [60, 120, 180]
     assert gate_minutes(dataclasses.replace(plan, cpu_minutes=150)) == [60, 120, 150]
     assert gate_minutes(dataclasses.replace(plan, gate_every=None)) == []
-    assert gate_verdict(plan, [_gate(60, 0.5)]) == "continue"
-    assert gate_verdict(plan, [_gate(60, 0.5), _gate(120, 0.7)]) == "passed"
-    assert gate_verdict(plan, [_gate(60, 0.5), _gate(120, 0.6), _gate(180, 0.69)]) == "stop"
-    # a budget below the deadline: the end of the budget is the deadline
+    assert gate_verdict(three_hours, [_gate(60, 0.5)]) == "continue"
+    assert gate_verdict(three_hours, [_gate(60, 0.5), _gate(120, 0.6)]) == "continue"
+    assert gate_verdict(three_hours, [_gate(60, 0.5), _gate(120, 0.7)]) == "passed"
+    assert gate_verdict(three_hours, [_gate(60, 0.5), _gate(120, 0.6), _gate(180, 0.69)]) == "stop"
+    # a budget below the deadline (the default's): the end of the budget is the deadline
+    assert gate_verdict(plan, [_gate(60, 0.5), _gate(120, 0.6)]) == "stop"
     assert gate_verdict(dataclasses.replace(plan, cpu_minutes=150), [_gate(150, 0.6)]) == "stop"
     with pytest.raises(InputError, match="gate_every"):
         RankingPlan(work=tmp_path, docs=tmp_path, gate_every=0)

@@ -178,7 +178,7 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--docs", default="docs/ranking", help="where the report goes")
     p.add_argument("--policies", nargs="+", metavar="SPEC",
                    help="python:MODULE:NAME policies to rank (default: the benchmark's six lift policies)")
-    p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 180)")
+    p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 120)")
     p.add_argument("--steps", type=int, help="Euler steps at evaluation (default 10)")
     p.add_argument("--jobs", type=int, help="processes at a time (default 2)")
     p.add_argument("--training-offsets", choices=("across", "disc"),
@@ -189,8 +189,9 @@ def _ranking(p: argparse.ArgumentParser) -> None:
                         "on the table (default 0.3; work directories made before 2026-11-29: 0)")
     p.add_argument("--views", nargs="+", metavar="CAMERA",
                    help="the cameras the policies, the judges and the world model see; the world model generates "
-                        "them (default cam_workspace cam_right_wrist; the workspace view is required: the judge "
-                        "reads it; docs/ranking.md, 'The views')")
+                        "them (default cam_workspace; work directories made before 2026-11-29: cam_workspace "
+                        "cam_right_wrist; the workspace view is required: the judge reads it; docs/ranking.md, "
+                        "'The views')")
     p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "
                                                        "2 chunks, 2 modes, 2 sampler steps")
     p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",

@@ -53,7 +53,7 @@ class RankingPlan:
     # motion is left out of the default: the comparison is motion+contact against action-vector, and none is
     # the harness check; at 8 CPU-hours a fourth equal budget does not fit (docs/ranking.md, "Modes")
     modes: tuple[str, ...] = ("motion+contact", "action-vector", "none")
-    cpu_minutes: float = 180.0  # training budget of each compared mode (process CPU minutes, one thread)
+    cpu_minutes: float = 120.0  # training budget of each compared mode (process CPU minutes, one thread)
     none_minutes: float = 10.0  # none's: a harness check (bit-identity), not a comparison
     # the early gate (gate.py): motion+contact trains first, measured every gate_every CPU-minutes on the
     # held-out training rollouts; the benchmark stops if it has not reached gate_min by gate_by
@@ -69,7 +69,9 @@ class RankingPlan:
     jobs: int = 2  # processes at a time
     seed: int = 0
     view_size: tuple[int, int] = (48, 64)  # what the policies, the judges and the world model see
-    views: tuple[str, ...] = VIEWS  # the cameras they see (the world model generates these)
+    # the cameras they see (the world model generates these): the workspace view alone, where the model draws the
+    # outcome (docs/ranking.md, "The views"); plans saved before 2026-11-29 saw the right wrist view too
+    views: tuple[str, ...] = (WORKSPACE,)
     config: str = str(CONFIG)  # the world models' run config
     device: str = "cpu"  # where the world models sample
     # physics run before every episode's first frame: gym-aloha's box starts 3 cm up and falls in the first 0.1 s,
@@ -171,7 +173,8 @@ class RankingPlan:
     @classmethod
     def from_dict(cls, data: dict) -> RankingPlan:
         """A plan from :meth:`to_dict`'s output (``plan.json``, or the ``plan`` of a report's ``results.json``)."""
-        data = {"training_offsets": "disc", "settle_s": 0.0, **data}  # a plan saved before these settings existed
+        # a plan saved before these settings existed
+        data = {"training_offsets": "disc", "settle_s": 0.0, "views": VIEWS, **data}
         return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()})
 
 

@@ -26,7 +26,9 @@ FPS = 10.0  # frames (actions) per second
 CHUNK = 8  # actions per query: the world model's chunk
 CLOSE_AT = 1.5  # seconds: the fingers start to close; closed-loop targets are fixed from here on
 WORKSPACE, WRIST = "cam_workspace", "cam_right_wrist"
-VIEWS = (WORKSPACE, WRIST)  # what the policies, the judge and the world model see (docs/ranking.md)
+# the cameras the policies localise from when they are given them; the benchmark gives them what the world model
+# generates (RankingPlan.views: the workspace view alone by default, docs/ranking.md)
+VIEWS = (WORKSPACE, WRIST)
 MIN_WRIST_POINTS = 6  # red points the wrist view needs before it is trusted over the workspace view
 TABLE_CENTRE = np.array([0.0, 0.5])  # where gym-aloha's cube sampler is centred: the guess when nothing is seen
 LEFT, RIGHT_ARM, RIGHT_GRIP = slice(0, 7), slice(7, 13), 13

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The seventh GPU loan, prepared (docs/ranking.md, "What the outcome needs next", items 1 and 2): the fourth to sixth
-# runs' weights are gone, so four runs start from scratch on one GPU for the same minutes, as three calls of
-# scripts/gpu_ranking.sh side by side:
+# runs' weights are gone, so four runs (three with WARP=0) start from scratch on one GPU for the same minutes, as
+# three calls of scripts/gpu_ranking.sh side by side:
 #   a: motion+contact and motion+contact with the scene-warp stream, one-step references (ROLLOUT=4, ROLLOUT_STEPS=0);
 #   b: action-vector, its best recipe: clips of 2 chunks from 4 sampler steps (ROLLOUT=2, ROLLOUT_STEPS=4);
 #   c: motion+contact on action-vector's recipe, its contact images painted from its own sampled references
