@@ -500,19 +500,22 @@ def test_the_views_are_the_plans_choice_checked_before_any_work(tmp_path, capsys
     assert "cam_back" in capsys.readouterr().err and not (tmp_path / "w").exists()
 
 
-def test_a_plan_saved_before_the_training_offsets_and_settle_settings_loads_as_what_it_ran(tmp_path, capsys):
+def test_a_plan_saved_before_the_training_offsets_settle_and_views_settings_loads_as_what_it_ran(tmp_path, capsys):
     saved = RankingPlan(work=tmp_path, docs=tmp_path).to_dict()
     assert saved["settle_s"] == 0.3  # a new plan lets the box settle before the first frame
-    del saved["training_offsets"], saved["settle_s"]
+    assert saved["views"] == ("cam_workspace",)  # and shows the policies and the model the workspace view alone
+    del saved["training_offsets"], saved["settle_s"], saved["views"]
     (tmp_path / "plan.json").write_text(json.dumps(saved))
     before = RankingPlan.load(tmp_path / "plan.json")
     assert before.training_offsets == "disc" and before.settle_s == 0.0
+    assert before.views == ("cam_workspace", "cam_right_wrist")
     with pytest.raises(InputError, match="training_offsets"):
         RankingPlan(work=tmp_path, docs=tmp_path, training_offsets="ring")
     # such a work directory is refused with today's defaults, naming the settings to give
     assert model_main(["ranking", "--work", str(tmp_path), "--docs", str(tmp_path), "--stages", "report"]) == 2
     err = capsys.readouterr().err
     assert "settle_s: 0.0 there, 0.3 here" in err and "training_offsets: 'disc' there, 'across' here" in err
+    assert "views: ('cam_workspace', 'cam_right_wrist') there, ('cam_workspace',) here" in err
     # --plan is the stages' own way to hand their processes the plan: from a user it would be ignored
     assert model_main(["ranking", "--plan", str(tmp_path / "plan.json"), "--stages", "report"]) == 2
     assert "only the benchmark's own processes (--internal) read a plan" in capsys.readouterr().err
