@@ -22,7 +22,7 @@ from imac_data.errors import InputError
 from imac_data.layout import ACTION, INFO, MOTION, R2S, S2G, depth_key, image_key, info_path
 
 __all__ = ["SCHEMA_VERSION", "SUPPORTED_VERSIONS", "ADDED_IN", "RIG_KEYS", "STREAM_KEYS", "dataset_root", "dataset_info", "imac_block",
-           "chunk_timestamps"]
+           "unchecked_imac_block", "chunk_timestamps"]
 
 SCHEMA_VERSION = 2
 SUPPORTED_VERSIONS = (1, 2)
@@ -89,6 +89,12 @@ def imac_block(meta, *, require: Sequence[str] = (), where: str | None = None) -
     if missing:
         raise InputError(f"{where}: imac block lacks {missing}")
     return dict(block)
+
+
+def unchecked_imac_block(meta) -> dict:
+    """The ``imac`` block as it stands, unchecked; ``{}`` where there is none (a base dataset
+    not built by imac, or one whose streams are being added)."""
+    return dataset_info(meta).get("imac", {})
 
 
 def chunk_timestamps(meta, cameras: Sequence[str] | None = None) -> dict[str, list[float]]:

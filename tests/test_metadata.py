@@ -6,6 +6,7 @@ metadata accepts what both LeRobot lines give: ``ds.meta``, the dataset's root, 
   ``meta`` is called with each form on a built dataset, and gives the same answer for each.
 * ``imac_model`` never touches the ``imac`` key itself (read from the source with ``ast``), and
   names the success column only through ``imac_data.layout``.
+* In ``imac_data`` only the reader (``metadata``) and the writer (``dataset/info``) index the key.
 """
 
 from __future__ import annotations
@@ -184,6 +185,35 @@ def test_imac_model_reads_the_imac_block_through_the_one_reader():
         wrong += [f"{path.relative_to(ROOT)}:{line}: the imac key" for line in _imac_key_uses(tree)]
         wrong += [f"{path.relative_to(ROOT)}:{line}: {SUCCESS_COLUMN!r} spelled out" for line in _success_literals(tree)]
     assert not wrong, "\n".join(wrong)
+
+
+def _imac_block_reads(tree: ast.AST) -> list[int]:
+    """Lines that index the ``imac`` key: ``x["imac"]`` or ``x.get("imac", ...)`` (a docstring or a
+    comment that mentions ``info["imac"]`` is not code)."""
+    def is_imac(node) -> bool:
+        return isinstance(node, ast.Constant) and node.value == "imac"
+
+    return [n.lineno for n in ast.walk(tree)
+            if (isinstance(n, ast.Subscript) and is_imac(n.slice))
+            or (isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "get"
+                and n.args and is_imac(n.args[0]))]
+
+
+def test_imac_data_indexes_the_imac_block_only_in_its_reader_and_writer():
+    """``imac_data.metadata`` reads the block (``imac_block``, ``unchecked_imac_block``) and
+    ``imac_data.dataset.info`` writes it; no other module indexes the key of an info dict."""
+    allowed = {ROOT / "imac_data" / "metadata.py", ROOT / "imac_data" / "dataset" / "info.py"}
+    wrong = [f"{path.relative_to(ROOT)}:{line}" for path in sorted((ROOT / "imac_data").rglob("*.py"))
+             if path not in allowed for line in _imac_block_reads(ast.parse(path.read_text()))]
+    assert not wrong, "the imac block read outside imac_data.metadata:\n" + "\n".join(wrong)
+    assert all(_imac_block_reads(ast.parse(path.read_text())) for path in allowed)  # the check reads them
+
+
+@pytest.mark.parametrize("source, lines", [('x = info["imac"]["augment"]', [1]), ('x = info.get("imac", {})', [1]),
+                                           ('def f(info):\n    """Reads ``info["imac"]``."""\n    return 1', []),
+                                           ('# info.get("imac")\nok = "imac" in info', [])])
+def test_the_imac_data_check_reads_code_not_docstrings(source, lines):
+    assert _imac_block_reads(ast.parse(source)) == lines
 
 
 @pytest.mark.parametrize("source", ['x = info["imac"]["augment"]', 'x = info.get("imac", {})', 'ok = "imac" in info',

@@ -17,6 +17,7 @@ from imac_data.dataset.ingest import write_rig
 from imac_data.dataset.output import refuse_overlap
 from imac_data.errors import InputError
 from imac_data.layout import ACTION, STATE, is_added_stream
+from imac_data.metadata import unchecked_imac_block
 from imac_data.sources.hdf5 import EpisodeReader, episode_paths
 from imac_data.sources.lerobot_dataset import SourceDataset, episode_states
 
@@ -39,7 +40,7 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
         raise InputError(f"{root} already has control/depth streams {existing[:3]}...; start from the base dataset")
     if recipe.cameras.calibration is not None:
         rig = Rig.from_recipe(recipe)
-    elif "cameras" in info.get("imac", {}):
+    elif "cameras" in unchecked_imac_block(info):
         rig = Rig.from_recipe(recipe, Rig.from_info(info, root).cameras)
     else:
         raise InputError(f"{root}: no calibration: set cameras.calibration in {recipe.file}")

@@ -14,11 +14,12 @@ from imac_data.augment.timing import StageTimer
 from imac_data.dataset.columns import add_frame_column
 from imac_data.dataset.depth_streams import depth_imac_block, depth_info_extra, depth_map_imac_block
 from imac_data.dataset.files import atomic_write_text
-from imac_data.dataset.info import read_info, update_imac_info
+from imac_data.dataset.info import update_imac_info
 from imac_data.dataset.ingest import BaseWriter
 from imac_data.dataset.streams import StreamWriter
 from imac_data.dataset.videos import VideoEncoding
 from imac_data.layout import CAP_KEY, depth_key, depth_map_key
+from imac_data.metadata import unchecked_imac_block
 from imac_data.sources.hdf5 import EpisodeReader
 
 __all__ = ["stream_writer", "write_episode_dataset", "add_episode_streams", "write_timings"]
@@ -98,7 +99,7 @@ def add_episode_streams(root: Path, readers, rig, settings, *, depth_source=None
     opened one at a time) with joint vectors ``states[i] = (state, action)`` (default: the readers')."""
     timer = timer if timer is not None else StageTimer()
     pipe = EpisodePipeline(rig, settings, depth_source, timer=timer, threads=threads)
-    calibration = read_info(root).get("imac", {}).get("cameras") or {n: c.to_dict() for n, c in rig.cameras.items()}
+    calibration = unchecked_imac_block(root).get("cameras") or {n: c.to_dict() for n, c in rig.cameras.items()}
     caps = []
     with stream_writer(pipe, root, calibration) as streams:
         for i, reader in enumerate(tqdm(readers, desc="augment episodes", unit="ep", disable=not progress)):

@@ -24,6 +24,7 @@ from imac_data.dataset.streams import StreamWriter
 from imac_data.dataset.videos import VideoEncoding, encoder_versions
 from imac_data.errors import InputError
 from imac_data.layout import depth_key, depth_map_key
+from imac_data.metadata import unchecked_imac_block
 
 __all__ = ["add_depth_streams", "depth_info_extra", "depth_imac_block", "depth_map_imac_block"]
 
@@ -89,7 +90,7 @@ def add_depth_streams(root, episodes, *, cameras=None, codec: DepthCodec | None 
 
     root = Path(root)
     info = read_info(root)
-    calib = info.get("imac", {}).get("cameras", {})
+    calib = unchecked_imac_block(info).get("cameras", {})
     if cameras is None:
         cameras = sorted(calib)
         if not cameras:
@@ -101,7 +102,7 @@ def add_depth_streams(root, episodes, *, cameras=None, codec: DepthCodec | None 
     if not isinstance(codec, DepthCodec):
         raise InputError(f"add_depth_streams: codec must be a DepthCodec, got {type(codec).__name__}")
     encoding = VideoEncoding.lossless_rgb() if encoding is None else encoding
-    existing = info.get("imac", {}).get("depth")
+    existing = unchecked_imac_block(info).get("depth")
     if existing and existing.get("codec") != codec.to_dict():
         raise InputError(f"{root}: already has depth streams with codec {existing.get('codec')}; "
                          "all depth streams of a dataset must share one codec")

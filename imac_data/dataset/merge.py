@@ -33,6 +33,7 @@ from imac_data.dataset.info import imac_block, order_stats, read_info, update_im
 from imac_data.dataset.streams import video_info
 from imac_data.errors import InputError
 from imac_data.layout import is_added_stream
+from imac_data.metadata import unchecked_imac_block
 
 __all__ = ["merge_datasets", "check_same_rig", "order_feature_info", "restore_imac_block"]
 
@@ -133,4 +134,4 @@ def restore_imac_block(root: str | Path, original: str | Path) -> dict:
         if not (root / DESCRIPTION_DIR).exists():
             shutil.copytree(description, root / DESCRIPTION_DIR)
     block["build"] = {**block.get("build", {}), "imac_block_restored_from": str(original.resolve())}
-    return update_imac_info(root, block)["imac"]
+    return unchecked_imac_block(update_imac_info(root, block))

@@ -35,6 +35,7 @@ from imac_data.layout import (
     is_added_stream,
     video_column,
 )
+from imac_data.metadata import unchecked_imac_block
 from imac_data.sources.lerobot_episodes import count_decodable_frames, stream_pix_fmt
 
 __all__ = ["validate_dataset", "Report", "CHECKS"]
@@ -233,7 +234,7 @@ def check_rig(ctx: _Context) -> list[str]:
 
 def check_calibration(ctx: _Context) -> list[str]:
     problems = []
-    for name, c in ctx.info.get("imac", {}).get("cameras", {}).items():
+    for name, c in unchecked_imac_block(ctx.info).get("cameras", {}).items():
         try:  # the calibration checks of the build's input (fx, fy, principal point, rigid pose)
             camera_from_dict(name, c, f"imac.cameras.{name}")
         except InputError as e:

@@ -22,6 +22,7 @@ from imac_data.core.depth import depth_codec_of
 from imac_data.dataset.videos import VideoEncoding, encode_video
 from imac_data.errors import InputError
 from imac_data.layout import DEPTH_PREFIX, IMAGE_PREFIX, MOTION, R2S, S2G, info_path
+from imac_data.metadata import unchecked_imac_block
 
 __all__ = ["ROWS", "PreviewLayout", "preview_layout", "compose", "write_preview"]
 
@@ -54,7 +55,7 @@ def preview_layout(info: dict) -> PreviewLayout:
         raise InputError("the dataset has no observation.images.* video streams to preview")
     rows = tuple((label, prefix) for label, prefix in ROWS
                  if any(f"{prefix}{cam}" in features for cam in cameras))
-    augment = info.get("imac", {}).get("augment", {})
+    augment = unchecked_imac_block(info).get("augment", {})
     if "height" in augment and "width" in augment:
         tile_hw = (int(augment["height"]), int(augment["width"]))
     else:  # no added streams: the first camera's own size
