@@ -5,6 +5,8 @@
 * A module imports only its own layer and the layers below (docs/architecture.md).
 * There are no import cycles.
 * ``imac_data`` never imports ``imac_model``.
+* The contact modules share only public names: the GPU painter (``batched``) uses the helpers of
+  ``images`` as any caller would.
 * The heavy libraries of the renderer, the robot model and sharding are imported where they are
   used: the suite and the benchmarks start hundreds of processes that read datasets or train and
   never need them.
@@ -199,3 +201,29 @@ def test_reading_and_training_modules_import_no_renderer_robot_or_sharding_libra
     heavy = [line for line in done.stdout.splitlines() if not line.endswith(" []")]
     assert len(done.stdout.splitlines()) == len(READING_AND_TRAINING) and not heavy, \
         "importing these modules imports:\n" + "\n".join(heavy)
+
+
+def private_sibling_imports(mod: str, path: Path) -> list[str]:
+    """``"line: module._name"`` for each private name that ``mod`` imports from its own package."""
+    package = mod.rsplit(".", 1)[0]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            source = _resolve(mod, path, node)
+            if source == package or source.startswith(package + "."):
+                found += [f"{node.lineno}: {source}.{a.name}" for a in node.names if a.name.startswith("_")]
+    return found
+
+
+def test_the_contact_modules_import_no_private_name_from_each_other():
+    contact = ROOT / "imac_data" / "core" / "contact"
+    wrong = [f"{path.relative_to(ROOT)}:{hit}" for path in sorted(contact.glob("*.py"))
+             for hit in private_sibling_imports(module_name(path), path)]
+    assert not wrong, "private names imported from a sibling module (make them public):\n" + "\n".join(wrong)
+
+
+def test_the_private_import_check_catches_one(tmp_path):
+    bad = tmp_path / "batched.py"
+    bad.write_text("from imac_data.core.contact.images import _stream_cap, colorize\nfrom .nearest import _box_distance\n")
+    assert private_sibling_imports("imac_data.core.contact.batched", bad) == [
+        "1: imac_data.core.contact.images._stream_cap", "2: imac_data.core.contact.nearest._box_distance"]

@@ -28,9 +28,9 @@ from imac_data.core.contact.images import (
     EMPTY_CAP,
     MIN_CAP,
     ContactChunk,
-    _fill_sources,
-    _resolve_cap,
     colorize,
+    fill_sources,
+    resolve_cap,
 )
 from imac_data.core.contact.nearest import NearestNeighbours
 from imac_data.core.contact.workspace import as_workspace
@@ -203,7 +203,7 @@ def _paint(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_c
         raise InputError("contact_batch: K or camera poses contain NaN or inf")
     if not torch.isfinite(grip).all():
         raise InputError("contact_batch: gripper points contain NaN or inf")
-    fixed = _resolve_cap(cap)
+    fixed = resolve_cap(cap)
     HW = H * W
     rays = pixel_rays(K, H, W)  # (V, HW, 3)
 
@@ -248,7 +248,7 @@ def _paint(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_c
     s_rgb = colorize(s2g, cap_s.reshape(B, 1, 1, 1, 1))
     if fill_px:
         # the hole filling of contact_chunk, one index map for every chunk and step
-        dst, src = _fill_sources(valid, region, int(fill_px))
+        dst, src = fill_sources(valid, region, int(fill_px))
         flat = s2g.transpose(0, 1).reshape(S, B * V * HW)
         flat.index_copy_(1, dst, flat.index_select(1, src))
         s2g = flat.reshape(S, B, V, H, W).transpose(0, 1)

@@ -34,7 +34,7 @@ from imac_data.core.contact.nearest import (
     DEFAULT_TOLERANCE,
     NearestNeighbours,
     TilePyramid,
-    _points,
+    as_points,
     certified_distances,
     nearest_distances,
     resolve_tolerance,
@@ -179,7 +179,8 @@ def chunk_caps(r2s: torch.Tensor, s2g: torch.Tensor, percentile: float = DEFAULT
     return torch.tensor([_stream_cap(r2s, percentile), _stream_cap(s2g, percentile)], dtype=torch.float32)
 
 
-def _resolve_cap(cap) -> tuple[float, float] | None:
+def resolve_cap(cap) -> tuple[float, float] | None:
+    """A ``cap`` argument checked: ``(r2s, s2g)`` metres, or None (each chunk's percentile)."""
     if cap is None:
         return None
     if isinstance(cap, (int, float, np.floating, np.integer)) and not isinstance(cap, bool):
@@ -199,7 +200,7 @@ def _resolve_cap(cap) -> tuple[float, float] | None:
 _NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1))
 
 
-def _fill_sources(have: torch.Tensor, region: torch.Tensor, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
+def fill_sources(have: torch.Tensor, region: torch.Tensor, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Hole filling as an index map, for images ``(..., H, W)`` flattened: ``(dst, src)``
     such that ``values[dst] = values[src]`` densifies ``values`` inside ``region``.
 
@@ -254,12 +255,12 @@ def _future_inputs(robot_depth, T_world_cam, gripper_points, gripper_mask, V, H,
         g = torch.as_tensor(gripper_points, device=device)
         if g.ndim != 3 or g.shape[0] != S or g.shape[-1] != 3:
             raise InputError(f"gripper points must be (S, M, 3) with S = {S} steps, got {tuple(g.shape)}")
-        gp = [_points(g[s], f"gripper points of step {s}") for s in range(S)]
+        gp = [as_points(g[s], f"gripper points of step {s}") for s in range(S)]
     else:
         gp = list(gripper_points)
         if len(gp) != S:
             raise InputError(f"gripper points: {len(gp)} step(s) given for {S} future step(s)")
-        gp = [_points(g, f"gripper points of step {s}", device) for s, g in enumerate(gp)]
+        gp = [as_points(g, f"gripper points of step {s}", device) for s, g in enumerate(gp)]
     if gm is None and gripper_points is None:
         raise InputError("no gripper: give gripper_points (e.g. GripperSurface samples) and/or gripper_mask")
     return rd, T, gp, gm
@@ -285,7 +286,7 @@ def contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_
 
     ``cap``: None = per-stream ``percentile`` of this chunk's distances (:func:`chunk_caps`);
     a number or ``(r2s, s2g)`` = fixed caps in metres (distances beyond are culled to +inf).
-    ``fill_px``: hole filling of s2g inside the scene mask (:func:`_fill_sources`).
+    ``fill_px``: hole filling of s2g inside the scene mask (:func:`fill_sources`).
     ``workspace``: the crop of the reference scene (:func:`scene_cloud`; a
     :class:`~imac_data.core.contact.workspace.Workspace`, its dict form, or None = no crop): far
     background and saturated depth never enter the scene cloud or the caps.
@@ -334,7 +335,7 @@ def _torch_threads(n: int | None):
 def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T_world_cam, gripper_points,
                    gripper_mask, cap, percentile, dilate_px, fill_px, tolerance, method, workers, allow_empty_scene,
                    device, threads, parallel=None, workspace=None) -> ContactChunk:
-    fixed = _resolve_cap(cap)
+    fixed = resolve_cap(cap)
     tol = resolve_tolerance(tolerance)
     if not (0.0 <= float(percentile) <= 100.0):
         raise InputError(f"cap percentile must be in [0, 100], got {percentile}")
@@ -421,7 +422,7 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
         rgb = torch.zeros((S, V * HW, 3), dtype=torch.uint8, device=device)
         rgb.index_copy_(1, scene.flat, colorize(s_vals, cap_s))
         if fill_px and len(scene.points):
-            dst, src = _fill_sources(scene.valid, scene.mask, int(fill_px))
+            dst, src = fill_sources(scene.valid, scene.mask, int(fill_px))
             maps.index_copy_(1, dst, maps.index_select(1, src))
             rgb.index_copy_(1, dst, rgb.index_select(1, src))
         return maps.reshape(S, V, H, W), rgb.reshape(S, V, H, W, 3), cap_s

@@ -27,7 +27,8 @@ DEFAULT_TOLERANCE = (0.001, 0.03)
 TILE_SIZES = (8, 4, 2)  # pixel tiles of the certified pyramid, coarse to fine
 
 
-def _points(x, name: str, device=None) -> torch.Tensor:
+def as_points(x, name: str, device=None) -> torch.Tensor:
+    """``x`` as a float ``(N, 3)`` tensor of finite points (:class:`InputError` naming ``name``)."""
     t = torch.as_tensor(x, device=device)
     if t.ndim != 2 or t.shape[-1] != 3:
         raise InputError(f"{name}: expected points of shape (N, 3), got {tuple(t.shape)}")
@@ -90,7 +91,7 @@ class NearestNeighbours:
 
     def __init__(self, target, *, method: str = "auto", workers: int = -1, chunk_pairs: int | None = None,
                  leafsize: int = _KDTREE_LEAFSIZE):
-        self.target = _points(target, "nearest-distance target")
+        self.target = as_points(target, "nearest-distance target")
         if method not in ("auto", "kdtree", "torch"):
             raise InputError(f"nearest-distance method must be 'auto', 'kdtree' or 'torch', got {method!r}")
         M = self.target.shape[0]
@@ -120,7 +121,7 @@ class NearestNeighbours:
     def query(self, query, *, max_distance: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``(distance (N,), nearest target point (N, 3))``, float32 on the query's device;
         where the distance is +inf (see :meth:`distances`) the point is NaN."""
-        q = _points(query, "nearest-distance query")
+        q = as_points(query, "nearest-distance query")
         N = q.shape[0]
         dist = torch.full((N,), math.inf, dtype=torch.float32, device=q.device)
         near = torch.full((N, 3), math.nan, dtype=torch.float32, device=q.device)
