@@ -28,7 +28,6 @@ from imac_data.layout import ACTION, STATE
 from imac_data.metadata import imac_block
 
 RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
-FILE_SOURCE_TYPES = ("aloha_hdf5", "lerobot")  # besides the simulated platforms (PLATFORMS), which record themselves
 DEPTH_FORMATS = ("millimetres", "metres", "codec", "lerobot")
 
 
@@ -129,6 +128,46 @@ class SourceSection:
     metadata: str | None = None  # lerobot: CSV or JSON of episode metadata keyed by episode_index
     sim: SimSection = field(default_factory=SimSection)
     episode_defaults: EpisodeDefaults = field(default_factory=EpisodeDefaults)
+
+
+@dataclass(frozen=True)
+class SourceType:
+    """A recipe's ``source.type`` read from files: what ``source.path`` is, the build that reads
+    it, and what only it takes."""
+
+    build: str  # "episodes": HDF5 episode files (build.from_episodes); "lerobot": a LeRobot dataset (build.from_lerobot)
+    label: str  # its name in messages ("a LeRobot source")
+    path: str  # what source.path is
+    path_hint: str  # what is in it, for a path that is not there
+    input_name: str  # the source among a build's inputs
+    hub: bool = False  # source.repo_id (a hub dataset) may stand in for source.path
+    own_keys: tuple[str, ...] = ()  # source keys only this type reads (set for another type: refused)
+    depth_feature: bool = False  # its recorded depth is a named feature (depth.feature), not HDF5 depth
+
+
+# what the simulator records (a simulated platform's source.type, simulated_platforms()) and ALOHA/AgileX write
+HDF5_EPISODES = SourceType(build="episodes", label="HDF5", path="the directory of HDF5 episodes",
+                           path_hint="episode_0.hdf5, episode_1.hdf5, ... as the ALOHA/AgileX recorder writes them",
+                           input_name="source episodes")
+
+# source.type -> how it is read. A new source type is one entry (and, if no build reads it yet, its build in
+# imac_data.build.flow.BUILDS); the simulated platforms are source types too and read as HDF5_EPISODES.
+SOURCE_TYPES: dict[str, SourceType] = {
+    "aloha_hdf5": HDF5_EPISODES,
+    "lerobot": SourceType(build="lerobot", label="LeRobot", path="the LeRobot dataset's root directory",
+                          path_hint="the directory holding meta/info.json", input_name="source dataset", hub=True,
+                          own_keys=("repo_id", "metadata", "cameras"), depth_feature=True),
+}
+
+
+def source_type(name: str, where: str = "source.type") -> SourceType:
+    """How the ``source.type`` ``name`` is read (:class:`InputError` naming ``where`` and the known types)."""
+    simulated = simulated_platforms()
+    if name in simulated:
+        return HDF5_EPISODES
+    if name not in SOURCE_TYPES:
+        raise InputError(f"{where}: unknown source type {name!r}; known: {list(simulated) + list(SOURCE_TYPES)}")
+    return SOURCE_TYPES[name]
 
 
 @dataclass(frozen=True)
@@ -281,25 +320,27 @@ def _validate(recipe: Recipe) -> None:
         except InputError as e:
             raise InputError(f"{f}: {e}") from None
     simulated = simulated_platforms()
-    if s.type not in FILE_SOURCE_TYPES + simulated:
-        raise InputError(f"{f}: source.type: unknown source type {s.type!r}; known: {list(simulated + FILE_SOURCE_TYPES)}")
-    if s.type == "aloha_hdf5" and s.path is None:
-        raise InputError(f"{f}: source.path: required for source.type aloha_hdf5 (the directory of .hdf5 episodes)")
-    if s.type == "lerobot" and s.path is None and s.repo_id is None:
-        raise InputError(f"{f}: source: type lerobot needs 'path' (a local dataset root) or 'repo_id' (a hub dataset)")
+    kind = source_type(s.type, f"{f}: source.type")
+    if s.type not in simulated and s.path is None and not (kind.hub and s.repo_id is not None):
+        if kind.hub:
+            raise InputError(f"{f}: source: type {s.type} needs 'path' ({kind.path}) or 'repo_id' (a hub dataset)")
+        raise InputError(f"{f}: source.path: required for source.type {s.type} ({kind.path})")
     if s.action_space not in ("joint", "ee"):
         raise InputError(f"{f}: source.action_space: must be 'joint' or 'ee', got {s.action_space!r}")
-    if s.type != "lerobot":
-        extra = [k for k in ("repo_id", "metadata") if getattr(s, k) is not None] + (["cameras"] if s.cameras else [])
-        if extra:
-            raise InputError(f"{f}: source: {extra} only apply to source.type lerobot")
+    unset = SourceSection(type=s.type)  # a key set away from its default is refused if another type owns it
+    others = {k: name for name, other in SOURCE_TYPES.items() for k in other.own_keys if k not in kind.own_keys}
+    extra = [k for k in others if getattr(s, k) != getattr(unset, k)]
+    if extra:
+        owners = " or ".join(dict.fromkeys(others[k] for k in extra))
+        raise InputError(f"{f}: source: {extra} only apply to source.type {owners}")
     d = recipe.depth
     if d.format is not None and d.format not in DEPTH_FORMATS:
         raise InputError(f"{f}: depth.format: must be one of {DEPTH_FORMATS}, got {d.format!r}")
-    if d.feature is not None and (s.type != "lerobot" or d.source != "recorded"):
-        raise InputError(f"{f}: depth.feature: only for depth.source recorded with source.type lerobot")
-    if s.type == "lerobot" and d.source == "recorded" and d.feature is None:
-        raise InputError(f"{f}: depth.feature: a LeRobot source has no HDF5 depth; name its depth feature "
+    if d.feature is not None and (not kind.depth_feature or d.source != "recorded"):
+        with_feature = " or ".join(name for name, other in SOURCE_TYPES.items() if other.depth_feature)
+        raise InputError(f"{f}: depth.feature: only for depth.source recorded with source.type {with_feature}")
+    if kind.depth_feature and d.source == "recorded" and d.feature is None:
+        raise InputError(f"{f}: depth.feature: a {kind.label} source has no HDF5 depth; name its depth feature "
                          "(e.g. observation.depth.{cam}), or set depth.source to da3 or none")
     if d.batch_size < 1 or d.process_res < 14 or d.process_res % 14:
         raise InputError(f"{f}: depth: batch_size must be >= 1 and process_res a positive multiple of 14")
@@ -397,12 +438,9 @@ def missing_inputs(recipe: Recipe, source_path: Path | None = None) -> list[str]
                   is_dir=True)
     check("cameras.calibration", recipe.cameras.calibration, "the camera calibration JSON",
           "format in docs/calibration.md")
-    if source_path is None and recipe.source.type == "lerobot":
-        check("source.path", recipe.source.path, "the LeRobot dataset's root directory",
-              "the directory holding meta/info.json", is_dir=True)
-    elif source_path is None:
-        check("source.path", recipe.source.path, "the directory of HDF5 episodes",
-              "episode_0.hdf5, episode_1.hdf5, ... as the ALOHA/AgileX recorder writes them", is_dir=True)
+    if source_path is None:
+        kind = source_type(recipe.source.type)
+        check("source.path", recipe.source.path, kind.path, kind.path_hint, is_dir=True)
     check("source.metadata", recipe.source.metadata, "the episode metadata file", "CSV or JSON keyed by episode_index")
     return problems
 

@@ -1,10 +1,11 @@
-"""Extension points are registries: a new platform, depth source or success judge is its module
-plus one entry, and nothing else names it.
+"""Extension points are registries: a new platform, source type, depth source or success judge is
+its module plus one entry, and nothing else names it.
 
 A toy platform registered here (and only here: no line of the package changes) passes recipe
 validation, ``Rig.from_recipe``, ``imac qa overlay`` and a one-episode build. A toy depth source
-and a toy judge are picked by name the same way. No platform name is spelled out in the packages
-outside its registry entry (read from the source with ``ast``).
+and a toy judge are picked by name the same way; a toy source type passes recipe validation and
+reaches its build. No platform name is spelled out in the packages outside its registry entry
+(read from the source with ``ast``).
 """
 
 from __future__ import annotations
@@ -12,19 +13,31 @@ from __future__ import annotations
 import ast
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
+from imac_data.build.flow import BUILDS, input_paths
+from imac_data.build.from_episodes import build_from_episodes
+from imac_data.build.staging import BuildRequest
 from imac_data.cli import main as imac_main
 from imac_data.core.motion import Controller, GripperActionMap
 from imac_data.core.rig import Rig
 from imac_data.core.robot import aloha
-from imac_data.core.robot.platforms import PLATFORMS, Platform
+from imac_data.core.robot.platforms import PLATFORMS, Platform, simulated_platforms
 from imac_data.errors import InputError
-from imac_data.recipes import DepthSection, load_recipe
+from imac_data.recipes import (
+    HDF5_EPISODES,
+    SOURCE_TYPES,
+    DepthSection,
+    load_recipe,
+    missing_inputs,
+    parse_recipe,
+    source_type,
+)
 from imac_data.sources.depth import DEPTH_SOURCES, DepthSourceKind, make_depth_source
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 from imac_model.evaluate.success import JUDGES, SuccessJudge, load_judge
@@ -121,6 +134,27 @@ def test_a_toy_depth_source_and_a_toy_judge_are_one_entry(monkeypatch):
         load_judge("always:yes")
     monkeypatch.setitem(JUDGES, "always", lambda spec: Always())
     assert isinstance(load_judge("always:yes"), Always)
+
+
+def test_a_toy_source_type_is_one_entry(monkeypatch, tmp_path):
+    recipe = {"name": "x", "task": "t", "robot": {"platform": "aloha_sim"}, "cameras": {"calibration": "c.json"},
+              "source": {"type": "toy_hdf5"}}
+    known = re.escape(str([*simulated_platforms(), *SOURCE_TYPES]))
+    with pytest.raises(InputError, match=rf"r.yaml: source\.type: unknown source type 'toy_hdf5'; known: {known}"):
+        parse_recipe(recipe, "r.yaml")
+    monkeypatch.setitem(SOURCE_TYPES, "toy_hdf5", dataclasses.replace(HDF5_EPISODES, label="toy"))
+    with pytest.raises(InputError, match=r"source\.path: required for source\.type toy_hdf5 \(the directory of HDF5"):
+        parse_recipe(recipe, "r.yaml")
+    with pytest.raises(InputError, match=r"\['repo_id'\] only apply to source\.type lerobot"):
+        parse_recipe({**recipe, "source": {"type": "toy_hdf5", "path": "eps", "repo_id": "a/b"}}, "r.yaml")
+    parsed = parse_recipe({**recipe, "source": {"type": "toy_hdf5", "path": "eps"}}, str(tmp_path / "r.yaml"))
+    assert BUILDS[source_type(parsed.source.type).build] is build_from_episodes
+    assert any(p.startswith("source.path: the directory of HDF5 episodes not found") for p in missing_inputs(parsed))
+    assert input_paths(BuildRequest("local/toy", parsed, tmp_path / "out"))["source episodes"] == tmp_path / "eps"
+
+
+def test_every_source_type_has_a_build():
+    assert {kind.build for kind in SOURCE_TYPES.values()} <= set(BUILDS)
 
 
 def _platform_names_spelled(path: Path) -> list[int]:

@@ -2,7 +2,8 @@
 
 Everything that can be checked is checked first, read-only: the recipe's inputs, that the
 output neither is nor holds an input, that an existing output may be replaced, and the robot
-description. Then the source decides the flow: HDF5 or simulated episodes
+description. Then the source's type decides the flow (:data:`BUILDS`, by
+:attr:`imac_data.recipes.SourceType.build`): HDF5 or simulated episodes
 (:mod:`~imac_data.build.from_episodes`) or a LeRobot dataset
 (:mod:`~imac_data.build.from_lerobot`), both through the one staged flow
 (:mod:`~imac_data.build.staging`).
@@ -11,6 +12,7 @@ description. Then the source decides the flow: HDF5 or simulated episodes
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from imac_data import lerobot_compat as lr
@@ -21,9 +23,17 @@ from imac_data.build.workers import limit_malloc_arenas
 from imac_data.core.rig import Rig
 from imac_data.dataset.output import check_output, refuse_overlap
 from imac_data.errors import InputError
-from imac_data.recipes import missing_inputs
+from imac_data.recipes import missing_inputs, source_type
 
-__all__ = ["build_dataset", "input_paths"]
+__all__ = ["build_dataset", "input_paths", "BUILDS"]
+
+
+def _build_lerobot(req: BuildRequest, robot, **_) -> None:
+    build_from_lerobot(req, robot)  # one process, no shards: the executor's options do not apply
+
+
+# SourceType.build -> the build that reads that kind of source
+BUILDS: dict[str, Callable[..., None]] = {"episodes": build_from_episodes, "lerobot": _build_lerobot}
 
 
 def build_dataset(req: BuildRequest, *, executor: str = "local", workers: int | None = None,
@@ -40,11 +50,9 @@ def build_dataset(req: BuildRequest, *, executor: str = "local", workers: int | 
     refuse_overlap(req.root, input_paths(req))  # before anything is recorded or written
     check_output(req.root, overwrite=req.overwrite)
     robot = Rig.robot_from_recipe(recipe)  # a bad URDF or joint map fails before any recording
-    if recipe.source.type == "lerobot":
-        build_from_lerobot(req, robot)
-    else:
-        build_from_episodes(req, robot, executor=executor, workers=workers, ray_address=ray_address,
-                            t_start=t_start, usage_start=usage_start)
+    build = BUILDS[source_type(recipe.source.type).build]
+    build(req, robot, executor=executor, workers=workers, ray_address=ray_address, t_start=t_start,
+          usage_start=usage_start)
     return lr.LeRobotDataset(req.repo_id, root=req.root)
 
 
@@ -52,8 +60,7 @@ def input_paths(req: BuildRequest) -> dict[str, Path | None]:
     """The user's files a build reads (never written or deleted)."""
     recipe = req.recipe
     return {
-        "source dataset" if recipe.source.type == "lerobot" else "source episodes":
-            req.source_path or recipe.resolve_path(recipe.source.path),
+        source_type(recipe.source.type).input_name: req.source_path or recipe.resolve_path(recipe.source.path),
         "calibration": recipe.resolve_path(recipe.cameras.calibration),
         "recipe": Path(recipe.file) if recipe.file else None,
         "robot URDF": recipe.resolve_path(recipe.robot.urdf),
