@@ -1,16 +1,6 @@
-"""The ranking world model's ablations: two runs trained on the same pack, for the same GPU time, in
-the same call of ``scripts/gpu_ranking.sh``, one with a design choice and one without:
-
-* ``focus``: the loss weighted on what moves (``motion_contact``) against a uniform loss
-  (``motion_contact_uniform``, ``focus_weight 0``; ``ABLATION=1``);
-* ``rollout``: training-time rollout (``motion_contact``, ``ROLLOUT=R``) against none
-  (``motion_contact_no_rollout``; ``ABLATION=rollout``);
-* ``first-frame``: the episode's first frame as memory (``motion_contact_first_frame``,
-  ``conditioning.first_frame``) against none (``motion_contact``; ``ABLATION=first-frame``);
-* ``scene-warp``: the scene-warp stream (``motion_contact_scene_warp``, ``conditioning.scene_warp``) against
-  none (``motion_contact``; ``ABLATION=scene-warp``);
-* ``contact``: a rolled-out chunk's contact images painted from its own reference (``motion_contact_rebuilt``,
-  ``--rebuild-contact``) against the recorded ones (``motion_contact``; ``ABLATION=contact``).
+"""The ranking world model's ablations (:mod:`imac_model.experiments.ranking.ablations`, one table),
+measured on a work directory where the arm and the run it changes are trained (the GPU preset's
+``gpu_ablations``, imported with ``--import-gpu``; or ``python -m benchmarks.cpu_ablation``).
 
 Each run is measured by the early gate (its held-out training rollouts replayed, balanced accuracy
 of the lift judge from every chunk; measured here if missing) and on the replays of the evaluation
@@ -26,26 +16,21 @@ import argparse
 import json
 from pathlib import Path
 
+from imac_model.experiments.ranking.ablations import ABLATIONS, ablation
 from imac_model.experiments.ranking.evaluation import replays
 from imac_model.experiments.ranking.gate import measure_gate, read_gates
-from imac_model.experiments.ranking.plan import RankingPlan
-
-ABLATIONS = {"focus": {"focus": "motion_contact", "uniform": "motion_contact_uniform"},
-             "rollout": {"rollout": "motion_contact", "no_rollout": "motion_contact_no_rollout"},
-             "first-frame": {"first_frame": "motion_contact_first_frame", "without": "motion_contact"},
-             "scene-warp": {"scene_warp": "motion_contact_scene_warp", "without": "motion_contact"},
-             "contact": {"rebuilt": "motion_contact_rebuilt", "recorded": "motion_contact"}}
+from imac_model.experiments.ranking.plan import GATED_MODE, RankingPlan
+from imac_model.models.checkpoint import read_spec, resolve_checkpoint
 
 
 def summary(plan: RankingPlan, run: str) -> dict:
-    trained = json.loads((plan.work / "runs" / run / "DONE.json").read_text())
-    gates = read_gates(plan, run) or [measure_gate(plan, trained.get("train_s", 0) / 60, run)]
-    gate = replays(plan, "motion+contact", None if plan.run_dir("motion+contact").name == run else run)[str(plan.steps)]
-    return {"focus_weight": trained.get("focus_weight"), "rollout_chunks": trained.get("rollout_chunks", 1),
-            "first_frame": trained.get("first_frame", False), "scene_warp": trained.get("scene_warp", False),
-            "rollout_reference_steps": trained.get("rollout_reference_steps", 0),
-            "rebuild_contact": trained.get("rebuild_contact", False),
-            "steps": trained["steps"], "samples": trained["samples"], "device": trained.get("device"),
+    trained = json.loads((plan.work / "runs" / run / "DONE.json").read_text())  # the log's last row
+    spec = read_spec(resolve_checkpoint(plan.work / "runs" / run))
+    gates = read_gates(plan, run) or [measure_gate(plan, trained.get("wall_s", 0) / 60, run)]
+    gate = replays(plan, GATED_MODE, None if plan.run_dir(GATED_MODE).name == run else run)[str(plan.steps)]
+    return {"focus_weight": spec.flow.focus_weight, "reference_noise": spec.flow.reference_noise,
+            "first_frame": spec.conditioning.first_frame, "scene_warp": spec.conditioning.scene_warp,
+            "rollout": "phase" in trained, "steps": trained["step"],
             "gate_balanced_accuracy_from_chunk": {k: v["balanced_accuracy"] for k, v in gates[-1]["from_chunk"].items()},
             "lift_judge_accuracy": gate["accuracy"]["lift_geometry"],
             "mse_per_chunk": gate["mse_per_chunk"], "mse_moving_per_chunk": gate.get("mse_moving_per_chunk"),
@@ -61,11 +46,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", help="write the figures here")
     args = p.parse_args(argv)
     plan = RankingPlan.load(Path(args.work) / "plan.json")
-    result = {name: summary(plan, run) for name, run in ABLATIONS[args.ablation].items()}
+    arm = ablation(args.ablation, plan.chunks)
+    result = {"arm": summary(plan, arm.arm), "baseline": summary(plan, arm.baseline)}
     for name, r in result.items():
         gate = " ".join(f"{x:.2f}" for x in r["gate_balanced_accuracy_from_chunk"].values())
         fmt = " ".join(f"{x:.4f}" for x in r["mse_moving_per_chunk"] or [])
-        print(f"{name:10s} focus {r['focus_weight']}, rollout {r['rollout_chunks']}: {r['steps']} steps; gate from "
+        print(f"{name:10s} focus {r['focus_weight']}, rollout {r['rollout']}: {r['steps']} steps; gate from "
               f"chunk 1.. {gate}; lift judge {r['lift_judge_accuracy']:.2f} on {r['replays']} replays; moving-pixel "
               f"RGB MSE per chunk {fmt}")
     if args.json:

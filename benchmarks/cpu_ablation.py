@@ -16,8 +16,7 @@ Past the preset's budget (``--minutes``) the preset has no gate; the baseline is
 
 The arm lives in ``<work>/runs/<arm>`` (checkpoint, log, gates); an interrupted call resumes. The
 first-frame and scene-warp arms' branches widen the checkpoint (:func:`imac_model.models.checkpoint.add_first_frame`,
-:func:`~imac_model.models.checkpoint.add_scene_warp`), so they start as the model they branch from. The GPU preset's ablations, trained side by side on the
-pack, are :mod:`benchmarks.ablation`."""
+:func:`~imac_model.models.checkpoint.add_scene_warp`), so they start as the model they branch from. The arms are the one table of :mod:`imac_model.experiments.ranking.ablations`."""
 
 from __future__ import annotations
 
@@ -28,35 +27,20 @@ from functools import partial
 from pathlib import Path
 
 from imac_data.errors import InputError
-from imac_model.experiments.ranking.benchmark import internal, train_command
+from imac_model.experiments.ranking.ablations import ABLATIONS
+from imac_model.experiments.ranking.ablations import ablation as ablation_arm
 from imac_model.experiments.ranking.gate import GATED_MODE, read_gates
-from imac_model.experiments.ranking.plan import RankingPlan
+from imac_model.experiments.ranking.plan import RankingPlan, internal
+from imac_model.experiments.ranking.training import train_command
 from imac_model.experiments.stages import run_all
 from imac_model.models.checkpoint import SPEC, add_first_frame, add_scene_warp
 from imac_model.training.log import progress_line, read_log, write_log
 
-ARMS = {  # ablation -> plan -> (the arm's run, what it changes)
-    # clips as long as the replays, every chunk after the first from the model's own last frame
-    "rollout": lambda plan: (f"motion_contact_rollout{plan.chunks}", {"rollout.chunks": plan.chunks}),
-    "reference-noise": lambda plan: ("motion_contact_noise03", {"flow.reference_noise": 0.3}),
-    # memory beyond one frame; with the reference noise above, so the clean first frame has something to add
-    "first-frame": lambda plan: ("motion_contact_first_frame", {"flow.reference_noise": 0.3,
-                                                                "conditioning.first_frame": True}),
-    # clips of two chunks, with the reference noise of the arm it continues: every later chunk, the grasp chunk
-    # among them, from the model's own last frame, whose wrist view loses the grasp (docs/ranking.md)
-    "rollout2": lambda plan: ("motion_contact_rollout2", {"flow.reference_noise": 0.3, "rollout.chunks": 2}),
-    # the reference scene splatted into the future cameras, with the reference noise of the arm it continues: tells
-    # the wrist view where the cube lands as the camera moves over it (docs/world-model.md, "The scene-warp stream")
-    "scene-warp": lambda plan: ("motion_contact_scene_warp", {"flow.reference_noise": 0.3,
-                                                              "conditioning.scene_warp": True}),
-    # a tenth of the samples without controls, so the arm can be sampled with classifier-free guidance
-    "guidance": lambda plan: ("motion_contact_guidance", {"flow.reference_noise": 0.3, "conditioning.dropout": 0.1}),
-}
-
 
 def arm_run(plan: RankingPlan, ablation: str, minutes: float) -> tuple[str, dict]:
     """The arm's run name (suffixed with its budget when it is not the preset's) and its changes."""
-    arm, changes = ARMS[ablation](plan)
+    arm = ablation_arm(ablation, plan.chunks)
+    arm, changes = arm.arm, arm.changes
     return (arm if minutes == plan.cpu_minutes else f"{arm}_to{minutes:g}"), changes
 
 
@@ -159,11 +143,11 @@ def ablate(plan: RankingPlan, ablation: str, from_step: int, minutes: float | No
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("ablation", choices=sorted(ARMS))
+    p.add_argument("ablation", choices=sorted(ABLATIONS))
     p.add_argument("--work", default="runs/ranking_cpu", help="the CPU preset's work directory")
     p.add_argument("--from-step", type=int, required=True, help="the checkpoint of motion+contact the arm starts from")
     p.add_argument("--minutes", type=float, help="the CPU budget to train to (default: the preset's)")
-    p.add_argument("--baseline", choices=sorted(ARMS),
+    p.add_argument("--baseline", choices=sorted(ABLATIONS),
                    help="compare with this arm at the same budget (default: the preset's own run)")
     p.add_argument("--from-run", help="branch from this run of the work directory (default: the preset's)")
     p.add_argument("--json", help="write the figures here")

@@ -34,10 +34,10 @@ from torch import nn
 
 from imac_data import lerobot_compat as lr
 from imac_model.data.chunks import ChunkDataset, open_metadata
+from imac_model.data.pack import Pack, pack_arrays
 from imac_model.evaluate.success import dataset_success_labels, verdict_scores
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
-from imac_model.training.pack import Pack, pack_arrays
-from imac_model.training.train import model_spec
+from imac_model.training.dataset_source import model_spec
 
 # what each probe sees besides the chunk's reference frame (its RGB and depth rows, both views)
 INPUTS = {

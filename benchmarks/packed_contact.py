@@ -18,8 +18,9 @@ import time
 
 import torch
 
+from imac_model.data.pack import Pack
 from imac_model.pipelines.packed_contact import PackedContact
-from imac_model.training.pack import Pack, fast_kernels
+from imac_model.training.runtime import fast_kernels
 
 
 def _timed(fn, device: torch.device, repeats: int):

@@ -20,11 +20,11 @@ import numpy as np
 import torch
 
 from imac_model.data.batch import unit_frames
+from imac_model.data.pack import Pack
 from imac_model.experiments.ranking.gate import cube_in_view
 from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.models.checkpoint import load_world_model
 from imac_model.pipelines.rollout import last_frame
-from imac_model.training.pack import Pack
 
 TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)
 KEPT = 0.5  # a view keeps the cube when it shows at least this share of the recorded cube's red pixels

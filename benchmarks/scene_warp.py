@@ -28,10 +28,9 @@ from imac_data.core.contact.clouds import dilate_mask
 from imac_model.data import mosaic
 from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.data.scene_warp import SceneWarp
-from imac_model.experiments.ranking.benchmark import TRAIN_REPO
 from imac_model.experiments.ranking.gate import cube_in_view
-from imac_model.experiments.ranking.plan import RankingPlan
-from imac_model.training.train import model_spec
+from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
+from imac_model.training.dataset_source import model_spec
 
 STEPS = (4, 8)
 

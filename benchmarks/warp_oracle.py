@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from imac_model.data.pack import Pack
 from imac_model.experiments.ranking.gate import cube_in_view
 from imac_model.experiments.ranking.perception import RED_THRESHOLD, redness
 from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.ranking.policies import WORKSPACE
-from imac_model.training.pack import Pack
 
 STEPS = (1, 4, 8)  # the future steps reported
 

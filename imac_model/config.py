@@ -21,19 +21,16 @@ import yaml
 
 from imac_data.config import parse_dataclass
 from imac_data.errors import InputError
-
-MODES = ("none", "motion", "motion+contact", "action-vector")
-CONTROL_STREAMS = ("motion", "contact_s2g", "contact_r2s")  # the order of paper eq. 2: P_m, P_s2g, P_r2s
-CONTACT_STREAMS = CONTROL_STREAMS[1:]  # those the dataset stores that are rebuilt from the scene's depth
-SCENE_WARP = "scene_warp"  # not in the paper: the reference scene splatted into the future cameras (data.scene_warp)
-DERIVED_STREAMS = (SCENE_WARP,)  # made from a chunk's reference, state and actions, never stored in the dataset
-REBUILT_STREAMS = CONTACT_STREAMS + DERIVED_STREAMS  # those a rollout rebuilds from the reference frame's depth
-
-
-def streams_of_mode(mode: str) -> tuple[str, ...]:
-    """The control streams a conditioning mode injects (paper eq. 2)."""
-    return {"none": (), "motion": ("motion",), "motion+contact": CONTROL_STREAMS, "action-vector": ()}[mode]
-
+from imac_model.modes import (  # the stream names are imported from here too: re-exported
+    CONTACT_STREAMS,  # noqa: F401
+    CONTROL_STREAMS,  # noqa: F401
+    DERIVED_STREAMS,  # noqa: F401
+    MODES,
+    REBUILT_STREAMS,  # noqa: F401
+    SCENE_WARP,
+    conditioning_mode,
+    streams_of_mode,
+)
 
 # --------------------------------------------------------------------------- sections
 
@@ -51,6 +48,9 @@ class DataConfig:
     cache_dir: str | None = None  # also persist that cache here (reused by later runs on the same data)
     num_workers: int = 0  # DataLoader workers that decode videos
     video_backend: str | None = None  # LeRobot's decoder (None: its default, torchcodec)
+    # a tensor pack (imac_model.data.pack) to train from instead of the dataset: its spec's views, size and chunk,
+    # its held-out chunks; the trainer then needs torch and numpy alone (the GPU machine)
+    pack: str | None = None
 
     def __post_init__(self) -> None:
         _positive(self, "view_height")
@@ -134,7 +134,7 @@ class BackboneConfig:
 
 @dataclass(frozen=True)
 class ConditioningConfig:
-    mode: Literal["none", "motion", "motion+contact", "action-vector"] = "motion+contact"
+    mode: str = "motion+contact"  # a name in imac_model.modes.MODES
     # paper: every control patchify layer zero-initialised; release: motion copies patch_embedding
     control_init: Literal["zeros", "copy_patch_embedding"] = "zeros"
     # paper: controls only on the noised future tokens; release: on the reference tokens too
@@ -154,10 +154,12 @@ class ConditioningConfig:
     scene_warp: bool = False
 
     def __post_init__(self) -> None:
+        mode = conditioning_mode(self.mode)  # a registered mode, or the error naming them
         _positive(self, "action_hidden", "conditioning")
-        if self.scene_warp and not streams_of_mode(self.mode):
+        if self.scene_warp and not mode.streams:
+            with_images = " or ".join(name for name, m in MODES.items() if m.streams)
             raise InputError(f"conditioning.scene_warp: a control stream, so it needs a mode with control images "
-                             f"(motion or motion+contact), not {self.mode!r}")
+                             f"({with_images}), not {self.mode!r}")
         _positive(self, "action_layers", "conditioning")
         if not 0 <= self.dropout < 1:
             raise InputError(f"conditioning.dropout: a share in [0, 1) (got {self.dropout})")
@@ -166,8 +168,8 @@ class ConditioningConfig:
         if self.guidance != 1 and self.dropout == 0:
             raise InputError(f"conditioning.guidance: {self.guidance} needs a model trained with conditioning.dropout > 0 "
                              "(without it the unconditional velocity is never learned)")
-        if self.mode == "none" and (self.dropout or self.guidance != 1):
-            raise InputError("conditioning.dropout / guidance: mode none has no conditioning to drop or guide by")
+        if mode.blind and (self.dropout or self.guidance != 1):
+            raise InputError(f"conditioning.dropout / guidance: mode {self.mode} has no conditioning to drop or guide by")
 
     @property
     def streams(self) -> tuple[str, ...]:
@@ -244,6 +246,10 @@ class TrainConfig:
     mixed_precision: Literal["auto", "no", "bf16"] = "auto"  # auto: bf16 on a CUDA device that has it
     tracker: Literal["tensorboard", "wandb"] | None = None  # besides the CSV/JSONL log
     cpu_threads: int | None = None  # torch intra-op threads (None: torch's default; 1 is fastest on a busy CPU)
+    compile: bool = False  # torch.compile the U-Net's trunk (a GPU's fused group norms; the first step compiles)
+    # a checkpoint whose weights start a new run (a run directory: its latest; or a run archive); the optimizer starts
+    # afresh, and a control stream it lacks starts at its zero projection
+    init: str | None = None
     sharding: ShardingConfig = field(default_factory=ShardingConfig)
 
     def __post_init__(self) -> None:
@@ -285,6 +291,8 @@ class RolloutConfig:
     device: Literal["auto", "cpu", "cuda"] = "auto"  # the contact computation (auto: the model's device)
     reference_steps: int = 0  # chunk r > 1 starts from: 0, chunk r-1's one-step estimate (paper 3.4); k, the last
     # frame of k sampler steps on chunk r-1 (no gradient), the drift a replay has (docs/world-model.md)
+    # chunk r > 1's contact images: painted from its own reference's depth (the paper), or the recorded ones
+    contact: Literal["rebuilt", "recorded"] = "rebuilt"
 
     def __post_init__(self) -> None:
         _positive(self, "chunks", "rollout")
@@ -307,9 +315,10 @@ class RunConfig:
     rollout: RolloutConfig = field(default_factory=RolloutConfig)
 
     def __post_init__(self) -> None:
-        if self.rollout.stage_one_epochs > 0 and self.conditioning.mode != "motion+contact":
+        if self.rollout.stage_one_epochs > 0 and not conditioning_mode(self.conditioning.mode).staged:
+            staged = " or ".join(name for name, m in MODES.items() if m.staged)
             raise InputError(f"rollout.stage_one_epochs: stage one (motion only, then contact added) needs "
-                             f"conditioning.mode motion+contact (got {self.conditioning.mode!r})")
+                             f"conditioning.mode {staged} (got {self.conditioning.mode!r})")
         if self.train.sharding.strategy != "none":
             if self.backbone.kind != "wan":
                 raise InputError(f"train.sharding.strategy: {self.train.sharding.strategy} shards the Wan "

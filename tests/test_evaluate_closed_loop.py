@@ -51,11 +51,11 @@ TINY = {"backbone.small.dim": 32, "backbone.small.depth": 1, "backbone.small.hea
 
 def _checkpoint(root, out: Path, mode: str, **changes) -> Path:
     from imac_model.models.world_model import WorldModel
-    from imac_model.training import train as train_cli
+    from imac_model.training.dataset_source import model_spec
 
     run = RunConfig().replace(**{"data.dataset": REPO, "data.root": str(root), "conditioning.mode": mode, **TINY,
                                  **changes})
-    spec, _ = train_cli.model_spec(run, open_metadata(run.data))
+    spec, _ = model_spec(run, open_metadata(run.data))
     torch.manual_seed(0)
     model = WorldModel(spec)
     for p in model.parameters():  # zero-initialised layers (controls, output, gates): randomise, so that the

@@ -38,7 +38,7 @@ LAYERS = {
         ("cli", ["imac_data.cli", "imac_data.__main__", "imac_data.build.__main__"]),
     ],
     "imac_model": [
-        ("base", ["imac_model", "imac_model.config"]),
+        ("base", ["imac_model", "imac_model.config", "imac_model.modes"]),
         ("data", ["imac_model.data"]),
         ("models", ["imac_model.models", "imac_model.schedulers"]),
         ("pipelines", ["imac_model.pipelines"]),

@@ -38,7 +38,7 @@ from imac_model.data.depth import decode_depth
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.rollout import rollout_loss
-from imac_model.training import train as train_cli
+from imac_model.training.dataset_source import model_spec
 
 CHUNK = 4
 VIEWS = ("cam_high", "cam_left_wrist", "cam_right_wrist")
@@ -74,7 +74,7 @@ def stored(built):
 
 def _spec(root, **overrides):
     run = RunConfig().replace(**{"data.dataset": "local/rollout_tiny", "data.root": str(root), **TINY, **overrides})
-    spec, layout = train_cli.model_spec(run, open_metadata(run.data))
+    spec, layout = model_spec(run, open_metadata(run.data))
     return run, spec, layout
 
 

@@ -35,7 +35,7 @@ from imac_model.models.checkpoint import (
 )
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.rollout import rollout_loss
-from imac_model.training.pack import _eager, compile_trunk
+from imac_model.training.train import _eager, compile_trunk
 
 H, SIDE, SQUARE = 2, 16, 3
 CODEC = DepthCodec.preset("manipulation")

@@ -4,8 +4,8 @@ an outside policy module through both runners, and the whole benchmark at toy si
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import hashlib
 import json
 import os
 import shutil
@@ -41,29 +41,35 @@ from imac_model.cli import main as model_main
 from imac_model.config import CONTROL_STREAMS, RunConfig, streams_of_mode
 from imac_model.data import mosaic
 from imac_model.data.chunks import open_metadata
+from imac_model.data.pack import Pack, write_pack
 from imac_model.data.scene_warp import SceneWarp
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
-from imac_model.experiments.ranking.benchmark import GateStop, export_runs, import_gpu_runs, stage_train
 from imac_model.experiments.ranking.evaluation import chunk_end_heights, evaluate_mode
-from imac_model.experiments.ranking.gate import read_gates
+from imac_model.experiments.ranking.gate import measure_gate, read_gates
+from imac_model.experiments.ranking.gpu import export_runs, import_gpu_runs, runs_file
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
-from imac_model.experiments.ranking.report import _relative, rewrite_report
+from imac_model.experiments.ranking.report import _relative, rewrite_report, write_report
 from imac_model.experiments.ranking.report_text import parting_chunks, verdict_pairs
-from imac_model.experiments.stages import REPO_ROOT
+from imac_model.experiments.ranking.training import GateStop, stage_train
+from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
+from imac_model.modes import MODES, ConditioningMode
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.packed_contact import PackedContact
 from imac_model.pipelines.rollout import last_frame, rollout_loss
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.training import train as train_cli
-from imac_model.training.pace import read_progress, report_progress
-from imac_model.training.pack import Pack, heldout_loss, spec_for_mode, train_pack
+from imac_model.training.dataset_source import model_spec
+from imac_model.training.pack_source import PackSource
+from imac_model.training.runs import RUNS_FILE, RunsFile
+from imac_model.training.runs import main as runs_main
+from imac_model.training.train import evaluation_items, heldout_loss
 
 REPO = "local/lift_test"
 SEED = 200  # closed_loop lifts the cube from this start; a 4.5 cm offset misses it
@@ -122,7 +128,7 @@ def lift(runner, tmp_path_factory):
                                  "backbone.small.dim": 32, "backbone.small.depth": 1, "backbone.small.heads": 2,
                                  "data.view_height": 48, "data.views": list(VIEWS),
                                  "flow.sample_steps": 2})
-    spec, _ = train_cli.model_spec(run, open_metadata(run.data))
+    spec, _ = model_spec(run, open_metadata(run.data))
     torch.manual_seed(0)
     model = WorldModel(spec)
     for p in model.parameters():  # zero-initialised layers: randomise, so the frames depend on the inputs
@@ -430,6 +436,39 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
     assert all(e["cpu_s"] < 5 for e in again if e["stage"] != "report"), again
 
 
+def golden_of(work: Path, docs: Path) -> dict:
+    """What the trainers' merge must keep of the toy run: held-out losses per logged step, gate verdicts,
+    per-start verdicts, replay verdicts and RGB errors (tests/fixtures/toy_ranking_golden.json, from 40b4533)."""
+    r = json.loads((docs / "results.json").read_text())
+    out = {"heldout_loss": {}, "gate": {}, "per_start": {}, "replays": {}}
+    for run in sorted((work / "runs").iterdir()):
+        rows = [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines() if x.strip()]
+        out["heldout_loss"][run.name] = {str(x["step"]): x["heldout_loss"] for x in rows if "heldout_loss" in x}
+    for mode, gates in r["gates"].items():
+        out["gate"][mode] = [{"step": g["step"], "labels": g["labels"],
+                              "predicted": {c: v["predicted"] for c, v in g["from_chunk"].items()}} for g in gates]
+    for mode, ev in r["evaluations"].items():
+        out["per_start"][mode] = {p: [e["success"] for e in v["episodes"]] for p, v in ev["policies"].items()}
+        out["replays"][mode] = {s: [[row["episode"], row["seed"], row["lift_geometry"], row["mse_per_chunk"]]
+                                    for row in rec["rows"]] for s, rec in ev.get("recorded", {}).items()}
+    return out
+
+
+def test_the_toy_run_reproduces_the_golden_values_of_the_code_before_the_trainers_merged(toy_run):
+    """The one trainer on the dataset path gives the toy run's held-out losses (to 1e-6 relative), gate verdicts,
+    per-start and replay verdicts as the code before the merge gave them (its replays' RGB errors to 1e-5)."""
+    got = golden_of(*toy_run)
+    want = json.loads((ROOT / "tests" / "fixtures" / "toy_ranking_golden.json").read_text())
+    assert got["heldout_loss"].keys() == want["heldout_loss"].keys()
+    for run, losses in want["heldout_loss"].items():
+        assert got["heldout_loss"][run] == pytest.approx(losses, rel=1e-6), run
+    assert got["gate"] == want["gate"] and got["per_start"] == want["per_start"]
+    for mode, by_steps in want["replays"].items():
+        for steps, rows in by_steps.items():
+            assert [r[:3] for r in got["replays"][mode][steps]] == [r[:3] for r in rows]
+            assert [r[3] for r in got["replays"][mode][steps]] == pytest.approx([r[3] for r in rows], rel=1e-5)
+
+
 def test_the_evaluate_stage_in_a_process_per_policy_gives_what_one_process_gives(toy_run, tmp_path):
     """The evaluate stage runs each policy's closed loop and each mode's replays in a process of its own; one process
     making all of a mode's in turn (evaluate_mode on a work directory without them) gets the same outcomes, so no
@@ -454,6 +493,41 @@ def test_the_evaluate_stage_in_a_process_per_policy_gives_what_one_process_gives
     assert untimed(ours["policies"]) == untimed(stage["policies"]) and untimed(ours["recorded"]) == untimed(stage["recorded"])
     assert [p.name for p in sorted((work / "logs").glob("evaluate_motion_contact_*.log"))] == sorted(
         [f"evaluate_motion_contact_{n}.log" for n in plan.names] + ["evaluate_motion_contact_replays.log"])
+
+
+def test_a_toy_mode_registered_alone_trains_is_gated_evaluated_and_reported(toy_run, tmp_path, monkeypatch):
+    """Adding a conditioning mode touches one file: a mode registered in ``imac_model.modes.MODES`` alone (no other
+    line of the package changed) is a mode of a ranking plan, trains on the toy run's training rollouts, is gated,
+    evaluated and reported beside the toy run's modes. In this process: the stages' own processes would not see
+    the registry patched here."""
+    work, _ = toy_run
+    toy = "motion-toy"
+    monkeypatch.setitem(MODES, toy, ConditioningMode(streams=("motion",), label="toy motion"))
+    ran = RankingPlan.load(work / "plan.json")
+    plan = dataclasses.replace(ran, work=tmp_path / "work", docs=tmp_path / "docs", modes=ran.modes + (toy,))
+    plan.work.mkdir()
+    for part in ("datasets", "judges", "sim", "stages.json"):
+        (plan.work / part).symlink_to(work / part)
+    shutil.copytree(work / "chunkcache", plan.work / "chunkcache")  # the toy mode's own cache goes beside the others
+    for mode in ran.modes:  # the toy run's trained and evaluated modes, as they are
+        for done in (ran.run_dir(mode), ran.wm_dir(mode)):
+            (plan.work / done.relative_to(work)).parent.mkdir(parents=True, exist_ok=True)
+            (plan.work / done.relative_to(work)).symlink_to(done)
+    run = plan.run_config(toy)
+    assert run.conditioning.streams == ("motion",) and run.train.max_cpu_minutes == plan.cpu_minutes
+    train_cli.train(run, progress=False)
+    subprocess.run([sys.executable, "-c", MARK_TRAINED, str(plan.run_dir(toy))], check=True)  # as the train stage does
+    gate = measure_gate(plan, plan.cpu_budget(toy), toy)
+    evaluate_mode(plan, toy)
+    write_report(plan)
+    results = json.loads((plan.docs / "results.json").read_text())
+    assert list(results["statistics"]) == list(plan.modes) and results["gates"][toy] == [gate]
+    assert set(results["evaluations"][toy]["policies"]) == set(plan.names)  # it sees the actions: every policy
+    assert "none_check" not in results["evaluations"][toy] and results["training"][toy]["finished"]
+    report = (plan.docs / "README.md").read_text()
+    assert f"| policy | MuJoCo | {' | '.join(plan.modes)} |" in report and f"| {toy} | lift_geometry |" in report
+    assert f"| {toy} | {plan.cpu_budget(toy):g} |" in report  # its gate
+    assert (plan.docs / f"scatter_{toy}.png").is_file()
 
 
 def test_the_pack_stage_alone_makes_only_the_training_side_and_the_same_pack(toy_run, tmp_path):
@@ -693,7 +767,8 @@ def test_a_cpu_ablation_arm_continues_the_gated_run_with_one_change(toy_run, tmp
 def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, monkeypatch):
     """Training-time rollout as the GPU machine runs it, from the pack with torch alone: the clips
     are the dataset's own, chunk 2 starts from the model's estimate and keeps its recorded contact
-    images, and scripts/gpu_ranking.sh trains with it (ROLLOUT) beside the run without (ABLATION=rollout)."""
+    images (rollout.contact recorded); the one trainer trains from the pack with first-frame memory,
+    dropout, the scene-warp stream, sampled references, a compiler that fails, and train.init."""
     work, docs = toy_run
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
     plan = RankingPlan.load(work / "plan.json")
@@ -709,7 +784,7 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
             assert torch.equal(pack.tensors["reference"][j], chunks[i]["reference"])
 
     streams = streams_of_mode("motion+contact")
-    model = WorldModel(spec_for_mode(pack.spec, "motion+contact"))
+    model = WorldModel(pack.spec)
     clip = [pack.batch(clips[:1, r], streams) for r in range(2)]
     result = rollout_loss(model, clip, None, stored_contact=True, generator=torch.Generator().manual_seed(0))
     first = model(clip[0], generator=torch.Generator().manual_seed(0), streams=streams)  # the same draws
@@ -719,67 +794,55 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
         assert torch.equal(result.controls[1][s], clip[1].controls[s])
     with pytest.raises(InputError, match="needs the dataset's OnlineControls"):
         rollout_loss(model, clip, None)
-    # with the first frame as memory (ABLATION=first-frame), every chunk of a clip keeps its episode's first frame;
-    # with DROPOUT, a share of the samples goes without controls, and the checkpoint can be sampled with guidance
-    # and with the scene-warp stream (ABLATION=scene-warp), which the pack carries, derived from the recorded chunks
-    # (from sampled references, the recorded contact and warp images describe another scene: it says so)
-    with pytest.warns(UserWarning, match=r"keeps the recorded \['contact_s2g', 'contact_r2s', 'scene_warp'\] images"):
-        summary = train_pack(pack, "motion+contact", tmp_path / "first_frame", minutes=0.001, batch_size=16,
-                             rollout_chunks=2, first_frame=True, dropout=0.1, scene_warp=True,
-                             rollout_reference_steps=2, progress=lambda row: None)
-    assert summary["first_frame"] and summary["dropout"] == 0.1 and summary["scene_warp"] and summary["steps"] >= 1
-    assert summary["rollout_reference_steps"] == 2
+    # the runs file the pack stage wrote: every run of the plan on the pack, the GPU settings at toy size
+    runs = RunsFile.load(plan.pack.parent / RUNS_FILE)
+    assert set(runs.runs) == {plan.run_dir(m).name for m in plan.modes}
+
+    def pack_run(out, **changes):
+        base = runs.config("motion_contact", tmp_path).replace(**{
+            "train.output_dir": str(tmp_path / out), "train.batch_size": 16, "train.max_steps": 1, "train.log_every": 1,
+            "train.eval_every": 1, **changes})
+        return train_cli.train(base, progress=False)
+
+    # with the first frame as memory, every chunk of a clip keeps its episode's first frame; with dropout, a share of
+    # the samples goes without controls, and the checkpoint can be sampled with guidance; with the scene-warp stream,
+    # which the pack carries derived from the recorded chunks (from sampled references, the recorded contact and warp
+    # images describe another scene: the trainer says so)
+    result = pack_run("first_frame", **{"rollout.chunks": 2, "conditioning.first_frame": True,
+                                        "conditioning.dropout": 0.1, "conditioning.scene_warp": True,
+                                        "rollout.reference_steps": 2})
+    assert result.step == 1 and result.log[-1]["phase"] == "rollout" and len(result.log[-1]["chunk_losses"]) == 2
     spec = load_world_model(tmp_path / "first_frame")[1]
     assert spec.conditioning.first_frame and spec.conditioning.dropout == 0.1 and spec.conditioning.scene_warp
+
     # a compiler that fails on the GPU machine costs the run its compilation, not the run: it trains eager
     def failing_compile(fn, **kwargs):
         def compiled(*args):
             raise RuntimeError("no compiler here")
         return compiled
     monkeypatch.setattr(torch, "compile", failing_compile)
-    summary = train_pack(pack, "motion+contact", tmp_path / "eager", minutes=0.001, batch_size=16, rollout_chunks=2,
-                         compile=True, progress=lambda row: None)
-    assert not summary["compiled"] and summary["compile_error"] == "RuntimeError: no compiler here"
-    assert summary["steps"] >= 1 and (tmp_path / "eager" / "checkpoints").is_dir()
-    # a stream added to a trained model (INIT with ABLATION=scene-warp) starts at its zero projection, so the model
-    # starts as the checkpoint's; a checkpoint with a stream the run lacks is refused
-    summary = train_pack(pack, "motion+contact", tmp_path / "warp_added", minutes=0, batch_size=16, scene_warp=True,
-                         init=tmp_path / "eager", progress=lambda row: None)
-    assert summary["init_added"] == ["controls.layers.scene_warp.bias", "controls.layers.scene_warp.weight"]
+    result = pack_run("eager", **{"rollout.chunks": 2, "train.compile": True})
+    assert result.step == 1 and result.log[-1]["compiled"] is False and (tmp_path / "eager" / "checkpoints").is_dir()
+    # a stream added to a trained model (train.init) starts at its zero projection, so the model starts as the
+    # checkpoint's; a checkpoint with a stream the run lacks is refused
+    result = pack_run("warp_added", **{"conditioning.scene_warp": True, "train.init": str(tmp_path / "eager"),
+                                       "train.max_steps": 0})
+    added = result.log[0]["init_added"]
+    assert added == ["controls.layers.scene_warp.bias", "controls.layers.scene_warp.weight"]
     theirs = load_file(str(list_checkpoints(tmp_path / "eager")[-1] / "model.safetensors"))
     ours = load_file(str(list_checkpoints(tmp_path / "warp_added")[-1] / "model.safetensors"))
-    assert sorted(set(ours) - set(theirs)) == summary["init_added"]
-    assert all(torch.equal(theirs[k], ours[k]) for k in theirs) and not any(ours[k].any() for k in summary["init_added"])
+    assert sorted(set(ours) - set(theirs)) == added
+    assert all(torch.equal(theirs[k], ours[k]) for k in theirs) and not any(ours[k].any() for k in added)
     with pytest.raises(InputError, match=r"this run lacks: \['controls.layers.scene_warp.bias'"):
-        train_pack(pack, "motion+contact", tmp_path / "warp_dropped", minutes=0, init=tmp_path / "warp_added")
-    warp = pack.tensors.pop("control.scene_warp")
-    with pytest.raises(InputError, match=r"carries no \['scene_warp'\]"):
-        train_pack(pack, "motion+contact", tmp_path / "no_warp", minutes=0.001, scene_warp=True)
-    pack.tensors["control.scene_warp"] = warp
-    with pytest.raises(InputError, match="eval_every 30 must be a positive multiple of log_every 50"):
-        train_pack(pack, "motion+contact", tmp_path / "bad_eval", minutes=0.001, eval_every=30)
-
-    probe = "import sys, imac_model.training.pack; print([m for m in ('mujoco', 'trimesh', 'lerobot', 'scipy', " \
-            "'open3d', 'diffusers', 'cv2') if m in sys.modules])"
-    assert subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
-                          cwd=ROOT).stdout.strip() == "[]"
-
-    out = tmp_path / "gpu_out"
-    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ROLLOUT": "2", "ABLATION": "rollout", "BATCH": "16",
-           "PACK": str(plan.pack), "PYTHON": sys.executable}
-    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
-    assert done.returncode == 0, done.stdout + done.stderr
-    for name, rollout in (("motion_contact", 2), ("action_vector", 2), ("motion_contact_no_rollout", 1)):
-        with tarfile.open(out / f"{name}.tar") as archive:
-            summary = json.loads(archive.extractfile("log.jsonl").read().decode().splitlines()[-1])["summary"]
-        assert summary["rollout_chunks"] == rollout and summary["steps"] >= 1
-        assert summary["batch_size"] == 16 and summary["samples"] == summary["steps"] * (16 // rollout) * rollout
+        pack_run("warp_dropped", **{"train.init": str(tmp_path / "warp_added")})
+    with pytest.raises(InputError, match=r"conditioning.mode is motion\+contact, this run's action-vector"):
+        pack_run("other_mode", **{"train.init": str(tmp_path / "eager"), "conditioning.mode": "action-vector"})
 
 
 def test_the_pack_paints_contact_images_as_the_renderer_does(toy_run, tmp_path):
     """ABLATION=contact: the pack's contact geometry, with torch alone, paints the contact images OnlineControls paints
     with the renderer (both with exact searches) from the same references; in a rollout chunk 2 gets them painted
-    from the model's own reference, and the GPU script trains motion_contact_rebuilt so beside motion_contact."""
+    from the model's own reference, and the trainer paints them so from the pack (rollout.contact rebuilt, the contact ablation)."""
     work, docs = toy_run
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
     plan = RankingPlan.load(work / "plan.json")
@@ -805,7 +868,7 @@ def test_the_pack_paints_contact_images_as_the_renderer_does(toy_run, tmp_path):
         assert got[s].amax() > 0  # painted, not black
 
     streams = streams_of_mode("motion+contact")
-    model = WorldModel(spec_for_mode(pack.spec, "motion+contact"))
+    model = WorldModel(pack.spec)
     clips = pack.clips(2)[:2]
     clip = [pack.batch(clips[:, r], streams) for r in range(2)]
     result = rollout_loss(model, clip, None, generator=torch.Generator().manual_seed(0),
@@ -815,41 +878,28 @@ def test_the_pack_paints_contact_images_as_the_renderer_does(toy_run, tmp_path):
     for s in ("contact_s2g", "contact_r2s"):
         assert torch.equal(result.controls[1][s], painted[s]) and not torch.equal(painted[s], clip[1].controls[s])
     assert torch.equal(result.controls[1]["motion"], clip[1].controls["motion"])
-    with pytest.raises(InputError, match="only a rollout"):
-        train_pack(pack, "motion+contact", tmp_path / "no_rollout", minutes=0.001, rebuild_contact=True)
     damaged = {**pack.tensors, "geometry.pose": pack.tensors["geometry.pose"][:-1]}
     with pytest.raises(InputError, match="the pack is damaged"):
         PackedContact(damaged, pack.geometry)
-    geometry, pack.geometry = pack.geometry, None
+    runs = RunsFile.load(plan.pack.parent / RUNS_FILE)
+    run = runs.config("motion_contact", tmp_path).replace(**{
+        "train.batch_size": 4, "train.max_steps": 1, "train.log_every": 1, "train.eval_every": 1,
+        "rollout.chunks": 2, "rollout.contact": "rebuilt"})
+    result = train_cli.train(run, progress=False)
+    assert 0.0 <= result.log[-1]["invalid_depth"] <= 1.0  # chunk 2's contact images painted from its reference
+    geometry = {k: v for k, v in np.load(plan.pack).items() if not k.startswith("geometry")}
+    old_pack = tmp_path / "old_pack.npz"  # a pack written before the geometry travelled with it
+    write_pack(geometry, old_pack)
     with pytest.raises(InputError, match="carries no contact geometry"):
-        train_pack(pack, "motion+contact", tmp_path / "old_pack", minutes=0.001, rollout_chunks=2, rebuild_contact=True)
-    pack.geometry = geometry
-
-    out = tmp_path / "gpu_out"
-    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ROLLOUT": "2", "ABLATION": "contact", "BATCH": "8",
-           "ROLLOUT_STEPS": "1", "RUNS": "motion_contact_rebuilt action_vector", "PACK": str(plan.pack),
-           "PYTHON": sys.executable}
-    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
-    assert done.returncode == 0, done.stdout + done.stderr
-    for name, rebuilt in (("motion_contact_rebuilt", True), ("action_vector", False)):
-        with tarfile.open(out / f"{name}.tar") as archive:
-            summary = json.loads(archive.extractfile("log.jsonl").read().decode().splitlines()[-1])["summary"]
-            assert "keeps the recorded" not in archive.extractfile(f"{name}.stdout").read().decode()  # none kept
-        assert summary["rebuild_contact"] is rebuilt and summary["steps"] >= 1
-    summary = train_pack(pack, "motion+contact", tmp_path / "rebuilt", minutes=0.001, batch_size=4, rollout_chunks=2,
-                         rebuild_contact=True, log_every=1, eval_every=1, progress=lambda row: None)
-    rows = [json.loads(line) for line in (tmp_path / "rebuilt" / "log.jsonl").read_text().splitlines()]
-    assert summary["rebuild_contact"] and 0.0 <= rows[0]["rebuilt_invalid_depth"] <= 1.0
-    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env={**env, "ROLLOUT": "1"},
-                          capture_output=True, text=True)
-    assert done.returncode == 2 and "ABLATION=contact rebuilds a rollout's contact images" in done.stderr
+        train_cli.train(run.replace(**{"data.pack": str(old_pack), "train.output_dir": str(tmp_path / "old")}),
+                        progress=False)
 
 
 def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
-    """The GPU preset's path on the CPU: the tensor pack holds what LeRobot reads, scripts/gpu_ranking.sh
-    trains every run from it (the uniform-loss ablation too), and the imported checkpoints are the
-    models that were trained (their held-out loss, measured again here, is the log's), replacing the CPU-trained
-    toy runs of the same name whole."""
+    """The GPU preset's path on the CPU: the tensor pack holds what LeRobot reads; scripts/gpu_train.py trains
+    every run of its runs file (an ablation's arm too) with torch, numpy and the wheels alone (every other library
+    refused at import), and the imported checkpoints are the models that were trained (their held-out loss, measured
+    again here, is the log's), replacing the CPU-trained toy runs of the same name whole."""
     work, docs = toy_run
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
     plan = RankingPlan.load(work / "plan.json")
@@ -888,61 +938,42 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     assert row["n"] == len(plan.names) * len(plan.eval_seeds())
     assert {p["mujoco"] for p in row["policies"].values()} == simulated
 
-    out, kept = tmp_path / "gpu_out", tmp_path / "kept"
-    env = {**os.environ, "OUT": str(out), "MINUTES": "0.01", "ABLATION": "1", "BATCH": "16", "PACK": str(plan.pack),
-           "PYTHON": sys.executable, "REF_NOISE": "0.3", "LR": "1e-3", "WARMUP": "5", "EVAL_EVERY": "100"}
-    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env={**env, "KEEP_WEIGHTS": str(kept)},
-                          capture_output=True, text=True)
+    # the runs file, with the focus ablation's arm, at toy size; no EMA, so the archived weights are the trained ones
+    runs = runs_file(dataclasses.replace(plan, gpu_ablations=("focus",)))
+    runs = dataclasses.replace(runs, base={**runs.base, "train": {**runs.base["train"], "batch_size": 16, "max_steps": 2,
+                                                                   "log_every": 1, "eval_every": 1, "ema_decay": 0.0,
+                                                                   "compile": False}})
+    assert runs.runs["motion_contact_uniform"] == {"conditioning.mode": "motion+contact", "flow.focus_weight": 0.0}
+    file = runs.to_yaml(plan.pack.parent / "toy_runs.yaml")
+    out = tmp_path / "gpu_out"
+    blocked = ("lerobot", "mujoco", "open3d", "diffusers", "accelerate", "scipy", "trimesh", "cv2", "av", "pandas",
+               "datasets", "torchcodec", "pytorch_kinematics", "h5py", "transformers")
+    # what the GPU machine lacks is refused at import; PyYAML and safetensors travel as wheels there
+    bootstrap = ("import sys, runpy\n"
+                 "class Refuse:\n"
+                 "    def find_spec(self, name, path=None, target=None):\n"
+                 f"        if name.split('.')[0] in {blocked!r}: raise ImportError('not on the GPU machine: ' + name)\n"
+                 "sys.meta_path.insert(0, Refuse())\n"
+                 f"sys.argv = ['gpu_train.py', {str(file)!r}, {str(out)!r}]\n"
+                 f"runpy.run_path({str(ROOT / 'scripts' / 'gpu_train.py')!r}, run_name='__main__')\n")
+    done = subprocess.run([sys.executable, "-c", bootstrap], capture_output=True, text=True, cwd=tmp_path)
     assert done.returncode == 0, done.stdout + done.stderr
     assert sorted(p.name for p in out.iterdir()) == ["action_vector.tar", "motion_contact.tar",
                                                      "motion_contact_uniform.tar"]
     assert (work / "wm" / "motion_contact" / "replays.json").is_file()  # the CPU-trained toy model's
     assert sorted(import_gpu_runs(plan, out)) == ["action_vector", "motion_contact", "motion_contact_uniform"]
     assert not (work / "wm" / "motion_contact").exists()  # evaluations of the replaced model are dropped
+    source = PackSource(runs.config("motion_contact", tmp_path))
+    items = evaluation_items(source.n_held, runs.config("motion_contact", tmp_path).train.eval_batches * 16)
     for name, mode, focus in (("motion_contact", "motion+contact", 5.0), ("motion_contact_uniform", "motion+contact", 0.0),
                               ("action_vector", "action-vector", 5.0)):
         model, spec = load_world_model(work / "runs" / name, weights="ema")
-        assert spec.conditioning.mode == mode and spec.flow.focus_weight == focus and spec.flow.reference_noise == 0.3
+        assert spec.conditioning.mode == mode and spec.flow.focus_weight == focus
         log = [json.loads(line) for line in (work / "runs" / name / "log.jsonl").read_text().splitlines()]
-        again = heldout_loss(model.float(), pack, streams_of_mode(mode), 16, 0)
-        assert again == pytest.approx(log[-1]["summary"]["heldout_loss"], rel=1e-3)  # float16 weights
-        assert log[-1]["summary"]["lr"] == 1e-3 and log[-1]["summary"]["reference_noise"] == 0.3
-        assert log[-1]["summary"]["warmup"] == 5
-    # a later call goes on from these weights (INIT: for motion_contact the run directory KEEP_WEIGHTS left on the
-    # machine, for action_vector the run archive --export-runs wrote from the imported run): the weights it starts
-    # from are the imported ones, and the import continues each run's log (steps, samples, both parts' summaries)
-    first = {name: json.loads((work / "runs" / name / "log.jsonl").read_text().splitlines()[-1])["summary"]
-             for name in ("motion_contact", "action_vector")}
-    starts = tmp_path / "starts"
-    shutil.copytree(kept / "motion_contact", starts / "motion_contact")
-    assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--export-runs", str(starts),
-                       "--runs", "action_vector"]) == 0
-    assert sorted(p.name for p in starts.iterdir()) == ["action_vector.tar.xz", "motion_contact"]
-    again, progress, leader = tmp_path / "gpu_again", tmp_path / "progress", tmp_path / "leader.json"
-    report_progress(leader, 32, done=True)  # a run of another call that trained 32 samples
-    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], capture_output=True, text=True,
-                          env={**env, "OUT": str(again), "INIT": str(starts), "SAMPLES": "16",  # one step of 16
-                               "RUNS": "motion_contact action_vector",  # not the ablation ABLATION=1 adds
-                               "PROGRESS_DIR": str(progress), "PACE_WITH": str(leader)})
-    assert done.returncode == 0, done.stdout + done.stderr
-    assert {p.name: read_progress(p) for p in progress.iterdir()} == {
-        f"{name}.json": {"samples": 16, "done": True} for name in ("motion_contact", "action_vector")}
-    started = {}
-    for name in first:
-        file = list_checkpoints(work / "runs" / name)[-1] / "model.safetensors"
-        started[name] = hashlib.sha256(file.read_bytes()).hexdigest()
-    assert sorted(import_gpu_runs(plan, again)) == ["action_vector", "motion_contact"]
-    for name, before in first.items():
-        rows = [json.loads(line) for line in (work / "runs" / name / "log.jsonl").read_text().splitlines()]
-        summary = rows[-1]["summary"]
-        assert summary["init_sha256"] == started[name]
-        assert [part["steps"] for part in summary["parts"]] == [before["steps"], summary["steps"] - before["steps"]]
-        assert summary["samples"] == sum(part["samples"] for part in summary["parts"])
-        assert summary["parts"][-1]["samples"] == summary["parts"][-1]["max_samples"] == 16  # SAMPLES stopped it
-        assert summary["parts"][-1]["paced_with"] == str(leader)
-        steps = [r["step"] for r in rows if "step" in r]
-        assert steps == sorted(steps) and steps[-1] == summary["steps"]
-        assert list_checkpoints(work / "runs" / name)[-1].name == f"step_{summary['steps']:06d}"
+        assert log[-1]["step"] == 2 and json.loads((work / "runs" / name / "DONE.json").read_text()) == log[-1]
+        source.streams = spec.conditioning.streams
+        again = heldout_loss(model.float(), source, items, 16, "cpu", contextlib.nullcontext)
+        assert again == pytest.approx(log[-1]["heldout_loss"], rel=1e-3)  # float16 weights
     # a run archive carries a run to another machine whole: imported back, its weights and its whole log are the run's
     kept_log = (work / "runs" / "action_vector" / "log.jsonl").read_text()
     kept_weights = (list_checkpoints(work / "runs" / "action_vector")[-1] / "model.safetensors").read_bytes()
@@ -951,32 +982,21 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     assert import_gpu_runs(plan, archive.parent) == ["action_vector"]
     assert (work / "runs" / "action_vector" / "log.jsonl").read_text() == kept_log
     assert (list_checkpoints(work / "runs" / "action_vector")[-1] / "model.safetensors").read_bytes() == kept_weights
-    # a run with no time to train hands back the weights it started from; another mode's are refused
-    start = list_checkpoints(work / "runs" / "motion_contact")[-1]
-    train_pack(pack, "motion+contact", tmp_path / "same", minutes=0, batch_size=16, init=work / "runs" / "motion_contact",
-               progress=lambda row: None)
-    theirs = load_file(str(start / "model.safetensors"))
-    ours = load_file(str(list_checkpoints(tmp_path / "same")[-1] / "model.safetensors"))
-    assert theirs.keys() == ours.keys() and all(torch.equal(theirs[k], ours[k]) for k in theirs)
-    # paced by a run that finished at 32 samples, a run with minutes to spare stops there (equal samples)
-    paced = train_pack(pack, "action-vector", tmp_path / "paced", minutes=5, batch_size=16, pace_with=leader,
-                       report=tmp_path / "paced.json", progress=lambda row: None)
-    assert paced["samples"] == 32 and paced["paced_with"] == str(leader) and paced["pace_freed"] is None
-    assert read_progress(tmp_path / "paced.json") == {"samples": 32, "done": True}
-    with pytest.raises(InputError, match="conditioning.mode is motion\\+contact, this run's action-vector"):
-        train_pack(pack, "action-vector", tmp_path / "other", minutes=0, init=start, progress=lambda row: None)
     # the loss-weighting ablation's figures on the imported runs: the gate measured for each, the replays
     assert ablation.main(["focus", "--work", str(work), "--json", str(tmp_path / "focus.json")]) == 0
     figures = json.loads((tmp_path / "focus.json").read_text())
-    assert [figures[k]["focus_weight"] for k in ("focus", "uniform")] == [5.0, 0.0]
+    assert [figures[k]["focus_weight"] for k in ("baseline", "arm")] == [5.0, 0.0]
     assert all(set(f["gate_balanced_accuracy_from_chunk"]) == {"0", "1"} and f["seeds"] == plan.gate_seeds
                and f["replays"] == plan.recorded * plan.gate_seeds for f in figures.values())
-    with pytest.raises(InputError, match="not a run of scripts/gpu_ranking.sh"):
+    with pytest.raises(InputError, match="not a run archive"):
         bad = tmp_path / "bad"
         bad.mkdir()
         with tarfile.open(bad / "x.tar", "w") as archive:
             archive.add(plan.pack, arcname="pack.npz")
         import_gpu_runs(plan, bad)
+    # a runs file naming a run it does not have is refused before any training
+    assert runs_main([str(file), str(tmp_path / "none"), "--runs", "motion_kontact"]) == 2
+    assert not list((tmp_path / "none").iterdir())
 
 
 def test_the_report_records_paths_inside_the_repository_relative_to_it():
@@ -986,15 +1006,3 @@ def test_the_report_records_paths_inside_the_repository_relative_to_it():
     got = _relative({"root": str(inside), "runs": [inside, {"elsewhere": "/data/x", "n": 3}], "plain": "a/b"})
     assert got == {"root": "runs/ranking_gpu/datasets/eval",
                    "runs": ["runs/ranking_gpu/datasets/eval", {"elsewhere": "/data/x", "n": 3}], "plain": "a/b"}
-
-
-def test_the_gpu_script_refuses_a_run_it_does_not_train(tmp_path):
-    """RUNS names runs of scripts/gpu_ranking.sh; any other name is refused before training, with the known ones."""
-    pack = tmp_path / "pack.npz"
-    pack.write_bytes(b"")
-    env = {**os.environ, "OUT": str(tmp_path / "out"), "PACK": str(pack), "PYTHON": sys.executable,
-           "RUNS": "motion_contact motion_kontact"}
-    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_ranking.sh")], env=env, capture_output=True, text=True)
-    assert done.returncode == 2
-    assert "RUNS names motion_kontact; the runs are: motion_contact action_vector" in done.stderr
-    assert not any((tmp_path / "out").iterdir())

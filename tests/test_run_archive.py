@@ -41,7 +41,7 @@ def test_files_that_are_not_run_archives_are_named(run, tmp_path):
         read_archive(tmp_path / "broken.tar.xz")
     with tarfile.open(tmp_path / "partial.tar", "w") as archive:
         archive.add(run / "model.json", arcname="model.json")
-    with pytest.raises(InputError, match=r"partial.tar: not a run of scripts/gpu_ranking.sh \(it holds \['model.json'\]"):
+    with pytest.raises(InputError, match=r"partial.tar: not a run archive \(it holds \['model.json'\]"):
         read_archive(tmp_path / "partial.tar")
     with pytest.raises(InputError, match="missing"):
         write_archive(run, tmp_path / "no_log.jsonl", tmp_path / "x.tar")

@@ -1,34 +1,8 @@
-"""A run's training log (imac_model/training/log.py): a run continued from another's last weights
-(the GPU preset's INIT) reads as one run, its steps and samples going on from the first's end; a
-training run's progress, read from its log."""
+"""A run's training log (imac_model/training/log.py): a training run's progress, read from its log."""
 
 from __future__ import annotations
 
-from imac_model.training.log import continued_log, progress_line, write_log
-
-
-def _gpu_log(steps: int, samples_per_step: int, train_s: float, heldout: float) -> list[dict]:
-    rows = [{"step": s, "loss": 1.0 / s, "samples": s * samples_per_step, "elapsed_s": train_s * s / steps}
-            for s in range(50, steps + 1, 50)]
-    return [*rows, {"summary": {"steps": steps, "samples": steps * samples_per_step, "train_s": train_s,
-                                "heldout_loss": heldout}}]
-
-
-def test_a_continued_run_counts_from_where_the_first_ended():
-    first, second, third = _gpu_log(100, 512, 60.0, 0.07), _gpu_log(150, 256, 90.0, 0.06), _gpu_log(50, 256, 30.0, 0.05)
-    rows = continued_log(continued_log(first, second), third)
-    steps = [r["step"] for r in rows if "step" in r]
-    assert steps == [50, 100, 150, 200, 250, 300]  # 100 + (50, 100, 150), then 250 + 50
-    assert [r.get("part", 1) for r in rows if "step" in r] == [1, 1, 2, 2, 2, 3]
-    assert [r["samples"] for r in rows if "step" in r][2:] == [51200 + 12800, 51200 + 25600, 51200 + 38400,
-                                                               51200 + 38400 + 12800]
-    assert rows[3]["elapsed_s"] == 60.0 + 60.0
-    summary = rows[-1]["summary"]
-    assert (summary["steps"], summary["samples"], summary["train_s"]) == (300, 51200 + 38400 + 12800, 180.0)
-    assert summary["heldout_loss"] == 0.05  # the last part's model is the run's
-    assert [p["steps"] for p in summary["parts"]] == [100, 150, 50]
-    assert sum("summary" in r for r in rows) == 1 and "summary" in rows[-1]
-
+from imac_model.training.log import progress_line, write_log
 
 
 def test_a_runs_progress_is_read_from_its_log(tmp_path):

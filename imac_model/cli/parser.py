@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 
+from imac_model.modes import MODES
+
 __all__ = ["build_parser", "COMMANDS", "command_of"]
 
 COMMANDS = {  # command -> the module whose run(args) carries it out
@@ -15,7 +17,6 @@ COMMANDS = {  # command -> the module whose run(args) carries it out
     "ranking": "imac_model.cli.ranking",
     "plan": "imac_model.cli.plan",
 }
-MODES = ("none", "motion", "motion+contact", "action-vector")
 EXPERIMENT_STAGES = ("record", "build", "decode", "train", "evaluate", "report")
 # the ranking benchmark's stages (imac_model.experiments.ranking.plan.STAGES, named here without importing it;
 # tests/test_ranking.py keeps the two equal)
@@ -26,7 +27,7 @@ def _train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", help="LeRobot repo id (overrides data.dataset)")
     p.add_argument("--root", help="dataset directory (overrides data.root)")
     p.add_argument("--config", help="run config (YAML/JSON); defaults for anything it leaves out")
-    p.add_argument("--mode", choices=MODES, help="conditioning mode (overrides conditioning.mode)")
+    p.add_argument("--mode", choices=list(MODES), help="conditioning mode (overrides conditioning.mode)")
     p.add_argument("--output-dir", help="overrides train.output_dir")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="override any field, e.g. --set train.max_steps=100 --set data.held_out_episodes=[8,9]")
@@ -62,7 +63,7 @@ def _sample(p: argparse.ArgumentParser) -> None:
 def _model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, help="world-model checkpoint directory or run directory")
     p.add_argument("--mode", help="the conditioning mode you mean to evaluate; a checkpoint trained with another "
-                                  "is refused (none, motion, motion+contact, action-vector)")
+                                  f"is refused ({', '.join(MODES)})")
     p.add_argument("--dataset", help="LeRobot repo id of the source dataset (default: the model's)")
     p.add_argument("--root", help="source dataset directory (default: the training run's)")
     p.add_argument("--episodes", type=int, nargs="+",
@@ -200,7 +201,7 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stages", help=f"comma-separated subset of {','.join(RANKING_STAGES)} (default: every stage "
                                     "the preset needs; pack, the GPU's training tensors, with --preset gpu only)")
     p.add_argument("--plan", help=argparse.SUPPRESS)
-    p.add_argument("--import-gpu", metavar="DIR", help="put the run archives in DIR (<run>.tar from scripts/gpu_ranking.sh, "
+    p.add_argument("--import-gpu", metavar="DIR", help="put the run archives in DIR (<run>.tar from scripts/gpu_train.py, "
                                                       "or <run>.tar.xz from --export-runs) into the work directory as "
                                                       "trained runs (docs/ranking.md, 'The GPU preset')")
     p.add_argument("--export-runs", metavar="DIR", help="write trained runs as DIR/<run>.tar.xz (latest checkpoint and "

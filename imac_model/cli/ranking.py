@@ -12,20 +12,16 @@ from pathlib import Path
 from imac_data.console import run_command
 from imac_data.dataset.output import output_lock
 from imac_data.errors import InputError
-from imac_model.experiments.ranking.benchmark import (
-    STAGE_FUNCTIONS,
-    GateStop,
-    decode_chunks,
-    export_runs,
-    export_training_pack,
-    import_gpu_runs,
-    simulate_training_part,
-)
+from imac_model.experiments.ranking.benchmark import STAGE_FUNCTIONS
+from imac_model.experiments.ranking.datasets import decode_chunks
 from imac_model.experiments.ranking.evaluation import evaluate_mode, evaluate_policy, replays, run_judges
 from imac_model.experiments.ranking.gate import measure_gate
+from imac_model.experiments.ranking.gpu import export_runs, export_training_pack, import_gpu_runs
 from imac_model.experiments.ranking.plan import STAGES, RankingPlan, gpu_plan, toy_plan
 from imac_model.experiments.ranking.report import rewrite_report
+from imac_model.experiments.ranking.simulate import simulate_training_part
 from imac_model.experiments.ranking.status import status
+from imac_model.experiments.ranking.training import GateStop
 from imac_model.experiments.stages import StageLog
 
 EXIT_GATE_STOP = 4  # the early gate stopped the benchmark (docs/ranking.md); 3 is an environment fault
@@ -64,7 +60,7 @@ def stages_to_run(given: str | None, plan: RankingPlan) -> list[str]:
     """``--stages`` as a list, checked; without it, every stage the plan's preset needs (the tensor
     pack only for the GPU preset, which trains from it)."""
     if given is None:
-        return [s for s in STAGES if s != "pack" or plan.gpu_minutes is not None]
+        return [s for s in STAGES if s != "pack" or plan.on_gpu]
     stages = [x.strip() for x in given.split(",") if x.strip()]
     bad = [x for x in stages if x not in STAGES]
     if bad or not stages:

@@ -32,8 +32,8 @@ from imac_model.experiments.stages import (
 from imac_model.models.backbones.build import spatial_multiple, temporal_factor
 from imac_model.models.checkpoint import load_world_model
 from imac_model.pipelines.online_controls import OnlineControls
+from imac_model.training.dataset_source import model_spec
 from imac_model.training.log import read_log
-from imac_model.training.train import model_spec
 
 REPO = "local/imac_experiment"
 RECIPE = REPO_ROOT / "recipes" / "aloha_sim_transfer_cube_experiment.yaml"

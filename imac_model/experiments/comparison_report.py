@@ -16,6 +16,7 @@ from imac_data.layout import SUCCESS_COLUMN, episodes_dir
 from imac_model.data import meta as dataset_meta
 from imac_model.evaluate.pictures import label
 from imac_model.experiments.stages import git, machine
+from imac_model.modes import MODES
 from imac_model.training.log import read_log
 
 
@@ -175,8 +176,8 @@ def write_report(plan, settings) -> Path:
           f"* **Budget.** Each setting trains for {plan.cpu_minutes:g} minutes of process CPU time on one thread "
           f"(`train.max_cpu_minutes`), {plan.jobs} settings at a time. CPU time, not wall time, is the budget, so "
           "the settings get the same compute whatever else runs on the machine.",
-          "* **Settings.** `none` (no action input), `action-vector` (an action MLP, cross-attended), `motion` "
-          "(motion images), `motion+contact` (motion and both contact streams), and `motion+contact + rollout`: "
+          "* **Settings.** " + "".join(f"`{s.name}` ({MODES[s.name].label}), " for s in settings if s.name in MODES)
+          + "and `motion+contact + rollout`: "
           "the same model trained with training-time rollout, R = 4 chunks per clip after a warm-up of "
           f"{plan.warmup_epochs:g} epochs of ordinary steps (`rollout.chunks: 4`, `rollout.warmup_epochs: "
           f"{plan.warmup_epochs:g}`); chunk r > 1 starts from the "

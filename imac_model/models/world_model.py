@@ -36,6 +36,7 @@ from imac_model.config import ModelSpec
 from imac_model.data.batch import ChunkBatch
 from imac_model.models.backbones.build import Backbone, build_backbone, temporal_factor
 from imac_model.models.controls import ActionEncoder, ControlInjector
+from imac_model.modes import conditioning_mode
 from imac_model.schedulers import flow
 
 
@@ -66,13 +67,13 @@ class WorldModel(nn.Module):
     def __init__(self, spec: ModelSpec, backbone: Backbone | None = None):
         super().__init__()
         self.spec = spec
-        mode = spec.conditioning.mode
+        mode = conditioning_mode(spec.conditioning.mode)
         self.clean_frames = 2 if spec.conditioning.first_frame else 1  # [first frame,] reference
         factor = backbone.temporal_factor if backbone is not None else temporal_factor(spec.backbone)
         if self.clean_frames > 1 and factor != 1:
             raise InputError(f"conditioning.first_frame: needs a backbone that keeps every frame (unet, small); "
                              f"{spec.backbone.kind} compresses time by {factor}")
-        self.backbone = backbone or build_backbone(spec.backbone, with_context=mode == "action-vector",
+        self.backbone = backbone or build_backbone(spec.backbone, with_context=mode.action_vector,
                                                    num_frames=spec.chunk + self.clean_frames)
         m = self.backbone.spatial_multiple
         H, W = spec.mosaic_hw
@@ -85,9 +86,10 @@ class WorldModel(nn.Module):
                                          on_reference=spec.conditioning.control_on_reference)
                          if self.streams else None)
         self.action_encoder = None
-        if mode == "action-vector":
+        if mode.action_vector:
             if self.backbone.context_dim is None:
-                raise InputError("conditioning.mode: action-vector needs a backbone built with context input")
+                raise InputError(f"conditioning.mode: {spec.conditioning.mode} needs a backbone built with context "
+                                 "input")
             self.action_encoder = ActionEncoder(spec.action_dim, spec.chunk, self.backbone.context_dim,
                                                 hidden=spec.conditioning.action_hidden,
                                                 layers=spec.conditioning.action_layers,

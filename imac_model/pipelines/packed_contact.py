@@ -28,10 +28,10 @@ from imac_data.errors import InputError
 from imac_model.config import CONTACT_STREAMS
 from imac_model.data import mosaic
 from imac_model.data.depth import decode_depth
+from imac_model.data.pack import GEOMETRY_KEY  # the pack member with the settings (arrays: ``geometry.<name>``)
 
 __all__ = ["GEOMETRY_KEY", "PackedContact", "contact_geometry", "geometry_constants"]
 
-GEOMETRY_KEY = "geometry_json"  # the pack member with the settings (the arrays are ``geometry.<name>``)
 PER_CHUNK = ("ref_pose", "ref_mask", "robot_depth", "pose", "gripper_pose")
 
 
@@ -110,7 +110,7 @@ class PackedContact:
 
     @classmethod
     def from_pack(cls, pack, *, method: str = "auto") -> PackedContact:
-        """The geometry of a :class:`~imac_model.training.pack.Pack`."""
+        """The geometry of a :class:`~imac_model.data.pack.Pack`."""
         if pack.geometry is None:
             raise InputError("the pack carries no contact geometry: rebuilding contact images needs a pack written "
                              "with it (imac-model ranking --stages pack)")

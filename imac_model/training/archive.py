@@ -1,8 +1,7 @@
 """A trained run as one file, ``<run>.tar`` or ``<run>.tar.xz``: its latest checkpoint's ``model.json`` and
-``model.safetensors`` and its ``log.jsonl``, flat. ``scripts/gpu_ranking.sh`` returns each run of a GPU loan
+``model.safetensors`` and its ``log.jsonl``, flat. the GPU machine returns each run of a loan (:mod:`.runs`)
 this way (a loan returns few files); ``imac-model ranking --import-gpu`` reads them back into a work directory,
-``--export-runs`` writes them from one (xz-compressed, to be committed: the hub is out of reach), and the pack
-trainer's ``--init`` starts from one. ``docs/ranking.md`` ("Weights between loans") has the procedure."""
+``--export-runs`` writes them from one (xz-compressed, to be committed: the hub is out of reach), and ``train.init`` starts from one. ``docs/ranking.md`` ("Weights between loans") has the procedure."""
 
 from __future__ import annotations
 
@@ -12,7 +11,7 @@ import tarfile
 from pathlib import Path
 
 from imac_data.errors import InputError
-from imac_model.models.checkpoint import SPEC, WEIGHTS
+from imac_model.models.checkpoint import EMA, SPEC, WEIGHTS, read_weights
 from imac_model.training.log import LOG_FILE
 
 MEMBERS = (SPEC, WEIGHTS, LOG_FILE)
@@ -45,7 +44,7 @@ def read_archive(path: str | Path) -> dict[str, bytes]:
         with tarfile.open(path) as archive:
             names = set(archive.getnames())
             if not set(MEMBERS) <= names:
-                raise InputError(f"{path}: not a run of scripts/gpu_ranking.sh (it holds {sorted(names)}; "
+                raise InputError(f"{path}: not a run archive (it holds {sorted(names)}; "
                                  f"a run needs {list(MEMBERS)})")
             return {n: archive.extractfile(n).read() for n in MEMBERS}
     except (tarfile.TarError, EOFError) as e:
@@ -62,9 +61,20 @@ def unpack_checkpoint(path: str | Path, directory: str | Path) -> Path:
     return directory
 
 
-def write_archive(checkpoint: str | Path, log: str | Path, path: str | Path) -> Path:
+def _ema_half(checkpoint: Path) -> bytes:
+    """The checkpoint's weights with its EMA applied, in float16: what sampling loads, at half the size."""
+    from safetensors.torch import save
+
+    weights = read_weights(checkpoint / WEIGHTS)
+    if (checkpoint / EMA).is_file():
+        weights.update(read_weights(checkpoint / EMA))
+    return save({k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in weights.items()})
+
+
+def write_archive(checkpoint: str | Path, log: str | Path, path: str | Path, *, ema_half: bool = False) -> Path:
     """``checkpoint``'s spec and weights and the log file ``log`` as the run archive ``path``
-    (xz-compressed when it ends in ``.tar.xz``), written atomically."""
+    (xz-compressed when it ends in ``.tar.xz``), written atomically. ``ema_half``: the weights are the
+    EMA's, in float16 (a trained run handed back; its optimizer state stays behind)."""
     path = Path(path)
     if run_name(path) is None:
         raise InputError(f"{path}: a run archive is named <run>{' or <run>'.join(SUFFIXES)}")
@@ -78,7 +88,7 @@ def write_archive(checkpoint: str | Path, log: str | Path, path: str | Path) -> 
     try:
         with (tarfile.open(tmp, "w:xz", preset=9) if xz else tarfile.open(tmp, "w")) as archive:
             for name, source in sources.items():
-                data = source.read_bytes()
+                data = _ema_half(Path(checkpoint)) if ema_half and name == WEIGHTS else source.read_bytes()
                 info = tarfile.TarInfo(name)
                 info.size, info.mode = len(data), 0o644
                 archive.addfile(info, io.BytesIO(data))

@@ -1,6 +1,6 @@
 """A run's training log, ``<run>/log.jsonl``: one JSON row per logged step (loss, held-out loss,
-times), and, from the GPU pack trainer, a last ``{"summary": ...}`` row. ``log.csv`` beside it
-holds the main columns for a spreadsheet. Written by both trainers, read by the experiments."""
+times); logs of GPU runs before 2026-12 end with a ``{"summary": ...}`` row. ``log.csv`` beside it
+holds the main columns for a spreadsheet. Written by the trainer, read by the experiments."""
 
 from __future__ import annotations
 
@@ -67,23 +67,3 @@ def progress_line(run: str | Path, cpu_minutes: float | None = None) -> str | No
     if held:
         said += f", held-out {held['heldout_loss']:.4g} (step {held['step']:,})"
     return said
-
-
-def continued_log(earlier: list[dict], later: list[dict]) -> list[dict]:
-    """One log from a run and the run that started from its last weights (``--init``): the later
-    rows' step, samples and elapsed time go on from the earlier run's end, and the summary (the last
-    row's, as the GPU pack trainer writes it) counts both, keeping each part's own as ``parts``."""
-    first, second = log_summary(earlier), log_summary(later)
-    last = next((r for r in reversed(earlier) if "step" in r), {})
-    offset = {"step": first.get("steps", last.get("step", 0)), "samples": first.get("samples", last.get("samples", 0)),
-              "elapsed_s": first.get("train_s", last.get("elapsed_s", 0.0))}
-    parts = first.get("parts", [first]) + [second]
-    rows = [r for r in earlier if "summary" not in r]
-    for r in later:
-        if "summary" not in r:
-            rows.append({**r, **{k: r[k] + offset[k] for k in offset if r.get(k) is not None}, "part": len(parts)})
-    total = {**second, "steps": offset["step"] + second.get("steps", 0),
-             "samples": offset["samples"] + second.get("samples", 0),
-             "train_s": round(offset["elapsed_s"] + second.get("train_s", 0.0), 1),
-             "parts": [{k: v for k, v in part.items() if k != "parts"} for part in parts]}
-    return [*rows, {"summary": total}]

@@ -1,13 +1,16 @@
-"""Train the world model (``imac-model train``): on ``accelerate``, one process on the CPU or
-several GPUs (the global batch split over processes), bf16 where the device has it; or, with
-``train.sharding.strategy: fsdp2``, sharded over the processes (:mod:`.sharding`).
+"""Train the world model (``imac-model train``): one loop, fed by a data source (:mod:`.sources`): the
+LeRobot dataset here, or a tensor pack on a machine with torch and numpy alone (the GPU machine). One
+process on the CPU or a GPU, several under ``accelerate launch`` / ``torchrun`` (the global batch split
+over them), or sharded (``train.sharding.strategy: fsdp2``, :mod:`.sharding`); bf16 where the device has it.
 
-Everything is checked before the first step (config, the dataset's streams, chunk length,
-view size). Held-out episodes are never trained on; their flow loss is measured at fixed
-times and noise. Checkpoints are written every ``train.checkpoint_every`` steps and at the
-end, and a resumed run ends with the same weights as an uninterrupted one (batches and noise
-are functions of (seed, step)). With ``rollout.chunks`` R > 1, steps train clips of R chunks
-(:mod:`imac_model.pipelines.rollout`). Logs: ``log.jsonl``, ``log.csv``, an optional tracker."""
+Everything is checked before the first step (config, the data's streams, chunk length, view size).
+Held-out chunks are never trained on; their flow loss is measured at fixed times and noise. Checkpoints
+are written every ``train.checkpoint_every`` steps and at the end, and a resumed run ends with the same
+weights as an uninterrupted one (batches and noise are functions of (seed, step)). The budget is
+``train.max_steps``, ``max_minutes`` (wall) or ``max_cpu_minutes``. With ``rollout.chunks`` R > 1,
+steps train clips of R chunks (:mod:`imac_model.pipelines.rollout`). ``train.init`` starts from another
+run's weights; ``train.compile`` compiles the U-Net's trunk. Logs: ``log.jsonl``, ``log.csv``, an
+optional tracker."""
 
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ import json
 import math
 import os
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -24,16 +28,15 @@ import numpy as np
 import torch
 
 from imac_data.errors import InputError
-from imac_data.metadata import dataset_info
-from imac_model.config import REBUILT_STREAMS, ModelSpec, RunConfig, save_config
-from imac_model.data.chunks import ChunkDataset, action_stats, open_metadata, resolve_layout, split_episodes
+from imac_model.config import CONTACT_STREAMS, REBUILT_STREAMS, ModelSpec, RunConfig, save_config
 from imac_model.models import checkpoint as ckpt
-from imac_model.models.backbones.build import spatial_multiple, temporal_factor
 from imac_model.models.world_model import WorldModel
-from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.rollout import rollout_loss
+from imac_model.training.archive import run_name, unpack_checkpoint
 from imac_model.training.log import append_log, read_log, write_log
-from imac_model.training.sharding import ShardedRuntime, shard_report
+from imac_model.training.runtime import make_runtime
+from imac_model.training.sharding import shard_report
+from imac_model.training.sources import open_source
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss
 
@@ -48,20 +51,7 @@ class TrainResult:
     main: bool = True  # the process that writes the logs (rank 0)
 
 
-# --------------------------------------------------------------------------- setup
-
-
-def model_spec(run: RunConfig, meta) -> tuple[ModelSpec, object]:
-    """The resolved model of a run on a dataset (checks the dataset against the run)."""
-    layout = resolve_layout(dataset_info(meta), run.data, run.conditioning.streams,
-                            spatial_multiple=spatial_multiple(run.backbone),
-                            temporal_factor=temporal_factor(run.backbone), mode=run.conditioning.mode)
-    mean, std = action_stats(meta)
-    spec = ModelSpec(backbone=run.backbone, conditioning=run.conditioning, flow=run.flow, views=layout.views,
-                     view_height=layout.view_hw[0], view_width=layout.view_hw[1], chunk=layout.chunk,
-                     action_dim=layout.action_dim, fps=layout.fps, dataset=run.data.dataset,
-                     action_mean=tuple(mean), action_std=tuple(std))
-    return spec, layout
+# --------------------------------------------------------------------------- pieces
 
 
 def batch_indices(step: int, n: int, batch_size: int, seed: int) -> list[int]:
@@ -96,9 +86,11 @@ class RolloutSchedule:
         return "clip", k, (self.warmup_steps + k * self.R) / self.per_epoch
 
 
-def step_generator(seed: int, step: int) -> torch.Generator:
-    """The draws of a step's whole global batch (every process slices its rows from them)."""
-    return torch.Generator().manual_seed(int(np.random.SeedSequence([seed, step, 0]).generate_state(1)[0]))
+def step_generator(seed: int, step: int, device: torch.device | str = "cpu") -> torch.Generator:
+    """The draws of a step's whole global batch (every process slices its rows from them); on a GPU
+    they are drawn there."""
+    seed = int(np.random.SeedSequence([seed, step, 0]).generate_state(1)[0])
+    return torch.Generator(device=device).manual_seed(seed)
 
 
 def lr_lambda(warmup: int):
@@ -115,27 +107,30 @@ class EMA:
     @torch.no_grad()
     def update(self, model: torch.nn.Module, step: int) -> None:
         d = min(self.decay, (1 + step) / (10 + step))  # fast start, as is usual
-        for k, p in model.named_parameters():
-            if k in self.shadow:
-                self.shadow[k].mul_(d).add_(p.detach().float(), alpha=1 - d)
+        named = [(self.shadow[k], p.detach().float()) for k, p in model.named_parameters() if k in self.shadow]
+        shadow, params = [s for s, _ in named], [p for _, p in named]
+        torch._foreach_mul_(shadow, d)  # one fused update: a loop over tensors launches kernels per parameter
+        torch._foreach_add_(shadow, params, alpha=1 - d)
 
     def state(self) -> dict[str, torch.Tensor]:
         return self.shadow
 
 
 @torch.no_grad()
-def heldout_loss(model: WorldModel, dataset: ChunkDataset, items: list[int], batch_size: int, device,
-                 autocast, runtime=None) -> float:
-    """Flow loss of fixed held-out chunks at fixed times and noise: comparable across steps.
-    With a sharded ``runtime`` every rank takes its rows of each batch (``len(items)`` a
-    multiple of the world size) and the batch's masked mean is the global one."""
-    rank, world = (runtime.rank, runtime.world) if runtime is not None else (0, 1)
+def heldout_loss(model: WorldModel, source, items: list[int], batch_size: int, device, autocast,
+                 runtime=None) -> float:
+    """Flow loss of fixed held-out chunks (``items``, positions in the source's held-out set) at fixed
+    times and noise: comparable across steps and runs. Item i of the list is measured at time
+    ``EVAL_TAUS[i % 5]``, each batch's noise from seed ``12345 + its start``. With a sharded
+    ``runtime`` every rank takes its rows of each batch (``len(items)`` a multiple of the world size)
+    and the batch's masked mean is the global one."""
+    rank, world = (runtime.rank, runtime.world) if runtime is not None and runtime.sharded else (0, 1)
     was_training = model.training
     model.eval()
     total, count = 0.0, 0
     for start in range(0, len(items), batch_size):
         idx = items[start:start + batch_size]
-        batch = dataset.batch(idx[rank::world]).to(device)
+        batch = source.held_batch(idx[rank::world]).to(device)
         tau = torch.tensor([EVAL_TAUS[(start + i) % len(EVAL_TAUS)] for i in range(len(idx))])[rank::world]
         gen = torch.Generator().manual_seed(12345 + start)
         with autocast():
@@ -165,96 +160,63 @@ def balanced_loss(out, runtime) -> torch.Tensor:
     return out.loss * (n * runtime.world / total).to(out.loss.dtype)
 
 
-class AccelerateRuntime:
-    """The unsharded trainer's side of ``accelerate``: one process, or DDP over several
-    (``accelerate launch`` or ``torchrun``; gloo on a machine without a GPU), bf16 autocast, clipping,
-    checkpoints as safetensors."""
-
-    sharded = False
-
-    def __init__(self, run: RunConfig, out: Path):
-        from accelerate import Accelerator
-
-        precision = run.train.mixed_precision
-        if precision == "auto":
-            precision = "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"
-        # several processes and no GPU (torchrun on a CPU machine): accelerate runs data-parallel over gloo only
-        # when told to use the CPU; otherwise every process would train alone, into the same directory
-        cpu = not torch.cuda.is_available() and int(os.environ.get("WORLD_SIZE", "1")) > 1
-        self.accelerator = Accelerator(mixed_precision=precision, log_with=run.train.tracker, project_dir=str(out),
-                                       cpu=cpu)
-        self.tracker = self.accelerator if run.train.tracker else None
-        self.main = self.accelerator.is_main_process
-        self.rank, self.world = self.accelerator.process_index, self.accelerator.num_processes
-        self.device = self.accelerator.device
-
-    def wrap(self, model):
-        return model
-
-    def prepare(self, model, optimizer):
-        return self.accelerator.prepare(model, optimizer)
-
-    def unwrap(self, model):
-        return self.accelerator.unwrap_model(model)
-
-    def autocast(self):
-        return self.accelerator.autocast()
-
-    def backward(self, loss: torch.Tensor) -> None:
-        self.accelerator.backward(loss)
-
-    def clip_grad_norm_(self, params, max_norm: float) -> None:
-        self.accelerator.clip_grad_norm_(params, max_norm)
-
-    def all_reduce_sum(self, tensor: torch.Tensor) -> torch.Tensor:
-        if self.world > 1:
-            torch.distributed.all_reduce(tensor)
-        return tensor
-
-    def any(self, flag: bool) -> bool:
-        if self.world == 1:
-            return flag
-        t = torch.tensor([float(flag)], device=self.device)
-        torch.distributed.all_reduce(t, op=torch.distributed.ReduceOp.MAX)
-        return bool(t.item())
-
-    def wait(self) -> None:
-        self.accelerator.wait_for_everyone()
-
-    @staticmethod
-    def check_format(path: Path) -> None:
-        if ckpt.is_sharded(path):
-            raise InputError(f"train.sharding.strategy: {path} is a sharded checkpoint ({ckpt.SHARDED}/); resume "
-                             f"it with train.sharding.strategy fsdp2, or use another output directory")
-
-    def save(self, directory: Path, *, model, optimizer, scheduler, ema, spec: ModelSpec, run: RunConfig,
-             step: int) -> Path | None:
-        self.wait()
-        if not self.main:
-            return None
-        return ckpt.save_checkpoint(directory, model=self.unwrap(model), spec=spec, run=run,
-                                    ema=ema.state() if ema else None,
-                                    trainer_state={"optimizer": optimizer.state_dict(),
-                                                   "scheduler": scheduler.state_dict(), "step": step})
-
-    def load(self, path: Path, *, model, optimizer, scheduler, ema, spec: ModelSpec) -> int:
-        ckpt.load_weights_into(model, path / ckpt.WEIGHTS)
-        state = ckpt.read_trainer_state(path)
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        if ema is not None and (path / ckpt.EMA).is_file():
-            ema.shadow = {k: v.float() for k, v in ckpt.read_weights(path / ckpt.EMA).items()}
-        return int(state["step"])
-
-    def close(self) -> None:
-        if self.tracker is not None:
-            self.accelerator.end_training()
-
-
-def _evaluation_items(dataset: ChunkDataset, n: int) -> list[int]:
-    if len(dataset) == 0:
+def evaluation_items(n_held: int, n: int) -> list[int]:
+    """``n`` held-out positions spread evenly over the ``n_held`` (all of them when fewer)."""
+    if n_held == 0:
         return []
-    return sorted(set(np.linspace(0, len(dataset) - 1, min(n, len(dataset))).round().astype(int).tolist()))
+    return sorted(set(np.linspace(0, n_held - 1, min(n, n_held)).round().astype(int).tolist()))
+
+
+def compile_trunk(model: WorldModel, backend: str = "inductor"):
+    """Put a ``torch.compile``d U-Net trunk in the backbone's place and return it; the backbone
+    must have a ``trunk`` (tensors in, tensor out: the U-Net). Fusing its group norms, modulations
+    and SiLUs is what a small pixel-space U-Net needs on a GPU (docs/ranking.md, "The GPU preset")."""
+    backbone = model.backbone
+    if not callable(getattr(backbone, "trunk", None)):
+        raise InputError(f"compile: the {type(backbone).__name__} backbone has no trunk to compile (the U-Net has)")
+    compiled = torch.compile(backbone.trunk, backend=backend)
+    backbone.trunk = compiled  # an instance attribute: it shadows the method and leaves the weights' names alone
+    return compiled
+
+
+def _eager(model: WorldModel):
+    """The backbone's own trunk back (held-out losses run eager: other shapes, no gradient,
+    not worth a compile); returns the compiled one to put back."""
+    return model.backbone.__dict__.pop("trunk", None)
+
+
+def _init_checkpoint(init: str | Path, spec: ModelSpec, scratch: Path) -> Path:
+    """The checkpoint ``init`` names (a run archive is unpacked into ``scratch``), refused unless it shows
+    the run's views and mode; weights of another shape are refused when they load (the flow's settings may
+    differ: they are training's)."""
+    path = unpack_checkpoint(init, scratch) if run_name(init) and Path(init).is_file() else ckpt.resolve_checkpoint(init)
+    theirs = ckpt.read_spec(path)
+    for name, of in (("conditioning.mode", lambda s: s.conditioning.mode), ("backbone.kind", lambda s: s.backbone.kind),
+                     ("views", lambda s: s.views), ("view size", lambda s: (s.view_height, s.view_width)),
+                     ("chunk", lambda s: s.chunk), ("action_dim", lambda s: s.action_dim)):
+        if of(theirs) != of(spec):
+            raise InputError(f"train.init {path}: its {name} is {of(theirs)}, this run's {of(spec)}")
+    return path
+
+
+def _load_init(model: WorldModel, path: Path) -> list[str]:
+    """Load the checkpoint at ``path`` into ``model`` (its own loader: EMA weights where it kept them apart).
+    Layers the checkpoint lacks may stay as built only where they are all zeros (a control stream's
+    zero-initialised projection, added as the paper adds streams: the model starts as the checkpoint's);
+    returns their names. Any other difference is an :class:`InputError` naming the keys."""
+    theirs = ckpt.load_world_model(path)[0].state_dict()
+    ours = model.state_dict()
+    added = sorted(k for k in ours if k not in theirs)
+    extra, live = sorted(k for k in theirs if k not in ours), [k for k in added if ours[k].count_nonzero()]
+    if extra or live:
+        raise InputError(f"train.init {path}: its weights do not fit this run's model: "
+                         + "; ".join(f"{what}: {keys[:6]}" for what, keys in
+                                     (("this run lacks", extra), ("the checkpoint lacks", live)) if keys))
+    try:
+        model.load_state_dict(theirs, strict=False)
+    except RuntimeError as e:  # a layer of another shape
+        raise InputError(f"train.init {path}: its weights do not fit this run's model: {e}") from None
+    return added
 
 
 # --------------------------------------------------------------------------- the loop
@@ -265,13 +227,9 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
     """Train ``run``; ``resume`` None = continue when the output directory has checkpoints
     of the same model, True = require that, False = refuse a directory with checkpoints.
     ``stop_after_steps`` interrupts the run (with a checkpoint) after that many steps."""
-    from tqdm.auto import tqdm
-
     tc = run.train
-    sharded = tc.sharding.strategy != "none"
-    meta = open_metadata(run.data)
-    spec, layout = model_spec(run, meta)
-    train_eps, held_eps = split_episodes(meta.total_episodes, run.data.held_out_episodes)
+    source = open_source(run)
+    spec = source.spec
     out = Path(tc.output_dir)
     existing = ckpt.list_checkpoints(out)
     if existing:
@@ -281,38 +239,42 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
         if ckpt.spec_json(old) != ckpt.spec_json(spec):
             raise InputError(f"train.output_dir: {out} holds checkpoints of another model ({existing[-1]}); "
                              f"use another output directory")
-        (ShardedRuntime if sharded else AccelerateRuntime).check_format(existing[-1])
     elif resume is True:
         raise InputError(f"--resume: no checkpoints under {out / 'checkpoints'}")
-
     if tc.tracker:
         import importlib.util
 
         module = {"tensorboard": "tensorboard", "wandb": "wandb"}[tc.tracker]
         if importlib.util.find_spec(module) is None:
             raise InputError(f"train.tracker: {tc.tracker} is not installed (pip install {module})")
-    runtime = ShardedRuntime(run, out) if sharded else AccelerateRuntime(run, out)
+    runtime = make_runtime(run, out)
+    if existing:
+        runtime.check_format(existing[-1])
     try:
-        result = _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, progress, stop_after_steps,
-                        tqdm)
+        with tempfile.TemporaryDirectory() as scratch:  # where a run archive's checkpoint is unpacked (train.init)
+            result = _train(run, runtime, source, spec, existing, progress, stop_after_steps, Path(scratch))
         runtime.wait()  # every rank done before the group goes: Gloo torn down mid-talk aborted a rank at exit once
         return result
     finally:
         runtime.close()
 
 
-def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, progress, stop_after_steps,
-           tqdm) -> TrainResult:
-    tc = run.train
+def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path], progress: bool,
+           stop_after_steps: int | None, scratch: Path) -> TrainResult:
+    from tqdm.auto import tqdm
+
+    tc, rc = run.train, run.rollout
     out = Path(tc.output_dir)
     main, rank, world = runtime.main, runtime.rank, runtime.world
     if tc.batch_size % world:
         raise InputError(f"train.batch_size: {tc.batch_size} does not split over {world} processes")
+    init = _init_checkpoint(tc.init, spec, scratch) if tc.init and not existing else None
 
     if tc.cpu_threads is not None:
         torch.set_num_threads(tc.cpu_threads)
     torch.manual_seed(tc.seed)  # the same initial weights for the same seed
     model = runtime.wrap(WorldModel(spec))
+    added = _load_init(model, init) if init is not None else []
     trainable = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(trainable, lr=tc.lr, betas=tuple(tc.adam_betas), eps=tc.adam_eps,
                                   weight_decay=tc.weight_decay)
@@ -325,35 +287,25 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
         if main:
             print(f"[train] resuming from {existing[-1]} (step {step})", file=sys.stderr)
 
-    train_set = ChunkDataset(run.data.dataset, layout, root=run.data.root, episodes=train_eps,
-                             cache=run.data.cache, cache_dir=run.data.cache_dir, video_backend=run.data.video_backend)
-    held_set = (ChunkDataset(run.data.dataset, layout, root=run.data.root, episodes=held_eps, cache=run.data.cache,
-                             cache_dir=run.data.cache_dir, video_backend=run.data.video_backend)
-                if held_eps else None)
-    if len(train_set) == 0:
-        raise InputError(f"data: no training chunks (episodes {train_eps})")
-    rc = run.rollout
-    clips = train_set.clips(rc.chunks) if rc.chunks > 1 else None
+    source.load(runtime.device, progress and main)
+    clips = source.clips(rc.chunks) if rc.chunks > 1 else None
     if clips is not None and not clips:
         raise InputError(f"rollout.chunks: no training episode has {rc.chunks} chunks")
-    schedule = RolloutSchedule(len(train_set), tc.batch_size, rc)
-    eval_items = _evaluation_items(held_set, tc.eval_batches * tc.batch_size) if held_set is not None else []
+    streams_in = spec.conditioning.streams
+    contact = tuple(s for s in streams_in if s in CONTACT_STREAMS)
+    kept = [s for s in streams_in if s in REBUILT_STREAMS and (rc.contact == "recorded" or s not in contact)]
+    if rc.chunks > 1 and rc.reference_steps > 0 and kept and main:
+        # measured: motion+contact stopped drawing the lift this way (docs/ranking.md, "What was tried")
+        print(f"[train] warning: rollout from {rc.reference_steps} sampler steps keeps the recorded {kept} images, "
+              f"which then describe a scene the sampled reference may not show", file=sys.stderr)
+    schedule = RolloutSchedule(source.n_train, tc.batch_size, rc)
+    eval_items = evaluation_items(source.n_held, tc.eval_batches * tc.batch_size)
     if runtime.sharded and eval_items and len(eval_items) % world:  # every rank evaluates its rows of each batch
         eval_items = np.resize(eval_items, -(-len(eval_items) // world) * world).tolist()
-    if run.data.cache == "memory":
-        train_set.preload(num_workers=run.data.num_workers, progress=progress and main)
-        if held_set is not None:
-            held_set.preload(num_workers=run.data.num_workers, progress=progress and main)
 
     model, optimizer = runtime.prepare(model, optimizer)
     device = runtime.device
-    online = None
-    if rc.chunks > 1 and any(s in spec.conditioning.streams for s in REBUILT_STREAMS):
-        contact_device = device if rc.device == "auto" else torch.device(rc.device)
-        online = OnlineControls.from_dataset(train_set.lerobot.root, spec, info=dataset_info(meta),
-                                             resolution=rc.resolution, max_walk_distance=rc.max_walk_distance,
-                                             device=contact_device)
-        online.rig.renderer, online.rig.gripper  # noqa: B018 - built before the clock starts
+    compiled = compile_trunk(runtime.unwrap(model)) if tc.compile else None
     t_wall, t_cpu = time.time(), time.process_time()  # train.max_minutes and the logged times count from here
     if main:
         out.mkdir(parents=True, exist_ok=True)
@@ -386,15 +338,14 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
         return path if main else None
 
     def evaluate() -> dict:
-        if not eval_items:
+        if not eval_items or not (main or runtime.sharded):  # sharded: every rank takes part (the forward gathers)
             return {}
-        if runtime.sharded:  # every rank takes part (the forward gathers parameters)
-            return {"heldout_loss": heldout_loss(model, held_set, eval_items, tc.batch_size, device,
-                                                 runtime.autocast, runtime=runtime)}
-        if not main:
-            return {}
-        return {"heldout_loss": heldout_loss(runtime.unwrap(model), held_set, eval_items, tc.batch_size, device,
-                                             runtime.autocast)}
+        trunk = _eager(runtime.unwrap(model))  # other shapes, no gradient: not worth a compile
+        loss = heldout_loss(model if runtime.sharded else runtime.unwrap(model), source, eval_items, tc.batch_size,
+                            device, runtime.autocast, runtime=runtime)
+        if trunk is not None:
+            runtime.unwrap(model).backbone.trunk = trunk
+        return {"heldout_loss": loss}
 
     def emit(row: dict) -> None:
         if not main:
@@ -405,10 +356,34 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
         if runtime.tracker is not None:
             runtime.tracker.log({k: v for k, v in row.items() if k != "step"}, step=row["step"])
 
+    def forward_backward(step: int, phase: str, k: int, streams) -> tuple[torch.Tensor, dict]:
+        gen = step_generator(tc.seed, step, device if device.type == "cuda" else "cpu")  # every process keeps its rows
+        if phase == "chunk":  # an ordinary step, also the clean-reference warm-up of a rollout run
+            idx = batch_indices(k, source.n_train, tc.batch_size, tc.seed)[rank::world]
+            batch = source.train_batch(idx).to(device)
+            with runtime.autocast():
+                result = model(batch, generator=gen, streams=streams, rows=(rank, world))
+                loss = loss_of(result)
+            runtime.backward(loss)
+            return loss, {}
+        idx = batch_indices(k, len(clips), tc.batch_size, tc.seed + 1)[rank::world]
+        items = [clips[i] for i in idx]
+        clip = [source.train_batch([c[r] for c in items]).to(device) for r in range(rc.chunks)]
+        inputs = source.rollout_inputs(items, contact)
+        result = rollout_loss(model, clip, inputs.get("online"), generator=gen, streams=streams,
+                              commanded_state=rc.reference_state == "commanded", backward=runtime.backward,
+                              autocast=runtime.autocast, rows=(rank, world), loss_of=loss_of,
+                              reference_steps=rc.reference_steps, stored_contact=rc.contact == "recorded",
+                              rebuild=inputs.get("rebuild"))
+        extra = {"chunk_losses": [float(x) for x in result.chunk_losses]}
+        if result.invalid_depth:
+            extra["invalid_depth"] = float(np.mean(result.invalid_depth))
+        return result.loss, extra
+
     model.train()
     if step == 0:
         row = evaluate()
-        emit({"step": 0, **row, "wall_s": 0.0, "cpu_s": 0.0})
+        emit({"step": 0, **row, "wall_s": 0.0, "cpu_s": 0.0, **({"init_added": added} if added else {})})
     bar = tqdm(total=tc.max_steps, initial=step, desc="training", unit="step", disable=not (progress and main))
     loss_of = partial(balanced_loss, runtime=runtime)
     timed = tc.max_minutes is not None or tc.max_cpu_minutes is not None
@@ -419,25 +394,20 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
     while step < tc.max_steps:
         phase, k, epoch = schedule.at(step)
         streams = ("motion",) if epoch < rc.stage_one_epochs else None  # stage one: motion images alone
-        gen = step_generator(tc.seed, step)  # the global batch's draws; every process keeps its rows
-        if phase == "chunk":  # an ordinary step, also the clean-reference warm-up of a rollout run
-            idx = batch_indices(k, len(train_set), tc.batch_size, tc.seed)[rank::world]
-            batch = train_set.batch(idx).to(device)
-            with runtime.autocast():
-                result = model(batch, generator=gen, streams=streams, rows=(rank, world))
-                loss = loss_of(result)
-            runtime.backward(loss)
-        else:
-            idx = batch_indices(k, len(clips), tc.batch_size, tc.seed + 1)[rank::world]
-            clip = [train_set.batch([clips[i][r] for i in idx]).to(device) for r in range(rc.chunks)]
-            result = rollout_loss(model, clip, online, generator=gen, streams=streams,
-                                  commanded_state=rc.reference_state == "commanded",
-                                  backward=runtime.backward, autocast=runtime.autocast, rows=(rank, world),
-                                  loss_of=loss_of, reference_steps=rc.reference_steps)
-            loss = result.loss
-            extras.setdefault("chunk_losses", []).append([float(x) for x in result.chunk_losses])
-            if result.invalid_depth:
-                extras.setdefault("invalid_depth", []).append(float(np.mean(result.invalid_depth)))
+        try:
+            loss, extra = forward_backward(step, phase, k, streams)
+        except Exception as error:  # noqa: BLE001 - a compiler that fails on this machine: eager, said once
+            if compiled is None or step > start_step:
+                raise
+            compiled = None
+            _eager(runtime.unwrap(model))
+            optimizer.zero_grad(set_to_none=True)
+            if main:
+                print(f"[train] torch.compile failed, training eager: {type(error).__name__}: {error}"[:2000],
+                      file=sys.stderr)
+            loss, extra = forward_backward(step, phase, k, streams)
+        for key, value in extra.items():
+            extras.setdefault(key, []).append(value)
         if tc.grad_clip > 0:
             runtime.clip_grad_norm_(trainable, tc.grad_clip)
         optimizer.step()
@@ -475,6 +445,8 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
                 row.update(evaluate())
             row.update(wall_s=round(now - t_wall, 3), cpu_s=round(cpu_seconds(), 3),
                        load=round(os.getloadavg()[0], 2), processes=world)
+            if tc.compile:
+                row["compiled"] = compiled is not None
             emit(row)
             window, t_window = [], time.time()
         if step % tc.checkpoint_every == 0 or done:
@@ -485,6 +457,8 @@ def _train(run, runtime, spec, layout, meta, train_eps, held_eps, existing, prog
     bar.close()
     if step == start_step and main:  # nothing to do (already finished)
         last_ckpt = ckpt.list_checkpoints(out)[-1] if ckpt.list_checkpoints(out) else None
+        if last_ckpt is None:  # no time to train at all: the weights it started from, as a checkpoint
+            last_ckpt = save(step)
     return TrainResult(output_dir=out, step=step, checkpoint=last_ckpt, log=log_rows, stopped=stopped, main=main)
 
 

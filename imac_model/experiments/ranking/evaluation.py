@@ -46,9 +46,10 @@ from imac_model.evaluate.success import (
 from imac_model.experiments.ranking.gate import reseeded
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import RED_THRESHOLD, interior, redness, without_cube
-from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan, slug
+from imac_model.experiments.ranking.plan import EVAL_REPO, GATED_MODE, TRAIN_REPO, RankingPlan, slug
 from imac_model.experiments.ranking.policies import WORKSPACE
 from imac_model.models.checkpoint import load_world_model
+from imac_model.modes import conditioning_mode
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.schedulers import flow
@@ -270,7 +271,7 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
     chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=replay)
     online = _online(plan, model, chunks)
     classifier = _classifier(plan)
-    steps_list = sorted({plan.steps, plan.check_steps} if mode == "motion+contact" else {plan.steps})
+    steps_list = sorted({plan.steps, plan.check_steps} if mode == GATED_MODE else {plan.steps})
     result = {str(k): replay_recorded(plan, model, chunks, online, replay, labels, k, LiftJudge(), classifier,
                                       seeds=plan.gate_seeds) for k in steps_list}
     _write(done, result)
@@ -279,7 +280,7 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
 
 def evaluated_policies(plan: RankingPlan, mode: str) -> tuple[str, ...]:
     """The policies run closed loop in ``mode``'s world model (``none`` is policy-blind: one, once)."""
-    return plan.policies[:1] if mode == "none" else plan.policies
+    return plan.policies[:1] if conditioning_mode(mode).blind else plan.policies
 
 
 def policy_dir(plan: RankingPlan, mode: str, policy: str) -> Path:
@@ -393,11 +394,12 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sorted(set(starts + replay)))
     online = _online(plan, model, chunks)
     result = {"mode": mode, "start_episodes": starts, "sampler_steps": plan.steps, "policies": {}}
-    if mode == "none":
+    blind = conditioning_mode(mode).blind
+    if blind:
         result["none_check"] = none_is_policy_blind(plan, model, online, chunks, starts[:2])
     for policy in evaluated_policies(plan, mode):
         result["policies"][slug(policy)] = _policy_closed_loop(plan, mode, policy, model, chunks, online)
-    if mode != "none":
+    if not blind:
         result["recorded"] = replays(plan, mode)
     sens_chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sens_episodes)
     sens_chunks.preload(progress=False)

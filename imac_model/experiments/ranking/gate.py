@@ -33,14 +33,13 @@ from imac_model.evaluate.policies import recorded_actions_policy
 from imac_model.evaluate.success import dataset_success_labels, verdict_scores
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import RED_THRESHOLD, redness
-from imac_model.experiments.ranking.plan import TRAIN_REPO, RankingPlan
+from imac_model.experiments.ranking.plan import GATED_MODE, TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import WORKSPACE
 from imac_model.models.checkpoint import list_checkpoints, load_world_model
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.training.log import read_log
 
-GATED_MODE = "motion+contact"
 SEED_STRIDE = 100_003  # seed s of a replay: its start's seed + s * SEED_STRIDE
 
 

@@ -12,14 +12,19 @@ from imac_data.errors import InputError
 from imac_data.sources.sim.rig import RIG_CAMERAS
 from imac_model.config import load_run_config
 from imac_model.experiments.ranking.policies import POLICIES, TRAINING_OFFSETS, VIEWS, WORKSPACE
-from imac_model.experiments.stages import REPO_ROOT
+from imac_model.experiments.stages import REPO_ROOT, python
+from imac_model.modes import MODES, conditioning_mode
 
 POLICY_MODULE = "imac_model.experiments.ranking.policies"
 JUDGE = "python:imac_model.experiments.ranking.judge:lift_judge"
 RECIPE = REPO_ROOT / "recipes" / "aloha_sim_lift.yaml"
 CONFIG = REPO_ROOT / "imac_model" / "configs" / "ranking.yaml"
 CAMERAS = tuple(RIG_CAMERAS.values())  # what the simulated rig records
-MODES = ("motion+contact", "motion", "action-vector", "none")
+# the benchmark's choices among the conditioning modes (imac_model.modes.MODES lists them all): the headline mode,
+# gated early (gate.py) and judged at both sampler steps; the baseline it is compared against; the harness check
+GATED_MODE = "motion+contact"
+BASELINE_MODE = "action-vector"
+CHECK_MODE = "none"  # policy-blind: trained on none_minutes, run once, its frames bit-identical across policies
 STAGES = ("simulate", "build", "decode", "pack", "train", "judges", "evaluate", "report")
 EVAL_SEED0 = 100_000  # evaluation start of group g, episode i: EVAL_SEED0 + 1000 g + i
 TRAIN_SEED0 = 200_000  # the training rollouts' starts: never an evaluation start
@@ -52,9 +57,9 @@ class RankingPlan:
     training_offsets: str = "across"
     # motion is left out of the default: the comparison is motion+contact against action-vector, and none is
     # the harness check; at 8 CPU-hours a fourth equal budget does not fit (docs/ranking.md, "Modes")
-    modes: tuple[str, ...] = ("motion+contact", "action-vector", "none")
+    modes: tuple[str, ...] = (GATED_MODE, BASELINE_MODE, CHECK_MODE)
     cpu_minutes: float = 120.0  # training budget of each compared mode (process CPU minutes, one thread)
-    none_minutes: float = 10.0  # none's: a harness check (bit-identity), not a comparison
+    none_minutes: float = 10.0  # none's (any policy-blind mode's): a harness check (bit-identity), not a comparison
     # the early gate (gate.py): motion+contact trains first, measured every gate_every CPU-minutes on the
     # held-out training rollouts; the benchmark stops if it has not reached gate_min by gate_by
     gate_every: float | None = 60.0
@@ -78,6 +83,7 @@ class RankingPlan:
     # so the first chunk's controls were made from a scene that was gone (docs/ranking.md); plans made before: 0
     settle_s: float = 0.3
     gpu_minutes: float | None = None  # the GPU preset: each compared mode trained this long on one GPU from the pack
+    gpu_ablations: tuple[str, ...] = ()  # the GPU preset also trains these arms (ablations.ABLATIONS) beside its modes
     toy: bool = False  # the CI run: tiny backbone, a few training steps
     overrides: dict = field(default_factory=dict)  # extra run-config overrides for every mode
 
@@ -152,10 +158,25 @@ class RankingPlan:
         """The training rollouts kept out of training: the last ``held_out``."""
         return list(range(self.train_episodes - self.held_out, self.train_episodes))
 
+    @property
+    def on_gpu(self) -> bool:
+        """The GPU preset: the compared modes train from the tensor pack on a GPU (``gpu_minutes`` each)."""
+        return self.gpu_minutes is not None
+
+    @property
+    def budget_minutes(self) -> float:
+        """A compared mode's training budget: GPU wall minutes for the GPU preset, else CPU minutes."""
+        return self.gpu_minutes if self.on_gpu else self.cpu_minutes
+
+    def cpu_budget(self, mode: str) -> float:
+        """``mode``'s training budget in CPU-minutes: ``none_minutes`` for a policy-blind mode (the harness
+        check), else ``cpu_minutes``."""
+        return self.none_minutes if conditioning_mode(mode).blind else self.cpu_minutes
+
     def mode_overrides(self, mode: str) -> dict:
         out = {"data.dataset": TRAIN_REPO, "data.root": str(self.train_dataset),
                "data.cache_dir": str(self.work / "chunkcache"), "data.held_out_episodes": self.held_out_episodes(),
-               "train.max_cpu_minutes": self.none_minutes if mode == "none" else self.cpu_minutes, "train.output_dir": str(self.run_dir(mode)),
+               "train.max_cpu_minutes": self.cpu_budget(mode), "train.output_dir": str(self.run_dir(mode)),
                "train.seed": self.seed, "conditioning.mode": mode, "data.view_height": self.view_size[0],
                "data.view_width": self.view_size[1], "data.views": list(self.views)}
         return {**out, **(TOY_MODEL if self.toy else {}), **self.overrides}
@@ -180,9 +201,9 @@ class RankingPlan:
 
 def gpu_plan(work: Path, docs: Path) -> RankingPlan:
     """The GPU preset: the CPU preset's data, model and evaluation, with motion+contact and action-vector
-    trained for 8 minutes each on one GPU from the tensor pack (``scripts/gpu_ranking.sh``) instead of the
+    trained for 8 minutes each on one GPU from the tensor pack (``scripts/gpu_train.py``) instead of the
     CPU budget; a short GPU loan fits it (docs/ranking.md, "The GPU preset")."""
-    return RankingPlan(work=work, docs=docs, modes=("motion+contact", "action-vector"), gpu_minutes=8.0,
+    return RankingPlan(work=work, docs=docs, modes=(GATED_MODE, BASELINE_MODE), gpu_minutes=8.0,
                        gate_every=None)
 
 
@@ -191,7 +212,12 @@ def toy_plan(work: Path, docs: Path) -> RankingPlan:
     return RankingPlan(work=work, docs=docs, policies=tuple(f"python:{POLICY_MODULE}:{p}"
                                                             for p in ("closed_loop", "open_loop_3cm")),
                        groups=2, real_per_group=2, wm_per_group=1, train_episodes=4, held_out=1,
-                       modes=("motion+contact", "none"), cpu_minutes=1.0, none_minutes=1.0, chunks=2, steps=2, check_steps=2,
+                       modes=(GATED_MODE, CHECK_MODE), cpu_minutes=1.0, none_minutes=1.0, chunks=2, steps=2, check_steps=2,
                        recorded=2, toy=True, gate_every=1.0, gate_min=0.0, gate_seeds=2)
 
 
+def internal(plan: RankingPlan, what: str, *extra: str) -> list[str]:
+    """argv of one of the benchmark's steps in a fresh process (``imac-model ranking --internal``: LeRobot's
+    decoders and MuJoCo's GL context must not be forked after use)."""
+    return python() + ["-m", "imac_model", "ranking", "--plan", str(plan.work / "plan.json"), "--internal", what,
+                       *extra]

@@ -26,6 +26,7 @@ from imac_model.experiments.ranking.report_text import markdown, shown_path, sto
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 from imac_model.models.checkpoint import list_checkpoints, read_spec
 from imac_model.models.world_model import WorldModel
+from imac_model.modes import conditioning_mode
 from imac_model.training.log import log_summary, read_log
 
 
@@ -51,6 +52,13 @@ def world_model_outcomes(plan: RankingPlan, mode: str, judge: str) -> dict[tuple
         for g, row in zip(groups, run["episodes"]):
             out.setdefault((name, g), []).append(bool(row[JUDGE_COLUMNS[judge]]))
     return out
+
+
+def shown_mode(plan: RankingPlan) -> str:
+    """The mode whose rollouts the report pictures: of the plan's modes, the one with the most control streams,
+    else one with the action vector, else the first (read off the registry: motion+contact before motion before
+    action-vector)."""
+    return max(plan.modes, key=lambda m: (len(conditioning_mode(m).streams), conditioning_mode(m).action_vector))
 
 
 def judges_of(plan: RankingPlan) -> list[str]:
@@ -143,7 +151,7 @@ def write_report(plan: RankingPlan) -> Path:
     for mode in plan.modes:
         plot_policy_scatter(stats[mode]["lift_geometry"], docs / f"scatter_{slug(mode.replace('+', '_'))}.png",
                             title=f"{mode}: world model vs MuJoCo (lift judge)")
-    shown = next((m for m in ("motion+contact", "motion", "action-vector") if m in plan.modes), plan.modes[0])
+    shown = shown_mode(plan)
     examples = _examples(plan, real, shown)
     for outcome, (policy, start) in examples.items():
         side_by_side(plan, shown, policy, start, docs / f"rollout_{outcome}.png")

@@ -11,7 +11,7 @@ import numpy as np
 from imac_model.evaluate.statistics import STATISTICS
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
 from imac_model.experiments.ranking.gate import GATED_MODE, cube_by_view, gate_verdict
-from imac_model.experiments.ranking.plan import RankingPlan, slug
+from imac_model.experiments.ranking.plan import BASELINE_MODE, RankingPlan, slug
 from imac_model.experiments.stages import REPO_ROOT
 
 
@@ -41,21 +41,21 @@ def _rate(k: float, n: int) -> str:
 
 
 def _verdict(stats: dict) -> str:
-    """The goal, read off the figures: Pearson >= 0.9 and MMRV <= 0.05 for motion+contact (lift
-    judge), with action-vector clearly lower."""
+    """The goal, read off the figures: Pearson >= 0.9 and MMRV <= 0.05 for the headline mode (``GATED_MODE``,
+    motion+contact; lift judge), with the baseline (``BASELINE_MODE``, action-vector) clearly lower."""
     def value(mode, name):
         return stats.get(mode, {}).get("lift_geometry", {}).get("levels", {}).get("group", {}).get(name, {}).get("value")
 
-    p, m = value("motion+contact", "pearson"), value("motion+contact", "mmrv")
+    p, m = value(GATED_MODE, "pearson"), value(GATED_MODE, "mmrv")
     if p is None and m is None:
-        return "**Goal.** Not measured: no `motion+contact` run, or its world-model rates do not vary."
+        return f"**Goal.** Not measured: no `{GATED_MODE}` run, or its world-model rates do not vary."
     met = p is not None and m is not None and p >= 0.9 and m <= 0.05
-    text = (f"**Goal** (Pearson >= 0.9 and MMRV <= 0.05 for `motion+contact`, lift judge): "
+    text = (f"**Goal** (Pearson >= 0.9 and MMRV <= 0.05 for `{GATED_MODE}`, lift judge): "
             f"{'met' if met else 'not met'} (Pearson {_fmt(p)}, MMRV {_fmt(m)}).")
-    a = value("action-vector", "pearson")
-    if "action-vector" in stats:
+    a = value(BASELINE_MODE, "pearson")
+    if BASELINE_MODE in stats:
         lower = p is not None and (a is None or a < p)
-        text += f" `action-vector`: Pearson {_fmt(a)}, {'lower' if lower else 'not lower'} than `motion+contact`."
+        text += f" `{BASELINE_MODE}`: Pearson {_fmt(a)}, {'lower' if lower else 'not lower'} than `{GATED_MODE}`."
     return text
 
 
@@ -331,9 +331,10 @@ def markdown(plan: RankingPlan, r: dict) -> str:
                      (f"{contact['rebuilt_present']} / {contact['recorded_present']} of {contact['replays']}"
                       if contact.get("replays") else "no contact stream")]
             lines.append(f"| {mode} | {steps} | " + " | ".join(cells) + " |")
-    none = r["evaluations"].get("none", {}).get("none_check")
-    if none:
-        lines += ["", f"**Negative control.** `none` from the same starts and seeds gives bit-identical frames to "
+    blind = next(((mode, ev["none_check"]) for mode, ev in r["evaluations"].items() if ev.get("none_check")), None)
+    if blind:
+        mode, none = blind
+        lines += ["", f"**Negative control.** `{mode}` from the same starts and seeds gives bit-identical frames to "
                       f"{' and '.join(none['policies'])}: {none['bit_identical']} (starts {none['starts']}); it is run "
                       "once per start and its verdicts stand for every policy."]
     lines += ["", "## Action sensitivity", "",

@@ -12,6 +12,7 @@ from imac_model.experiments.ranking.evaluation import evaluated_policies, policy
 from imac_model.experiments.ranking.gate import GATED_MODE, read_gates
 from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.stages import REPO_ROOT, StageLog
+from imac_model.modes import conditioning_mode
 from imac_model.training.log import progress_line
 
 
@@ -27,7 +28,8 @@ def status(plan: RankingPlan) -> str:
                                        or "none yet"))
     for mode in plan.modes:
         run = plan.run_dir(mode)
-        budget = plan.none_minutes if mode == "none" else plan.cpu_minutes if plan.gpu_minutes is None else None
+        budget = (plan.none_minutes if conditioning_mode(mode).blind else
+                  plan.cpu_minutes if plan.gpu_minutes is None else None)
         said = progress_line(run, budget)
         state = "trained" if (run / "DONE.json").is_file() else "training" if said else "not started"
         lines.append(f"  {mode}: {state}" + (f", {said}" if said else ""))

@@ -161,7 +161,7 @@ class UNetBackbone(Backbone):
 
     def trunk(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         """The U-Net from ``conv_in``'s output to ``conv_out``'s: tensors in, tensor out, so it is
-        the part ``torch.compile`` takes (:func:`imac_model.training.pack.train_pack`)."""
+        the part ``torch.compile`` takes (``train.compile``, :func:`imac_model.training.train.compile_trunk`)."""
         skips = [x]
         for blocks, down in zip(self.down, self.downsample):
             for block in blocks:

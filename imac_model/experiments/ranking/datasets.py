@@ -1,0 +1,72 @@
+"""The ranking benchmark's ``build`` stage: the simulated training rollouts and evaluation episodes
+as LeRobot datasets with ``imac build`` (their success labels included); and ``decode``: the
+training chunks decoded once into the chunk cache every mode's training reads."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import torch
+
+from imac_data.layout import info_path
+from imac_model.config import CONTROL_STREAMS
+from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
+from imac_model.experiments.ranking.plan import EVAL_REPO, GATED_MODE, RECIPE, TRAIN_REPO, RankingPlan, internal
+from imac_model.experiments.ranking.simulate import SIDES
+from imac_model.experiments.stages import python, run_all
+from imac_model.training.dataset_source import model_spec
+
+
+def _link_episodes(sources: list[Path], dest: Path) -> None:
+    """One source directory of ``episode_<i>.hdf5`` links, in the given order."""
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for i, src in enumerate(sources):
+        (tmp / f"episode_{i}.hdf5").symlink_to(src.resolve())
+    calibration = next(p for p in (s.parent / "calibration.json" for s in sources) if p.is_file())
+    shutil.copy(calibration, tmp / "calibration.json")
+    shutil.rmtree(dest, ignore_errors=True)
+    os.replace(tmp, dest)
+
+
+def stage_build(plan: RankingPlan, sides: tuple[str, ...] = SIDES) -> None:
+    parts = max(1, min(plan.jobs, plan.train_episodes))
+    train = [plan.work / "sim" / "train" / f"part_{i % parts}" / f"ep_{i:05d}" / "episode_0.hdf5"
+             for i in range(plan.train_episodes)]
+    n_eval = len(plan.eval_seeds())
+    evals = [plan.sim_dir(name) / f"episode_{i}.hdf5" for name in plan.names for i in range(n_eval)]
+    todo = [(repo, root, sources, src_dir) for side, repo, root, sources, src_dir in (
+        ("train", TRAIN_REPO, plan.train_dataset, train, plan.work / "sim" / "train_all"),
+        ("eval", EVAL_REPO, plan.eval_dataset, evals, plan.work / "sim" / "eval_all"))
+        if side in sides and not info_path(root).is_file()]  # a build moves its dataset into place only when complete
+    workers = plan.jobs if len(todo) == 1 else 1  # one build alone gets every process
+    commands = []
+    for repo, root, sources, src_dir in todo:
+        _link_episodes(sources, src_dir)
+        argv = python() + ["-m", "imac_data.build", "--repo", repo, "--recipe", str(RECIPE), "--source", str(src_dir),
+                           "--root", str(root), "--episodes", str(len(sources)), "--workers", str(workers),
+                           "--no-progress", "--overwrite",
+                           "--timings", str(plan.work / f"build_timings_{root.name}.json")]
+        commands.append((f"build {root.name}", argv, plan.work / "logs" / f"build_{root.name}.log"))
+    run_all(commands, plan.jobs, tag="ranking")
+
+
+def decode_chunks(plan: RankingPlan) -> None:
+    torch.set_num_threads(1)
+    run = plan.run_config(GATED_MODE)  # every stream: the other modes reuse its cache
+    meta = open_metadata(run.data)
+    _, layout = model_spec(run, meta)
+    assert set(layout.streams) >= set(CONTROL_STREAMS)
+    for eps in split_episodes(meta.total_episodes, run.data.held_out_episodes):
+        ds = ChunkDataset(TRAIN_REPO, layout, root=run.data.root, episodes=eps, cache="memory",
+                          cache_dir=run.data.cache_dir)
+        ds.preload(num_workers=1, progress=False)
+
+
+def stage_decode(plan: RankingPlan) -> None:
+    if any((plan.work / "chunkcache").glob("*")):
+        return
+    run_all([("decode", internal(plan, "decode"), plan.work / "logs" / "decode.log")], 1, tag="ranking")
