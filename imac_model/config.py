@@ -257,7 +257,9 @@ class TrainConfig:
             raise InputError(f"train.adam_betas: two numbers in [0, 1) (got {list(self.adam_betas)})")
         if not self.adam_eps > 0:
             raise InputError(f"train.adam_eps: must be > 0 (got {self.adam_eps})")
-        for name in ("batch_size", "max_steps", "log_every", "eval_every", "eval_batches", "checkpoint_every",
+        if not (isinstance(self.max_steps, int) and self.max_steps >= 0):  # 0: the starting weights as a checkpoint
+            raise InputError(f"train.max_steps: must be an integer >= 0 (got {self.max_steps!r})")
+        for name in ("batch_size", "log_every", "eval_every", "eval_batches", "checkpoint_every",
                      "keep_checkpoints"):
             _positive(self, name, "train")
         if self.lr <= 0:

@@ -950,10 +950,14 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     blocked = ("lerobot", "mujoco", "open3d", "diffusers", "accelerate", "scipy", "trimesh", "cv2", "av", "pandas",
                "datasets", "torchcodec", "pytorch_kinematics", "h5py", "transformers")
     # what the GPU machine lacks is refused at import; PyYAML and safetensors travel as wheels there
-    bootstrap = ("import sys, runpy\n"
-                 "class Refuse:\n"
+    bootstrap = ("import sys, runpy, importlib.machinery\n"
+                 "class Refuse:\n"  # found (torch probes for some), but refused when imported
                  "    def find_spec(self, name, path=None, target=None):\n"
-                 f"        if name.split('.')[0] in {blocked!r}: raise ImportError('not on the GPU machine: ' + name)\n"
+                 f"        if name.split('.')[0] in {blocked!r}: return importlib.machinery.ModuleSpec(name, self)\n"
+                 "    def create_module(self, spec):\n"
+                 "        raise ImportError('not on the GPU machine: ' + spec.name)\n"
+                 "    def exec_module(self, module):\n"
+                 "        pass\n"
                  "sys.meta_path.insert(0, Refuse())\n"
                  f"sys.argv = ['gpu_train.py', {str(file)!r}, {str(out)!r}]\n"
                  f"runpy.run_path({str(ROOT / 'scripts' / 'gpu_train.py')!r}, run_name='__main__')\n")
