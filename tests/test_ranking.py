@@ -830,7 +830,7 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
                                        "train.max_steps": 0})
     added = result.log[0]["init_added"]
     assert added == ["controls.layers.scene_warp.bias", "controls.layers.scene_warp.weight"]
-    theirs = load_file(str(list_checkpoints(tmp_path / "eager")[-1] / "model.safetensors"))
+    theirs = load_world_model(tmp_path / "eager")[0].state_dict()  # what train.init loads: the EMA weights
     ours = load_file(str(list_checkpoints(tmp_path / "warp_added")[-1] / "model.safetensors"))
     assert sorted(set(ours) - set(theirs)) == added
     assert all(torch.equal(theirs[k], ours[k]) for k in theirs) and not any(ours[k].any() for k in added)
@@ -963,15 +963,14 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
                  f"runpy.run_path({str(ROOT / 'scripts' / 'gpu_train.py')!r}, run_name='__main__')\n")
     done = subprocess.run([sys.executable, "-c", bootstrap], capture_output=True, text=True, cwd=tmp_path)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert sorted(p.name for p in out.iterdir()) == ["action_vector.tar", "motion_contact.tar",
-                                                     "motion_contact_uniform.tar"]
+    assert sorted(p.name for p in out.iterdir()) == ["motion_contact.tar", "motion_contact_uniform.tar", "none.tar"]
     assert (work / "wm" / "motion_contact" / "replays.json").is_file()  # the CPU-trained toy model's
-    assert sorted(import_gpu_runs(plan, out)) == ["action_vector", "motion_contact", "motion_contact_uniform"]
+    assert sorted(import_gpu_runs(plan, out)) == ["motion_contact", "motion_contact_uniform", "none"]
     assert not (work / "wm" / "motion_contact").exists()  # evaluations of the replaced model are dropped
     source = PackSource(runs.config("motion_contact", tmp_path))
     items = evaluation_items(source.n_held, runs.config("motion_contact", tmp_path).train.eval_batches * 16)
     for name, mode, focus in (("motion_contact", "motion+contact", 5.0), ("motion_contact_uniform", "motion+contact", 0.0),
-                              ("action_vector", "action-vector", 5.0)):
+                              ("none", "none", 5.0)):
         model, spec = load_world_model(work / "runs" / name, weights="ema")
         assert spec.conditioning.mode == mode and spec.flow.focus_weight == focus
         log = [json.loads(line) for line in (work / "runs" / name / "log.jsonl").read_text().splitlines()]
@@ -980,13 +979,13 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         again = heldout_loss(model.float(), source, items, 16, "cpu", contextlib.nullcontext)
         assert again == pytest.approx(log[-1]["heldout_loss"], rel=1e-3)  # float16 weights
     # a run archive carries a run to another machine whole: imported back, its weights and its whole log are the run's
-    kept_log = (work / "runs" / "action_vector" / "log.jsonl").read_text()
-    kept_weights = (list_checkpoints(work / "runs" / "action_vector")[-1] / "model.safetensors").read_bytes()
-    (archive,) = export_runs(plan, tmp_path / "carried", ["action_vector"])
-    shutil.rmtree(work / "runs" / "action_vector")  # as on a fresh machine
-    assert import_gpu_runs(plan, archive.parent) == ["action_vector"]
-    assert (work / "runs" / "action_vector" / "log.jsonl").read_text() == kept_log
-    assert (list_checkpoints(work / "runs" / "action_vector")[-1] / "model.safetensors").read_bytes() == kept_weights
+    kept_log = (work / "runs" / "none" / "log.jsonl").read_text()
+    kept_weights = (list_checkpoints(work / "runs" / "none")[-1] / "model.safetensors").read_bytes()
+    (archive,) = export_runs(plan, tmp_path / "carried", ["none"])
+    shutil.rmtree(work / "runs" / "none")  # as on a fresh machine
+    assert import_gpu_runs(plan, archive.parent) == ["none"]
+    assert (work / "runs" / "none" / "log.jsonl").read_text() == kept_log
+    assert (list_checkpoints(work / "runs" / "none")[-1] / "model.safetensors").read_bytes() == kept_weights
     # the loss-weighting ablation's figures on the imported runs: the gate measured for each, the replays
     assert ablation.main(["focus", "--work", str(work), "--json", str(tmp_path / "focus.json")]) == 0
     figures = json.loads((tmp_path / "focus.json").read_text())
