@@ -48,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     plan = RankingPlan.load(Path(args.work) / "plan.json")
     arm = ablation(args.ablation, plan.chunks)
     result = {"arm": summary(plan, arm.arm), "baseline": summary(plan, arm.baseline)}
+    print(f"{args.ablation}: {arm.why} ({arm.arm}: {arm.changes}, against {arm.baseline})")
     for name, r in result.items():
         gate = " ".join(f"{x:.2f}" for x in r["gate_balanced_accuracy_from_chunk"].values())
         fmt = " ".join(f"{x:.4f}" for x in r["mse_moving_per_chunk"] or [])

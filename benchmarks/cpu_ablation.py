@@ -15,25 +15,45 @@ Past the preset's budget (``--minutes``) the preset has no gate; the baseline is
     python -m benchmarks.cpu_ablation first-frame --from-step 5627 --minutes 240 --baseline reference-noise
 
 The arm lives in ``<work>/runs/<arm>`` (checkpoint, log, gates); an interrupted call resumes. The
-first-frame and scene-warp arms' branches widen the checkpoint (:func:`imac_model.models.checkpoint.add_first_frame`,
-:func:`~imac_model.models.checkpoint.add_scene_warp`), so they start as the model they branch from. The arms are the one table of :mod:`imac_model.experiments.ranking.ablations`."""
+first-frame and scene-warp arms' branches widen the checkpoint (:func:`add_first_frame`,
+:func:`add_scene_warp`), so they start as the model they branch from. The arms are the one table of :mod:`imac_model.experiments.ranking.ablations`."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
+import torch
+import yaml
+from safetensors.torch import save_file
+
 from imac_data.errors import InputError
+from imac_model.config import ModelSpec, save_config
 from imac_model.experiments.ranking.ablations import ABLATIONS
 from imac_model.experiments.ranking.ablations import ablation as ablation_arm
 from imac_model.experiments.ranking.gate import GATED_MODE, read_gates
 from imac_model.experiments.ranking.plan import RankingPlan, internal
 from imac_model.experiments.ranking.training import train_command
 from imac_model.experiments.stages import run_all
-from imac_model.models.checkpoint import SPEC, add_first_frame, add_scene_warp
+from imac_model.models.checkpoint import (
+    CONFIG,
+    EMA,
+    SPEC,
+    STATE,
+    WEIGHTS,
+    is_sharded,
+    read_spec,
+    read_trainer_state,
+    read_weights,
+    resolve_checkpoint,
+    run_config_of,
+)
+from imac_model.models.world_model import WorldModel
 from imac_model.training.log import progress_line, read_log, write_log
 
 
@@ -42,6 +62,89 @@ def arm_run(plan: RankingPlan, ablation: str, minutes: float) -> tuple[str, dict
     arm = ablation_arm(ablation, plan.chunks)
     arm, changes = arm.arm, arm.changes
     return (arm if minutes == plan.cpu_minutes else f"{arm}_to{minutes:g}"), changes
+
+
+# --------------------------------------------------------------------------- branching a checkpoint
+
+
+def widen_front(state: dict[str, torch.Tensor], shapes: dict[str, torch.Size]) -> dict[str, torch.Tensor]:
+    """Tensors whose one frame-sized dimension grew by a frame, zero-padded at its front."""
+    out = {}
+    for k, v in state.items():
+        shape = shapes.get(k, v.shape)
+        grown = [d for d in range(v.ndim) if v.shape[d] != shape[d]] if len(shape) == v.ndim else None
+        if grown is None or len(grown) > 1:
+            raise InputError(f"weight {k}: shape {tuple(v.shape)} cannot grow into {tuple(shape)}")
+        if grown:
+            d = grown[0]
+            wide = v.new_zeros(shape)
+            wide.narrow(d, shape[d] - v.shape[d], v.shape[d]).copy_(v)
+            v = wide
+        out[k] = v
+    return out
+
+
+def add_first_frame(path: str | Path) -> None:
+    """Turn a plain checkpoint into one of the same model conditioned on the episode's first frame
+    (``conditioning.first_frame``), in place: the first frame is the first of the frame sequence, so
+    every weight sized by it grows a zero slice at its front (weights, EMA, the optimizer's moments),
+    and the model computes what it did until training teaches it to look (an ablation's branch)."""
+    path = resolve_checkpoint(path)
+    spec = read_spec(path)
+    if spec.conditioning.first_frame:
+        return
+    model = WorldModel(replace(spec, conditioning=replace(spec.conditioning, first_frame=True)))
+    shapes = {k: v.shape for k, v in model.state_dict().items()}
+    state = read_trainer_state(path)
+    names = [k for k, p in model.named_parameters() if p.requires_grad]  # the optimizer's parameter order
+    for i, moments in state["optimizer"]["state"].items():
+        tensors = {m: v for m, v in moments.items() if torch.is_tensor(v) and v.ndim}
+        moments.update(widen_front(tensors, {m: shapes[names[int(i)]] for m in tensors}))
+    _rewrite(path, model.spec, lambda weights: widen_front(weights, shapes), state, "first_frame")
+
+
+def add_scene_warp(path: str | Path) -> None:
+    """Turn a plain checkpoint into one of the same model with the scene-warp control stream
+    (``conditioning.scene_warp``), in place: the stream's projection is zero like any new control
+    layer's (weights and EMA), the optimizer's moments follow their parameters to their new
+    places, so the model computes what it did until training teaches it to look (an ablation's branch)."""
+    path = resolve_checkpoint(path)
+    spec = read_spec(path)
+    if spec.conditioning.scene_warp:
+        return
+    model = WorldModel(replace(spec, conditioning=replace(spec.conditioning, scene_warp=True)))
+    fresh = model.state_dict()
+    before = [k for k, p in WorldModel(spec).named_parameters() if p.requires_grad]
+    after = [k for k, p in model.named_parameters() if p.requires_grad]
+    state = read_trainer_state(path)
+    optimizer = state["optimizer"]
+    optimizer["state"] = {after.index(before[int(i)]): m for i, m in optimizer["state"].items()}
+    if len(optimizer["param_groups"]) != 1:
+        raise InputError(f"{path}: the optimizer has {len(optimizer['param_groups'])} parameter groups; "
+                         "the scene warp is added to checkpoints with one")
+    optimizer["param_groups"][0]["params"] = list(range(len(after)))
+    _rewrite(path, model.spec, lambda weights: {k: weights.get(k, fresh[k]) for k in fresh}, state, "scene_warp")
+
+
+def _rewrite(path: Path, spec: ModelSpec, weights_of, state: dict, switch: str) -> None:
+    """Write a branched checkpoint beside ``path`` and swap it in whole: its weights and EMA through
+    ``weights_of``, the trainer ``state``, the ``spec`` and the run's ``conditioning.<switch>`` on."""
+    if is_sharded(path):
+        raise InputError(f"{path}: a sharded checkpoint cannot be branched here; branch a plain one")
+    tmp = path.with_name(path.name + ".widening")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(path, tmp)
+    save_file(weights_of(read_weights(path / WEIGHTS)), str(tmp / WEIGHTS))
+    if (path / EMA).is_file():
+        save_file(weights_of(read_weights(path / EMA)), str(tmp / EMA))
+    torch.save(state, tmp / STATE)
+    save_config(spec, tmp / SPEC)
+    run = run_config_of(path)
+    if run is not None:
+        run.setdefault("conditioning", {})[switch] = True
+        (tmp / CONFIG).write_text(yaml.safe_dump(run, sort_keys=False))
+    shutil.rmtree(path)
+    os.replace(tmp, path)
 
 
 def respec(checkpoint: Path, changes: dict) -> None:

@@ -19,20 +19,14 @@ import pytest
 import torch
 import torch._dynamo
 
+from benchmarks.cpu_ablation import add_first_frame, add_scene_warp
 from imac_data.core.depth import DepthCodec
 from imac_data.errors import InputError
 from imac_model.config import BackboneConfig, ConditioningConfig, FlowConfig, ModelSpec, RolloutConfig, UNetConfig
 from imac_model.data.batch import ChunkBatch
 from imac_model.data.depth import decode_depth
 from imac_model.models.backbones.build import build_backbone
-from imac_model.models.checkpoint import (
-    add_first_frame,
-    add_scene_warp,
-    load_world_model,
-    read_spec,
-    read_trainer_state,
-    save_checkpoint,
-)
+from imac_model.models.checkpoint import load_world_model, read_spec, read_trainer_state, save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.rollout import rollout_loss
 from imac_model.training.train import _eager, compile_trunk

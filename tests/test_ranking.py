@@ -948,7 +948,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     file = runs.to_yaml(plan.pack.parent / "toy_runs.yaml")
     out = tmp_path / "gpu_out"
     blocked = ("lerobot", "mujoco", "open3d", "diffusers", "accelerate", "scipy", "trimesh", "cv2", "av", "pandas",
-               "datasets", "torchcodec", "pytorch_kinematics", "h5py", "transformers")
+               "datasets", "torchcodec", "pytorch_kinematics", "h5py", "transformers", "tqdm")
     # what the GPU machine lacks is refused at import; PyYAML and safetensors travel as wheels there
     bootstrap = ("import sys, runpy, importlib.machinery\n"
                  "class Refuse:\n"  # found (torch probes for some), but refused when imported

@@ -11,7 +11,7 @@ import dataclasses
 import torch
 
 from imac_data.errors import InputError
-from imac_model.config import RunConfig
+from imac_model.config import CONTACT_STREAMS, RunConfig
 from imac_model.data.batch import ChunkBatch
 from imac_model.data.pack import Pack
 from imac_model.pipelines.packed_contact import PackedContact
@@ -33,7 +33,7 @@ class PackSource:
     def load(self, device: torch.device, progress: bool) -> None:
         self.pack.to(device)
         rc = self.run.rollout
-        if rc.chunks > 1 and rc.contact == "rebuilt" and any(s.startswith("contact_") for s in self.streams):
+        if rc.chunks > 1 and rc.contact == "rebuilt" and any(s in CONTACT_STREAMS for s in self.streams):
             self.painter = PackedContact.from_pack(self.pack)
             if tuple(self.painter.views) != tuple(self.spec.views):
                 raise InputError(f"data.pack: its contact geometry is of views {list(self.painter.views)}, its "

@@ -1,6 +1,6 @@
 """Where the trainer's steps run: one process (:class:`LocalRuntime`, torch alone: what the GPU machine has),
-or several under ``accelerate launch`` / ``torchrun`` (:class:`AccelerateRuntime`); the sharded runtime is
-:class:`imac_model.training.sharding.ShardedRuntime`. All three give the loop the same few calls."""
+or several under ``accelerate launch`` / ``torchrun`` (:class:`AccelerateRuntime`); the sharded runtime,
+:class:`imac_model.training.sharding.ShardedRuntime`, is a third kind. All give the loop the same few calls."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import torch
 from imac_data.errors import InputError
 from imac_model.config import ModelSpec, RunConfig
 from imac_model.models import checkpoint as ckpt
-from imac_model.training.sharding import ShardedRuntime
 
 
 def mixed_precision(run: RunConfig) -> str:
@@ -66,10 +65,17 @@ class LocalRuntime:
         torch.nn.utils.clip_grad_norm_(params, max_norm)
 
     def all_reduce_sum(self, tensor: torch.Tensor) -> torch.Tensor:
+        if self.world > 1:
+            torch.distributed.all_reduce(tensor)
         return tensor
 
     def any(self, flag: bool) -> bool:
-        return flag
+        """The same stop decision on every process (timers differ between them)."""
+        if self.world == 1:
+            return flag
+        t = torch.tensor([float(flag)], device=self.device)
+        torch.distributed.all_reduce(t, op=torch.distributed.ReduceOp.MAX)
+        return bool(t.item())
 
     def wait(self) -> None:
         pass
@@ -135,18 +141,6 @@ class AccelerateRuntime(LocalRuntime):
     def clip_grad_norm_(self, params, max_norm: float) -> None:
         self.accelerator.clip_grad_norm_(params, max_norm)
 
-    def all_reduce_sum(self, tensor: torch.Tensor) -> torch.Tensor:
-        if self.world > 1:
-            torch.distributed.all_reduce(tensor)
-        return tensor
-
-    def any(self, flag: bool) -> bool:
-        if self.world == 1:
-            return flag
-        t = torch.tensor([float(flag)], device=self.device)
-        torch.distributed.all_reduce(t, op=torch.distributed.ReduceOp.MAX)
-        return bool(t.item())
-
     def wait(self) -> None:
         self.accelerator.wait_for_everyone()
 
@@ -155,13 +149,4 @@ class AccelerateRuntime(LocalRuntime):
             self.accelerator.end_training()
 
 
-def make_runtime(run: RunConfig, out: Path):
-    """The runtime ``run`` asks for: sharded, several processes or a tracker (accelerate), else one process."""
-    if run.train.sharding.strategy != "none":
-        return ShardedRuntime(run, out)
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 or run.train.tracker:
-        return AccelerateRuntime(run, out)
-    return LocalRuntime(run, out)
-
-
-__all__ = ["AccelerateRuntime", "LocalRuntime", "fast_kernels", "make_runtime", "mixed_precision"]
+__all__ = ["AccelerateRuntime", "LocalRuntime", "fast_kernels", "mixed_precision"]

@@ -22,6 +22,7 @@ from imac_data.errors import InputError
 from imac_model.config import ModelSpec, RunConfig
 from imac_model.models import checkpoint as ckpt
 from imac_model.models.world_model import WorldModel
+from imac_model.training.runtime import LocalRuntime, mixed_precision
 
 # FSDP and DTensor are imported where used: most of a second, which every unsharded training
 # process (the trainer imports this module) would pay for nothing
@@ -102,10 +103,11 @@ def shard_report(model: WorldModel, world: int) -> dict:
                                        for i, (name, ps) in enumerate(groups.items())}}
 
 
-class ShardedRuntime:
+class ShardedRuntime(LocalRuntime):
     """The trainer's side of FSDP2: one process per GPU (``torchrun`` or ``accelerate launch``
     set the environment), or a one-process group when started alone. accelerate serves the
-    trackers only; it never wraps the model."""
+    trackers only; it never wraps the model. Backward and clipping are torch's (FSDP2 reduce-scatters the
+    gradients; the norm is DTensor-aware), the collectives the base class's."""
 
     sharded = True
 
@@ -115,10 +117,7 @@ class ShardedRuntime:
         if sharding.cpu_offload and not cuda:
             raise InputError("train.sharding.cpu_offload: offloads from a CUDA device to host memory; there is no "
                              "CUDA device here")
-        precision = tc.mixed_precision
-        if precision == "auto":
-            precision = "bf16" if cuda and torch.cuda.is_bf16_supported() else "no"
-        self.bf16 = precision == "bf16"
+        self.bf16 = mixed_precision(run) == "bf16"
         self.owns_group = not dist.is_initialized()
         if self.owns_group:
             backend = "cpu:gloo,cuda:nccl" if cuda else "gloo"
@@ -141,42 +140,16 @@ class ShardedRuntime:
 
             self.tracker = Accelerator(cpu=not cuda, log_with=tc.tracker, project_dir=str(out))
 
-    # ----------------------------------------------------------------- the model
-
     def wrap(self, model: WorldModel) -> WorldModel:
         shard_world_model(model, self.mesh, bf16=self.bf16, reshard_after_forward=self.sharding.reshard_after_forward,
                           cpu_offload=self.sharding.cpu_offload)
         return model
 
     def prepare(self, model, optimizer):
-        return model, optimizer
-
-    def unwrap(self, model):
-        return model
+        return model, optimizer  # placed by wrap (cpu_offload keeps the weights in host memory)
 
     def autocast(self):
         return contextlib.nullcontext()  # the sharding policy casts
-
-    def backward(self, loss: torch.Tensor) -> None:
-        loss.backward()  # FSDP2 reduce-scatters the gradients, averaged over ranks
-
-    def clip_grad_norm_(self, params, max_norm: float) -> None:
-        torch.nn.utils.clip_grad_norm_(params, max_norm)  # DTensor-aware: the norm of the whole model
-
-    # ----------------------------------------------------------------- collectives
-
-    def all_reduce_sum(self, tensor: torch.Tensor) -> torch.Tensor:
-        if self.world > 1:
-            dist.all_reduce(tensor)
-        return tensor
-
-    def any(self, flag: bool) -> bool:
-        """The same stop decision on every rank (timers differ between processes)."""
-        if self.world == 1:
-            return flag
-        t = torch.tensor([float(flag)], device=self.device)
-        dist.all_reduce(t, op=dist.ReduceOp.MAX)
-        return bool(t.item())
 
     def wait(self) -> None:
         dist.barrier()

@@ -27,6 +27,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+try:
+    from tqdm.auto import tqdm
+except ImportError:  # the GPU machine has torch and numpy alone: no progress bar there
+    tqdm = None
+
 from imac_data.errors import InputError
 from imac_model.config import CONTACT_STREAMS, REBUILT_STREAMS, ModelSpec, RunConfig, save_config
 from imac_model.models import checkpoint as ckpt
@@ -34,8 +39,8 @@ from imac_model.models.world_model import WorldModel
 from imac_model.pipelines.rollout import rollout_loss
 from imac_model.training.archive import run_name, unpack_checkpoint
 from imac_model.training.log import append_log, read_log, write_log
-from imac_model.training.runtime import make_runtime
-from imac_model.training.sharding import shard_report
+from imac_model.training.runtime import AccelerateRuntime, LocalRuntime
+from imac_model.training.sharding import ShardedRuntime, shard_report
 from imac_model.training.sources import open_source
 
 EVAL_TAUS = (0.1, 0.3, 0.5, 0.7, 0.9)  # fixed times of the held-out loss
@@ -219,6 +224,26 @@ def _load_init(model: WorldModel, path: Path) -> list[str]:
     return added
 
 
+class _NoBar:
+    def update(self, n: int) -> None:
+        pass
+
+    def set_postfix(self, **values) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def make_runtime(run: RunConfig, out: Path):
+    """The runtime ``run`` asks for: sharded, several processes or a tracker (accelerate), else one process."""
+    if run.train.sharding.strategy != "none":
+        return ShardedRuntime(run, out)
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 or run.train.tracker:
+        return AccelerateRuntime(run, out)
+    return LocalRuntime(run, out)
+
+
 # --------------------------------------------------------------------------- the loop
 
 
@@ -261,8 +286,6 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
 
 def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path], progress: bool,
            stop_after_steps: int | None, scratch: Path) -> TrainResult:
-    from tqdm.auto import tqdm
-
     tc, rc = run.train, run.rollout
     out = Path(tc.output_dir)
     main, rank, world = runtime.main, runtime.rank, runtime.world
@@ -295,7 +318,7 @@ def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path
     contact = tuple(s for s in streams_in if s in CONTACT_STREAMS)
     kept = [s for s in streams_in if s in REBUILT_STREAMS and (rc.contact == "recorded" or s not in contact)]
     if rc.chunks > 1 and rc.reference_steps > 0 and kept and main:
-        # measured: motion+contact stopped drawing the lift this way (docs/ranking.md, "What was tried")
+        # measured: motion+contact stopped drawing the lift this way (docs/ranking.md, "The GPU preset")
         print(f"[train] warning: rollout from {rc.reference_steps} sampler steps keeps the recorded {kept} images, "
               f"which then describe a scene the sampled reference may not show", file=sys.stderr)
     schedule = RolloutSchedule(source.n_train, tc.batch_size, rc)
@@ -384,13 +407,16 @@ def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path
     if step == 0:
         row = evaluate()
         emit({"step": 0, **row, "wall_s": 0.0, "cpu_s": 0.0, **({"init_added": added} if added else {})})
-    bar = tqdm(total=tc.max_steps, initial=step, desc="training", unit="step", disable=not (progress and main))
+    bar = (tqdm(total=tc.max_steps, initial=step, desc="training", unit="step", disable=not (progress and main))
+           if tqdm is not None else _NoBar())
     loss_of = partial(balanced_loss, runtime=runtime)
     timed = tc.max_minutes is not None or tc.max_cpu_minutes is not None
     window: list[float] = []
     extras: dict[str, list] = {}
     t_window = time.time()
     stopped, last_ckpt, start_step = "max_steps", None, step
+    samples = log_rows[-1].get("samples", 0) if log_rows else 0  # a resumed run counts on
+    device_name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
     while step < tc.max_steps:
         phase, k, epoch = schedule.at(step)
         streams = ("motion",) if epoch < rc.stage_one_epochs else None  # stage one: motion images alone
@@ -416,6 +442,7 @@ def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path
         step += 1
         if ema is not None:
             ema.update(runtime.unwrap(model), step)
+        samples += tc.batch_size * (rc.chunks if phase == "clip" else 1)  # chunks trained, every process's
         window.append(float(loss.detach()))
         bar.update(1)
         bar.set_postfix(loss=f"{window[-1]:.4f}")
@@ -443,8 +470,8 @@ def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path
             extras = {}
             if step % tc.eval_every == 0 or done:
                 row.update(evaluate())
-            row.update(wall_s=round(now - t_wall, 3), cpu_s=round(cpu_seconds(), 3),
-                       load=round(os.getloadavg()[0], 2), processes=world)
+            row.update(wall_s=round(now - t_wall, 3), cpu_s=round(cpu_seconds(), 3), samples=samples,
+                       load=round(os.getloadavg()[0], 2), processes=world, device=device_name)
             if tc.compile:
                 row["compiled"] = compiled is not None
             emit(row)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 
 from imac_data.errors import InputError
 from imac_model.config import SCENE_WARP
@@ -55,8 +56,6 @@ def runs_file(plan: RankingPlan) -> RunsFile:
     """What the GPU machine trains: every mode of the plan and its ablations' arms (:mod:`.ablations`), on the
     gated mode's run config with the GPU settings (``imac_model/configs/ranking_gpu.yaml``), ``gpu_minutes``
     of wall time each."""
-    import yaml
-
     base = plan.run_config(GATED_MODE).replace(**yaml.safe_load(GPU_CONFIG.read_text()),
                                                 **{"train.max_minutes": plan.gpu_minutes, "train.max_cpu_minutes": None})
     runs = {plan.run_dir(mode).name: {"conditioning.mode": mode} for mode in plan.modes}

@@ -12,7 +12,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-import yaml
 
 from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
@@ -178,38 +177,29 @@ def rewrite_report(docs: Path) -> Path:
 
 
 def training_log(run: Path) -> dict:
-    """A trained run's log (``log.jsonl``, the CPU trainer's or the GPU pack trainer's): its rows
-    with a loss, and a summary (steps, final held-out loss, device, samples where logged)."""
+    """A trained run's log (``log.jsonl``): its rows with a loss, and a summary (steps, chunks trained, device,
+    final held-out loss). A GPU log of the pack trainer before 2026-12 ends with its own summary row."""
     rows = read_log(run)
-    summary = log_summary(rows)
-    done = json.loads((run / "DONE.json").read_text()) if (run / "DONE.json").is_file() else {}
+    last = {**next((r for r in reversed(rows) if "step" in r), {}), **log_summary(rows)}
     held = [r for r in rows if r.get("heldout_loss") is not None]
-    last = next((r for r in reversed(rows) if "step" in r), {})  # a run still training has no DONE.json yet
-    steps = summary.get("steps", done.get("steps", last.get("step")))
-    train_s = summary.get("train_s", done.get("cpu_s", last.get("cpu_s")))  # GPU wall s, or CPU s
+    steps, device = last.get("steps", last.get("step")), last.get("device", "cpu")
+    train_s = last.get("train_s", last.get("cpu_s" if device == "cpu" else "wall_s"))  # GPU wall s, or CPU s
     spec = read_spec(list_checkpoints(run)[-1])
     backbone = getattr(spec.backbone, spec.backbone.kind)
     shape = (f"U-Net {list(backbone.channels)} x {backbone.blocks} blocks" if spec.backbone.kind == "unet"
              else spec.backbone.kind)
-    parameters = summary.get("parameters") or sum(p.numel() for p in WorldModel(spec).parameters() if p.requires_grad)
-    samples = summary.get("samples")
-    if samples is None and steps and (run / "config.yaml").is_file():  # the CPU trainer: steps x chunks per step
-        config = yaml.safe_load((run / "config.yaml").read_text())
-        rollout = config.get("rollout", {})
-        if not rollout.get("warmup_epochs"):  # else the steps are of two sizes
-            samples = int(steps) * config["train"]["batch_size"] * int(rollout.get("chunks", 1))
-    rate = (f"{summary['samples_per_s']:g} samples/s" if "samples_per_s" in summary else
-            f"{train_s / steps:.2f} CPU-s/step" if steps and train_s else "")
-    return {"rows": [r for r in rows if "step" in r], "steps": steps, "samples": samples,
-            "device": summary.get("device", "cpu"), "finished": bool(summary or done), "train_s": train_s,
+    parameters = sum(p.numel() for p in WorldModel(spec).parameters() if p.requires_grad)
+    rate = (f"{train_s / steps:.2f} CPU-s/step" if device == "cpu" else
+            f"{last['samples'] / train_s:.0f} samples/s" if last.get("samples") else "") if steps and train_s else ""
+    return {"rows": [r for r in rows if "step" in r], "steps": steps, "samples": last.get("samples"),
+            "device": device, "finished": (run / "DONE.json").is_file() or "train_s" in last, "train_s": train_s,
             "backbone": shape, "parameters": int(parameters), "rate": rate,
             "final_heldout_loss": held[-1]["heldout_loss"] if held else None,
             "heldout": [(r["step"], r["heldout_loss"]) for r in held]}
 
 
 def plot_training(training: dict, path: Path) -> None:
-    """Training loss (a running mean over up to 20 logs) and held-out loss against the step, one colour per mode;
-    dotted lines where a run continued over several GPU loans starts a new part."""
+    """Training loss (a running mean over up to 20 logs) and held-out loss against the step, one colour per mode."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib is heavy: imported by the report only
     from matplotlib.figure import Figure
 
@@ -226,10 +216,6 @@ def plot_training(training: dict, path: Path) -> None:
             ax.plot(steps[len(steps) - len(smooth):], smooth, color=colour, alpha=0.6, label=f"{mode}: training")
         if t["heldout"]:
             ax.plot(*zip(*t["heldout"]), "o-", color=colour, label=f"{mode}: held out")
-        rows = [r for r in t["rows"] if "step" in r]  # a run continued over loans: where each part began
-        for before, after in zip(rows, rows[1:]):
-            if after.get("part", 1) != before.get("part", 1):
-                ax.axvline(before["step"], color=colour, linestyle=":", alpha=0.5)
     ax.set_yscale("log")
     ax.set_xlabel("step")
     ax.set_ylabel("flow loss")

@@ -12,13 +12,12 @@ from imac_model.experiments.ranking.evaluation import evaluated_policies, policy
 from imac_model.experiments.ranking.gate import GATED_MODE, read_gates
 from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.stages import REPO_ROOT, StageLog
-from imac_model.modes import conditioning_mode
 from imac_model.training.log import progress_line
 
 
 def status(plan: RankingPlan) -> str:
     """A few lines on ``plan``'s work directory, as its files have it now."""
-    preset = f"GPU preset, {plan.gpu_minutes:g} GPU-minutes a mode" if plan.gpu_minutes is not None else \
+    preset = f"GPU preset, {plan.gpu_minutes:g} GPU-minutes a mode" if plan.on_gpu else \
         f"CPU preset, {plan.cpu_minutes:g} CPU-minutes a mode"
     pid = lock_holder(plan.work)
     lines = [f"{plan.work}: {preset}; {len(plan.policies)} policies; modes {', '.join(plan.modes)}",
@@ -28,9 +27,7 @@ def status(plan: RankingPlan) -> str:
                                        or "none yet"))
     for mode in plan.modes:
         run = plan.run_dir(mode)
-        budget = (plan.none_minutes if conditioning_mode(mode).blind else
-                  plan.cpu_minutes if plan.gpu_minutes is None else None)
-        said = progress_line(run, budget)
+        said = progress_line(run, None if plan.on_gpu else plan.cpu_budget(mode))
         state = "trained" if (run / "DONE.json").is_file() else "training" if said else "not started"
         lines.append(f"  {mode}: {state}" + (f", {said}" if said else ""))
         gates = read_gates(plan, mode)
