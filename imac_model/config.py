@@ -21,16 +21,7 @@ import yaml
 
 from imac_data.config import parse_dataclass
 from imac_data.errors import InputError
-from imac_model.modes import (  # the stream names are imported from here too: re-exported
-    CONTACT_STREAMS,  # noqa: F401
-    CONTROL_STREAMS,  # noqa: F401
-    DERIVED_STREAMS,  # noqa: F401
-    MODES,
-    REBUILT_STREAMS,  # noqa: F401
-    SCENE_WARP,
-    conditioning_mode,
-    streams_of_mode,
-)
+from imac_model.modes import MODES, SCENE_WARP, conditioning_mode
 
 # --------------------------------------------------------------------------- sections
 
@@ -173,7 +164,7 @@ class ConditioningConfig:
 
     @property
     def streams(self) -> tuple[str, ...]:
-        return streams_of_mode(self.mode) + ((SCENE_WARP,) if self.scene_warp else ())
+        return conditioning_mode(self.mode).streams + ((SCENE_WARP,) if self.scene_warp else ())
 
 
 @dataclass(frozen=True)

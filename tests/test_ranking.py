@@ -38,7 +38,7 @@ from imac_data.metadata import dataset_info
 from imac_data.sources.hdf5 import write_episode
 from imac_data.sources.sim.env import SimEnv
 from imac_model.cli import main as model_main
-from imac_model.config import CONTROL_STREAMS, RunConfig, streams_of_mode
+from imac_model.config import RunConfig
 from imac_model.data import mosaic
 from imac_model.data.chunks import open_metadata
 from imac_model.data.pack import Pack, write_pack
@@ -59,7 +59,7 @@ from imac_model.experiments.ranking.training import GateStop, stage_train
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
-from imac_model.modes import MODES, ConditioningMode
+from imac_model.modes import CONTROL_STREAMS, MODES, ConditioningMode, streams_of_mode
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.packed_contact import PackedContact
 from imac_model.pipelines.rollout import last_frame, rollout_loss

@@ -34,7 +34,6 @@ from imac_data.dataset.output import check_output
 from imac_data.errors import InputError
 from imac_data.layout import SUCCESS_COLUMN, info_path
 from imac_data.metadata import dataset_info
-from imac_model.config import MODES
 from imac_model.data import mosaic
 from imac_model.evaluate.closed_loop import ClosedLoopConfig, run_closed_loop
 from imac_model.evaluate.open_loop import rollout_starts, rollout_videos
@@ -45,6 +44,7 @@ from imac_model.evaluate.statistics import plot_policy_scatter, policy_correlati
 from imac_model.evaluate.success import CsvJudge, SuccessClassifier, load_judge
 from imac_model.evaluate.video_metrics import VideoMetricsConfig, compute_video_metrics
 from imac_model.models.checkpoint import load_world_model, read_spec, resolve_checkpoint, run_config_of
+from imac_model.modes import MODES
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import online_controls_for, open_chunks
 

@@ -40,11 +40,12 @@ from torch.utils.data import Dataset
 from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
 from imac_data.layout import INFO, info_path
-from imac_model.config import CONTROL_STREAMS, DERIVED_STREAMS, SCENE_WARP, DataConfig
+from imac_model.config import DataConfig
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
 from imac_model.data.batch import collate
 from imac_model.data.scene_warp import SceneWarp
+from imac_model.modes import CONTROL_STREAMS, DERIVED_STREAMS, SCENE_WARP
 
 
 @dataclass(frozen=True)

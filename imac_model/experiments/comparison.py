@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,22 +16,16 @@ from pathlib import Path
 from imac_data.layout import info_path
 from imac_data.metadata import dataset_info
 from imac_data.recipes import load_recipe
-from imac_model.config import CONTROL_STREAMS, load_run_config
-from imac_model.data.chunks import ChunkDataset, open_metadata, resolve_layout, split_episodes
+from imac_model.config import load_run_config
+from imac_model.data.chunks import ChunkDataset, open_metadata, resolve_layout
 from imac_model.evaluate import open_loop
 from imac_model.experiments.comparison_report import write_report
-from imac_model.experiments.stages import (
-    MARK_TRAINED,
-    REPO_ROOT,
-    python,
-    quote,
-    run_all,
-    then_mark_done,
-)
+from imac_model.experiments.stages import REPO_ROOT, python, run_all, then_mark_done, train_argv
 from imac_model.models.backbones.build import spatial_multiple, temporal_factor
 from imac_model.models.checkpoint import load_world_model
+from imac_model.modes import CONTROL_STREAMS
 from imac_model.pipelines.online_controls import OnlineControls
-from imac_model.training.dataset_source import model_spec
+from imac_model.training.dataset_source import decode_to_cache
 from imac_model.training.log import read_log
 
 REPO = "local/imac_experiment"
@@ -152,16 +145,7 @@ def run_config(plan: Plan, s: Setting):
 
 def decode_chunks(plan: Plan) -> None:
     """(in a fresh process: LeRobot's video decoders must not be forked after use)"""
-    import torch
-
-    torch.set_num_threads(1)
-    run = run_config(plan, SETTINGS[3])  # every control stream: the other settings reuse its cache
-    meta = open_metadata(run.data)
-    _, layout = model_spec(run, meta)
-    train_eps, held_eps = split_episodes(meta.total_episodes, run.data.held_out_episodes)
-    for eps in (train_eps, held_eps):
-        ds = ChunkDataset(REPO, layout, root=run.data.root, episodes=eps, cache="memory", cache_dir=run.data.cache_dir)
-        ds.preload(num_workers=2, progress=False)
+    decode_to_cache(run_config(plan, SETTINGS[3]), workers=2)  # every control stream: the others reuse its cache
 
 
 def stage_decode(plan: Plan) -> None:
@@ -178,11 +162,8 @@ def stage_train(plan: Plan) -> None:
     for s in SETTINGS:
         if _done_file(plan, s).is_file():
             continue
-        sets = [a for k, v in plan.overrides(s).items() for a in ("--set", f"{k}={json.dumps(v)}")]
-        script = (" ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", str(CONFIG),
-                                                     "--no-progress", *sets]))
-                  + f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(plan.run_dir(s)))}")
-        commands.append((f"train {s.name}", ["bash", "-c", script], plan.work / "logs" / f"train_{s.slug}.log"))
+        commands.append((f"train {s.name}", train_argv(CONFIG, plan.overrides(s)),
+                         plan.work / "logs" / f"train_{s.slug}.log"))
     run_all(commands, plan.jobs)
 
 

@@ -213,3 +213,14 @@ def machine() -> dict:
 MARK_TRAINED = ("import json, sys, pathlib; d = pathlib.Path(sys.argv[1]); "
                 "rows = [json.loads(l) for l in (d / 'log.jsonl').read_text().splitlines() if l.strip()]; "
                 "(d / 'DONE.json').write_text(json.dumps(rows[-1]))")
+
+
+def train_argv(config: str | Path, overrides: dict, finish: bool = True) -> list[str]:
+    """argv of ``imac-model train --config CONFIG`` with ``overrides`` set (resuming the run's checkpoints);
+    with ``finish``, the run is then marked trained (``DONE.json``, :data:`MARK_TRAINED`)."""
+    sets = [a for k, v in overrides.items() for a in ("--set", f"{k}={json.dumps(v)}")]
+    script = " ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", str(config), "--no-progress",
+                                             *sets]))
+    if finish:
+        script += f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(overrides['train.output_dir']))}"
+    return ["bash", "-c", script]

@@ -27,11 +27,11 @@ from imac_data.core.depth import resize_depth
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
 from imac_data.recipes import AugmentSettings
-from imac_model.config import CONTACT_STREAMS, CONTROL_STREAMS, DERIVED_STREAMS, SCENE_WARP
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
 from imac_model.data.depth import DEFAULT_MAX_WALK_DISTANCE, decode_depth
 from imac_model.data.scene_warp import SceneWarp
+from imac_model.modes import CONTACT_STREAMS, CONTROL_STREAMS, DERIVED_STREAMS, SCENE_WARP
 
 RESOLUTIONS = ("model", "dataset")
 

@@ -25,10 +25,10 @@ from imac_data.core.contact.images import DEFAULT_FILL_PX
 from imac_data.core.contact.workspace import Workspace, as_workspace
 from imac_data.core.depth import DepthCodec
 from imac_data.errors import InputError
-from imac_model.config import CONTACT_STREAMS
 from imac_model.data import mosaic
 from imac_model.data.depth import decode_depth
 from imac_model.data.pack import GEOMETRY_KEY  # the pack member with the settings (arrays: ``geometry.<name>``)
+from imac_model.modes import CONTACT_STREAMS
 
 __all__ = ["GEOMETRY_KEY", "PackedContact", "contact_geometry", "geometry_constants"]
 

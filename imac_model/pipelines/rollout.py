@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING
 import torch
 
 from imac_data.errors import InputError
-from imac_model.config import REBUILT_STREAMS
 from imac_model.data.batch import ChunkBatch
+from imac_model.modes import REBUILT_STREAMS
 
 if TYPE_CHECKING:  # the rig and its renderer are not needed to train from a pack (the GPU machine lacks them)
     from imac_model.pipelines.online_controls import OnlineControls

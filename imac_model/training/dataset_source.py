@@ -8,10 +8,11 @@ import torch
 
 from imac_data.errors import InputError
 from imac_data.metadata import dataset_info
-from imac_model.config import REBUILT_STREAMS, ModelSpec, RunConfig
+from imac_model.config import ModelSpec, RunConfig
 from imac_model.data.batch import ChunkBatch
 from imac_model.data.chunks import ChunkDataset, action_stats, open_metadata, resolve_layout, split_episodes
 from imac_model.models.backbones.build import spatial_multiple, temporal_factor
+from imac_model.modes import REBUILT_STREAMS
 from imac_model.pipelines.online_controls import OnlineControls
 
 
@@ -57,14 +58,7 @@ class DatasetSource:
                 self.train_set.lerobot.root, self.spec, info=dataset_info(self.meta), resolution=rc.resolution,
                 max_walk_distance=rc.max_walk_distance, device=device if rc.device == "auto" else torch.device(rc.device))
             self.online.rig.renderer, self.online.rig.gripper  # noqa: B018 - built before the clock starts
-
-    @property
-    def n_train(self) -> int:
-        return len(self.train_set)
-
-    @property
-    def n_held(self) -> int:
-        return len(self.held_set) if self.held_set is not None else 0
+        self.n_train, self.n_held = len(self.train_set), len(self.held_set) if self.held_set is not None else 0
 
     def train_batch(self, items: list[int]) -> ChunkBatch:
         return self.train_set.batch(items)
@@ -79,4 +73,12 @@ class DatasetSource:
         return {"online": self.online}
 
 
-__all__ = ["DatasetSource", "model_spec"]
+def decode_to_cache(run: RunConfig, workers: int = 1) -> None:
+    """Decode ``run``'s training and held-out chunks into its chunk cache (``data.cache_dir``), as its training
+    would first: runs of other modes on the same data then read them from there."""
+    torch.set_num_threads(1)
+    run = run.replace(**{"rollout.chunks": 1, "data.num_workers": workers, "data.cache": "memory"})
+    DatasetSource(run).load(torch.device("cpu"), progress=False)
+
+
+__all__ = ["DatasetSource", "decode_to_cache", "model_spec"]

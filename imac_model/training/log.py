@@ -1,5 +1,5 @@
 """A run's training log, ``<run>/log.jsonl``: one JSON row per logged step (loss, held-out loss,
-times); logs of GPU runs before 2026-12 end with a ``{"summary": ...}`` row. ``log.csv`` beside it
+times, chunks trained, device). ``log.csv`` beside it
 holds the main columns for a spreadsheet. Written by the trainer, read by the experiments."""
 
 from __future__ import annotations
@@ -41,11 +41,6 @@ def append_log(run: str | Path, row: dict) -> None:
     """One row at the end of ``log.jsonl``."""
     with open(Path(run) / LOG_FILE, "a") as f:
         f.write(json.dumps(row) + "\n")
-
-
-def log_summary(rows: list[dict]) -> dict:
-    """The summary a log ends with (the GPU pack trainer's), or ``{}``."""
-    return next((r["summary"] for r in reversed(rows) if "summary" in r), {})
 
 
 def progress_line(run: str | Path, cpu_minutes: float | None = None) -> str | None:

@@ -11,9 +11,10 @@ import dataclasses
 import torch
 
 from imac_data.errors import InputError
-from imac_model.config import CONTACT_STREAMS, RunConfig
+from imac_model.config import RunConfig
 from imac_model.data.batch import ChunkBatch
 from imac_model.data.pack import Pack
+from imac_model.modes import CONTACT_STREAMS
 from imac_model.pipelines.packed_contact import PackedContact
 
 
@@ -29,6 +30,7 @@ class PackSource:
             have = sorted(k[len("control."):] for k in self.pack.tensors if k.startswith("control."))
             raise InputError(f"data.pack: {run.data.pack} carries no {missing} stream(s) (it has {have})")
         self.painter = None
+        self.n_train, self.n_held = len(self.pack.train), len(self.pack.heldout)
 
     def load(self, device: torch.device, progress: bool) -> None:
         self.pack.to(device)
@@ -38,14 +40,6 @@ class PackSource:
             if tuple(self.painter.views) != tuple(self.spec.views):
                 raise InputError(f"data.pack: its contact geometry is of views {list(self.painter.views)}, its "
                                  f"model's {list(self.spec.views)}")
-
-    @property
-    def n_train(self) -> int:
-        return len(self.pack.train)
-
-    @property
-    def n_held(self) -> int:
-        return len(self.pack.heldout)
 
     def _index(self, of: torch.Tensor, items: list[int]) -> torch.Tensor:
         return of[torch.as_tensor(items, dtype=torch.long, device=of.device)]

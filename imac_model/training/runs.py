@@ -18,12 +18,12 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
+from imac_data.console import run_command
 from imac_data.errors import InputError
 from imac_model.config import RunConfig, parse
 from imac_model.training.archive import write_archive
@@ -95,16 +95,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("out", help="where the run archives go")
     p.add_argument("--runs", nargs="+", help="only these runs of the file")
     args = p.parse_args(argv)
-    try:
-        runs = RunsFile.load(args.runs_file)
-        out = Path(args.out)
+
+    def body() -> None:
+        runs, out = RunsFile.load(args.runs_file), Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         for path in train_runs(runs, out, args.runs):
             print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    return 0
+
+    return run_command(body)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
-"""Where the trainer's steps run: one process (:class:`LocalRuntime`, torch alone: what the GPU machine has),
-or several under ``accelerate launch`` / ``torchrun`` (:class:`AccelerateRuntime`); the sharded runtime,
-:class:`imac_model.training.sharding.ShardedRuntime`, is a third kind. All give the loop the same few calls."""
+"""Where the trainer's steps run: :class:`LocalRuntime`, one process or several data-parallel under ``torchrun``
+or ``accelerate launch`` (DDP; gloo on a machine without a GPU), with torch alone, which is all the GPU machine
+has; :class:`imac_model.training.sharding.ShardedRuntime` extends it with FSDP2. Both give the loop the same few
+calls. ``accelerate`` serves the trackers only."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import os
 from pathlib import Path
 
 import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
 
 from imac_data.errors import InputError
 from imac_model.config import ModelSpec, RunConfig
@@ -31,27 +34,47 @@ def fast_kernels() -> None:
 
 
 class LocalRuntime:
-    """One process on one device (the first GPU, else the CPU): bf16 autocast where asked, clipping,
+    """The processes ``torchrun`` started (``WORLD_SIZE``), or this one alone: a process group where there are
+    several (or ``group``), each on its GPU (``LOCAL_RANK``) or the CPU; bf16 autocast where asked, clipping,
     checkpoints as safetensors."""
 
     sharded = False
-    tracker = None
-    main, rank, world = True, 0, 1
 
-    def __init__(self, run: RunConfig, out: Path):
-        self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    def __init__(self, run: RunConfig, out: Path, *, group: bool = False):
+        cuda = torch.cuda.is_available()
         self.bf16 = mixed_precision(run) == "bf16"
-        if self.device.type == "cuda":
+        self.owns_group = (group or int(os.environ.get("WORLD_SIZE", "1")) > 1) and not dist.is_initialized()
+        if self.owns_group:
+            backend = "cpu:gloo,cuda:nccl" if cuda else "gloo"
+            if "MASTER_ADDR" in os.environ and "WORLD_SIZE" in os.environ:  # torchrun / accelerate launch
+                dist.init_process_group(backend)
+            else:
+                dist.init_process_group(backend, store=dist.HashStore(), rank=0, world_size=1)
+        self.rank, self.world = (dist.get_rank(), dist.get_world_size()) if dist.is_initialized() else (0, 1)
+        self.main = self.rank == 0
+        if cuda:
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
+            self.device = torch.device("cuda", torch.cuda.current_device())
             fast_kernels()
+        else:
+            self.device = torch.device("cpu")
+        self.tracker = None
+        if run.train.tracker:
+            from accelerate import Accelerator  # trackers only; accelerate is slow to import
+
+            self.tracker = Accelerator(cpu=not cuda, log_with=run.train.tracker, project_dir=str(out))
 
     def wrap(self, model):
         return model
 
     def prepare(self, model, optimizer):
-        return model.to(self.device), optimizer
+        model = model.to(self.device)
+        if self.world > 1:  # gradients averaged over the processes
+            model = DistributedDataParallel(model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
+        return model, optimizer
 
     def unwrap(self, model):
-        return model
+        return model.module if isinstance(model, DistributedDataParallel) else model
 
     def autocast(self):
         if not self.bf16:
@@ -66,7 +89,7 @@ class LocalRuntime:
 
     def all_reduce_sum(self, tensor: torch.Tensor) -> torch.Tensor:
         if self.world > 1:
-            torch.distributed.all_reduce(tensor)
+            dist.all_reduce(tensor)
         return tensor
 
     def any(self, flag: bool) -> bool:
@@ -74,11 +97,12 @@ class LocalRuntime:
         if self.world == 1:
             return flag
         t = torch.tensor([float(flag)], device=self.device)
-        torch.distributed.all_reduce(t, op=torch.distributed.ReduceOp.MAX)
+        dist.all_reduce(t, op=dist.ReduceOp.MAX)
         return bool(t.item())
 
     def wait(self) -> None:
-        pass
+        if self.world > 1:
+            dist.barrier()
 
     @staticmethod
     def check_format(path: Path) -> None:
@@ -106,47 +130,10 @@ class LocalRuntime:
         return int(state["step"])
 
     def close(self) -> None:
-        pass
-
-
-class AccelerateRuntime(LocalRuntime):
-    """Several processes, data-parallel (``accelerate launch`` or ``torchrun``; gloo on a machine without a GPU),
-    or a tracker: the same calls through ``accelerate``."""
-
-    def __init__(self, run: RunConfig, out: Path):
-        from accelerate import Accelerator
-
-        # several processes and no GPU (torchrun on a CPU machine): accelerate runs data-parallel over gloo only
-        # when told to use the CPU; otherwise every process would train alone, into the same directory
-        cpu = not torch.cuda.is_available() and int(os.environ.get("WORLD_SIZE", "1")) > 1
-        self.accelerator = Accelerator(mixed_precision=mixed_precision(run), log_with=run.train.tracker,
-                                       project_dir=str(out), cpu=cpu)
-        self.tracker = self.accelerator if run.train.tracker else None
-        self.main = self.accelerator.is_main_process
-        self.rank, self.world = self.accelerator.process_index, self.accelerator.num_processes
-        self.device = self.accelerator.device
-
-    def prepare(self, model, optimizer):
-        return self.accelerator.prepare(model, optimizer)
-
-    def unwrap(self, model):
-        return self.accelerator.unwrap_model(model)
-
-    def autocast(self):
-        return self.accelerator.autocast()
-
-    def backward(self, loss: torch.Tensor) -> None:
-        self.accelerator.backward(loss)
-
-    def clip_grad_norm_(self, params, max_norm: float) -> None:
-        self.accelerator.clip_grad_norm_(params, max_norm)
-
-    def wait(self) -> None:
-        self.accelerator.wait_for_everyone()
-
-    def close(self) -> None:
         if self.tracker is not None:
-            self.accelerator.end_training()
+            self.tracker.end_training()
+        if self.owns_group and dist.is_initialized():
+            dist.destroy_process_group()
 
 
-__all__ = ["AccelerateRuntime", "LocalRuntime", "fast_kernels", "mixed_precision"]
+__all__ = ["LocalRuntime", "fast_kernels", "mixed_precision"]

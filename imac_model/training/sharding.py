@@ -10,7 +10,6 @@ for the loss and the stop decision. ``docs/scale.md`` has the reasoning."""
 from __future__ import annotations
 
 import contextlib
-import os
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -22,7 +21,7 @@ from imac_data.errors import InputError
 from imac_model.config import ModelSpec, RunConfig
 from imac_model.models import checkpoint as ckpt
 from imac_model.models.world_model import WorldModel
-from imac_model.training.runtime import LocalRuntime, mixed_precision
+from imac_model.training.runtime import LocalRuntime
 
 # FSDP and DTensor are imported where used: most of a second, which every unsharded training
 # process (the trainer imports this module) would pay for nothing
@@ -112,33 +111,12 @@ class ShardedRuntime(LocalRuntime):
     sharded = True
 
     def __init__(self, run: RunConfig, out: Path):
-        tc, sharding = run.train, run.train.sharding
-        cuda = torch.cuda.is_available()
-        if sharding.cpu_offload and not cuda:
+        if run.train.sharding.cpu_offload and not torch.cuda.is_available():
             raise InputError("train.sharding.cpu_offload: offloads from a CUDA device to host memory; there is no "
                              "CUDA device here")
-        self.bf16 = mixed_precision(run) == "bf16"
-        self.owns_group = not dist.is_initialized()
-        if self.owns_group:
-            backend = "cpu:gloo,cuda:nccl" if cuda else "gloo"
-            if "MASTER_ADDR" in os.environ and "WORLD_SIZE" in os.environ:  # torchrun / accelerate launch
-                dist.init_process_group(backend)
-            else:
-                dist.init_process_group(backend, store=dist.HashStore(), rank=0, world_size=1)
-        self.rank, self.world = dist.get_rank(), dist.get_world_size()
-        self.main = self.rank == 0
-        if cuda:
-            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
-            self.device = torch.device("cuda", torch.cuda.current_device())
-        else:
-            self.device = torch.device("cpu")
+        super().__init__(run, out, group=True)  # the device mesh needs a group, of one process too
         self.mesh = dist.device_mesh.init_device_mesh(self.device.type, (self.world,))
-        self.sharding = sharding
-        self.tracker = None
-        if tc.tracker:
-            from accelerate import Accelerator
-
-            self.tracker = Accelerator(cpu=not cuda, log_with=tc.tracker, project_dir=str(out))
+        self.sharding = run.train.sharding
 
     def wrap(self, model: WorldModel) -> WorldModel:
         shard_world_model(model, self.mesh, bf16=self.bf16, reshard_after_forward=self.sharding.reshard_after_forward,
@@ -150,9 +128,6 @@ class ShardedRuntime(LocalRuntime):
 
     def autocast(self):
         return contextlib.nullcontext()  # the sharding policy casts
-
-    def wait(self) -> None:
-        dist.barrier()
 
     # ----------------------------------------------------------------- checkpoints
 
@@ -174,7 +149,3 @@ class ShardedRuntime(LocalRuntime):
                                                       trainer={"step": 0, "scheduler": scheduler.state_dict()})
         scheduler.load_state_dict(state["scheduler"])
         return int(state["step"])
-
-    def close(self) -> None:
-        if self.owns_group and dist.is_initialized():
-            dist.destroy_process_group()

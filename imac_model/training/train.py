@@ -1,6 +1,6 @@
 """Train the world model (``imac-model train``): one loop, fed by a data source (:mod:`.sources`): the
 LeRobot dataset here, or a tensor pack on a machine with torch and numpy alone (the GPU machine). One
-process on the CPU or a GPU, several under ``accelerate launch`` / ``torchrun`` (the global batch split
+process on the CPU or a GPU, several under ``torchrun`` / ``accelerate launch`` (DDP, the global batch split
 over them), or sharded (``train.sharding.strategy: fsdp2``, :mod:`.sharding`); bf16 where the device has it.
 
 Everything is checked before the first step (config, the data's streams, chunk length, view size).
@@ -14,6 +14,7 @@ optional tracker."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
@@ -33,13 +34,14 @@ except ImportError:  # the GPU machine has torch and numpy alone: no progress ba
     tqdm = None
 
 from imac_data.errors import InputError
-from imac_model.config import CONTACT_STREAMS, REBUILT_STREAMS, ModelSpec, RunConfig, save_config
+from imac_model.config import ModelSpec, RunConfig, save_config
 from imac_model.models import checkpoint as ckpt
 from imac_model.models.world_model import WorldModel
+from imac_model.modes import CONTACT_STREAMS, REBUILT_STREAMS
 from imac_model.pipelines.rollout import rollout_loss
 from imac_model.training.archive import run_name, unpack_checkpoint
 from imac_model.training.log import append_log, read_log, write_log
-from imac_model.training.runtime import AccelerateRuntime, LocalRuntime
+from imac_model.training.runtime import LocalRuntime
 from imac_model.training.sharding import ShardedRuntime, shard_report
 from imac_model.training.sources import open_source
 
@@ -224,24 +226,9 @@ def _load_init(model: WorldModel, path: Path) -> list[str]:
     return added
 
 
-class _NoBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def set_postfix(self, **values) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def make_runtime(run: RunConfig, out: Path):
-    """The runtime ``run`` asks for: sharded, several processes or a tracker (accelerate), else one process."""
-    if run.train.sharding.strategy != "none":
-        return ShardedRuntime(run, out)
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 or run.train.tracker:
-        return AccelerateRuntime(run, out)
-    return LocalRuntime(run, out)
+    """The runtime ``run`` asks for: sharded (``train.sharding.strategy``), else data-parallel or one process."""
+    return ShardedRuntime(run, out) if run.train.sharding.strategy != "none" else LocalRuntime(run, out)
 
 
 # --------------------------------------------------------------------------- the loop
@@ -266,12 +253,8 @@ def train(run: RunConfig, *, resume: bool | None = None, progress: bool = True,
                              f"use another output directory")
     elif resume is True:
         raise InputError(f"--resume: no checkpoints under {out / 'checkpoints'}")
-    if tc.tracker:
-        import importlib.util
-
-        module = {"tensorboard": "tensorboard", "wandb": "wandb"}[tc.tracker]
-        if importlib.util.find_spec(module) is None:
-            raise InputError(f"train.tracker: {tc.tracker} is not installed (pip install {module})")
+    if tc.tracker and importlib.util.find_spec(tc.tracker) is None:  # tensorboard and wandb are their modules' names
+        raise InputError(f"train.tracker: {tc.tracker} is not installed (pip install {tc.tracker})")
     runtime = make_runtime(run, out)
     if existing:
         runtime.check_format(existing[-1])
@@ -296,8 +279,9 @@ def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path
     if tc.cpu_threads is not None:
         torch.set_num_threads(tc.cpu_threads)
     torch.manual_seed(tc.seed)  # the same initial weights for the same seed
-    model = runtime.wrap(WorldModel(spec))
-    added = _load_init(model, init) if init is not None else []
+    model = WorldModel(spec)
+    added = _load_init(model, init) if init is not None else []  # before sharding: the whole weights go in
+    model = runtime.wrap(model)
     trainable = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(trainable, lr=tc.lr, betas=tuple(tc.adam_betas), eps=tc.adam_eps,
                                   weight_decay=tc.weight_decay)
@@ -407,8 +391,8 @@ def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path
     if step == 0:
         row = evaluate()
         emit({"step": 0, **row, "wall_s": 0.0, "cpu_s": 0.0, **({"init_added": added} if added else {})})
-    bar = (tqdm(total=tc.max_steps, initial=step, desc="training", unit="step", disable=not (progress and main))
-           if tqdm is not None else _NoBar())
+    bar = tqdm(total=tc.max_steps, initial=step, desc="training", unit="step",
+               disable=not (progress and main)) if tqdm is not None else None
     loss_of = partial(balanced_loss, runtime=runtime)
     timed = tc.max_minutes is not None or tc.max_cpu_minutes is not None
     window: list[float] = []
@@ -444,8 +428,9 @@ def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path
             ema.update(runtime.unwrap(model), step)
         samples += tc.batch_size * (rc.chunks if phase == "clip" else 1)  # chunks trained, every process's
         window.append(float(loss.detach()))
-        bar.update(1)
-        bar.set_postfix(loss=f"{window[-1]:.4f}")
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{window[-1]:.4f}")
         timed_out = ((tc.max_minutes is not None and time.time() - t_wall > 60 * tc.max_minutes)
                      or (tc.max_cpu_minutes is not None and cpu_seconds() > 60 * tc.max_cpu_minutes))
         if timed:
@@ -481,7 +466,8 @@ def _train(run: RunConfig, runtime, source, spec: ModelSpec, existing: list[Path
         if timed_out or interrupted:
             stopped = "time" if timed_out else "interrupted"
             break
-    bar.close()
+    if bar is not None:
+        bar.close()
     if step == start_step and main:  # nothing to do (already finished)
         last_ckpt = ckpt.list_checkpoints(out)[-1] if ckpt.list_checkpoints(out) else None
         if last_ckpt is None:  # no time to train at all: the weights it started from, as a checkpoint

@@ -8,15 +8,11 @@ import os
 import shutil
 from pathlib import Path
 
-import torch
-
 from imac_data.layout import info_path
-from imac_model.config import CONTROL_STREAMS
-from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.experiments.ranking.plan import EVAL_REPO, GATED_MODE, RECIPE, TRAIN_REPO, RankingPlan, internal
 from imac_model.experiments.ranking.simulate import SIDES
 from imac_model.experiments.stages import python, run_all
-from imac_model.training.dataset_source import model_spec
+from imac_model.training.dataset_source import decode_to_cache
 
 
 def _link_episodes(sources: list[Path], dest: Path) -> None:
@@ -55,15 +51,7 @@ def stage_build(plan: RankingPlan, sides: tuple[str, ...] = SIDES) -> None:
 
 
 def decode_chunks(plan: RankingPlan) -> None:
-    torch.set_num_threads(1)
-    run = plan.run_config(GATED_MODE)  # every stream: the other modes reuse its cache
-    meta = open_metadata(run.data)
-    _, layout = model_spec(run, meta)
-    assert set(layout.streams) >= set(CONTROL_STREAMS)
-    for eps in split_episodes(meta.total_episodes, run.data.held_out_episodes):
-        ds = ChunkDataset(TRAIN_REPO, layout, root=run.data.root, episodes=eps, cache="memory",
-                          cache_dir=run.data.cache_dir)
-        ds.preload(num_workers=1, progress=False)
+    decode_to_cache(plan.run_config(GATED_MODE))  # every stream: the other modes reuse its cache
 
 
 def stage_decode(plan: RankingPlan) -> None:

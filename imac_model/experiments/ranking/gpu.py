@@ -15,7 +15,6 @@ import torch
 import yaml
 
 from imac_data.errors import InputError
-from imac_model.config import SCENE_WARP
 from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.data.pack import export_pack
 from imac_model.experiments.ranking.ablations import ablation
@@ -23,11 +22,11 @@ from imac_model.experiments.ranking.datasets import stage_build, stage_decode
 from imac_model.experiments.ranking.plan import GATED_MODE, TRAIN_REPO, RankingPlan, internal
 from imac_model.experiments.ranking.simulate import stage_simulate
 from imac_model.experiments.stages import REPO_ROOT, python, run_all
-from imac_model.models.checkpoint import SPEC, WEIGHTS, list_checkpoints
-from imac_model.modes import conditioning_mode
+from imac_model.models.checkpoint import list_checkpoints
+from imac_model.modes import SCENE_WARP, conditioning_mode
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.packed_contact import contact_geometry, geometry_constants
-from imac_model.training.archive import archives_in, read_archive, run_name, write_archive
+from imac_model.training.archive import archives_in, read_archive, run_name, unpack_checkpoint, write_archive
 from imac_model.training.dataset_source import model_spec
 from imac_model.training.log import LOG_FILE
 from imac_model.training.runs import RUNS_FILE, RunsFile
@@ -107,10 +106,7 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
         run = plan.work / "runs" / name
         tmp = run.with_name(run.name + ".importing")  # the run replaces any earlier one whole, or not at all
         shutil.rmtree(tmp, ignore_errors=True)
-        checkpoint = tmp / "checkpoints" / f"step_{int(last['step']):06d}"
-        checkpoint.mkdir(parents=True)
-        for member in (SPEC, WEIGHTS):
-            (checkpoint / member).write_bytes(files[member])
+        unpack_checkpoint(tar, tmp / "checkpoints" / f"step_{int(last['step']):06d}")
         (tmp / LOG_FILE).write_text("".join(json.dumps(r) + "\n" for r in rows))
         (tmp / "DONE.json").write_text(json.dumps(last, indent=1))
         shutil.rmtree(run, ignore_errors=True)

@@ -26,7 +26,7 @@ from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 from imac_model.models.checkpoint import list_checkpoints, read_spec
 from imac_model.models.world_model import WorldModel
 from imac_model.modes import conditioning_mode
-from imac_model.training.log import log_summary, read_log
+from imac_model.training.log import read_log
 
 
 def real_outcomes(plan: RankingPlan) -> dict[tuple[str, str], list[bool]]:
@@ -178,12 +178,12 @@ def rewrite_report(docs: Path) -> Path:
 
 def training_log(run: Path) -> dict:
     """A trained run's log (``log.jsonl``): its rows with a loss, and a summary (steps, chunks trained, device,
-    final held-out loss). A GPU log of the pack trainer before 2026-12 ends with its own summary row."""
+    final held-out loss)."""
     rows = read_log(run)
-    last = {**next((r for r in reversed(rows) if "step" in r), {}), **log_summary(rows)}
+    last = next((r for r in reversed(rows) if "step" in r), {})
     held = [r for r in rows if r.get("heldout_loss") is not None]
-    steps, device = last.get("steps", last.get("step")), last.get("device", "cpu")
-    train_s = last.get("train_s", last.get("cpu_s" if device == "cpu" else "wall_s"))  # GPU wall s, or CPU s
+    steps, device = last.get("step"), last.get("device", "cpu")
+    train_s = last.get("cpu_s" if device == "cpu" else "wall_s")  # GPU wall s, or CPU s
     spec = read_spec(list_checkpoints(run)[-1])
     backbone = getattr(spec.backbone, spec.backbone.kind)
     shape = (f"U-Net {list(backbone.channels)} x {backbone.blocks} blocks" if spec.backbone.kind == "unet"
@@ -192,7 +192,7 @@ def training_log(run: Path) -> dict:
     rate = (f"{train_s / steps:.2f} CPU-s/step" if device == "cpu" else
             f"{last['samples'] / train_s:.0f} samples/s" if last.get("samples") else "") if steps and train_s else ""
     return {"rows": [r for r in rows if "step" in r], "steps": steps, "samples": last.get("samples"),
-            "device": device, "finished": (run / "DONE.json").is_file() or "train_s" in last, "train_s": train_s,
+            "device": device, "finished": (run / "DONE.json").is_file(), "train_s": train_s,
             "backbone": shape, "parameters": int(parameters), "rate": rate,
             "final_heldout_loss": held[-1]["heldout_loss"] if held else None,
             "heldout": [(r["step"], r["heldout_loss"]) for r in held]}

@@ -4,7 +4,6 @@ The GPU preset trains from the pack instead (:mod:`.gpu`)."""
 
 from __future__ import annotations
 
-import json
 import sys
 from functools import partial
 
@@ -12,7 +11,7 @@ from imac_model.experiments.ranking.gate import gate_minutes, gate_verdict, read
 from imac_model.experiments.ranking.gpu import train_on_gpu
 from imac_model.experiments.ranking.plan import GATED_MODE, RankingPlan, internal, slug
 from imac_model.experiments.ranking.report import write_report
-from imac_model.experiments.stages import MARK_TRAINED, python, quote, run_all
+from imac_model.experiments.stages import run_all, train_argv
 from imac_model.training.log import progress_line
 
 
@@ -24,12 +23,7 @@ def train_command(plan: RankingPlan, mode: str, minutes: float | None = None, fi
     overrides = {**plan.mode_overrides(mode), **(changes or {})}
     if minutes is not None:
         overrides["train.max_cpu_minutes"] = minutes
-    sets = [a for k, v in overrides.items() for a in ("--set", f"{k}={json.dumps(v)}")]
-    script = " ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", plan.config, "--no-progress",
-                                             *sets]))
-    if finish:
-        script += f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(overrides['train.output_dir'])}"
-    return ["bash", "-c", script]
+    return train_argv(plan.config, overrides, finish)
 
 
 class GateStop(RuntimeError):
