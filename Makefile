@@ -41,7 +41,7 @@ experiment: setup
 	$(PY) -m imac_model experiment --work runs/experiment --docs docs/experiment
 
 # Policy ranking in simulation (docs/ranking.md): does the world model rank policies as MuJoCo does?
-# At most 8 CPU-hours; stops early (exit 4) if motion+contact fails the early gate; resumable, every stage cached
+# About 5.3 CPU-hours at today's defaults (the protocol allows 8); stops early (exit 4) if motion+contact fails the early gate; resumable, every stage cached
 # under runs/ranking (spread it over days if need be).
 ranking: setup
 	$(PY) -m imac_model ranking --work runs/ranking --docs docs/ranking
