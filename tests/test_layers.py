@@ -227,3 +227,22 @@ def test_the_private_import_check_catches_one(tmp_path):
     bad.write_text("from imac_data.core.contact.images import _stream_cap, colorize\nfrom .nearest import _box_distance\n")
     assert private_sibling_imports("imac_data.core.contact.batched", bad) == [
         "1: imac_data.core.contact.images._stream_cap", "2: imac_data.core.contact.nearest._box_distance"]
+
+
+def environment_reads(source: str) -> list[str]:
+    """``"line: code"`` for each read of an environment variable (``os.environ``, ``os.getenv``) in ``source``."""
+    return sorted(f"{node.lineno}: {ast.unparse(node)}" for node in ast.walk(ast.parse(source))
+                  if isinstance(node, ast.Attribute) and node.attr in ("environ", "getenv"))
+
+
+def test_results_hold_results_and_the_gpu_entry_reads_no_environment():
+    """benchmarks/results/ holds no code (no .sh or .py, nothing executable); the GPU machine's entry point and the
+    runs it trains take their settings from the runs file, not from environment variables."""
+    results = ROOT / "benchmarks" / "results"
+    code = [str(p.relative_to(ROOT)) for p in results.rglob("*")
+            if p.is_file() and (p.suffix in (".sh", ".py") or p.stat().st_mode & 0o111)]
+    assert not code, f"code in the results folder: {code}"
+    for path in (ROOT / "scripts" / "gpu_train.py", ROOT / "imac_model" / "training" / "runs.py"):
+        assert not environment_reads(path.read_text()), (path, environment_reads(path.read_text()))
+    assert environment_reads("import os\nx = os.environ.get('OUT')\ny = os.getenv('MINUTES')\n") == [
+        "2: os.environ", "3: os.getenv"]
