@@ -1001,6 +1001,10 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
     # a runs file naming a run it does not have is refused before any training
     assert runs_main([str(file), str(tmp_path / "none"), "--runs", "motion_kontact"]) == 2
     assert not list((tmp_path / "none").iterdir())
+    bad = dataclasses.replace(runs, runs={**runs.runs, "typo": {"flow.focus_wieght": 0.0}}).to_yaml(tmp_path / "b.yaml")
+    shutil.copy(plan.pack, tmp_path / Path(runs.pack).name)
+    with pytest.raises(InputError, match=r"b.yaml: run typo: .*focus_wieght"):
+        RunsFile.load(bad)
 
 
 def test_the_report_records_paths_inside_the_repository_relative_to_it():

@@ -53,8 +53,11 @@ class RunsFile:
         if not pack.is_file():
             raise InputError(f"{path}: pack: no tensor pack at {pack}")
         runs = cls(pack=str(pack), base=data["base"], runs={str(k): dict(v or {}) for k, v in data["runs"].items()})
-        for name in runs.runs:
-            runs.config(name, Path("OUT"))
+        for name in runs.runs:  # every run checked before any trains
+            try:
+                runs.config(name, Path("OUT"))
+            except InputError as e:
+                raise InputError(f"{path}: run {name}: {e}") from None
         return runs
 
     def config(self, name: str, out: Path) -> RunConfig:
