@@ -49,7 +49,9 @@ def test_cli_builds_a_loadable_dataset(sim_dir, tmp_path, capsys):
     rc = imac_main(["build", "--repo", "local/tiny", "--recipe", str(write_recipe(tmp_path)), "--source", str(sim_dir),
                "--root", str(root), "--no-progress"])
     assert rc == 0
-    assert "built local/tiny: 2 episodes" in capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "built local/tiny: 2 episodes" in out
+    assert "[build] stage" in err and "total" in err  # --no-progress hides the bars, not the stage timings
     ds = LeRobotDataset("local/tiny", root=root, delta_timestamps={
         "action": [0.0, 0.04], "control.motion.cam_high": [0.04, 0.08], "control.contact_s2g.cam_left_wrist": [0.04]})
     assert ds.meta.total_episodes == 2

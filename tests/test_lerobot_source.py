@@ -201,6 +201,7 @@ def test_a_state_recorded_in_degrees_is_named(sim, tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"warning: {source} (observation.state): recorded joint values lie outside the URDF limits" in err
     assert "index 8 ('vx300s_right/shoulder')" in err and "scale: 0.01745329" in err and "left_finger" not in err
+    assert "[build] stage" in err  # progress=False hides the bars, not the stage timings
 
 
 # ------------------------------------------------------------------------ bad input

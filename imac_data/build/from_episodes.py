@@ -149,8 +149,8 @@ def build_from_episodes(req: BuildRequest, robot, *, executor: str = "local", wo
     if req.timings is not None:
         req.timings.parent.mkdir(parents=True, exist_ok=True)
         req.timings.write_text(json.dumps(report, indent=1))
-    if req.progress:
-        print(_timings_table(report), file=sys.stderr)
+    # the table is the build's report, not a progress bar: --no-progress keeps it
+    print(_timings_table(report), file=sys.stderr)
 
 
 def ingest_episodes(paths: Sequence[str | Path], *, rig, repo_id: str, root: str | Path, options: IngestOptions,

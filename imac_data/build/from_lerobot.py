@@ -108,7 +108,7 @@ def build_from_lerobot(req: BuildRequest, robot) -> None:
             "source": {"type": "lerobot", **origin, "cameras": cameras, "state_key": src_cfg.state_key,
                        "action_key": src_cfg.action_key, "videos": "copied byte-identical from the source"}}})
         write_card(work, req.repo_id, recipe)
-    if req.progress:
-        print(timer.table("[build] stage"), file=sys.stderr)
-        print(f"[build] {len(states)} episodes, {sum(len(s) for s in states)} frames from the LeRobot dataset "
-              f"{origin} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    # the table is the build's report, not a progress bar: --no-progress keeps it
+    print(timer.table("[build] stage"), file=sys.stderr)
+    print(f"[build] {len(states)} episodes, {sum(len(s) for s in states)} frames from the LeRobot dataset "
+          f"{origin} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
