@@ -435,6 +435,39 @@ def test_qa_overlay_cli(qa_inputs, capsys):
     assert not (out / "cam_high.mp4").exists()
 
 
+def test_qa_overlay_fps_is_the_episodes_else_the_recipes_else_50(qa_inputs, tmp_path, capsys):
+    """An episode without an 'fps' attribute plays at the recipe's fps (25), not the default 50;
+    the episode's own attribute wins over the recipe's; the command says which it used."""
+    import shutil
+
+    import av
+    import h5py
+    import yaml
+
+    bare = tmp_path / "episode_0.hdf5"
+    shutil.copy(qa_inputs / "episode_0.hdf5", bare)
+    with h5py.File(bare, "r+") as f:
+        del f.attrs["fps"]
+    recipe = {"name": "fps_check", "task": "t", "robot": {"platform": "aloha_sim"}, "fps": 25,
+              "source": {"type": "aloha_hdf5", "path": str(tmp_path)},
+              "cameras": {"calibration": str(qa_inputs / "calib.json")}}
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
+    (tmp_path / "r30.yaml").write_text(yaml.safe_dump({**recipe, "fps": 30}))
+    cases = [(bare, ["--recipe", str(tmp_path / "r.yaml")], 25, "from the recipe's fps"),
+             (bare, [], 50, "from the default"),
+             (qa_inputs / "episode_0.hdf5", ["--recipe", str(tmp_path / "r30.yaml")], 25,
+              "from the episode's 'fps' attribute")]
+    for i, (episode, extra, rate, said) in enumerate(cases):
+        out = tmp_path / f"overlay_{i}"
+        assert imac_main(["qa", "overlay", str(episode), "--calibration", str(qa_inputs / "calib.json"),
+                          "--out", str(out), "--frames", "0:2", "--cameras", "cam_high", *extra]) == 0
+        assert f"fps {rate} {said}" in capsys.readouterr().out
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["fps"] == rate
+        with av.open(str(out / "cam_high.mp4")) as f:
+            assert f.streams.video[0].average_rate == rate
+
+
 def test_qa_overlay_overwrite_replaces_only_an_overlay(qa_inputs, capsys):
     """--overwrite into a directory of the user's (no summary.json): refused, nothing deleted."""
 

@@ -26,12 +26,13 @@ def run(args: argparse.Namespace) -> int:
 
 def _overlay(args: argparse.Namespace) -> None:
     cams = [c for c in args.cameras.split(",") if c] if args.cameras else None
-    robot, controller = args.robot, None
+    robot, controller, fps = args.robot, None, None
     if args.recipe:
-        rig = Rig.from_recipe(load_recipe(args.recipe), args.calibration)
-        robot, controller = rig.robot, rig.controller
+        recipe = load_recipe(args.recipe)
+        rig = Rig.from_recipe(recipe, args.calibration)
+        robot, controller, fps = rig.robot, rig.controller, recipe.fps
     summary = overlay(args.episode, args.calibration, args.out, robot=robot, source=args.source, fmt=args.fmt,
-                      frames=args.frames, cameras=cams, overwrite=args.overwrite, controller=controller)
+                      frames=args.frames, cameras=cams, overwrite=args.overwrite, controller=controller, fps=fps)
     print(format_summary(summary, Path(args.out)))
 
 

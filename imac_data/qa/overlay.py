@@ -35,6 +35,7 @@ __all__ = ["overlay", "format_summary"]
 
 OUTLINE_RGB = (0, 255, 0)  # rendered robot
 TRUTH_RGB = (255, 0, 255)  # ground-truth robot mask
+DEFAULT_FPS = 50.0  # ALOHA's recording rate, for an episode without an 'fps' attribute and no fps given
 
 
 
@@ -104,11 +105,13 @@ class _Mp4:
 def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str | Path, *,
             robot: str | RobotModel | None = None, source: str = "state", fmt: str = "mp4", frames: str | None = None,
             cameras: Sequence[str] | None = None, overwrite: bool = False, batch: int = 8,
-            renderer=None, controller=None) -> dict:
+            renderer=None, controller=None, fps: float | None = None) -> dict:
     """Write the overlay of one episode into ``out_dir`` and return the summary dict.
 
     ``robot``: a registered platform's name (:data:`~imac_data.core.robot.platforms.PLATFORMS`;
     default the first) or a :class:`~imac_data.core.robot.model.RobotModel`.
+    The video's rate is the episode's ``fps`` attribute, else ``fps`` (a recipe's), else
+    :data:`DEFAULT_FPS`; the summary says which (``fps_from``).
     All inputs are validated before anything is written; the output directory appears
     only complete (temporary sibling renamed into place).
     """
@@ -117,6 +120,8 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
         raise InputError(f"--format must be mp4 or png, got {fmt!r}")
     if source not in SOURCES:
         raise InputError(f"--source must be one of {SOURCES}, got {source!r}")
+    if fps is not None and not 0 < fps < float("inf"):
+        raise InputError(f"fps must be a positive number, got {fps}")
     if out_dir.exists() and not overwrite:
         raise InputError(f"output {out_dir} exists; pass --overwrite to replace it")
     check_replaceable(out_dir, made_by="summary.json", what="output")
@@ -155,7 +160,13 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
     sel = _parse_frames(frames, ep.num_frames)
     truth_links = renderer.link_names
     has_truth = {c: c in ep.segmentation and bool(ep.segmentation_labels) for c in cams}
-    fps = (ep.fps or 50.0) / sel.step
+    if ep.fps is not None:  # the recording's own rate wins: it is what the frames were taken at
+        episode_fps, fps_from = ep.fps, "episode"
+    elif fps is not None:
+        episode_fps, fps_from = float(fps), "recipe"
+    else:
+        episode_fps, fps_from = DEFAULT_FPS, "default"
+    fps = episode_fps / sel.step
 
     made = [p for p in reversed(out_dir.absolute().parents) if not p.exists()]  # removed again on failure
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -196,6 +207,7 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
             "episode": str(episode_path), "calibration": str(calibration_path), "robot": robot_name,
             "robot_urdf_sha256": robot.urdf_hash, "source": source, "format": fmt,
             "frames": [sel.start, sel.stop, sel.step], "num_frames": len(idx), "fps": fps,
+            "episode_fps": episode_fps, "fps_from": fps_from,
             "cameras": {},
         }
         for c in cams:
@@ -232,8 +244,16 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
     return summary
 
 
+_FPS_FROM = {"episode": "the episode's 'fps' attribute",
+             "recipe": "the recipe's fps (the episode has no 'fps' attribute)",
+             "default": "the default (the episode has no 'fps' attribute; set fps in a recipe and pass --recipe)"}
+
+
 def format_summary(summary: dict, out_dir: Path) -> str:
+    step = summary["frames"][2]
     lines = [f"wrote {out_dir} ({summary['num_frames']} frames, source={summary['source']})",
+             f"fps {summary['episode_fps']:g} from {_FPS_FROM[summary['fps_from']]}"
+             + (f"; one frame in {step}, so the videos play at {summary['fps']:g}" if step > 1 else ""),
              f"{'camera':<20} {'size':>9} {'coverage':>9} {'mean IoU':>9} {'min IoU':>8}"]
     for c, e in summary["cameras"].items():
         mean = e.get("mean_iou")
