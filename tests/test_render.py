@@ -435,9 +435,10 @@ def test_qa_overlay_cli(qa_inputs, capsys):
     assert not (out / "cam_high.mp4").exists()
 
 
-def test_qa_overlay_fps_is_the_episodes_else_the_recipes_else_50(qa_inputs, tmp_path, capsys):
-    """An episode without an 'fps' attribute plays at the recipe's fps (25), not the default 50;
-    the episode's own attribute wins over the recipe's; the command says which it used."""
+def test_qa_overlay_fps_is_the_recipes_else_the_episodes_else_50(qa_inputs, tmp_path, capsys):
+    """An episode without an 'fps' attribute plays at the recipe's fps (25), not the default 50; a recipe's fps
+    wins over the episode's attribute, as in the build; without a recipe the attribute rules; the command says
+    which it used."""
     import shutil
 
     import av
@@ -455,8 +456,8 @@ def test_qa_overlay_fps_is_the_episodes_else_the_recipes_else_50(qa_inputs, tmp_
     (tmp_path / "r30.yaml").write_text(yaml.safe_dump({**recipe, "fps": 30}))
     cases = [(bare, ["--recipe", str(tmp_path / "r.yaml")], 25, "from the recipe's fps"),
              (bare, [], 50, "from the default"),
-             (qa_inputs / "episode_0.hdf5", ["--recipe", str(tmp_path / "r30.yaml")], 25,
-              "from the episode's 'fps' attribute")]
+             (qa_inputs / "episode_0.hdf5", ["--recipe", str(tmp_path / "r30.yaml")], 30, "from the recipe's fps"),
+             (qa_inputs / "episode_0.hdf5", [], 25, "from the episode's 'fps' attribute")]
     for i, (episode, extra, rate, said) in enumerate(cases):
         out = tmp_path / f"overlay_{i}"
         assert imac_main(["qa", "overlay", str(episode), "--calibration", str(qa_inputs / "calib.json"),

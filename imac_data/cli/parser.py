@@ -78,7 +78,7 @@ def _overlay(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", default=None, help="a built-in robot platform (default: the first registered)")
     p.add_argument("--recipe", default=None,
                    help="take the robot (your URDF, joint map) from this build recipe instead of --robot, and "
-                        "its fps when the episode has no 'fps' attribute (default 50)")
+                        "its fps (as the build: else the episode's 'fps' attribute, else 50)")
     p.add_argument("--source", default="state", choices=("state", "action"),
                    help="render the measured state (default) or the commanded actions")
     p.add_argument("--format", default="mp4", choices=("mp4", "png"), dest="fmt")

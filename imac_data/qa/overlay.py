@@ -110,8 +110,8 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
 
     ``robot``: a registered platform's name (:data:`~imac_data.core.robot.platforms.PLATFORMS`;
     default the first) or a :class:`~imac_data.core.robot.model.RobotModel`.
-    The video's rate is the episode's ``fps`` attribute, else ``fps`` (a recipe's), else
-    :data:`DEFAULT_FPS`; the summary says which (``fps_from``).
+    The video's rate is ``fps`` (a recipe's, as the build takes it), else the episode's ``fps`` attribute,
+    else :data:`DEFAULT_FPS`; the summary says which (``fps_from``).
     All inputs are validated before anything is written; the output directory appears
     only complete (temporary sibling renamed into place).
     """
@@ -160,10 +160,10 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
     sel = _parse_frames(frames, ep.num_frames)
     truth_links = renderer.link_names
     has_truth = {c: c in ep.segmentation and bool(ep.segmentation_labels) for c in cams}
-    if ep.fps is not None:  # the recording's own rate wins: it is what the frames were taken at
-        episode_fps, fps_from = ep.fps, "episode"
-    elif fps is not None:
+    if fps is not None:  # the recipe's, as the build takes it: the user's word on the recording
         episode_fps, fps_from = float(fps), "recipe"
+    elif ep.fps is not None:
+        episode_fps, fps_from = ep.fps, "episode"
     else:
         episode_fps, fps_from = DEFAULT_FPS, "default"
     fps = episode_fps / sel.step
@@ -245,7 +245,7 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
 
 
 _FPS_FROM = {"episode": "the episode's 'fps' attribute",
-             "recipe": "the recipe's fps (the episode has no 'fps' attribute)",
+             "recipe": "the recipe's fps",
              "default": "the default (the episode has no 'fps' attribute; set fps in a recipe and pass --recipe)"}
 
 
