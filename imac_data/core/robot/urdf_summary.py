@@ -8,28 +8,36 @@ block to edit::
 
     imac robot joints ROBOT.urdf [--package-dir NAME=PATH ...]
 
-The block lists every movable, non-mimic joint in URDF order, one ``joint_map`` entry per
-joint; the user reorders it to the dataset's ``observation.state`` / ``action`` order and
-deletes what the dataset does not record. ``gripper_links`` is a guess (the links moved
-by the finger joints) and says so.
+The block lists every movable, non-mimic joint in chain order (depth-first from the root
+link, children in file order, so a bimanual rig lists one arm's chain, then the other's),
+one ``joint_map`` entry per joint; the user reorders it to the dataset's
+``observation.state`` / ``action`` order and deletes what the dataset does not record.
+``gripper_links`` is a guess from each chain's tip (:func:`guess_gripper_links`) and says so.
 """
 
 from __future__ import annotations
 
+import json
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import yaml
 import yourdfpy
 
 from imac_data.core.robot.model import MOVABLE_JOINT_TYPES, kinematic_urdf, resolve_filename
 from imac_data.errors import InputError
 
-__all__ = ["JointInfo", "VisualLinkInfo", "UrdfSummary", "summarize_urdf", "recipe_block", "format_summary", "guess_gripper_links"]
+__all__ = ["JointInfo", "VisualLinkInfo", "UrdfSummary", "summarize_urdf", "recipe_block", "format_summary",
+           "guess_gripper_links", "chain_order"]
 
 # How a recipe entry converts a dataset value in other units to a joint position.
 AFFINE_HINT = ("# An entry whose dataset values are not radians / metres (degrees, -100..100, a 0..1 gripper)\n"
                "# needs an affine map, position = offset + scale * value: {joint: JOINT, scale: S, offset: O}.")
+
+# A joint or child link named so is a gripper's (guess_gripper_links).
+GRIPPER_WORDS = re.compile(r"grip|jaw|finger|claw", re.IGNORECASE)
 
 
 @dataclass(frozen=True)
@@ -61,7 +69,7 @@ class UrdfSummary:
     path: Path
     name: str
     root: str
-    joints: tuple[JointInfo, ...]  # movable joints, URDF order
+    joints: tuple[JointInfo, ...]  # movable joints, chain order (chain_order)
     held_fixed: tuple[str, ...]  # floating root joints, held at their origin
     visual_links: tuple[VisualLinkInfo, ...]
     package_dirs: tuple[tuple[str, Path], ...]
@@ -81,6 +89,27 @@ def _limit(joint: yourdfpy.Joint) -> tuple[float | None, float | None]:
     return joint.limit.lower, joint.limit.upper
 
 
+def chain_order(joints: Sequence, links: Sequence[str]) -> list:
+    """``joints`` (objects with ``name``, ``parent``, ``child``; file order) depth-first from the
+    root link(s), children in file order: each chain from its root to its tip, one arm's chain
+    before the next arm's. Joints no root reaches (a malformed tree) follow in file order."""
+    children: dict[str, list] = {}
+    for j in joints:
+        children.setdefault(j.parent, []).append(j)
+    child_links = {j.child for j in joints}
+    roots = [link for link in links if link not in child_links]
+    out, seen = [], set()
+    stack = [j for root in reversed(roots) for j in reversed(children.get(root, []))]
+    while stack:
+        j = stack.pop()
+        if j.name in seen:  # a cycle: the model refuses it elsewhere; listed once here
+            continue
+        seen.add(j.name)
+        out.append(j)
+        stack += reversed(children.get(j.child, []))
+    return out + [j for j in joints if j.name not in seen]
+
+
 def summarize_urdf(path: str | Path, package_dirs: Mapping[str, str | Path] | None = None) -> UrdfSummary:
     """Parse a URDF as the robot model will; :class:`InputError` on what it would refuse."""
     path = Path(path)
@@ -94,7 +123,7 @@ def summarize_urdf(path: str | Path, package_dirs: Mapping[str, str | Path] | No
     _, held_fixed = kinematic_urdf(path.read_text(), path)  # type checks, as RobotModel does them
 
     joints = []
-    for j in urdf.robot.joints:
+    for j in chain_order(urdf.robot.joints, [link.name for link in urdf.robot.links]):
         if j.type not in MOVABLE_JOINT_TYPES:
             continue
         mimic = None
@@ -132,8 +161,13 @@ def summarize_urdf(path: str | Path, package_dirs: Mapping[str, str | Path] | No
 
 
 def guess_gripper_links(summary: UrdfSummary, urdf: yourdfpy.URDF | None = None) -> list[str]:
-    """Links moved by finger joints: prismatic or mimic-related joints with no other movable
-    joint below them, and every link below those joints that has visual geometry."""
+    """The gripper links, guessed from each chain's tip, in chain order (links with visuals only).
+
+    A chain's tip is a movable joint with no movable joint below it. A tip that looks like a
+    gripper's (a name or child link with ``grip``, ``jaw``, ``finger`` or ``claw`` in it, a prismatic
+    joint, or one in a mimic relation) gives every link below it; where it is the only such tip on
+    its link (one moving jaw, as the SO-101's), the link it closes against, its parent, is the other
+    jaw and is added. With no tip like that, each tip gives the tip link(s) below it."""
     below: dict[str, list[str]] = {}  # link -> child links
     joint_of_child: dict[str, str] = {}
     if urdf is None:
@@ -141,24 +175,49 @@ def guess_gripper_links(summary: UrdfSummary, urdf: yourdfpy.URDF | None = None)
     for j in urdf.robot.joints:
         below.setdefault(j.parent, []).append(j.child)
         joint_of_child[j.child] = j.name
-    movable = {j.name: j for j in summary.joints}
+    movable = {j.name for j in summary.joints}
     leaders = {j.mimic[0] for j in summary.joints if j.mimic is not None}
+    visual = {v.link for v in summary.visual_links}
 
     def subtree(link: str) -> list[str]:
-        out = [link]
-        for child in below.get(link, []):
-            out += subtree(child)
+        out, stack = [], [link]
+        while stack:
+            if (link := stack.pop()) not in out:  # a cycle is listed once
+                out.append(link)
+                stack += reversed(below.get(link, []))
         return out
 
-    visual = {v.link for v in summary.visual_links}
+    def gripper_like(j: JointInfo) -> bool:
+        return (j.type == "prismatic" or j.mimic is not None or j.name in leaders
+                or bool(GRIPPER_WORDS.search(j.name) or GRIPPER_WORDS.search(j.child)))
+
+    tips = [j for j in summary.joints if not any(joint_of_child.get(link) in movable for link in subtree(j.child)[1:])]
+    grippers = [j for j in tips if gripper_like(j)]
     links: list[str] = []
-    for j in summary.joints:
-        finger = j.type == "prismatic" or j.mimic is not None or j.name in leaders
-        sub = subtree(j.child)
-        if not finger or any(joint_of_child.get(link) in movable for link in sub[1:]):
-            continue
-        links += [link for link in sub if link in visual and link not in links]
+
+    def add(names) -> None:
+        links.extend(n for n in names if n in visual and n not in links)
+
+    if grippers:
+        on_link: dict[str, int] = {}
+        for j in grippers:
+            on_link[j.parent] = on_link.get(j.parent, 0) + 1
+        for j in grippers:
+            add(([j.parent] if on_link[j.parent] == 1 else []) + subtree(j.child))
+    else:
+        for j in tips:
+            sub = subtree(j.child)
+            add([link for link in sub if not below.get(link) and link in visual] or sub)
     return links
+
+
+def _yaml_scalar(text: str) -> str:
+    """``text`` as a YAML flow scalar: plain where YAML reads it back unchanged, else quoted."""
+    try:
+        plain = yaml.safe_load(f"[{text}]") == [text]
+    except yaml.YAMLError:
+        plain = False
+    return text if plain and not text.startswith("#") else json.dumps(text)
 
 
 def _fmt(x: float | None) -> str:
@@ -167,7 +226,7 @@ def _fmt(x: float | None) -> str:
 
 def format_summary(summary: UrdfSummary) -> str:
     lines = [f"URDF {summary.path}: robot {summary.name!r}, root link {summary.root}", "",
-             f"movable joints ({len(summary.joints)}, URDF order):"]
+             f"movable joints ({len(summary.joints)}, chain order from the root):"]
     width = max((len(j.name) for j in summary.joints), default=4)
     lines.append(f"  {'name':<{width}}  {'type':<10}  {'lower':>9}  {'upper':>9}  unit  axis        parent -> child")
     for j in summary.joints:
@@ -200,16 +259,17 @@ def recipe_block(summary: UrdfSummary, gripper_links: Sequence[str] = ()) -> str
             "  # reorder, and delete the joints the dataset does not record (they stay at 0).",
             *("  " + line for line in AFFINE_HINT.splitlines()),
             "  joint_map:"]
-    width = max((len(j.name) for j in summary.drivable), default=0)
+    names = {j.name: _yaml_scalar(j.name) for j in summary.drivable}
+    width = max((len(n) for n in names.values()), default=0)
     for j in summary.drivable:
         rng = "unlimited" if j.lower is None and j.upper is None else f"[{_fmt(j.lower)}, {_fmt(j.upper)}]"
         note = f"{j.type} {rng} {j.unit}"
         followers = summary.followers(j.name)
         if followers:
             note += f"; moves {', '.join(followers)} (mimic)"
-        out.append(f"    - {j.name:<{width}}  # {note}")
+        out.append(f"    - {names[j.name]:<{width}}  # {note}")
     if not summary.drivable:
         out.append("    []  # the URDF has no movable joint")
-    guess = ", ".join(gripper_links)
-    out.append(f"  gripper_links: [{guess}]  # guessed: the links moved by the finger joints; check")
+    guess = ", ".join(_yaml_scalar(link) for link in gripper_links)
+    out.append(f"  gripper_links: [{guess}]  # guessed: the links at each chain's tip (the gripper); check")
     return "\n".join(out) + "\n"
