@@ -155,7 +155,22 @@ def test_refuses_without_depth_and_says_what_to_do(sim, tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2
     assert "cam_high" in err and "no depth" in err and "--depth da3" in err and "qa refine" in err
+    assert "outside the URDF limits" not in err  # joints in the joint map's units: no limit warning
     assert not out.exists() and not (tmp_path / "calib.report").exists()
+
+
+def test_joints_outside_the_urdf_limits_are_warned_before_the_search(sim, tmp_path, capsys):
+    """The build's joint-limit check runs first: a state in degrees under the recipe's radian joint map
+    gets its warning (the joints, the scale that fixes it, and that a poor fit may be this, not the
+    cameras) before anything else; this run then stops at its cheap refusal (no depth)."""
+    src = _copy(sim[0], tmp_path / "eps", lambda ep: RawEpisode(np.degrees(ep.qpos), ep.action, ep.images))
+    rc = imac_main(["qa", "calibrate", str(src), "--recipe", str(ALOHA_RECIPE), "--out", str(tmp_path / "calib.json"),
+                    "--cameras", "cam_high", "--fov", "78", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no depth" in err
+    assert f"warning: {src}: recorded joint values lie outside the URDF limits of robot 'aloha'" in err
+    assert "if it records degrees, give it scale: 0.01745329" in err and "Calibration goes on" in err
+    assert err.index("outside the URDF limits") < err.index("no depth")
 
 
 def test_refuses_a_single_arm_pose_repeated_in_every_frame(sim, tmp_path):

@@ -16,6 +16,7 @@ import json
 import math
 import os
 import shutil
+import sys
 import tempfile
 import time
 from collections.abc import Mapping, Sequence
@@ -40,6 +41,7 @@ from imac_data.calibrate.scratch import (
 from imac_data.calibrate.surface import RobotSurface, lift
 from imac_data.core.cameras import Camera, intrinsics_from_fovy, load_calibration, save_calibration
 from imac_data.core.rig import Rig
+from imac_data.core.robot.joint_ranges import joint_range_warning
 from imac_data.errors import InputError
 from imac_data.recipes import load_recipe
 from imac_data.sources.da3 import DEFAULT_DA3_METRIC_MODEL, DepthAnything3Metric
@@ -52,6 +54,9 @@ NO_DEPTH_HELP = ("calibration from nothing registers depth to the robot: record 
                  "Anything 3 (`--depth da3 --da3-model DIR`, its monocular model; the scale is estimated with the "
                  "pose), or give a rough starting pose (a few cm and degrees) to `imac qa refine` instead")
 
+
+CALIBRATE_GOES_ON = ("Calibration goes on with the joints as recorded: a robot posed wrongly fits no camera, so fix the "
+                     "joint map before reading a refusal or a poor fit below as a camera problem.")
 
 # Without a nominal field of view, these are tried in turn: each one's fit starts from focal lengths
 # 30 % too short to 50 % too long (measured, docs/calibration.md), so together they cover about 17-110 deg.
@@ -78,12 +83,11 @@ def _intrinsics(cams, hw, intrinsics: Path | None, fov: Mapping[str, float]) -> 
     return out
 
 
-def _candidates(frames, budget: int) -> list[tuple[str, int]]:
-    """About ``budget`` frames spread evenly over every episode."""
-    lengths = {ep: len(frames.joints(ep)) for ep in frames.episodes}
+def _candidates(lengths: Mapping[str, int], budget: int) -> list[tuple[str, int]]:
+    """About ``budget`` frames spread evenly over every episode (``lengths``: episode -> frames)."""
     total = sum(lengths.values())
     step = max(1, math.ceil(total / budget))
-    return [(ep, t) for ep in frames.episodes for t in range(0, lengths[ep], step)]
+    return [(ep, t) for ep in lengths for t in range(0, lengths[ep], step)]
 
 
 def _recorded_depth(frames, cam: str, refs) -> np.ndarray | None:
@@ -238,17 +242,25 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
     if unmounted:
         raise InputError(f"camera(s) {unmounted} look like wrist cameras: say which link each is mounted on with "
                          "--mount CAMERA=LINK (or --cameras to leave them out)")
-    dof = frames.joints(frames.episodes[0]).shape[1]
-    if dof != robot.dof:
-        raise InputError(f"{source}: joint vectors have {dof} entries, robot {robot.name!r} expects {robot.dof}")
+    joints = {ep: frames.joints(ep) for ep in frames.episodes}
+    wrong = sorted({q.shape[1] for q in joints.values()} - {robot.dof})
+    if wrong:
+        raise InputError(f"{source}: joint vectors have {wrong[0]} entries, robot {robot.name!r} expects {robot.dof}")
+    # the build's check, before any search: a joint map in the wrong unit poses the robot wrongly, and no camera fits
+    recorded = np.concatenate(list(joints.values()))
+    if len(recorded):
+        warning = joint_range_warning(robot, recorded.min(axis=0), recorded.max(axis=0), source=str(source),
+                                      recipe=recipe.file or "the recipe", then=CALIBRATE_GOES_ON)
+        if warning:
+            print(warning, file=sys.stderr)
     hw = {c: frames.image_hw(c) for c in cams}
     Ks = _intrinsics(cams, hw, intrinsics, fov)
     model = None
     if depth == "da3":
         model = DepthAnything3Metric(da3_model or DEFAULT_DA3_METRIC_MODEL, local_files_only=True)
 
-    refs = _candidates(frames, candidates)
-    q = np.concatenate([frames.joints(ep)[[t for e, t in refs if e == ep]] for ep in dict.fromkeys(e for e, _ in refs)])
+    refs = _candidates({ep: len(q) for ep, q in joints.items()}, candidates)
+    q = np.concatenate([joints[ep][[t for e, t in refs if e == ep]] for ep in dict.fromkeys(e for e, _ in refs)])
     refused: dict[str, str] = {}
     depths = {}
     for c in cams:  # depth availability is known before any registration

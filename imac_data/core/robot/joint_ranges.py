@@ -7,8 +7,8 @@ recorded range [min, max] is mapped through its joint-map entry and compared wit
 URDF ``<limit>`` of its joint. URDF limits are often a little conservative and encoders
 overshoot, so only a range outside the limits by more than :data:`SLACK` of the limit
 span (at least :data:`MIN_SLACK`) is reported; continuous joints and joints without
-limits are not checked. The result is a list of messages: the build prints them as a
-warning (a URDF's limits may simply be wrong) and goes on.
+limits are not checked. The result is a list of messages: the build and ``qa calibrate``
+print them as a warning (a URDF's limits may simply be wrong) and go on.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-__all__ = ["SLACK", "MIN_SLACK", "joint_range_problems", "joint_range_warning"]
+__all__ = ["SLACK", "MIN_SLACK", "BUILD_GOES_ON", "joint_range_problems", "joint_range_warning"]
 
 SLACK = 0.1  # of the limit span
 MIN_SLACK = {"revolute": 0.05, "prismatic": 0.002}  # radians, metres
@@ -52,9 +52,13 @@ def joint_range_problems(robot, lo, hi) -> list[str]:
     return problems
 
 
-def joint_range_warning(robot, lo, hi, *, source, recipe) -> str | None:
+BUILD_GOES_ON = "The build goes on and renders the joints as recorded."
+
+
+def joint_range_warning(robot, lo, hi, *, source, recipe, then: str = BUILD_GOES_ON) -> str | None:
     """The build's warning for :func:`joint_range_problems` (``None`` when there is none):
-    what is out of range, in ``source``, and where to fix it (``recipe``)."""
+    what is out of range, in ``source``, and where to fix it (``recipe``); ``then``: what the
+    command does next (``qa calibrate`` runs the same check and says its own)."""
     problems = joint_range_problems(robot, lo, hi)
     if not problems:
         return None
@@ -63,5 +67,4 @@ def joint_range_warning(robot, lo, hi, *, source, recipe) -> str | None:
     return (f"warning: {source}: recorded joint values lie outside the URDF limits of robot {robot.name!r}:\n  - "
             + "\n  - ".join(problems)
             + f"\n  If robot.joint_map in {recipe} maps a unit wrongly (each entry maps the recorded unit to radians "
-            "or metres: q_urdf = offset + scale * value), the rendered robot will not match the images. The build "
-            "goes on and renders the joints as recorded.")
+            f"or metres: q_urdf = offset + scale * value), the rendered robot will not match the images. {then}")
