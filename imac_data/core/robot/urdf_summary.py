@@ -247,14 +247,23 @@ def format_summary(summary: UrdfSummary) -> str:
     return "\n".join(lines)
 
 
-def recipe_block(summary: UrdfSummary, gripper_links: Sequence[str] = ()) -> str:
-    """A recipe ``robot:`` block to start from (YAML, with comments saying what to edit)."""
+def recipe_block(summary: UrdfSummary, gripper_links: Sequence[str] = (), joint_map: Sequence[dict] | None = None,
+                 units: str = "") -> str:
+    """A recipe ``robot:`` block to start from (YAML, with comments saying what to edit). ``joint_map``: entries
+    ``{joint, scale, offset}`` already derived (a LeRobot robot's, in ``units``) instead of the URDF's joints."""
     out = [f"# Recipe `robot:` block for {summary.name!r}, to start from (imac robot joints).",
            "robot:",
            f"  urdf: {summary.path.resolve()}"]
     if summary.package_dirs:
         out.append("  package_dirs:")
         out += [f"    {name}: {Path(d).resolve()}" for name, d in summary.package_dirs]
+    if joint_map is not None:
+        out += [f"  # LeRobot's motors in the state's order, its values ({units}) to radians (docs/new-robot.md):",
+                "  joint_map:"]
+        out += [f"    - {{joint: {_yaml_scalar(e['joint'])}, scale: {e['scale']:.10g}, offset: {e['offset']:.10g}}}"
+                for e in joint_map]
+        guess = ", ".join(_yaml_scalar(link) for link in gripper_links)
+        return "\n".join([*out, f"  gripper_links: [{guess}]  # guessed: the links at each chain's tip; check"]) + "\n"
     out += ["  # One entry per index of the dataset's observation.state / action vector, in that order:",
             "  # reorder, and delete the joints the dataset does not record (they stay at 0).",
             *("  " + line for line in AFFINE_HINT.splitlines()),
