@@ -1,7 +1,7 @@
 """Where things are in an imac dataset and what its features are called, named once.
 
 A built dataset is a LeRobot v3.0 dataset (``docs/dataset-format.md``): LeRobot's own files,
-plus the added features below, the ``imac`` block of ``meta/info.json`` and the robot
+plus the added features below, the ``imac`` block in ``meta/imac/info.json`` and the robot
 description under ``meta/imac/robot/``.
 """
 
@@ -19,6 +19,7 @@ EPISODES_DIR = "meta/episodes"
 DATA_DIR = "data"
 VIDEOS_DIR = "videos"
 DEFAULT_VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+IMAC_INFO = "meta/imac/info.json"  # the imac block (schema version 3 on; before, the "imac" key of meta/info.json)
 DESCRIPTION_DIR = "meta/imac/robot"  # the robot description a dataset carries
 URDF_NAME = "robot.urdf"
 MESH_DIR = "meshes"
@@ -27,6 +28,10 @@ CALIBRATION = "calibration.json"  # beside raw episodes
 
 def info_path(root: str | Path) -> Path:
     return Path(root) / INFO
+
+
+def imac_info_path(root: str | Path) -> Path:
+    return Path(root) / IMAC_INFO
 
 
 def stats_path(root: str | Path) -> Path:

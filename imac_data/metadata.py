@@ -1,13 +1,19 @@
-"""The one reader of a built dataset's metadata: ``meta/info.json`` and its ``imac`` block.
+"""The one reader of a built dataset's metadata: ``meta/info.json`` and the ``imac`` block.
+
+The block lives in a file of its own, ``meta/imac/info.json`` (schema version 3 on), beside the
+robot description under ``meta/imac/robot/``, so that LeRobot, which warns about keys of
+``meta/info.json`` it does not know, loads a dataset without a word. Datasets of versions 1 and
+2 hold it under the ``imac`` key of ``meta/info.json``, and still read. In memory nothing
+differs: :func:`dataset_info` gives ``meta/info.json``'s dict with the block under ``"imac"``.
 
 Every function that takes a dataset's metadata (here, :func:`imac_data.core.depth.depth_codec_of`,
 :meth:`imac_data.core.rig.Rig.from_info`, :class:`imac_data.recipes.AugmentSettings.from_info`,
 ``imac_model.data.meta``) accepts what both LeRobot lines give, and reads the block through here:
 
-* ``ds.meta`` (a ``LeRobotDatasetMetadata``) or ``ds`` itself: the file under its ``root`` is read,
-  since LeRobot 0.6's ``ds.meta.info`` is a ``DatasetInfo`` that drops the ``imac`` block;
+* ``ds.meta`` (a ``LeRobotDatasetMetadata``) or ``ds`` itself: the files under its ``root`` are read,
+  since ``ds.meta.info`` has no block (LeRobot 0.6's is a ``DatasetInfo``, which drops unknown keys);
 * the dataset's root (``str`` or ``Path``);
-* the dict loaded from its ``meta/info.json``.
+* the dict :func:`dataset_info` gives (``meta/info.json`` with the block).
 
 A LeRobot 0.6 ``DatasetInfo`` alone is refused with what to pass instead (docs/dataset-format.md)."""
 
@@ -19,13 +25,13 @@ from pathlib import Path
 from typing import Any
 
 from imac_data.errors import InputError
-from imac_data.layout import ACTION, INFO, MOTION, R2S, S2G, depth_key, image_key, info_path
+from imac_data.layout import ACTION, IMAC_INFO, INFO, MOTION, R2S, S2G, depth_key, imac_info_path, image_key, info_path
 
 __all__ = ["SCHEMA_VERSION", "SUPPORTED_VERSIONS", "ADDED_IN", "RIG_KEYS", "STREAM_KEYS", "dataset_root", "dataset_info", "imac_block",
-           "unchecked_imac_block", "chunk_timestamps"]
+           "unchecked_imac_block", "imac_block_path", "chunk_timestamps"]
 
-SCHEMA_VERSION = 2
-SUPPORTED_VERSIONS = (1, 2)
+SCHEMA_VERSION = 3  # 3: the block moved from meta/info.json's "imac" key to meta/imac/info.json, its keys unchanged
+SUPPORTED_VERSIONS = (1, 2, 3)
 ADDED_IN = {"workspace": 2}  # keys newer than version 1: required from that version on
 RIG_KEYS = ("robot", "cameras", "controller", "gripper_surface", "workspace")  # the rig's part (Rig.to_info)
 STREAM_KEYS = ("augment", "motion", "depth", "contact")  # the streams' settings, written when they are built
@@ -41,45 +47,63 @@ def dataset_root(meta) -> Path | None:
     root = getattr(meta, "root", None)
     if root is None:
         kind = type(meta).__name__
-        hint = (" (LeRobot 0.6's ds.meta.info, which drops the imac block of meta/info.json)"
+        hint = (" (LeRobot 0.6's ds.meta.info, which has no imac block)"
                 if kind == "DatasetInfo" else "")
-        raise InputError(f"dataset metadata: got a {kind}{hint}; {_PASS_INSTEAD} (or the dict loaded from "
-                         f"{INFO})")
+        raise InputError(f"dataset metadata: got a {kind}{hint}; {_PASS_INSTEAD} (or the dict "
+                         "imac_data.metadata.dataset_info gives)")
     return Path(root)
 
 
 def dataset_info(meta) -> dict:
-    """``meta/info.json`` as a dict, the ``imac`` block included (a dict given is returned as is)."""
+    """``meta/info.json`` as a dict, with the ``imac`` block under ``"imac"``: the content of
+    ``meta/imac/info.json`` where that file is (schema version 3 on), else whatever
+    ``meta/info.json`` holds there (versions 1 and 2). A dict given is returned as is."""
     if isinstance(meta, Mapping):
         return meta if isinstance(meta, dict) else dict(meta)
     root = dataset_root(meta)
-    path = info_path(root)
     try:
-        info = json.loads(path.read_text())
+        info = _json_object(info_path(root))
     except (FileNotFoundError, NotADirectoryError):
-        raise InputError(f"{root} is not a LeRobot dataset: {path} is missing") from None
+        raise InputError(f"{root} is not a LeRobot dataset: {info_path(root)} is missing") from None
+    block = imac_info_path(root)
+    if block.is_file():
+        info["imac"] = _json_object(block)
+    return info
+
+
+def _json_object(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(info, dict):
-        raise InputError(f"{path}: expected a JSON object, got {type(info).__name__}")
-    return info
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def imac_block_path(root: str | Path) -> Path:
+    """The file that holds the ``imac`` block of the dataset at ``root``: ``meta/imac/info.json``,
+    or ``meta/info.json`` for a dataset of version 1 or 2 (or one without a block)."""
+    path = imac_info_path(root)
+    return path if path.is_file() else info_path(root)
 
 
 def _where(meta) -> str:
     root = None if isinstance(meta, Mapping) else dataset_root(meta)
-    return str(info_path(root)) if root is not None else INFO
+    return str(imac_block_path(root)) if root is not None else INFO
 
 
 def imac_block(meta, *, require: Sequence[str] = (), where: str | None = None) -> dict:
-    """The ``imac`` block of a dataset's ``meta/info.json``, checked: present, a schema version
+    """The ``imac`` block of a dataset (:func:`dataset_info`), checked: present, a schema version
     this code reads, and the ``require``d keys there (a key newer than the dataset's version is
     not required). ``where`` names the file in messages."""
     info = dataset_info(meta)
     where = where or _where(meta)
     block = info.get("imac")
     if not isinstance(block, Mapping):
-        hint = (f"; a dict without it is not the file's content (LeRobot 0.6's ds.meta.info drops it): {_PASS_INSTEAD}"
-                if isinstance(meta, Mapping) else "")
+        hint = (f"; a dict without it is not what imac_data.metadata.dataset_info gives (meta/info.json alone and "
+                f"ds.meta.info have no block): {_PASS_INSTEAD}" if isinstance(meta, Mapping) else
+                f", and no {IMAC_INFO}")
         raise InputError(f"{where}: no 'imac' block (not built by imac, or rewritten by a tool that dropped it){hint}")
     version = block.get("schema_version")
     if version not in SUPPORTED_VERSIONS:
@@ -101,7 +125,7 @@ def chunk_timestamps(meta, cameras: Sequence[str] | None = None) -> dict[str, li
     """``delta_timestamps`` for ``LeRobotDataset`` that load one contact chunk per item: the
     reference frame and the H future frames of RGB and depth, the H future frames of every
     control stream, and the actions ``a_t .. a_{t+H-1}`` (``meta``: ``ds.meta``, the dataset's
-    root or its ``meta/info.json`` dict; ``cameras``: default all)."""
+    root or its :func:`dataset_info` dict; ``cameras``: default all)."""
     info = dataset_info(meta)
     block = imac_block(info, require=("contact", "cameras"), where=_where(meta))
     if not block["contact"]:

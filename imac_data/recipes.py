@@ -243,7 +243,7 @@ class AugmentSettings:
 
     @classmethod
     def from_info(cls, meta) -> AugmentSettings:
-        """The settings a dataset was built with (``imac.augment`` of its ``meta/info.json``;
+        """The settings a dataset was built with (``imac.augment`` of its ``imac`` block;
         ``meta``: ``ds.meta``, the root or the dict, :mod:`imac_data.metadata`). A field the
         dataset does not record takes this class's default, except the stream resolution,
         which must be recorded."""

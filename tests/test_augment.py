@@ -15,6 +15,7 @@ from imac_data.core.rig import Rig
 from imac_data.core.robot import aloha
 from imac_data.core.robot.model import RobotModel
 from imac_data.dataset.ingest import IngestOptions
+from imac_data.metadata import dataset_info
 from imac_data.recipes import RECIPES_DIR
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
@@ -59,8 +60,7 @@ def test_augment_existing_dataset_keeps_original_videos(base):
     truth = read_episode(sorted(src.glob("episode_*.hdf5"))[0]).depth_mm["cam_high"][3] / 1000.0
     valid = (truth > 0.1) & (truth < 1.2)
     assert np.median(np.abs(np.asarray(metres)[valid] - truth[valid])) < 3e-3
-    info = json.loads((root / "meta" / "info.json").read_text())
-    assert info["imac"]["contact"]["chunk_size"] == 4
+    assert dataset_info(root)["imac"]["contact"]["chunk_size"] == 4
 
 
 def test_augment_refuses_mismatched_source(base, tmp_path, capsys):

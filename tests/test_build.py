@@ -12,7 +12,7 @@ from imac_data.cli import main as imac_main
 from imac_data.core.robot import aloha
 from imac_data.dataset.output import staging_dir
 from imac_data.errors import InputError
-from imac_data.metadata import imac_block
+from imac_data.metadata import dataset_info, imac_block
 from imac_data.recipes import RECIPES_DIR, load_recipe, parse_recipe
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
@@ -267,7 +267,7 @@ def test_hub_card_is_what_lerobot_uploads(reference_build):
     text = str(card)
     assert "control.contact_s2g.cam_left_wrist" in text and "delta_timestamps" in text
     assert "imac" in card.data.tags and card.data.license == "apache-2.0"
-    ws = json.loads((reference_build / "meta" / "info.json").read_text())["imac"]["workspace"]
+    ws = dataset_info(reference_build)["imac"]["workspace"]
     assert ws["source"].startswith("robot reach") and ws["depth_range"] == [0.0, 3.736]  # the contact crop
     assert f"world box min `{json.dumps(ws['min'])}`, max `{json.dumps(ws['max'])}` m" in text
     assert "depth lies in\n[0.0, 3.736) m" in text

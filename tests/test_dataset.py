@@ -17,12 +17,13 @@ from lerobot.datasets.compute_stats import auto_downsample_height_width, get_fea
 from imac_data.cli import main as imac_main
 from imac_data.console import restore_scheduling, scheduling, scheduling_kept
 from imac_data.core.robot.description import DESCRIPTION_DIR
-from imac_data.dataset.info import SCHEMA_VERSION
+from imac_data.dataset.info import SCHEMA_VERSION, write_info
 from imac_data.dataset.merge import merge_datasets
 from imac_data.dataset.validate import validate_dataset
 from imac_data.dataset.videos import ImageStats, VideoEncoding, VideoWriter
 from imac_data.errors import InputError
 from imac_data.lerobot_compat import encode_image_dir
+from imac_data.metadata import dataset_info
 from imac_data.recipes import RECIPES_DIR
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
@@ -121,8 +122,8 @@ def test_built_dataset_is_valid_every_frame(built, capsys):
 def test_merge_keeps_the_imac_block_and_refuses_two_rigs(built, tmp_path):
     out = tmp_path / "merged"
     merge_datasets(built, out, "local/pkg", imac_extra={"build": {"episodes": 2}})
-    info = json.loads((out / "meta" / "info.json").read_text())
-    first = json.loads((built[0] / "meta" / "info.json").read_text())["imac"]
+    info = dataset_info(out)
+    first = dataset_info(built[0])["imac"]
     assert info["total_episodes"] == 2 and info["imac"]["schema_version"] == SCHEMA_VERSION
     assert {k: v for k, v in info["imac"].items() if k != "build"} == {k: v for k, v in first.items() if k != "build"}
     assert info["imac"]["build"] == {"episodes": 2}
@@ -131,18 +132,16 @@ def test_merge_keeps_the_imac_block_and_refuses_two_rigs(built, tmp_path):
     assert validate_dataset(out).ok
     other = tmp_path / "other"
     shutil.copytree(built[1], other)
-    path = other / "meta" / "info.json"
-    changed = json.loads(path.read_text())
+    changed = dataset_info(other)
     changed["imac"]["cameras"]["cam_high"]["K"][0][0] += 1.0
-    path.write_text(json.dumps(changed, indent=4))
+    write_info(other, changed)
     with pytest.raises(InputError, match=r"imac\.cameras differ"):
         merge_datasets([built[0], other], tmp_path / "never", "local/pkg")
     assert not (tmp_path / "never").exists()
 
 
 def _damage(root, what):
-    info_path = root / "meta" / "info.json"
-    info = json.loads(info_path.read_text())
+    info = dataset_info(root)
     if what == "schema":
         info["imac"]["schema_version"] = 99
     elif what == "calibration":
@@ -164,7 +163,7 @@ def _damage(root, what):
     elif what == "depth":  # an RGB video where the depth should be
         shutil.copy(next((root / "videos" / "control.motion.cam_high").rglob("*.mp4")),
                     next((root / "videos" / "observation.depth.cam_high").rglob("*.mp4")))
-    info_path.write_text(json.dumps(info, indent=4))
+    write_info(root, info)
 
 
 @pytest.mark.parametrize("what, check", [("schema", "imac_block"), ("calibration", "calibration"), ("mesh", "rig"),

@@ -32,6 +32,7 @@ from imac_data.dataset.ingest import IngestOptions
 from imac_data.dataset.videos import VideoEncoding
 from imac_data.errors import InputError
 from imac_data.layout import depth_key
+from imac_data.metadata import dataset_info
 from imac_data.sources.depth import RecordedDepth, episode_views
 from imac_data.sources.hdf5 import episode_paths, read_episode
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
@@ -131,7 +132,7 @@ def test_depth_round_trip_is_bit_exact_through_lerobot(with_depth, sim):
 
 def test_metadata_records_codec_encoder_and_intrinsics(with_depth, sim):
     root, _ = with_depth
-    info = json.loads((root / "meta" / "info.json").read_text())
+    info = dataset_info(root)
     block = info["imac"]["depth"]
     assert DepthCodec.from_dict(block["codec"]) == CODEC
     assert VideoEncoding.from_dict(block["encoding"]) == VideoEncoding.lossless_rgb()
@@ -162,7 +163,7 @@ def test_delta_timestamps_on_the_depth_key(with_depth, sim):
 
 def test_resized_streams_rescale_the_intrinsics(copy, sim, robot):
     add_depth_streams(copy, recorded(sim, robot), size={"cam_high": (32, 40)}, codec=CODEC)
-    info = json.loads((copy / "meta" / "info.json").read_text())
+    info = dataset_info(copy)
     assert info["features"][depth_key("cam_high")]["shape"] == [32, 40, 3]
     assert info["features"][depth_key("cam_left_wrist")]["shape"] == [64, 80, 3]
     K = np.array(info["imac"]["cameras"]["cam_high"]["K"])

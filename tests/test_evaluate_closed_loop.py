@@ -23,6 +23,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from test_model_rollout import built  # noqa: F401  (the rollout tests' built dataset fixture)
 
 from imac_data.errors import InputError
+from imac_data.metadata import dataset_info
 from imac_model.cli import main as model_main
 from imac_model.config import RunConfig
 from imac_model.data import mosaic
@@ -181,7 +182,7 @@ def test_closed_loop_cli_writes_a_lerobot_dataset_of_generated_episodes(world, t
     assert p["frames_per_episode"] == [T, T] and p["views"] == list(VIEWS) and p["samples"] == 2
     assert p["sampler_steps"] == 2 and p["seed"] == 3 and p["resolution"]["view"] == [32, 40]
     assert [e["policy_calls"] for e in result["episodes"]] == [2 * spec.chunk] * 2  # one action per call
-    assert json.loads((out / "meta" / "info.json").read_text())["imac"]["closed_loop"]["policy"] == "recorded"
+    assert dataset_info(out)["imac"]["closed_loop"]["policy"] == "recorded"
     # lerobot-dataset-viz opens it (its own function, saving a .rrd instead of spawning a viewer)
     from lerobot.scripts.lerobot_dataset_viz import visualize_dataset
 

@@ -1,6 +1,5 @@
 """HDF5 episodes -> base LeRobot dataset: content, both HDF5 variants, and bad input."""
 
-import json
 import shutil
 
 import h5py
@@ -17,6 +16,7 @@ from imac_data.core.robot.model import RobotModel
 from imac_data.dataset.ingest import IngestOptions
 from imac_data.dataset.output import staging_dir
 from imac_data.errors import InputError
+from imac_data.metadata import dataset_info
 from imac_data.sources.hdf5 import read_episode, write_episode
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
@@ -90,7 +90,7 @@ def test_ingest_round_trip(source, robot, tmp_path):
     for end in np.cumsum([e.num_frames for e in ep]) - 1:
         assert ds[int(end)]["observation.images.cam_right_wrist"].shape == (3, 64, 80)
     # episode metadata and the imac block
-    info = json.loads((root / "meta" / "info.json").read_text())
+    info = dataset_info(root)
     assert info["imac"]["robot"]["name"] == "aloha"
     assert set(info["imac"]["cameras"]) == {"cam_high", "cam_left_wrist", "cam_right_wrist"}
     episodes = ds.meta.episodes

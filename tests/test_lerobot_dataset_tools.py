@@ -17,13 +17,14 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from packaging.version import Version
 
 from imac_data.cli import main as imac_main
+from imac_data.dataset.info import write_info
 from imac_data.dataset.merge import restore_imac_block
 from imac_data.dataset.streams import video_info
 from imac_data.dataset.validate import validate_dataset
 from imac_data.errors import InputError
-from imac_data.layout import is_added_stream
+from imac_data.layout import IMAC_INFO, INFO, is_added_stream
 from imac_data.lerobot_compat import version as lerobot_version
-from imac_data.metadata import imac_block
+from imac_data.metadata import dataset_info, imac_block
 from imac_data.recipes import RECIPES_DIR
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
@@ -77,7 +78,8 @@ def test_tools_keep_the_streams_drop_the_block_and_validate_restores_it(built, t
     assert set(after) == set(before) - ({"control.contact_cap"} if tool == "remove_feature" else set())
     for key, feature in after.items():
         assert (feature["dtype"], feature["shape"]) == (before[key]["dtype"], before[key]["shape"]), key
-    assert "imac" not in json.loads((out / "meta" / "info.json").read_text())
+    assert "imac" not in json.loads((out / INFO).read_text()) and "imac" not in dataset_info(out)
+    assert not (out / "meta" / "imac").exists()  # neither the block (meta/imac/info.json) nor the robot description
     report = validate_dataset(out)
     assert not report.ok and report.results["imac_block"], report.format()
     assert f"imac validate {out} --restore-imac-from ORIGINAL" in report.results["imac_block"][0]
@@ -96,13 +98,14 @@ def test_restore_refuses_a_dataset_with_a_block_or_other_streams(built, tmp_path
         restore_imac_block(built, built)
     other = tmp_path / "other"
     shutil.copytree(built, other)
-    info = json.loads((other / "meta" / "info.json").read_text())
+    info = dataset_info(other)
     del info["imac"]
     info["features"]["control.motion.cam_high"]["shape"] = [16, 20, 3]
-    (other / "meta" / "info.json").write_text(json.dumps(info, indent=4))
+    write_info(other, info)  # without the block: meta/imac/info.json goes
+    assert not (other / IMAC_INFO).exists()
     with pytest.raises(InputError, match=r"control.motion.cam_high.shape differs \(\[16, 20, 3\] against \[32, 40, 3\]\)"):
         restore_imac_block(other, built)
-    assert "imac" not in json.loads((other / "meta" / "info.json").read_text())
+    assert "imac" not in dataset_info(other) and not (other / IMAC_INFO).exists()
 
 
 # LeRobot 0.6.0 validates the encoder settings it re-encodes with; 0.4.4 re-encodes with its camera encoder
@@ -129,7 +132,7 @@ def test_tools_that_reencode_refuse_or_spoil_our_control_streams(built, tmp_path
             run()
         return
     for root in run():
-        assert "imac" not in json.loads((root / "meta" / "info.json").read_text())
+        assert "imac" not in dataset_info(root) and not (root / "meta" / "imac").exists()
         path = next((root / "videos" / "control.motion.cam_high").rglob("*.mp4"))
         got = video_info(path)
         assert (got["video.codec"], got["video.pix_fmt"]) == ("av1", "yuv420p")

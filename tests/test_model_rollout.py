@@ -26,6 +26,7 @@ from imac_data.core.contact.nearest import DEFAULT_TOLERANCE
 from imac_data.core.depth import depth_codec_of, depth_from_millimetres, walk_distance
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
+from imac_data.metadata import dataset_info
 from imac_data.recipes import RECIPES_DIR, AugmentSettings
 from imac_data.sources.depth import RecordedDepth
 from imac_data.sources.hdf5 import EpisodeReader, read_episode
@@ -512,7 +513,7 @@ def test_online_rebuild_crops_to_the_datasets_workspace(built, stored):
     _, _, ep = stored
     _, spec, _ = _spec(root, **{"data.view_height": HW[0]})
     online = OnlineControls.from_dataset(root, spec)
-    info = json.loads((root / "meta" / "info.json").read_text())
+    info = dataset_info(root)
     ws = online.rig.workspace
     assert ws is not None and ws.to_dict() == info["imac"]["workspace"]
     ref, future = 4, [5, 6, 7, 8]

@@ -22,7 +22,7 @@ from imac_data.core.rig import Rig
 from imac_data.core.robot import aloha
 from imac_data.core.robot.description import DESCRIPTION_DIR, packaged_description, write_description
 from imac_data.core.robot.model import JointEntry, RobotConfig, RobotModel
-from imac_data.dataset.info import RIG_KEYS, SCHEMA_VERSION, imac_block
+from imac_data.dataset.info import RIG_KEYS, SCHEMA_VERSION, imac_block, read_info
 from imac_data.dataset.ingest import IngestOptions
 from imac_data.errors import InputError
 from imac_data.recipes import RECIPES_DIR, load_recipe, parse_recipe
@@ -53,9 +53,9 @@ def base(sim_dir, recipe_rig, tmp_path_factory):
 def test_dataset_rebuilds_the_rig_exactly(base, recipe_rig):
     """Rig.from_info on the dataset alone = the recipe's rig: the same info block, FK,
     renders, gripper samples and controller."""
-    info = json.loads((base / "meta" / "info.json").read_text())
+    info = read_info(base)
     block = info["imac"]
-    assert block["schema_version"] == SCHEMA_VERSION == 2
+    assert block["schema_version"] == SCHEMA_VERSION == 3
     rig = Rig.from_info(info, base)
     assert set(RIG_KEYS) == {"robot", "cameras", "controller", "gripper_surface", "workspace"}
     assert rig.to_info() == {k: block[k] for k in RIG_KEYS}
@@ -74,7 +74,7 @@ def test_dataset_rebuilds_the_rig_exactly(base, recipe_rig):
 
 
 def test_description_is_complete_and_checked(base, tmp_path, recipe_rig):
-    desc = json.loads((base / "meta" / "info.json").read_text())["imac"]["robot"]["description"]
+    desc = read_info(base)["imac"]["robot"]["description"]
     files = sorted(p.relative_to(base / DESCRIPTION_DIR).as_posix() for p in (base / DESCRIPTION_DIR).rglob("*")
                    if p.is_file())
     assert files == sorted(["robot.urdf", *desc["files"]])
@@ -277,7 +277,7 @@ def test_workspace_in_recipes_and_info(tmp_path, sim_dir, recipe_rig, base):
     assert Workspace.from_dict(json.loads(json.dumps(Workspace((0, 0, 0), (1, 1, 1), (0.1, math.inf)).to_dict()))) \
         == Workspace((0, 0, 0), (1, 1, 1), (0.1, math.inf))
     # schema 1: no workspace key; the rig loads without a crop; schema 2 requires the key
-    info = json.loads((base / "meta" / "info.json").read_text())
+    info = read_info(base)
     old = {**info, "imac": {k: v for k, v in info["imac"].items() if k != "workspace"}}
     old["imac"]["schema_version"] = 1
     assert Rig.from_info(old, base).workspace is None

@@ -69,8 +69,8 @@ def _validate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sample", type=int, default=4, help="frames sampled per episode (default 4)")
     p.add_argument("--check", action="append", choices=checks, help="run only this check (repeatable)")
     p.add_argument("--restore-imac-from", type=Path, metavar="ORIGINAL",
-                   help="first put back the imac block (and robot description) that a tool rewriting info.json "
-                        "dropped, from ORIGINAL, the imac-built dataset it was made from (docs/lerobot.md)")
+                   help="first put back the imac block and robot description (meta/imac/) that a tool writing a "
+                        "new dataset left out, from ORIGINAL, the imac-built dataset it was made from (docs/lerobot.md)")
 
 
 def _overlay(p: argparse.ArgumentParser) -> None:

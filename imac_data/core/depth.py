@@ -538,7 +538,7 @@ def resize_depth(depth, size: tuple[int, int], *, name: str = "depth"):
 
 def depth_codec_of(meta) -> DepthCodec:
     """The codec of a dataset's depth streams, from its metadata: ``ds.meta``, the dataset's
-    root or its ``meta/info.json`` dict (:mod:`imac_data.metadata`). Decode a loaded frame with
+    root or its ``dataset_info`` dict (:mod:`imac_data.metadata`). Decode a loaded frame with
     ``depth_codec_of(ds.meta).decode(item[key], channel_axis=-3)`` (LeRobot returns float
     ``(3, H, W)`` colours in [0, 1]; the result is metres, 0 = invalid)."""
     depth = imac_block(meta).get("depth")

@@ -33,8 +33,8 @@ from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.core.robot.platforms import platform as get_platform
 from imac_data.core.scene_warp import DEFAULT_FILL, splat
 from imac_data.errors import InputError
-from imac_data.layout import URDF_NAME, description_dir
-from imac_data.metadata import RIG_KEYS, dataset_root, imac_block
+from imac_data.layout import INFO, URDF_NAME, description_dir
+from imac_data.metadata import RIG_KEYS, dataset_root, imac_block, imac_block_path
 
 __all__ = ["Rig", "RobotViews", "DEFAULT_GRIPPER_SPACING", "RIG_KEYS"]
 
@@ -150,15 +150,15 @@ class Rig:
     @classmethod
     def from_info(cls, meta, root: str | Path | None = None, *, check_files: bool = True) -> Rig:
         """The rig of a built dataset: ``meta`` is ``ds.meta``, the dataset's root or its
-        ``meta/info.json`` dict (:mod:`imac_data.metadata`); ``root``, the directory that holds
+        :func:`~imac_data.metadata.dataset_info` dict (:mod:`imac_data.metadata`); ``root``, the directory that holds
         ``meta/imac/robot/``, is needed with a dict only."""
         root = root if root is not None else dataset_root(meta)
         if root is None:
             raise InputError("Rig.from_info: a meta/info.json dict needs the dataset's root (root=...), where the "
                              "robot description meta/imac/robot/ is; or pass ds.meta or the root alone")
-        block = imac_block(meta, require=("robot",), where=f"{root}/meta/info.json")
-        return cls.from_block(block, description_dir(root), check_files=check_files,
-                              where=f"{root}/meta/info.json imac")
+        where = f"{root}/{INFO}" if isinstance(meta, Mapping) else str(imac_block_path(root))  # a dict: info.json's
+        block = imac_block(meta, require=("robot",), where=where)
+        return cls.from_block(block, description_dir(root), check_files=check_files, where=f"{where} imac")
 
     @classmethod
     def from_dataset(cls, root: str | Path) -> Rig:

@@ -24,9 +24,9 @@ import pyarrow.parquet as pq
 
 from imac_data import lerobot_compat as lr
 from imac_data.dataset.files import replace_files
-from imac_data.dataset.info import read_info
+from imac_data.dataset.info import read_info, stage_info
 from imac_data.errors import InputError
-from imac_data.layout import episodes_dir, info_path, stats_column, stats_path
+from imac_data.layout import episodes_dir, stats_column, stats_path
 
 __all__ = ["add_frame_column", "add_episode_columns"]
 
@@ -88,8 +88,7 @@ def add_frame_column(root: Path, key: str, per_episode: list[np.ndarray], names:
         (tmp / "stats.json").write_text(json.dumps(stats, indent=4))
         staged.append((tmp / "stats.json", stats_file))
         info["features"][key] = {"dtype": "float32", "shape": [width], "names": names}
-        (tmp / "info.json").write_text(json.dumps(info, indent=4))
-        staged.append((tmp / "info.json", info_path(root)))
+        staged += stage_info(root, info, tmp)  # the imac block to meta/imac/info.json, info.json last
         replace_files(staged, tmp / "backup")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -3,9 +3,9 @@
 The frames are :meth:`~imac_data.core.depth.DepthCodec.encode_uint8` colours, written with our
 own encoder settings (bit-exact RGB by default, :meth:`VideoEncoding.lossless_rgb`); the
 codec, encoder settings, depth source and per-camera intrinsics are recorded in
-``meta/info.json["imac"]["depth"]``, and each feature's ``info`` block carries
-``imac.depth_codec`` and ``imac.encoding`` too (they survive ``aggregate_datasets``, which
-drops ``info["imac"]``). Decode a loaded frame with
+the ``imac`` block's ``depth`` (``meta/imac/info.json``), and each feature's ``info`` block
+carries ``imac.depth_codec`` and ``imac.encoding`` too (they survive ``aggregate_datasets``,
+which leaves the block out). Decode a loaded frame with
 ``depth_codec_of(ds.meta).decode(item[key], channel_axis=-3)``.
 """
 

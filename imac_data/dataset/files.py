@@ -63,6 +63,8 @@ def replace_files(pairs: list[tuple[Path, Path]], backup_dir: Path) -> None:
             if dst.exists():
                 bak = backup_dir / f"{i}-{dst.name}"
                 shutil.copy2(dst, bak)
+            else:
+                dst.parent.mkdir(parents=True, exist_ok=True)  # e.g. meta/imac/ of a dataset without a block yet
             os.replace(new, dst)
             done.append((bak, dst))
     except BaseException:

@@ -1,5 +1,12 @@
-"""The ``imac`` block of ``meta/info.json``: everything needed to decode a dataset's added streams
-and to rebuild them, under one versioned key (schema in ``docs/dataset-format.md``).
+"""The writer of a dataset's metadata: ``meta/info.json`` and the ``imac`` block, everything needed
+to decode a dataset's added streams and to rebuild them, versioned (schema in
+``docs/dataset-format.md``).
+
+In memory the block is ``info["imac"]`` (:func:`imac_data.metadata.dataset_info`); on disk it is a
+file of its own, ``meta/imac/info.json``, and ``meta/info.json`` has no ``imac`` key, so that
+LeRobot loads the dataset without warning about a key it does not know. Every write of the two
+goes through here (:func:`write_info`, or :func:`stage_info` for a staged edit): a dataset of
+version 1 or 2, with the block inside ``meta/info.json``, has it moved out on its next write.
 
 The rig keys (``robot``, ``cameras``, ``controller``, ``gripper_surface``, ``workspace``) with
 the description under ``meta/imac/robot/`` rebuild the rig (:meth:`imac_data.core.rig.Rig.from_info`).
@@ -14,22 +21,55 @@ from pathlib import Path
 
 from imac_data import __version__
 from imac_data.dataset.files import atomic_write_json
-from imac_data.layout import info_path, stats_path
+from imac_data.layout import imac_info_path, info_path, stats_path
 from imac_data.metadata import RIG_KEYS, SCHEMA_VERSION, STREAM_KEYS, SUPPORTED_VERSIONS, dataset_info
 from imac_data.metadata import imac_block as _read_block
 
 __all__ = ["SCHEMA_VERSION", "SUPPORTED_VERSIONS", "RIG_KEYS", "STREAM_KEYS", "read_info", "write_info",
-           "update_imac_info", "imac_block", "order_stats", "base_block"]
+           "split_info", "stage_info", "update_imac_info", "imac_block", "order_stats", "base_block"]
 
 
 def read_info(root: str | Path) -> dict:
-    """``meta/info.json`` of the dataset at ``root`` (:func:`imac_data.metadata.dataset_info`)."""
+    """``meta/info.json`` of the dataset at ``root`` with its ``imac`` block
+    (:func:`imac_data.metadata.dataset_info`)."""
     return dataset_info(Path(root))
 
 
+def split_info(info: Mapping) -> tuple[dict, dict | None]:
+    """An info dict as its two files hold it: ``meta/info.json`` (without the ``imac`` key)
+    and ``meta/imac/info.json`` (the block; None where there is none)."""
+    rest = {k: v for k, v in info.items() if k != "imac"}
+    block = info.get("imac")
+    return rest, (dict(block) if block is not None else None)
+
+
 def write_info(root: str | Path, info: Mapping) -> None:
-    """``meta/info.json``, atomically, in LeRobot's layout (``indent=4``)."""
-    atomic_write_json(info_path(root), info)
+    """``info`` (a :func:`read_info` dict) as its two files, each atomically, in LeRobot's
+    layout (``indent=4``): the block to ``meta/imac/info.json`` (removed where ``info`` has
+    none), then ``meta/info.json`` without it."""
+    rest, block = split_info(info)
+    path = imac_info_path(root)
+    if block is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(path, block)
+    atomic_write_json(info_path(root), rest)
+    if block is None:
+        path.unlink(missing_ok=True)
+
+
+def stage_info(root: str | Path, info: Mapping, tmp: Path) -> list[tuple[Path, Path]]:
+    """:func:`write_info` for a staged edit: the two files written into ``tmp``, returned as
+    ``(new file, destination)`` pairs to move into place in order (``meta/info.json`` last).
+    ``info`` is a :func:`read_info` dict, so a dataset whose block is in its own file has
+    it there."""
+    rest, block = split_info(info)
+    staged = []
+    if block is not None:
+        (tmp / "imac_info.json").write_text(json.dumps(block, indent=4))
+        staged.append((tmp / "imac_info.json", imac_info_path(root)))
+    (tmp / "info.json").write_text(json.dumps(rest, indent=4))
+    staged.append((tmp / "info.json", info_path(root)))
+    return staged
 
 
 def update_imac_info(root: str | Path, block: Mapping) -> dict:

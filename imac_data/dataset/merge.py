@@ -8,8 +8,9 @@ LeRobot's ``aggregate_datasets`` does the merge (data, videos, episodes, stats).
 * LeRobot 0.4.4's ``aggregate_stats`` orders ``stats.json`` by per-process string hashing:
   it is rewritten in feature order (:func:`~imac_data.dataset.info.order_stats`), so equal
   inputs give byte-identical outputs;
-* ``aggregate_datasets`` rebuilds ``info.json`` without our ``imac`` block: it is put back,
-  and the robot description (``meta/imac/robot/``) is copied over;
+* ``aggregate_datasets`` writes a new dataset without our ``meta/imac/``: the ``imac`` block
+  (``meta/imac/info.json``) is put back, and the robot description (``meta/imac/robot/``) is
+  copied over;
 * LeRobot 0.6.1's ``aggregate_datasets`` adds the video-encoder keys a feature's ``info`` lacks
   (``video.crf``, ``video.preset``, ... as null, for our streams) in the order of a frozenset,
   which follows Python's per-process string hashing: they are put in sorted order after the
@@ -33,7 +34,7 @@ from imac_data.dataset.info import imac_block, order_stats, read_info, update_im
 from imac_data.dataset.streams import video_info
 from imac_data.errors import InputError
 from imac_data.layout import is_added_stream
-from imac_data.metadata import unchecked_imac_block
+from imac_data.metadata import imac_block_path, unchecked_imac_block
 
 __all__ = ["merge_datasets", "check_same_rig", "order_feature_info", "restore_imac_block"]
 
@@ -43,7 +44,7 @@ def check_same_rig(roots: Sequence[Path]) -> dict:
     naming the first dataset and key that differ."""
     blocks = []
     for root in roots:
-        block = imac_block(read_info(root), f"{root}/meta/info.json")
+        block = imac_block(read_info(root), str(imac_block_path(root)))
         block.pop("build", None)
         blocks.append(block)
     first = blocks[0]
@@ -99,16 +100,16 @@ def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *
 
 
 def restore_imac_block(root: str | Path, original: str | Path) -> dict:
-    """Put back the ``imac`` block (and the robot description) of a dataset that a tool which
-    rewrites ``info.json`` dropped them from (LeRobot's ``merge_datasets``, ``add_features``,
-    ``remove_feature``: docs/lerobot.md), from ``original``, the imac-built dataset it was made
-    from. Every added stream left in ``root`` must be the original's (same dtype, shape, names,
+    """Put back the ``imac`` block (``meta/imac/info.json``) and the robot description of a
+    dataset that a tool which writes a new dataset left them out of (LeRobot's
+    ``merge_datasets``, ``add_features``, ``remove_feature``: docs/lerobot.md), from
+    ``original``, the imac-built dataset it was made from. Every added stream left in ``root`` must be the original's (same dtype, shape, names,
     and its files of the codec and pixel format imac wrote); returns the restored block."""
     root, original = Path(root), Path(original)
     info, source = read_info(root), read_info(original)
     if "imac" in info:
-        raise InputError(f"{root}/meta/info.json already has an imac block: nothing to restore")
-    block = imac_block(source, f"{original}/meta/info.json")
+        raise InputError(f"{imac_block_path(root)} already has an imac block: nothing to restore")
+    block = imac_block(source, str(imac_block_path(original)))
     for key, feature in info["features"].items():
         if not is_added_stream(key):
             continue

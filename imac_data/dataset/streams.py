@@ -25,7 +25,7 @@ from typing import Any
 from imac_data import lerobot_compat as lr
 from imac_data.core.depth_map import PIX_FMT as DEPTH_MAP_PIX_FMT
 from imac_data.core.depth_map import DepthMapParams
-from imac_data.dataset.info import read_info
+from imac_data.dataset.info import read_info, stage_info
 from imac_data.dataset.videos import (
     SUBSAMPLED_CHROMA,
     ImageStats,
@@ -41,7 +41,6 @@ from imac_data.layout import (
     VIDEO_COLUMNS,
     VIDEOS_DIR,
     episodes_dir,
-    info_path,
     stats_column,
     stats_path,
     video_column,
@@ -248,8 +247,8 @@ class StreamWriter:
     LeRobot depth map (frames ``(n, H, W)`` uint16 codes, encoding in ``gray12le``, e.g.
     :meth:`VideoEncoding.depth_map`). ``info_extra[key]`` is merged into that feature's
     ``info`` block. ``imac_info`` (a mapping, or a function of the features written) is
-    merged into ``info.json["imac"]`` in the same write. ``threads``: keys encoded in
-    parallel by :meth:`write` (each encoder's own output does not depend on it).
+    merged into the ``imac`` block (``meta/imac/info.json``) in the same write. ``threads``:
+    keys encoded in parallel by :meth:`write` (each encoder's own output does not depend on it).
     Leaving the ``with`` block without :meth:`commit` (or on an error) discards everything.
     """
 
@@ -409,8 +408,7 @@ class StreamWriter:
                 staged.append((out, f))
             (tmp / "stats.json").write_text(json.dumps(stats, indent=4))
             staged.append((tmp / "stats.json", stats_file))
-            (tmp / "info.json").write_text(json.dumps(new_info, indent=4))
-            staged.append((tmp / "info.json", info_path(root)))
+            staged += stage_info(root, new_info, tmp)  # the imac block to meta/imac/info.json, info.json last
 
             # 2. commit: new video dirs, then metadata (info.json last), with backups
             for key in self.keys:
@@ -425,6 +423,8 @@ class StreamWriter:
                 bak = backup_dir / f"{i}-{dst.name}"
                 if existed:
                     shutil.copy2(dst, bak)
+                else:
+                    dst.parent.mkdir(parents=True, exist_ok=True)  # meta/imac/ of a dataset without a block yet
                 os.replace(new, dst)
                 if existed:
                     backups.append((bak, dst))

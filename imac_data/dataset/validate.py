@@ -29,13 +29,14 @@ from imac_data.layout import (
     CAP_KEY,
     DEPTH_MAP_PREFIX,
     DEPTH_PREFIX,
+    IMAC_INFO,
     IMAGE_PREFIX,
     POSE_PREFIX,
     info_path,
     is_added_stream,
     video_column,
 )
-from imac_data.metadata import unchecked_imac_block
+from imac_data.metadata import imac_block_path, unchecked_imac_block
 from imac_data.sources.lerobot_episodes import count_decodable_frames, stream_pix_fmt
 
 __all__ = ["validate_dataset", "Report", "CHECKS"]
@@ -211,11 +212,11 @@ def _count_video_frames(ctx: _Context) -> list[str]:
 def check_imac_block(ctx: _Context) -> list[str]:
     streams = any(is_added_stream(k) for k in ctx.features)
     if streams and "imac" not in ctx.info:
-        return [f"{ctx.root}/meta/info.json has imac's streams but no 'imac' block: a tool that rewrites info.json "
-                "dropped it (LeRobot's merge_datasets, add_features, remove_feature: docs/lerobot.md); put it back "
+        return [f"{ctx.root} has imac's streams but no 'imac' block ({IMAC_INFO}): a tool that writes a new dataset "
+                "left it out (LeRobot's merge_datasets, add_features, remove_feature: docs/lerobot.md); put it back "
                 f"from the dataset it was made from: imac validate {ctx.root} --restore-imac-from ORIGINAL"]
     try:
-        imac_block(ctx.info, "info.json", require=RIG_KEYS + (STREAM_KEYS if streams else ()))
+        imac_block(ctx.info, str(imac_block_path(ctx.root)), require=RIG_KEYS + (STREAM_KEYS if streams else ()))
     except InputError as e:
         return [str(e)]
     return []

@@ -7,7 +7,6 @@ and the file is renamed into place when complete."""
 
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 from collections.abc import Iterator
@@ -22,7 +21,7 @@ from imac_data.core.depth import depth_codec_of
 from imac_data.dataset.videos import VideoEncoding, encode_video
 from imac_data.errors import InputError
 from imac_data.layout import DEPTH_PREFIX, IMAGE_PREFIX, MOTION, R2S, S2G, info_path
-from imac_data.metadata import unchecked_imac_block
+from imac_data.metadata import dataset_info, unchecked_imac_block
 
 __all__ = ["ROWS", "PreviewLayout", "preview_layout", "compose", "write_preview"]
 
@@ -47,7 +46,7 @@ class PreviewLayout:
 
 
 def preview_layout(info: dict) -> PreviewLayout:
-    """The mosaic of a dataset, from its ``meta/info.json`` dict."""
+    """The mosaic of a dataset, from its ``meta/info.json`` dict (:func:`imac_data.metadata.dataset_info`)."""
     features = info.get("features", {})
     videos = [k for k, f in features.items() if f.get("dtype") == "video"]
     cameras = tuple(k[len(ROWS[0][1]):] for k in videos if k.startswith(ROWS[0][1]))
@@ -112,7 +111,7 @@ def _read_info(root: Path) -> dict:
     path = info_path(root)
     if not path.is_file():
         raise InputError(f"{root}: not a LeRobot dataset (no meta/info.json)")
-    return json.loads(path.read_text())
+    return dataset_info(root)
 
 
 def write_preview(root: str | Path, episode: int, out: str | Path | None = None, *, depth_max: float = 2.0,

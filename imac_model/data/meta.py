@@ -1,8 +1,9 @@
-"""What ``imac_model`` reads of an imac dataset's metadata (``meta/info.json``): the contact chunk
-and its reference rule, the depth codec, the cameras in view order, and the feature keys of each
-stream (``docs/dataset-format.md``). Every function takes ``ds.meta``, the dataset's root or its
-``meta/info.json`` dict, and reads the ``imac`` block through :mod:`imac_data.metadata`, the one
-reader; the augment settings are :meth:`imac_data.recipes.AugmentSettings.from_info`."""
+"""What ``imac_model`` reads of an imac dataset's metadata (``meta/info.json`` and the ``imac``
+block, ``meta/imac/info.json``): the contact chunk and its reference rule, the depth codec, the
+cameras in view order, and the feature keys of each stream (``docs/dataset-format.md``). Every
+function takes ``ds.meta``, the dataset's root or its :func:`imac_data.metadata.dataset_info` dict,
+and reads the ``imac`` block through :mod:`imac_data.metadata`, the one reader; the augment
+settings are :meth:`imac_data.recipes.AugmentSettings.from_info`."""
 
 from __future__ import annotations
 

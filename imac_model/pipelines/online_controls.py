@@ -98,9 +98,9 @@ class OnlineControls:
     @classmethod
     def from_dataset(cls, root: str | Path, spec, *, info=None, resolution: str = "model",
                      max_walk_distance: float = DEFAULT_MAX_WALK_DISTANCE, device=None) -> OnlineControls:
-        """The rebuilder of the dataset at ``root`` (its ``meta/info.json`` and the robot description
-        under ``meta/imac/robot/``) for a model of ``spec`` (:class:`~imac_model.config.ModelSpec`).
-        ``info``: the metadata already at hand (``ds.meta`` or the ``meta/info.json`` dict)."""
+        """The rebuilder of the dataset at ``root`` (its ``imac`` block and the robot description
+        under ``meta/imac/``) for a model of ``spec`` (:class:`~imac_model.config.ModelSpec`).
+        ``info``: the metadata already at hand (``ds.meta`` or the ``dataset_info`` dict)."""
         root = Path(root)
         meta = info if info is not None else root
         rig = Rig.from_info(meta, root)
