@@ -28,6 +28,7 @@ from imac_data.core.render import make_renderer
 from imac_data.core.rig import Rig
 from imac_data.dataset.output import check_replaceable, refuse_overlap
 from imac_data.errors import InputError
+from imac_data.metadata import imac_block_path
 from imac_data.recipes import load_recipe
 
 __all__ = ["refine_calibration"]
@@ -95,7 +96,7 @@ def refine_calibration(source: str | Path, out: str | Path, *, recipe=None, cali
     missing = [c for c in cams if c not in src.cameras]
     if missing:
         raise InputError(f"{source}: camera(s) {missing} not in the source (it has {src.cameras})")
-    where = calibration or f"{source}/meta/info.json"
+    where = calibration or str(imac_block_path(source))
     uncalibrated = [c for c in cams if c not in rig.cameras]
     if uncalibrated:
         raise InputError(f"{where}: no calibration for camera(s) {uncalibrated} (calibrated: {sorted(rig.cameras)})")
