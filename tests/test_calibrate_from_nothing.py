@@ -257,3 +257,28 @@ def test_two_different_poses_that_fit_alike_are_refused_as_ambiguous():
     assert best.X is a and conf["runner_up_inlier_ratio"] == 0.5
     with pytest.raises(CalibrationRefused, match=r"camera 'cam_x': no pose explains the depth"):
         _judge("cam_x", [Fit(a, 500.0, 1.0, 0.6, 0.8, 10)], cfg)
+
+
+def test_a_built_lerobot_dataset_is_calibrated_from_its_own_depth_stream(sim, tmp_path, capsys):
+    """``qa calibrate`` on a LeRobot dataset reads the dataset's own depth (here the colour-coded depth stream an
+    imac build wrote, lossless), with no --depth da3: the head camera comes back within its goal."""
+    import yaml
+
+    from imac_data.core.cameras import save_calibration
+
+    src, truth = sim
+    save_calibration(tmp_path / "truth.json", truth)
+    recipe = {"name": "calib_from_dataset", "task": "transfer the cube", "robot": {"platform": "aloha_sim"},
+              "source": {"type": "aloha_hdf5", "path": str(src), "episodes": 1},
+              "cameras": {"calibration": str(tmp_path / "truth.json")},
+              "augment": {"height": HW[0], "width": HW[1], "contact_chunk": 8}}
+    (tmp_path / "build.yaml").write_text(yaml.safe_dump(recipe))
+    root = tmp_path / "dataset"
+    assert imac_main(["build", "--repo", "local/calib_from_dataset", "--recipe", str(tmp_path / "build.yaml"),
+                      "--root", str(root), "--no-progress", "--workers", "1"]) == 0, capsys.readouterr().err
+    out = tmp_path / "calib.json"
+    assert imac_main(["qa", "calibrate", str(root), "--recipe", str(ALOHA_RECIPE), "--out", str(out), "--cameras",
+                      "cam_high", "--fov", f"cam_high={ALOHA_FOVY['cam_high'] * 1.15}", "--near", str(ALOHA_NEAR),
+                      "--refine", "none", "--no-progress"]) == 0, capsys.readouterr().err
+    t, r = error(truth["cam_high"], load_calibration(out)["cam_high"])
+    assert t <= 3.0 and r <= 0.3, (t, r)

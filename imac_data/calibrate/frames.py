@@ -34,10 +34,15 @@ import torch
 
 from imac_data import lerobot_compat as lr
 from imac_data.core.cameras import Camera
+from imac_data.core.depth import depth_codec_of
+from imac_data.core.depth_map import depth_marker
 from imac_data.core.masks import ground_truth_robot_mask
 from imac_data.errors import InputError
-from imac_data.layout import IMAGE_PREFIX, STATE, info_path
+from imac_data.layout import IMAGE_PREFIX, STATE, depth_key, info_path
+from imac_data.recipes import DepthSection
 from imac_data.sources.hdf5 import EpisodeReader, episode_paths
+from imac_data.sources.lerobot_dataset import SourceDataset
+from imac_data.sources.lerobot_episodes import DepthFeature, LeRobotEpisodeReader
 
 __all__ = ["PIXEL_SOURCES", "EpisodeFrames", "DatasetFrames", "open_frames", "RobotPixels", "CameraFrames",
            "select_frames", "choose_frames", "image_edges"]
@@ -112,13 +117,16 @@ class EpisodeFrames:
 class DatasetFrames:
     """The frames of a LeRobot dataset (``ROOT/meta/info.json``), the same interface as
     :class:`EpisodeFrames`: joint vectors from ``observation.state``, images from the
-    ``observation.images.<camera>`` streams, decoded by LeRobot. A dataset has no simulator
-    segmentation, so its robot pixels are a mask directory or the edge cue."""
+    ``observation.images.<camera>`` streams, decoded by LeRobot, and its own depth
+    (:meth:`depth_metres`): the recipe's ``depth.feature`` (a LeRobot 0.6 depth map, or
+    millimetres, metres, our codec), else the depth stream an imac build wrote
+    (``observation.depth.<camera>``). A dataset has no simulator segmentation, so its robot pixels
+    are a mask directory or the edge cue."""
 
     has_segmentation = False
     _PREFIX = IMAGE_PREFIX
 
-    def __init__(self, root: str | Path):
+    def __init__(self, root: str | Path, depth: DepthSection | None = None):
         import json
 
         self.source = Path(root)
@@ -127,7 +135,8 @@ class DatasetFrames:
             raise InputError(f"{root} is not a LeRobot dataset ({path} is missing)")
         info = json.loads(path.read_text())
         features = info.get("features", {})
-        keys = [k for k, f in features.items() if k.startswith(self._PREFIX) and f.get("dtype") in ("video", "image")]
+        keys = [k for k, f in features.items() if k.startswith(self._PREFIX) and f.get("dtype") in ("video", "image")
+                and not depth_marker(f)]  # a LeRobot depth map is not a camera of its own
         if not keys:
             raise InputError(f"{path}: no {self._PREFIX}<camera> image streams")
         if STATE not in features:
@@ -138,6 +147,37 @@ class DatasetFrames:
         if not self.episodes:
             raise InputError(f"{path}: the dataset has no episodes")
         self._open: tuple[str, object] | None = None  # one episode's LeRobotDataset at a time
+        self._depth_config, self._depth = depth, None
+
+    def _depth_feature(self) -> DepthFeature | None:
+        """The dataset's depth of every camera, checked once (None: it records none)."""
+        if self._depth is None:
+            src, cfg = SourceDataset.open(self.source), self._depth_config
+            if cfg is not None and cfg.feature is not None:
+                feature = DepthFeature(cfg.feature, cfg.format, cfg.codec)
+            elif all(depth_key(c) in src.features for c in self.cameras):
+                feature = DepthFeature(depth_key("{cam}"), "codec")
+                feature.codec = depth_codec_of(self.source)  # the codec this dataset was built with
+            else:
+                self._depth = False
+                return None
+            feature.check(src, self.cameras, f"{self.source}")
+            self._depth = (src, feature)
+        return self._depth[1] if self._depth else None
+
+    def depth_metres(self, episode: str, camera: str, frames: Sequence[int]) -> np.ndarray | None:
+        """The dataset's depth of ``camera`` at ``frames`` ``(n, H, W)`` in metres (0 = invalid), or None."""
+        feature = self._depth_feature()
+        if feature is None:
+            return None
+        src = self._depth[0]
+        reader = LeRobotEpisodeReader(src, src.episodes[int(episode)], {camera: self._PREFIX + camera}, [], [], feature)
+        with reader:
+            depth = np.stack([reader.depth_mm(camera, int(t), int(t) + 1)[0] for t in frames]) / np.float32(1000.0)
+        if depth.shape[1:] != self._hw[camera]:
+            raise InputError(f"{self.source}: camera {camera!r}'s depth {feature.key(camera)} is {depth.shape[1:]}, "
+                             f"its images {self._hw[camera]}: calibration needs them at one size")
+        return depth
 
     def _dataset(self, episode: str):
         if self._open is None or self._open[0] != episode:
@@ -168,12 +208,12 @@ class DatasetFrames:
                          "choose --robot-pixels edges or a mask directory")
 
 
-def open_frames(source: str | Path) -> EpisodeFrames | DatasetFrames:
-    """The frames of ``source``: a LeRobot dataset (a directory with ``meta/info.json``), a
-    directory of raw HDF5 episodes, or one episode file."""
+def open_frames(source: str | Path, depth: DepthSection | None = None) -> EpisodeFrames | DatasetFrames:
+    """The frames of ``source``: a LeRobot dataset (a directory with ``meta/info.json``; ``depth``: the recipe's
+    section, which names its depth feature), a directory of raw HDF5 episodes, or one episode file."""
     source = Path(source)
     if info_path(source).is_file():
-        return DatasetFrames(source)
+        return DatasetFrames(source, depth)
     return EpisodeFrames(source)
 
 

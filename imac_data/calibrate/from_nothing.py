@@ -92,8 +92,10 @@ def _candidates(lengths: Mapping[str, int], budget: int) -> list[tuple[str, int]
 
 def _recorded_depth(frames, cam: str, refs) -> np.ndarray | None:
     """Recorded depth (metres, 0 = invalid) of ``cam`` at ``refs``, or None without any."""
-    if isinstance(frames, DatasetFrames):
-        return None
+    if isinstance(frames, DatasetFrames):  # the dataset's own depth stream, if it has one
+        eps = dict.fromkeys(e for e, _ in refs)
+        parts = [frames.depth_metres(ep, cam, [t for e, t in refs if e == ep]) for ep in eps]
+        return None if any(p is None for p in parts) else np.concatenate(parts)
     out = []
     for ep in dict.fromkeys(e for e, _ in refs):
         ts = [t for e, t in refs if e == ep]
@@ -228,7 +230,7 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
     _check_outputs(out, report, {"source": source, "recipe": recipe_path, "intrinsics": intrinsics}, overwrite)
     recipe = load_recipe(recipe) if isinstance(recipe, (str, Path)) else recipe
     robot = Rig.robot_from_recipe(recipe)
-    frames = open_frames(source)
+    frames = open_frames(source, recipe.depth)
     cams = list(cameras) if cameras else list(frames.cameras)
     missing = [c for c in cams if c not in frames.cameras]
     if missing:
