@@ -1014,3 +1014,22 @@ def test_the_report_records_paths_inside_the_repository_relative_to_it():
     got = _relative({"root": str(inside), "runs": [inside, {"elsewhere": "/data/x", "n": 3}], "plain": "a/b"})
     assert got == {"root": "runs/ranking_gpu/datasets/eval",
                    "runs": ["runs/ranking_gpu/datasets/eval", {"elsewhere": "/data/x", "n": 3}], "plain": "a/b"}
+
+
+def test_the_offset_curve_runs_the_benchmarks_own_policies():
+    """benchmarks.offset_curve at two offsets and two starts: at 0 and 3 cm its open-loop planner is the benchmark's
+    open_loop and open_loop_3cm, start by start (MuJoCo's outcomes of the same starts and protocol)."""
+    from benchmarks import offset_curve
+    from imac_model.evaluate.simulator import SimRunConfig, SimRunner, run_policy
+    from imac_model.experiments.ranking import policies
+    from imac_model.experiments.ranking.plan import EVAL_SEED0
+
+    got = offset_curve.curve("open_loop", [0.0, 3.0], 2)
+    plan = RankingPlan(work=Path("unused"), docs=Path("unused"))
+    config = SimRunConfig(chunks=plan.chunks, view_height=plan.view_size[0], view_width=plan.view_size[1],
+                          views=plan.views, settle_s=plan.settle_s)
+    with SimRunner(config) as runner:
+        want = {cm: float(np.mean([r["success"] for r in run_policy(make(), [EVAL_SEED0, EVAL_SEED0 + 1],
+                                                                      runner=runner, progress=False)]))
+                for cm, make in (("0", policies.open_loop), ("3", policies.open_loop_3cm))}
+    assert got == want
