@@ -15,7 +15,7 @@ from imac_model.experiments.stages import python, run_all
 from imac_model.training.dataset_source import decode_to_cache
 
 
-def _link_episodes(sources: list[Path], dest: Path) -> None:
+def link_episodes(sources: list[Path], dest: Path) -> None:
     """One source directory of ``episode_<i>.hdf5`` links, in the given order."""
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -41,7 +41,7 @@ def stage_build(plan: RankingPlan, sides: tuple[str, ...] = SIDES) -> None:
     workers = plan.jobs if len(todo) == 1 else 1  # one build alone gets every process
     commands = []
     for repo, root, sources, src_dir in todo:
-        _link_episodes(sources, src_dir)
+        link_episodes(sources, src_dir)
         argv = python() + ["-m", "imac_data.build", "--repo", repo, "--recipe", str(RECIPE), "--source", str(src_dir),
                            "--root", str(root), "--episodes", str(len(sources)), "--workers", str(workers),
                            "--no-progress", "--overwrite",

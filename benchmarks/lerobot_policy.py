@@ -1,0 +1,171 @@
+"""Checkpoints of a LeRobot policy for the ranking benchmark (docs/ranking.md, "LeRobot checkpoints"), made the way
+the README promises a user makes them:
+
+1. ``demos``: lift demonstrations in MuJoCo, with the benchmark's protocol (the workspace view at 48x64, 4 chunks,
+   the box settled) and the scripted ``closed_loop`` policy, from starts no evaluation uses; the successes are kept;
+2. ``build``: ``imac build`` makes them a LeRobot dataset with every stream (``<work>/demos``);
+3. ``select``: LeRobot's own ``remove_feature`` keeps what the policy sees, the workspace view, the state and the
+   actions (``<work>/policy_data``: one video to decode a sample instead of twenty);
+4. ``train``: ``lerobot-train`` trains ACT on it (``benchmarks/configs/lerobot_act.yaml``), keeping a checkpoint
+   every ``--save-every`` steps.
+
+Every stage resumes: a finished one is skipped, and the training continues from its last checkpoint::
+
+    python -m benchmarks.lerobot_policy --work runs/lerobot_act
+    python -m benchmarks.lerobot_policy --work runs/lerobot_act --list   # the checkpoints, as --policies specs
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import yaml
+
+from imac_data.layout import STATE, image_key, info_path
+from imac_model.experiments.ranking.datasets import link_episodes
+from imac_model.experiments.ranking.plan import POLICY_MODULE, RECIPE, RankingPlan
+from imac_model.experiments.ranking.policies import WORKSPACE
+from imac_model.experiments.stages import REPO_ROOT, python, run_all, then_mark_done
+
+CONFIG = REPO_ROOT / "benchmarks" / "configs" / "lerobot_act.yaml"
+DEMO_SEED0 = 300_000  # demonstration d starts from DEMO_SEED0 + d: never an evaluation start or a training rollout's
+EXPERT = f"python:{POLICY_MODULE}:closed_loop"  # MuJoCo success 1.00 on the evaluation starts
+DEMO_REPO, POLICY_REPO = "local/lift_demos", "local/lift_demos_policy"
+KEEP = (image_key(WORKSPACE), STATE, "action")  # what the policy sees and does
+
+
+def simulate_demos(work: Path, plan: RankingPlan, demos: int, jobs: int) -> None:
+    """``demos`` expert episodes in ``jobs`` processes (``<work>/sim/part_k``)."""
+    commands = []
+    for k in range(jobs):
+        seeds = [str(DEMO_SEED0 + d) for d in range(k, demos, jobs)]
+        out = work / "sim" / f"part_{k}"
+        if not seeds or (out / ".done").is_file():
+            continue
+        shutil.rmtree(out, ignore_errors=True)
+        argv = python() + ["-m", "imac_model", "evaluate", "simulator", "--policy", EXPERT, "--seeds", *seeds,
+                           "--chunks", str(plan.chunks), "--view-size", *map(str, plan.view_size),
+                           "--views", *plan.views, "--settle", str(plan.settle_s), "--output", str(out),
+                           "--no-progress"]
+        commands.append((f"demonstrations part {k}", then_mark_done(argv, out / ".done"),
+                         work / "logs" / f"sim_{k}.log"))
+    run_all(commands, jobs, tag="lerobot_policy")
+
+
+def successful_episodes(work: Path, jobs: int) -> list[Path]:
+    """The demonstrations that lifted the cube, in seed order."""
+    kept = []
+    for k in range(jobs):
+        part = work / "sim" / f"part_{k}"
+        if (part / "outcomes.json").is_file():
+            rows = json.loads((part / "outcomes.json").read_text())["episodes"]
+            kept += [(r["seed"], part / f"episode_{r['episode_index']}.hdf5") for r in rows if r["success"]]
+    return [path for _, path in sorted(kept)]
+
+
+def build_demos(work: Path, jobs: int) -> Path:
+    root = work / "demos"
+    if info_path(root).is_file():  # a build moves its dataset into place only when complete
+        return root
+    episodes = successful_episodes(work, jobs)
+    if not episodes:
+        raise SystemExit(f"lerobot_policy: no successful demonstration under {work / 'sim'}")
+    link_episodes(episodes, work / "sim" / "kept")
+    argv = python() + ["-m", "imac_data.build", "--repo", DEMO_REPO, "--recipe", str(RECIPE),
+                       "--source", str(work / "sim" / "kept"), "--root", str(root), "--episodes", str(len(episodes)),
+                       "--workers", str(jobs), "--no-progress", "--overwrite"]
+    run_all([("build demonstrations", argv, work / "logs" / "build.log")], 1, tag="lerobot_policy")
+    return root
+
+
+def select_features(work: Path, demos: Path) -> Path:
+    """What the policy trains on: the built dataset cut to ``KEEP`` by LeRobot's ``remove_feature``."""
+    out = work / "policy_data"
+    if info_path(out).is_file():
+        return out
+    from lerobot.datasets import dataset_tools
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    dataset = LeRobotDataset(DEMO_REPO, root=demos)
+    drop = [k for k, f in dataset.meta.features.items()
+            if k not in KEEP and (f["dtype"] in ("video", "image") or k.startswith(("camera_pose.", "control.")))]
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    dataset_tools.remove_feature(dataset, feature_names=drop, output_dir=tmp, repo_id=POLICY_REPO)
+    os.replace(tmp, out)
+    return out
+
+
+def train_config(work: Path, data: Path, plan: RankingPlan, steps: int, save_every: int, seed: int) -> Path:
+    """lerobot-train's config file: ``CONFIG`` with this run's dataset, features, directory and length."""
+    info = json.loads(info_path(data).read_text())["features"]
+    config = yaml.safe_load(CONFIG.read_text())
+    config["dataset"].update(repo_id=POLICY_REPO, root=str(data))
+    config["dataset"]["image_transforms"]["tfs"]["resize"]["kwargs"]["size"] = list(plan.view_size)
+    config["policy"].update(
+        input_features={STATE: {"type": "STATE", "shape": info[STATE]["shape"]},
+                        image_key(WORKSPACE): {"type": "VISUAL", "shape": [3, *plan.view_size]}},
+        output_features={"action": {"type": "ACTION", "shape": info["action"]["shape"]}})
+    config.update(output_dir=str(work / "train"), seed=seed, steps=steps, save_freq=save_every)
+    path = work / "train_config.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
+def checkpoints(work: Path) -> list[Path]:
+    """Every kept checkpoint's ``pretrained_model`` directory, in step order."""
+    root = work / "train" / "checkpoints"
+    return sorted(p / "pretrained_model" for p in root.glob("[0-9]*") if (p / "pretrained_model").is_dir())
+
+
+def train(work: Path, config: Path, steps: int, threads: int) -> None:
+    last = work / "train" / "checkpoints" / "last" / "pretrained_model"
+    done = checkpoints(work)
+    if done and int(done[-1].parent.name) >= steps:
+        return
+    if last.is_dir():  # lerobot-train's own resume: the weights, the optimiser and the data order
+        argv = [f"--config_path={last / 'train_config.json'}", "--resume=true", f"--steps={steps}"]
+    else:
+        shutil.rmtree(work / "train", ignore_errors=True)  # no checkpoint yet: lerobot-train refuses an old directory
+        argv = [f"--config_path={config}"]
+    env_threads = {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    command = ["env", *(f"{k}={v}" for k, v in env_threads.items()),
+               *python(), "-m", "lerobot.scripts.lerobot_train", *argv]
+
+    def progress() -> str:
+        kept = checkpoints(work)
+        return f"checkpoint {kept[-1].parent.name} of {steps}" if kept else "no checkpoint yet"
+
+    print("lerobot_policy: lerobot-train " + " ".join(argv), flush=True)
+    run_all([("lerobot-train", command, work / "logs" / "train.log", progress)], 1, tag="lerobot_policy")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.lerobot_policy", description=__doc__.split("\n\n")[0])
+    p.add_argument("--work", type=Path, default=Path("runs/lerobot_act"), help="every stage's output (resumable)")
+    p.add_argument("--demos", type=int, default=200, help="demonstrations simulated (the successes are kept)")
+    p.add_argument("--steps", type=int, default=20_000, help="lerobot-train steps")
+    p.add_argument("--save-every", type=int, default=2_000, help="steps between kept checkpoints")
+    p.add_argument("--seed", type=int, default=1000, help="lerobot-train's seed")
+    p.add_argument("--jobs", type=int, default=2, help="processes for the demonstrations and the build")
+    p.add_argument("--threads", type=int, default=1, help="lerobot-train's CPU threads")
+    p.add_argument("--list", action="store_true", help="print the kept checkpoints as lerobot: specs and stop")
+    args = p.parse_args(argv)
+    work = args.work.resolve()
+    if not args.list:
+        plan = RankingPlan(work=work, docs=work)  # the benchmark's protocol: view size, views, chunks, settling
+        simulate_demos(work, plan, args.demos, args.jobs)
+        data = select_features(work, build_demos(work, args.jobs))
+        train(work, train_config(work, data, plan, args.steps, args.save_every, args.seed), args.steps, args.threads)
+    specs = [f"lerobot:{c}" for c in checkpoints(work)]
+    print("\n".join(specs) if specs else f"lerobot_policy: no checkpoint under {work / 'train'}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

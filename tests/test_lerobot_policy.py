@@ -1,0 +1,35 @@
+"""benchmarks.lerobot_policy at toy size: simulated demonstrations, ``imac build``, LeRobot's ``remove_feature`` and
+``lerobot-train``, resumed; the checkpoints load through the benchmark's ``lerobot:`` policies and see what the
+world model draws (docs/ranking.md, "LeRobot checkpoints")."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+
+from benchmarks import lerobot_policy
+from imac_data.layout import STATE, image_key, info_path
+from imac_model.evaluate.policies import load_policy, make_observation
+from imac_model.experiments.ranking.policies import WORKSPACE
+
+
+def test_demonstrations_become_act_checkpoints_that_resume_and_act_on_the_world_models_view(tmp_path, capsys):
+    work = tmp_path / "act"
+    args = ["--work", str(work), "--demos", "2", "--jobs", "1", "--save-every", "1"]
+    assert lerobot_policy.main([*args, "--steps", "1"]) == 0
+    assert lerobot_policy.main([*args, "--steps", "2"]) == 0  # resumes from step 1
+    specs = capsys.readouterr().out.strip().splitlines()[-2:]
+    assert [s.rsplit("/", 2)[-2] for s in specs] == ["000001", "000002"]
+    assert "'resume': True" in (work / "logs" / "train.log").read_text()  # lerobot-train's own config print
+
+    demos = json.loads(info_path(work / "demos").read_text())["features"]
+    assert any(k.startswith("control.motion.") for k in demos)  # an imac build, every stream
+    kept = json.loads(info_path(work / "policy_data").read_text())["features"]
+    assert {k for k, f in kept.items() if f["dtype"] == "video"} == {image_key(WORKSPACE)}
+    assert {STATE, "action"} <= set(kept) and not any(k.startswith(("control.", "camera_pose.")) for k in kept)
+
+    policy = load_policy(specs[-1])
+    assert policy.image_shapes == {image_key(WORKSPACE): (3, 48, 64)}
+    obs = make_observation(torch.rand(1, 3, 48, 64), None, torch.zeros(14), [WORKSPACE], "lift")
+    assert tuple(policy(obs).shape) == (8, 14)
