@@ -1,6 +1,7 @@
 """World-model vs real statistics: scipy and SIMPLER as oracles, hand-made MMRV cases,
 bootstrap coverage on synthetic data of known correlation, and the scatter plot."""
 
+import itertools
 import json
 import math
 import warnings
@@ -14,6 +15,8 @@ from imac_data.errors import InputError
 from imac_model.evaluate.statistics import (
     STATISTIC_FUNCTIONS,
     STATISTICS,
+    balanced_accuracy,
+    best_two_level_guess,
     kendall_tau_b,
     mmrv,
     pearson,
@@ -91,6 +94,33 @@ def test_mmrv_matches_simpler_on_tie_heavy_data():
     r = rng.integers(0, 4, (200, 7)) / 3
     ours = mmrv(v, r)
     np.testing.assert_allclose(ours, [simpler_mmrv(a, b) for a, b in zip(v, r)], atol=1e-15)
+
+
+def test_the_best_two_level_guess_is_the_best_of_every_two_level_labelling():
+    # the committed six-policy set (docs/ranking/results.json): the near grasps high, the rest low
+    six = dict(zip("abcdef", [1.0, 0.68, 1.0, 0.0, 0.0, 0.0]))
+    assert best_two_level_guess(six) == {"mmrv": pytest.approx((0.32 + 0.32 + 0) / 6), "high": ["a", "b", "c"]}
+    assert best_two_level_guess({"a": 0.5, "b": 0.5}) == {"mmrv": None, "high": []}
+    # brute force with SIMPLER's loop over every labelling of the policies with two values, split or not
+    rng = np.random.default_rng(3)
+    for trial in range(300):
+        n = int(rng.integers(3, 9))
+        rates = rng.integers(0, 6, n) / 5 if trial % 2 else rng.random(n)
+        if np.unique(rates).size < 2:
+            continue
+        brute = min(simpler_mmrv(np.array(v, float), rates)
+                    for v in itertools.product((0, 1), repeat=n) if 0 < sum(v) < n)
+        assert best_two_level_guess(dict(enumerate(rates)))["mmrv"] == pytest.approx(brute, abs=1e-12)
+
+
+def test_balanced_accuracy_by_hand():
+    real = [True, True, True, False]
+    assert balanced_accuracy(real, [True, True, False, False]) == pytest.approx((2 / 3 + 1) / 2)
+    assert balanced_accuracy(real, [True] * 4) == 0.5  # blind verdicts: a half, however unbalanced the starts
+    assert balanced_accuracy([True, True], [True, False]) == 0.5  # one class: its recall
+    assert balanced_accuracy([], []) is None
+    with pytest.raises(InputError, match="3 real outcomes, 2"):
+        balanced_accuracy([True, False, True], [True, False])
 
 
 def _true_rates(n_policies, rho, seed):

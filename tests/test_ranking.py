@@ -427,6 +427,12 @@ def test_ranking_benchmark_end_to_end_at_toy_size(toy_run):
         assert parting_chunks(plan, results, "motion+contact", name)["parted"] == sum(a != b for a, b in verdict_pairs(
             plan, results, "motion+contact", name))
     assert "Which chunk:" in report and "| motion+contact | closed_loop | " in report.split("Which chunk:")[1]
+    # against a guess: the per-start balanced accuracy over every policy's starts, counted here by hand
+    pairs = [p for name in plan.names for p in verdict_pairs(plan, results, "motion+contact", name)]
+    recalls = [sum(wm == c for real, wm in pairs if real == c) / n
+               for c in (True, False) if (n := sum(real == c for real, _ in pairs))]
+    assert f"| motion+contact | {sum(recalls) / len(recalls):.3f} | {len(pairs)} |" in report
+    assert "**The best two-level guess**" in report
     assert "## The early gate" in report and "Where the cube goes wrong" in report and (docs / "gate.png").is_file()
     assert f"({sum(rec['labels'])} successes) x 2 seeds" in report
     # a second run finds every stage's outputs and only writes the report again

@@ -120,6 +120,32 @@ def mmrv(world_model, real) -> np.ndarray:
     return out.reshape(lead)
 
 
+def best_two_level_guess(real: Mapping[Hashable, float]) -> dict:
+    """The blind baseline of a policy set: the lowest MMRV of a guess that splits the policies at a real rate and
+    gives each side one value, over every split (``mmrv``, ``high``: the policies guessed better). No two-level
+    guess does better, split or not (tests/test_evaluate_statistics.py): a set where it is low cannot tell a
+    world model from a guess."""
+    names, r = list(real), np.asarray([real[k] for k in real], dtype=np.float64)
+    splits = np.unique(r)[1:]
+    if splits.size == 0:
+        return {"mmrv": None, "high": []}
+    guesses = (r[None] >= splits[:, None]).astype(np.float64)
+    scores = mmrv(guesses, np.broadcast_to(r, guesses.shape))
+    best = int(np.argmin(scores))
+    return {"mmrv": float(scores[best]), "high": [n for n, g in zip(names, guesses[best]) if g]}
+
+
+def balanced_accuracy(real, world_model) -> float | None:
+    """The mean over real outcomes (success, failure) of the share of starts where the world model's verdict
+    agrees: 0.5 for any verdict blind to the start. A class absent from ``real`` is left out; None without
+    starts."""
+    real, wm = np.asarray(real, dtype=bool), np.asarray(world_model, dtype=bool)
+    if real.shape != wm.shape:
+        raise InputError(f"balanced_accuracy: {real.shape[0]} real outcomes, {wm.shape[0]} world-model verdicts")
+    recalls = [float(np.mean(wm[real == c] == c)) for c in (True, False) if np.any(real == c)]
+    return float(np.mean(recalls)) if recalls else None
+
+
 STATISTIC_FUNCTIONS = {"pearson": pearson, "spearman": spearman, "kendall": kendall_tau_b, "mmrv": mmrv}
 
 
