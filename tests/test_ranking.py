@@ -46,6 +46,7 @@ from imac_model.data.scene_warp import SceneWarp
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
+from imac_model.experiments.ranking.benchmark import STAGE_FUNCTIONS
 from imac_model.experiments.ranking.evaluation import chunk_end_heights, evaluate_mode
 from imac_model.experiments.ranking.gate import measure_gate, read_gates
 from imac_model.experiments.ranking.gpu import export_runs, import_gpu_runs, runs_file
@@ -53,7 +54,7 @@ from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
-from imac_model.experiments.ranking.report import _relative, rewrite_report, write_report
+from imac_model.experiments.ranking.report import _relative, rewrite_report, training_log, write_report
 from imac_model.experiments.ranking.report_text import parting_chunks, verdict_pairs
 from imac_model.experiments.ranking.training import GateStop, stage_train
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT
@@ -535,6 +536,43 @@ def test_a_toy_mode_registered_alone_trains_is_gated_evaluated_and_reported(toy_
     assert f"| policy | MuJoCo | {' | '.join(plan.modes)} |" in report and f"| {toy} | lift_geometry |" in report
     assert f"| {toy} | {plan.cpu_budget(toy):g} |" in report  # its gate
     assert (plan.docs / f"scatter_{toy}.png").is_file()
+
+
+def test_a_mode_trained_again_from_another_seed_is_a_run_of_its_own_and_the_goal_reads_their_mean(toy_run, tmp_path):
+    """``motion+contact@seed1``: the same mode, data and budget from training seed + 1, through the train, evaluate
+    and report stages; the goal's figures are the mean over the seeds (docs/ranking.md, "Seeds")."""
+    work, _ = toy_run
+    ran = RankingPlan.load(work / "plan.json")
+    again = "motion+contact@seed1"
+    plan = dataclasses.replace(ran, work=tmp_path / "work", docs=tmp_path / "docs", modes=ran.modes + (again,))
+    plan.work.mkdir()
+    for part in ("datasets", "judges", "sim", "chunkcache"):
+        (plan.work / part).symlink_to(work / part)
+    for mode in ran.modes:
+        for done in (ran.run_dir(mode), ran.wm_dir(mode)):
+            (plan.work / done.relative_to(work)).parent.mkdir(parents=True, exist_ok=True)
+            (plan.work / done.relative_to(work)).symlink_to(done)
+    (plan.work / "plan.json").write_text(json.dumps(plan.to_dict()))
+    run = plan.run_config(again)
+    assert (run.conditioning.mode, run.train.seed) == ("motion+contact", ran.seed + 1)
+    assert plan.run_dir(again).name == "motion_contact_seed1" and plan.cpu_budget(again) == plan.cpu_minutes
+    for stage in ("train", "evaluate", "report"):
+        STAGE_FUNCTIONS[stage](plan)
+    first, other = (training_log(plan.run_dir(m))["rows"] for m in ("motion+contact", again))
+    assert [r["step"] for r in first] == [r["step"] for r in other] and first[-1]["loss"] != other[-1]["loss"]
+    results = json.loads((plan.docs / "results.json").read_text())
+    assert set(results["evaluations"][again]["policies"]) == set(plan.names)
+    pearson = [results["statistics"][m]["lift_geometry"]["levels"]["policy"]["pearson"]["value"]
+               for m in ("motion+contact", again)]
+    mmrv = [results["statistics"][m]["lift_geometry"]["levels"]["policy"]["mmrv"]["value"]
+            for m in ("motion+contact", again)]
+    report = (plan.docs / "README.md").read_text()
+    assert f"| {again} | lift_geometry | policy |" in report
+    expect = f"MMRV {np.mean(mmrv):.3f} over 2 seeds: {mmrv[0]:.3f}, {mmrv[1]:.3f}"
+    assert expect in report, report.split("**Goal**")[1][:400]
+    assert (None in pearson) or f"Pearson {np.mean(pearson):.3f} over 2 seeds" in report
+    with pytest.raises(InputError, match="@seedK"):
+        dataclasses.replace(plan, modes=("motion+contact@seedX",))
 
 
 def test_the_pack_stage_alone_makes_only_the_training_side_and_the_same_pack(toy_run, tmp_path):

@@ -46,10 +46,9 @@ from imac_model.evaluate.success import (
 from imac_model.experiments.ranking.gate import reseeded
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import RED_THRESHOLD, interior, redness, without_cube
-from imac_model.experiments.ranking.plan import EVAL_REPO, GATED_MODE, TRAIN_REPO, RankingPlan, slug
+from imac_model.experiments.ranking.plan import EVAL_REPO, GATED_MODE, TRAIN_REPO, RankingPlan, run_mode, slug
 from imac_model.experiments.ranking.policies import WORKSPACE
 from imac_model.models.checkpoint import load_world_model
-from imac_model.modes import conditioning_mode
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import open_chunks
 from imac_model.schedulers import flow
@@ -280,7 +279,7 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
 
 def evaluated_policies(plan: RankingPlan, mode: str) -> tuple[str, ...]:
     """The policies run closed loop in ``mode``'s world model (``none`` is policy-blind: one, once)."""
-    return plan.policies[:1] if conditioning_mode(mode).blind else plan.policies
+    return plan.policies[:1] if run_mode(mode).blind else plan.policies
 
 
 def policy_dir(plan: RankingPlan, mode: str, policy: str) -> Path:
@@ -394,7 +393,7 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     chunks = open_chunks(spec, EVAL_REPO, str(plan.eval_dataset), episodes=sorted(set(starts + replay)))
     online = _online(plan, model, chunks)
     result = {"mode": mode, "start_episodes": starts, "sampler_steps": plan.steps, "policies": {}}
-    blind = conditioning_mode(mode).blind
+    blind = run_mode(mode).blind
     if blind:
         result["none_check"] = none_is_policy_blind(plan, model, online, chunks, starts[:2])
     for policy in evaluated_policies(plan, mode):

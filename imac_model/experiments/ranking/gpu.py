@@ -19,11 +19,11 @@ from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.data.pack import export_pack
 from imac_model.experiments.ranking.ablations import ablation
 from imac_model.experiments.ranking.datasets import stage_build, stage_decode
-from imac_model.experiments.ranking.plan import GATED_MODE, TRAIN_REPO, RankingPlan, internal
+from imac_model.experiments.ranking.plan import GATED_MODE, SEED_MARK, TRAIN_REPO, RankingPlan, internal, run_mode
 from imac_model.experiments.ranking.simulate import stage_simulate
 from imac_model.experiments.stages import REPO_ROOT, python, run_all
 from imac_model.models.checkpoint import list_checkpoints
-from imac_model.modes import SCENE_WARP, conditioning_mode
+from imac_model.modes import SCENE_WARP
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.packed_contact import contact_geometry, geometry_constants
 from imac_model.training.archive import archives_in, read_archive, run_name, unpack_checkpoint, write_archive
@@ -57,7 +57,8 @@ def runs_file(plan: RankingPlan) -> RunsFile:
     of wall time each."""
     base = plan.run_config(GATED_MODE).replace(**yaml.safe_load(GPU_CONFIG.read_text()),
                                                 **{"train.max_minutes": plan.gpu_minutes, "train.max_cpu_minutes": None})
-    runs = {plan.run_dir(mode).name: {"conditioning.mode": mode} for mode in plan.modes}
+    runs = {plan.run_dir(mode).name: {k: plan.mode_overrides(mode)[k] for k in ("conditioning.mode", "train.seed")
+                                      if k == "conditioning.mode" or SEED_MARK in mode} for mode in plan.modes}
     for name in plan.gpu_ablations:
         arm = ablation(name, plan.chunks)
         runs[arm.arm] = {"conditioning.mode": GATED_MODE, **arm.changes}
@@ -122,7 +123,7 @@ def export_runs(plan: RankingPlan, directory: Path, runs: list[str] | None = Non
     """This work directory's trained runs (default: the plan's modes') as run archives
     ``directory/<run>.tar.xz``: the latest checkpoint and the whole log, which :func:`import_gpu_runs`
     reads back on another machine and ``train.init`` starts a run from. Every run is checked before any is written."""
-    names = runs or [plan.run_dir(mode).name for mode in plan.modes if not conditioning_mode(mode).blind]
+    names = runs or [plan.run_dir(mode).name for mode in plan.modes if not run_mode(mode).blind]
     found = {n: list_checkpoints(plan.work / "runs" / n) for n in names}
     missing = [n for n, ckpts in found.items() if not ckpts]
     if missing:

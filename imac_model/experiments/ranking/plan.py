@@ -13,7 +13,7 @@ from imac_data.sources.sim.rig import RIG_CAMERAS
 from imac_model.config import load_run_config
 from imac_model.experiments.ranking.policies import POLICIES, TRAINING_OFFSETS, VIEWS, WORKSPACE
 from imac_model.experiments.stages import REPO_ROOT, python
-from imac_model.modes import MODES, conditioning_mode
+from imac_model.modes import MODES, ConditioningMode, conditioning_mode
 
 POLICY_MODULE = "imac_model.experiments.ranking.policies"
 JUDGE = "python:imac_model.experiments.ranking.judge:lift_judge"
@@ -25,6 +25,7 @@ CAMERAS = tuple(RIG_CAMERAS.values())  # what the simulated rig records
 GATED_MODE = "motion+contact"
 BASELINE_MODE = "action-vector"
 CHECK_MODE = "none"  # policy-blind: trained on none_minutes, run once, its frames bit-identical across policies
+SEED_MARK = "@seed"  # "motion+contact@seed1": motion+contact trained again, from training seed plan.seed + 1
 STAGES = ("simulate", "build", "decode", "pack", "train", "judges", "evaluate", "report")
 EVAL_SEED0 = 100_000  # evaluation start of group g, episode i: EVAL_SEED0 + 1000 g + i
 TRAIN_SEED0 = 200_000  # the training rollouts' starts: never an evaluation start
@@ -33,6 +34,15 @@ TRAIN_REPO, EVAL_REPO = "local/ranking_train", "local/ranking_eval"
 TOY_MODEL = {"backbone.unet.channels": [8, 16], "backbone.unet.blocks": 1, "backbone.unet.frame_dim": 4,
              "train.max_steps": 6, "train.eval_every": 3, "train.checkpoint_every": 6,
              "train.log_every": 3, "train.warmup_steps": 1}
+
+
+def base_mode(run: str) -> str:
+    """The conditioning mode a run of the plan trains: ``MODE``, or ``MODE@seedK``, the same from another seed."""
+    return run.split(SEED_MARK, 1)[0]
+
+
+def run_mode(run: str) -> ConditioningMode:
+    return conditioning_mode(base_mode(run))
 
 
 def slug(spec: str) -> str:
@@ -93,9 +103,11 @@ class RankingPlan:
         names = [slug(p) for p in self.policies]
         if len(self.policies) < 2 or len(set(names)) != len(names):
             raise InputError(f"ranking: need at least two policies with distinct names, got {names}")
-        unknown = [m for m in self.modes if m not in MODES]
+        unknown = [m for m in self.modes if base_mode(m) not in MODES
+                   or (SEED_MARK in m and not m.split(SEED_MARK, 1)[1].isdigit())]
         if unknown or not self.modes:
-            raise InputError(f"ranking: modes {unknown or list(self.modes)}; choose from {list(MODES)}")
+            raise InputError(f"ranking: modes {unknown or list(self.modes)}; choose from {list(MODES)}, each with "
+                             f"{SEED_MARK}K for a run from another training seed")
         if not 0 < self.wm_per_group <= self.real_per_group:
             raise InputError("ranking: wm_per_group must be between 1 and real_per_group")
         if not 0 <= self.held_out < self.train_episodes:
@@ -149,10 +161,10 @@ class RankingPlan:
         return self.work / "gpu" / "pack.npz"
 
     def run_dir(self, mode: str) -> Path:
-        return self.work / "runs" / mode.replace("+", "_").replace("-", "_")
+        return self.work / "runs" / mode.replace("+", "_").replace("-", "_").replace("@", "_")
 
     def wm_dir(self, mode: str) -> Path:
-        return self.work / "wm" / mode.replace("+", "_").replace("-", "_")
+        return self.work / "wm" / mode.replace("+", "_").replace("-", "_").replace("@", "_")
 
     def held_out_episodes(self) -> list[int]:
         """The training rollouts kept out of training: the last ``held_out``."""
@@ -171,13 +183,14 @@ class RankingPlan:
     def cpu_budget(self, mode: str) -> float:
         """``mode``'s training budget in CPU-minutes: ``none_minutes`` for a policy-blind mode (the harness
         check), else ``cpu_minutes``."""
-        return self.none_minutes if conditioning_mode(mode).blind else self.cpu_minutes
+        return self.none_minutes if run_mode(mode).blind else self.cpu_minutes
 
     def mode_overrides(self, mode: str) -> dict:
         out = {"data.dataset": TRAIN_REPO, "data.root": str(self.train_dataset),
                "data.cache_dir": str(self.work / "chunkcache"), "data.held_out_episodes": self.held_out_episodes(),
                "train.max_cpu_minutes": self.cpu_budget(mode), "train.output_dir": str(self.run_dir(mode)),
-               "train.seed": self.seed, "conditioning.mode": mode, "data.view_height": self.view_size[0],
+               "train.seed": self.seed + int(mode.split(SEED_MARK)[1] if SEED_MARK in mode else 0),
+               "conditioning.mode": base_mode(mode), "data.view_height": self.view_size[0],
                "data.view_width": self.view_size[1], "data.views": list(self.views)}
         return {**out, **(TOY_MODEL if self.toy else {}), **self.overrides}
 

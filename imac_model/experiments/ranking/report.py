@@ -20,12 +20,11 @@ from imac_model.evaluate.pictures import label
 from imac_model.evaluate.statistics import plot_policy_scatter, policy_correlation
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
 from imac_model.experiments.ranking.gate import read_gates
-from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, slug
+from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, run_mode, slug
 from imac_model.experiments.ranking.report_text import markdown, shown_path, stopped_markdown
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 from imac_model.models.checkpoint import list_checkpoints, read_spec
 from imac_model.models.world_model import WorldModel
-from imac_model.modes import conditioning_mode
 from imac_model.training.log import read_log
 
 
@@ -57,7 +56,7 @@ def shown_mode(plan: RankingPlan) -> str:
     """The mode whose rollouts the report pictures: of the plan's modes, the one with the most control streams,
     else one with the action vector, else the first (read off the registry: motion+contact before motion before
     action-vector)."""
-    return max(plan.modes, key=lambda m: (len(conditioning_mode(m).streams), conditioning_mode(m).action_vector))
+    return max(plan.modes, key=lambda m: (len(run_mode(m).streams), run_mode(m).action_vector))
 
 
 def judges_of(plan: RankingPlan) -> list[str]:

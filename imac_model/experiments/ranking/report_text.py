@@ -11,7 +11,7 @@ import numpy as np
 from imac_model.evaluate.statistics import STATISTICS, balanced_accuracy, best_two_level_guess
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
 from imac_model.experiments.ranking.gate import GATED_MODE, cube_by_view, gate_verdict
-from imac_model.experiments.ranking.plan import BASELINE_MODE, RankingPlan, slug
+from imac_model.experiments.ranking.plan import BASELINE_MODE, RankingPlan, base_mode, slug
 from imac_model.experiments.stages import REPO_ROOT
 
 
@@ -45,21 +45,29 @@ GRADED = (0.15, 0.85)  # MuJoCo rates strictly between these: the policies whose
 
 
 def _verdict(stats: dict) -> str:
-    """The ranking goal, read off the figures: at the policy level, Pearson and MMRV of the headline mode
-    (``GATED_MODE``, motion+contact; lift judge) within ``GOAL``, with the baseline (``BASELINE_MODE``,
-    action-vector) beside it."""
-    def value(mode, name):
-        return stats.get(mode, {}).get("lift_geometry", {}).get("levels", {}).get("policy", {}).get(name, {}).get("value")
+    """The ranking goal, read off the figures: at the policy level, the mean Pearson and MMRV over the training
+    seeds of the headline mode (``GATED_MODE``, motion+contact; lift judge) within ``GOAL``, with the baseline
+    (``BASELINE_MODE``, action-vector) beside it."""
+    def values(mode, name):
+        runs = [m for m in stats if base_mode(m) == mode]
+        got = [stats[m]["lift_geometry"]["levels"]["policy"][name]["value"] for m in runs]
+        return [v for v in got if v is not None], len(runs)
 
-    p, m = value(GATED_MODE, "pearson"), value(GATED_MODE, "mmrv")
+    def mean(mode, name):
+        got, runs = values(mode, name)
+        spread = f" over {runs} seeds: {', '.join(_fmt(v) for v in got)}" if runs > 1 else ""
+        return (float(np.mean(got)) if got and len(got) == runs else None), spread
+
+    (p, p_seeds), (m, m_seeds) = mean(GATED_MODE, "pearson"), mean(GATED_MODE, "mmrv")
     if p is None and m is None:
         return f"**Goal.** Not measured: no `{GATED_MODE}` run, or its world-model rates do not vary."
     met = p is not None and m is not None and p >= GOAL["pearson"] and m <= GOAL["mmrv"]
-    text = (f"**Goal** (policy level, lift judge: Pearson >= {GOAL['pearson']} and MMRV <= {GOAL['mmrv']} for "
-            f"`{GATED_MODE}`): {'met' if met else 'not met'} (Pearson {_fmt(p)}, MMRV {_fmt(m)}).")
-    if BASELINE_MODE in stats:
-        text += (f" `{BASELINE_MODE}`: Pearson {_fmt(value(BASELINE_MODE, 'pearson'))}, "
-                 f"MMRV {_fmt(value(BASELINE_MODE, 'mmrv'))}.")
+    text = (f"**Goal** (policy level, lift judge, the mean over training seeds: Pearson >= {GOAL['pearson']} and "
+            f"MMRV <= {GOAL['mmrv']} for `{GATED_MODE}`): {'met' if met else 'not met'} (Pearson {_fmt(p)}{p_seeds}; "
+            f"MMRV {_fmt(m)}{m_seeds}).")
+    if any(base_mode(x) == BASELINE_MODE for x in stats):
+        text += (f" `{BASELINE_MODE}`: Pearson {_fmt(mean(BASELINE_MODE, 'pearson')[0])}, "
+                 f"MMRV {_fmt(mean(BASELINE_MODE, 'mmrv')[0])}.")
     return text
 
 
