@@ -52,7 +52,7 @@ from imac_model.experiments.ranking.gate import measure_gate, read_gates
 from imac_model.experiments.ranking.gpu import export_runs, import_gpu_runs, runs_file
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
-from imac_model.experiments.ranking.plan import EVAL_REPO, TRAIN_REPO, RankingPlan
+from imac_model.experiments.ranking.plan import CHECKPOINTS, EVAL_REPO, TRAIN_REPO, RankingPlan, checkpoints_plan, slug
 from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
 from imac_model.experiments.ranking.report import _relative, rewrite_report, training_log, write_report
 from imac_model.experiments.ranking.report_text import parting_chunks, verdict_pairs
@@ -573,6 +573,27 @@ def test_a_mode_trained_again_from_another_seed_is_a_run_of_its_own_and_the_goal
     assert (None in pearson) or f"Pearson {np.mean(pearson):.3f} over 2 seeds" in report
     with pytest.raises(InputError, match="@seedK"):
         dataclasses.replace(plan, modes=("motion+contact@seedX",))
+
+
+def test_the_checkpoint_preset_is_its_files_plan_and_refuses_a_missing_checkpoint(tmp_path):
+    shipped = yaml.safe_load(CHECKPOINTS.read_text())
+    names = [slug(p) for p in shipped["policies"]]
+    assert len(set(names)) == len(names) >= 10 and "lerobot_020000" in names
+    ckpt = tmp_path / "act" / "checkpoints" / "002000" / "pretrained_model"
+    ckpt.mkdir(parents=True)
+    (ckpt / "config.json").write_text("{}")  # the plan checks that a checkpoint is there; loading it is the runners'
+    preset = tmp_path / "preset.yaml"
+    scripted = [p for p in shipped["policies"] if p.startswith("python:")]
+    preset.write_text(yaml.safe_dump({**shipped, "policies": [*scripted, f"lerobot:{ckpt}"]}))
+    plan = checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)
+    assert plan.names == [slug(p) for p in scripted] + ["lerobot_002000"] and plan.modes == tuple(shipped["modes"])
+    assert len(plan.eval_seeds()) == len(plan.wm_starts()) == 100  # the same starts in MuJoCo and the world model
+    (ckpt / "config.json").unlink()
+    with pytest.raises(InputError, match="benchmarks.lerobot_policy"):
+        checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)
+    preset.write_text(yaml.safe_dump({"policy": scripted}))
+    with pytest.raises(InputError, match=r"not settings of a ranking plan: \['policy'\]"):
+        checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)
 
 
 def test_the_pack_stage_alone_makes_only_the_training_side_and_the_same_pack(toy_run, tmp_path):

@@ -195,9 +195,11 @@ def _ranking(p: argparse.ArgumentParser) -> None:
                         "'The views')")
     p.add_argument("--toy", action="store_true", help="the CI size: tiny backbone, 2 policies, 4 episodes, "
                                                        "2 chunks, 2 modes, 2 sampler steps")
-    p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",
-                   help="cpu (default: every mode trained on the CPU budget) or gpu (motion+contact and "
-                        "action-vector trained 8 minutes each on one GPU from the tensor pack; docs/ranking.md)")
+    p.add_argument("--preset", choices=("cpu", "gpu", "checkpoints"), default="cpu",
+                   help="cpu (default: every mode trained on the CPU budget), gpu (motion+contact and "
+                        "action-vector trained 8 minutes each on one GPU from the tensor pack) or checkpoints (the "
+                        "graded scripted policies and lerobot-train checkpoints, 100 starts, 3 training seeds: "
+                        "imac_model/configs/ranking_checkpoints.yaml); docs/ranking.md")
     p.add_argument("--stages", help=f"comma-separated subset of {','.join(RANKING_STAGES)} (default: every stage "
                                     "the preset needs; pack, the GPU's training tensors, with --preset gpu only)")
     p.add_argument("--plan", help=argparse.SUPPRESS)

@@ -17,7 +17,7 @@ from imac_model.experiments.ranking.datasets import decode_chunks
 from imac_model.experiments.ranking.evaluation import evaluate_mode, evaluate_policy, replays, run_judges
 from imac_model.experiments.ranking.gate import measure_gate
 from imac_model.experiments.ranking.gpu import export_runs, export_training_pack, import_gpu_runs
-from imac_model.experiments.ranking.plan import STAGES, RankingPlan, gpu_plan, toy_plan
+from imac_model.experiments.ranking.plan import STAGES, RankingPlan, checkpoints_plan, gpu_plan, toy_plan
 from imac_model.experiments.ranking.report import rewrite_report
 from imac_model.experiments.ranking.simulate import simulate_training_part
 from imac_model.experiments.ranking.status import status
@@ -33,9 +33,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _plan(args: argparse.Namespace) -> RankingPlan:
     work, docs = Path(args.work).resolve(), Path(args.docs).resolve()
-    if args.toy and args.preset == "gpu":
-        raise InputError("--toy and --preset gpu are two sizes; choose one")
+    if args.toy and args.preset != "cpu":
+        raise InputError(f"--toy and --preset {args.preset} are two sizes; choose one")
     plan = toy_plan(work, docs) if args.toy else gpu_plan(work, docs) if args.preset == "gpu" else \
+        checkpoints_plan(work, docs) if args.preset == "checkpoints" else \
         RankingPlan(work=work, docs=docs)
     changes = {k: v for k, v in (("policies", tuple(args.policies or ()) or None), ("cpu_minutes", args.cpu_minutes),
                                  ("steps", args.steps), ("jobs", args.jobs),

@@ -8,6 +8,8 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import yaml
+
 from imac_data.errors import InputError
 from imac_data.sources.sim.rig import RIG_CAMERAS
 from imac_model.config import load_run_config
@@ -19,6 +21,7 @@ POLICY_MODULE = "imac_model.experiments.ranking.policies"
 JUDGE = "python:imac_model.experiments.ranking.judge:lift_judge"
 RECIPE = REPO_ROOT / "recipes" / "aloha_sim_lift.yaml"
 CONFIG = REPO_ROOT / "imac_model" / "configs" / "ranking.yaml"
+CHECKPOINTS = REPO_ROOT / "imac_model" / "configs" / "ranking_checkpoints.yaml"  # the checkpoint preset's settings
 CAMERAS = tuple(RIG_CAMERAS.values())  # what the simulated rig records
 # the benchmark's choices among the conditioning modes (imac_model.modes.MODES lists them all): the headline mode,
 # gated early (gate.py) and judged at both sampler steps; the baseline it is compared against; the harness check
@@ -46,7 +49,11 @@ def run_mode(run: str) -> ConditioningMode:
 
 
 def slug(spec: str) -> str:
-    """A policy's name in tables and paths: ``python:M:NAME`` -> ``NAME``."""
+    """A policy's name in tables and paths: ``python:M:NAME`` -> ``NAME``; a lerobot-train checkpoint,
+    ``lerobot:.../checkpoints/STEP/pretrained_model`` -> ``lerobot_STEP``."""
+    parts = Path(spec.split(":", 1)[-1]).parts
+    if spec.startswith("lerobot:") and len(parts) >= 3 and parts[-3:-2] == ("checkpoints",) and parts[-2].isdigit():
+        return f"lerobot_{parts[-2]}"
     return spec.rsplit(":", 1)[-1].replace("/", "_")
 
 
@@ -218,6 +225,25 @@ def gpu_plan(work: Path, docs: Path) -> RankingPlan:
     CPU budget; a short GPU loan fits it (docs/ranking.md, "The GPU preset")."""
     return RankingPlan(work=work, docs=docs, modes=(GATED_MODE, BASELINE_MODE), gpu_minutes=8.0,
                        gate_every=None)
+
+
+def checkpoints_plan(work: Path, docs: Path, path: Path = CHECKPOINTS) -> RankingPlan:
+    """The checkpoint preset (docs/ranking.md, "Ranking checkpoints"): ``path``'s settings, a YAML file of
+    RankingPlan fields, over the defaults; its ``lerobot:`` policies, relative to the repository, must exist."""
+    data = yaml.safe_load(Path(path).read_text()) or {}
+    unknown = set(data) - {f.name for f in dataclasses.fields(RankingPlan)} | {"work", "docs"} & set(data)
+    if unknown:
+        raise InputError(f"{path}: not settings of a ranking plan: {sorted(unknown)}")
+    policies = []
+    for spec in data.get("policies", ()):
+        if spec.startswith("lerobot:"):
+            spec = f"lerobot:{REPO_ROOT / spec[len('lerobot:'):]}"
+            if not Path(spec[len("lerobot:"):], "config.json").is_file():
+                raise InputError(f"{path}: policy {spec}: no LeRobot checkpoint there; `python -m "
+                                 "benchmarks.lerobot_policy` trains them (docs/ranking.md, \"LeRobot checkpoints\")")
+        policies.append(spec)
+    data.update({"policies": policies} if policies else {})
+    return RankingPlan(work=work, docs=docs, **{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
 
 
 def toy_plan(work: Path, docs: Path) -> RankingPlan:

@@ -238,6 +238,8 @@ def _relative(value):
         return {k: _relative(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_relative(v) for v in value]
+    if isinstance(value, str) and value.startswith("lerobot:"):  # a policy spec
+        return "lerobot:" + _relative(value[len("lerobot:"):])
     if isinstance(value, (str, Path)) and Path(value).is_absolute() and Path(value).is_relative_to(REPO_ROOT):
         return shown_path(Path(value))
     return value
