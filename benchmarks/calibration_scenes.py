@@ -11,6 +11,8 @@ directory of its own, with nothing else: no calibration file, no segmentation. T
 * :func:`panda_episodes`: the Franka Panda URDF that pybullet ships, moving between random
   waypoints above a floor, rendered by pybullet's TinyRenderer from random placements.
 * :func:`degrade_depth`: depth scaled and with Gaussian noise, as from a monocular estimator.
+* :func:`aloha_out_of_step`: the ALOHA episodes with the cameras out of step with the joint states
+  by a known time offset (recorded at 50 fps, subsampled to 25 fps).
 """
 
 from __future__ import annotations
@@ -122,6 +124,57 @@ def degrade_depth(src: Path, out: Path, camera: str, *, scale: float, noise: flo
         d = d * scale * (1.0 + noise * rng.standard_normal(d.shape).astype(np.float32))
         ep.depth_mm[camera] = np.where(valid, np.maximum(d, 1.0), 0.0).astype(np.float32)
         write_episode(out / p.name, ep, sim=False)
+
+
+def aloha_recorded_50fps(out: Path, *, seed: int, episodes: int = 1, height: int = 480, width: int = 640,
+                         max_steps: int | None = None) -> dict[str, Camera]:
+    """Scripted transfer-cube episodes recorded at every 50 Hz control step (``frame_stride`` 1) into
+    ``out``: the raw material of :func:`aloha_out_of_step`; returns the truth."""
+    from imac_data.core.cameras import load_calibration
+    from imac_data.sources.sim.recorder import SimConfig, record_dataset
+
+    record_dataset(SimConfig(num_episodes=episodes, width=width, height=height, seed=seed, noise=0.0, frame_stride=1,
+                             max_steps=max_steps), out, progress=False, overwrite=True)
+    truth = load_calibration(out / "calibration.json")
+    (out / "calibration.json").unlink()
+    return truth
+
+
+def aloha_out_of_step(source: Path, out: Path, offset_steps: int | dict[str, int], *, stride: int = 2
+                      ) -> float | dict[str, float]:
+    """``source``'s 50 fps episodes (:func:`aloha_recorded_50fps`) at 50 / ``stride`` fps with the
+    cameras out of step: frame k keeps the joint states (and actions) of control step ``stride * k``,
+    and its RGB and depth are those of step ``stride * k + offset_steps``, so the images show the robot
+    ``offset_steps`` control steps (20 ms each) later than its joint states say; negative: earlier (the
+    cameras lag, as USB cameras often do). Frames whose image step falls outside the recording are
+    dropped; ``offset_steps`` may be a dict, one per camera (0 for the others). Returns the offset in seconds (the image's time minus the joint states' time), which
+    includes the simulator's own: its frames are rendered from MuJoCo's kinematics of the step's last
+    physics substep (``mj_step`` computes positions before it integrates), so even in step they show
+    the robot one physics step (2 ms) earlier than the recorded joint states (:func:`sim_render_lag`)."""
+    out.mkdir(parents=True, exist_ok=True)
+    lag = sim_render_lag()
+    for p in episode_paths(source):
+        ep = read_episode(p)
+        n = len(ep.qpos)
+        steps = {c: offset_steps.get(c, 0) if isinstance(offset_steps, dict) else offset_steps for c in ep.images}
+        k = np.arange(0, n, stride)
+        k = k[(k + min(steps.values()) >= 0) & (k + max(steps.values()) < n)]
+        write_episode(out / p.name, RawEpisode(qpos=ep.qpos[k], action=ep.action[k],
+                                               images={c: v[k + steps[c]] for c, v in ep.images.items()},
+                                               depth_mm={c: v[k + steps[c]] for c, v in ep.depth_mm.items()},
+                                               fps=50.0 / stride), sim=False)
+    if isinstance(offset_steps, dict):
+        return {c: s * 0.02 - lag for c, s in steps.items()}
+    return offset_steps * 0.02 - lag
+
+
+def sim_render_lag() -> float:
+    """How much earlier than its recorded joint states the simulator's frames show the robot (seconds):
+    one physics step of the gym-aloha scene (the recorder renders after ``mj_step`` without ``mj_forward``)."""
+    from imac_data.core.mujoco_gl import mujoco
+    from imac_data.core.robot.aloha import mjcf_path
+
+    return float(mujoco.MjModel.from_xml_path(str(mjcf_path("transfer_cube"))).opt.timestep)
 
 
 # ----------------------------------------------------------------------------- Franka Panda (pybullet)

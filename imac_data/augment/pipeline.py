@@ -22,11 +22,72 @@ from imac_data.augment.timing import StageTimer
 from imac_data.console import raise_if_interrupted
 from imac_data.core.contact.images import chunk_plan
 from imac_data.core.depth import DepthCodec, resize_depth
+from imac_data.core.motion import joints_at
 from imac_data.errors import InputError
 from imac_data.layout import CAP_KEY, MOTION, R2S, S2G, depth_key, depth_map_key, stream_keys
 from imac_data.sources.depth import EpisodeViews, RecordedDepth
 
 __all__ = ["ChunkOutput", "EpisodePipeline"]
+
+
+class _CameraTimes:
+    """Each camera at its own time: a camera whose frame stamped ``t`` shows the robot at the joint
+    states of ``t + time_offset_s`` is rendered and posed at the joint vectors (measured and drawn)
+    interpolated there (:func:`~imac_data.core.motion.joints_at`: linear, clamped at the
+    episode's ends). Cameras of one offset are rendered together. The s2g stream's gripper, one for all
+    views, is placed at the median of the cameras' offsets. ``shifted`` is False when every offset is
+    0: the pipeline then runs as it always did (byte-identical output)."""
+
+    def __init__(self, rig, state: np.ndarray, drawn: np.ndarray, fps: float | None, *, where: str):
+        offsets = {c: cam.time_offset_s for c, cam in rig.cameras.items()}
+        self.shifted = any(offsets.values())
+        if not self.shifted:
+            return
+        if not fps:
+            raise InputError(f"{where}: camera time offsets {offsets} need the episodes' frame rate (set fps in "
+                             "the recipe)")
+        self.rig, self.names = rig, rig.names
+        frames = np.arange(len(state), dtype=np.float64)
+        groups: dict[float, list[str]] = {}
+        for c, d in offsets.items():
+            groups.setdefault(d, []).append(c)
+        self.groups = []  # (sub-rig of the cameras of one offset, measured (T, D), drawn (T, D))
+        for d, cams in groups.items():
+            sub = rig.for_views(cams)
+            sub._renderer, sub._gripper = rig.renderer, rig.gripper  # one renderer and gripper surface
+            self.groups.append((sub, joints_at(state, frames + d * fps), joints_at(drawn, frames + d * fps)))
+        self.gripper_q = joints_at(drawn, frames + float(np.median(list(offsets.values()))) * fps)
+        order = [c for sub, _, _ in self.groups for c in sub.names]
+        self.order = torch.as_tensor([order.index(c) for c in self.names])
+
+    def poses(self, lo: int, hi: int) -> dict[str, np.ndarray]:
+        """Camera-to-world ``(n, 4, 4)`` float64 per camera at the measured state of its own time."""
+        out = {}
+        for sub, measured, _ in self.groups:
+            T = sub.camera_poses(measured[lo:hi], dtype=torch.float64).numpy()
+            out.update({c: T[:, v] for v, c in enumerate(sub.names)})
+        return {c: out[c] for c in self.names}
+
+    def views(self, lo: int, hi: int, res, *, gripper: bool = True, measured: bool = False):
+        """:meth:`Rig.robot_views` of frames ``lo .. hi - 1``, each camera at its own time (drawn
+        configurations, or the measured state), views in the rig's order."""
+        from imac_data.core.rig import RobotViews
+
+        parts = [sub.robot_views(link_poses=sub.link_poses(torch.as_tensor((m if measured else d)[lo:hi],
+                                                                           dtype=torch.float32)),
+                                 resolution=res, gripper=False) for sub, m, d in self.groups]
+
+        def cat(attr):
+            if getattr(parts[0], attr) is None:
+                return None
+            return torch.cat([getattr(p, attr) for p in parts], dim=1).index_select(1, self.order)
+
+        points = None
+        if gripper:
+            points = self.rig.gripper.points(self.rig.link_poses(torch.as_tensor(self.gripper_q[lo:hi],
+                                                                                 dtype=torch.float32)))
+        return RobotViews(rgb=cat("rgb"), mask=cat("mask"), depth=cat("depth"), link_id=cat("link_id"),
+                          T_world_cam=cat("T_world_cam"), gripper_points=points)
 
 
 @dataclass
@@ -49,10 +110,14 @@ class EpisodePipeline:
     :class:`~imac_data.sources.depth.DepthSource` (default: the recorded depth;
     :class:`~imac_data.sources.depth.NoDepth`: the motion streams only).
     ``threads``: the worker's share of the cores (renderer, contact, KD-tree queries).
+    ``fps``: the episodes' frame rate, needed only when a camera has a time offset
+    (``Camera.time_offset_s``): its renders and poses then use the joint vectors interpolated at the
+    frame's time plus the offset (:class:`_CameraTimes`).
     """
 
-    def __init__(self, rig, settings, depth_source=None, *, timer: StageTimer | None = None, threads: int = 1):
-        self.rig, self.settings = rig, settings
+    def __init__(self, rig, settings, depth_source=None, *, timer: StageTimer | None = None, threads: int = 1,
+                 fps: float | None = None):
+        self.rig, self.settings, self.fps = rig, settings, fps
         self.depth_source = depth_source if depth_source is not None else RecordedDepth()
         self.timer = timer if timer is not None else StageTimer()
         self.threads = max(1, int(threads))
@@ -83,9 +148,11 @@ class EpisodePipeline:
             raise InputError(f"{reader.path}: {reader.num_frames} frames, the joint vectors give {T}")
         res = s.resolution
         with timer("fk"):
+            drawn_q = rig.frame_configurations(state, action, source=s.motion_source)
             q_state = torch.as_tensor(state, dtype=torch.float32)
-            q_drawn = torch.as_tensor(rig.frame_configurations(state, action, source=s.motion_source),
-                                      dtype=torch.float32)
+            q_drawn = torch.as_tensor(drawn_q, dtype=torch.float32)
+        times = _CameraTimes(rig, state, drawn_q, self.fps if self.fps is not None else getattr(reader, "fps", None),
+                             where=str(reader.path))
         need_images = images or getattr(self.depth_source, "needs_images", True)
         carry = None  # stream-resolution depth of the previous chunk's last frame: the next reference
         for ref, frames in chunk_plan(T, s.contact_chunk):
@@ -94,14 +161,20 @@ class EpisodePipeline:
             with timer("read"):
                 rgb = {c: reader.images(c, lo, hi) for c in names} if need_images else {}
                 mm = {c: d for c in names if self.with_depth and (d := reader.depth_mm(c, lo, hi)) is not None}
-            with timer("fk"):
-                poses_t = rig.camera_poses(state[lo:hi], dtype=torch.float64).numpy()
-                poses = {c: poses_t[:, v] for v, c in enumerate(names)}
-                links = rig.link_poses(q_drawn[lo:hi])
-                links_ref = rig.link_poses(q_state[ref:ref + 1])
+            if times.shifted:  # cameras out of step with the joint states: each at its own time
+                with timer("fk"):
+                    poses = times.poses(lo, hi)
+                links = links_ref = None
+            else:
+                with timer("fk"):
+                    poses_t = rig.camera_poses(state[lo:hi], dtype=torch.float64).numpy()
+                    poses = {c: poses_t[:, v] for v, c in enumerate(names)}
+                    links = rig.link_poses(q_drawn[lo:hi])
+                    links_ref = rig.link_poses(q_state[ref:ref + 1])
             if not self.with_depth:  # motion streams only
                 with timer("render"):
-                    motion = rig.robot_views(link_poses=links, resolution=res, gripper=False).rgb.numpy()
+                    motion = (times.views(lo, hi, res, gripper=False) if times.shifted else
+                              rig.robot_views(link_poses=links, resolution=res, gripper=False)).rgb.numpy()
                 timer.frames += hi - lo
                 out = ChunkOutput(lo, hi, {f"{MOTION}.{c}": motion[:, v] for v, c in enumerate(names)}, None,
                                   rgb if images else {}, poses)
@@ -110,8 +183,12 @@ class EpisodePipeline:
                 del out
                 continue
             with timer("render"):
-                drawn = rig.robot_views(link_poses=links, resolution=res)
-                seen = rig.robot_views(link_poses=links_ref, resolution=res, gripper=False)
+                if times.shifted:
+                    drawn = times.views(lo, hi, res)
+                    seen = times.views(ref, ref + 1, res, gripper=False, measured=True)
+                else:
+                    drawn = rig.robot_views(link_poses=links, resolution=res)
+                    seen = rig.robot_views(link_poses=links_ref, resolution=res, gripper=False)
             with timer("depth"):
                 views = EpisodeViews(images=rgb, cameras=rig.cameras, poses=poses, depth_mm=mm,
                                      name=f"{reader.path} frames {lo}:{hi}")

@@ -18,7 +18,7 @@ from imac_data.dataset.info import update_imac_info
 from imac_data.dataset.ingest import BaseWriter
 from imac_data.dataset.streams import StreamWriter
 from imac_data.dataset.videos import VideoEncoding
-from imac_data.layout import CAP_KEY, depth_key, depth_map_key
+from imac_data.layout import CAP_KEY, depth_key, depth_map_key, info_path
 from imac_data.metadata import unchecked_imac_block
 from imac_data.sources.hdf5 import EpisodeReader
 
@@ -56,7 +56,7 @@ def write_episode_dataset(path: Path, root: Path, repo_id: str, rig, settings, o
     base features and every added stream, in one pass over the episode's chunks. The
     build's shard."""
     timer = timer if timer is not None else StageTimer()
-    pipe = EpisodePipeline(rig, settings, depth_source, timer=timer, threads=threads)
+    pipe = EpisodePipeline(rig, settings, depth_source, timer=timer, threads=threads, fps=options.fps)
     base = streams = None
     with EpisodeReader(path) as ep:
         rig = rig.with_image_sizes(ep.image_hw)
@@ -98,7 +98,8 @@ def add_episode_streams(root: Path, readers, rig, settings, *, depth_source=None
     a staged copy); episode ``i`` from ``readers[i]`` (:class:`~imac_data.sources.episode.EpisodeSource`,
     opened one at a time) with joint vectors ``states[i] = (state, action)`` (default: the readers')."""
     timer = timer if timer is not None else StageTimer()
-    pipe = EpisodePipeline(rig, settings, depth_source, timer=timer, threads=threads)
+    fps = json.loads(info_path(root).read_text()).get("fps")  # the dataset's: cameras' time offsets need it
+    pipe = EpisodePipeline(rig, settings, depth_source, timer=timer, threads=threads, fps=fps)
     calibration = unchecked_imac_block(root).get("cameras") or {n: c.to_dict() for n, c in rig.cameras.items()}
     caps = []
     with stream_writer(pipe, root, calibration) as streams:

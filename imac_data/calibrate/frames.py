@@ -85,6 +85,8 @@ class EpisodeFrames:
                     ep.segmentation(c, 0, 1) is not None for c in ep.cameras)
         self.cameras = sorted(cams)
         self.has_segmentation = self._seg
+        with EpisodeReader(paths[0]) as ep:  # the recorded rate (checked alike in every episode by the build)
+            self.fps = ep.fps
 
     def _reader(self, episode: str):
         return EpisodeReader(episode)
@@ -144,6 +146,7 @@ class DatasetFrames:
         self.cameras = sorted(k[len(self._PREFIX):] for k in keys)
         self._hw = {k[len(self._PREFIX):]: tuple(int(v) for v in features[k]["shape"][:2]) for k in keys}
         self.episodes = [str(i) for i in range(int(info.get("total_episodes", 0)))]
+        self.fps = float(info["fps"]) if isinstance(info.get("fps"), (int, float)) else None
         if not self.episodes:
             raise InputError(f"{path}: the dataset has no episodes")
         self._open: tuple[str, object] | None = None  # one episode's LeRobotDataset at a time

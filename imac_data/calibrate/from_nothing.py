@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from imac_data.calibrate.frames import DatasetFrames, open_frames
 from imac_data.calibrate.refine import _check_outputs, refine_calibration
-from imac_data.calibrate.register import Target
+from imac_data.calibrate.register import Target, fit_pose
 from imac_data.calibrate.scratch import (
     CalibrationRefused,
     CameraResult,
@@ -39,6 +39,7 @@ from imac_data.calibrate.scratch import (
     solve_mounted,
 )
 from imac_data.calibrate.surface import RobotSurface, lift
+from imac_data.calibrate.time_offset import OffsetSearch, episode_joints_at, search_offset, timing_refusal
 from imac_data.core.cameras import Camera, intrinsics_from_fovy, load_calibration, save_calibration
 from imac_data.core.rig import Rig
 from imac_data.core.robot.joint_ranges import joint_range_warning
@@ -113,36 +114,52 @@ def _da3_depth(model, frames, cam: str, refs, K: np.ndarray) -> np.ndarray:
     return model.predict_pose_free(images, float(K[0, 0]), where=f"{frames.source} camera {cam!r}")
 
 
-def _scene_targets(fixed: dict[str, CameraResult], depth: dict, principal: dict, q: np.ndarray,
-                   surface: RobotSurface):
-    """``scene(i)``: the world at candidate frame i, as the calibrated fixed cameras saw it (their
-    whole depth, normals estimated) plus the robot's surface at ``q[i]``."""
-    cache: dict[int, Target] = {}
+class _Scene:
+    """The world at candidate frame i, as the calibrated fixed cameras saw it (their whole depth,
+    normals estimated, cached per frame) plus the robot's surface at a joint vector: what a wrist
+    camera's depth must land on. ``at(q)``: ``scene(i)`` with the robot at ``q[i]``."""
 
-    def scene(i: int) -> Target:
-        if i not in cache:
+    def __init__(self, fixed: dict[str, CameraResult], depth: dict, principal: dict, surface: RobotSurface):
+        self.fixed, self.depth, self.principal, self.surface = fixed, depth, principal, surface
+        self._world: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def world(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        if i not in self._world:
             pts, nrm = [], []
-            for c, res in fixed.items():
-                d = depth[c][i]
+            for c, res in self.fixed.items():
+                d = self.depth[c][i]
                 v, u = np.nonzero(d > 0)
-                obs = np.stack([u - principal[c][0], v - principal[c][1], d[v, u]], axis=1)
+                obs = np.stack([u - self.principal[c][0], v - self.principal[c][1], d[v, u]], axis=1)
                 p = lift(obs, res.focal, res.scale) @ res.X[:3, :3].T + res.X[:3, 3]
                 pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)).voxel_down_sample(0.003)
                 pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.02, max_nn=30))
                 pts.append(np.asarray(pcd.points))
                 nrm.append(np.asarray(pcd.normals))
-            rp, rn = surface.posed(q[i:i + 1])[0]
-            cache[i] = Target(np.concatenate(pts + [rp]), np.concatenate(nrm + [rn]))
-        return cache[i]
+            self._world[i] = (np.concatenate(pts), np.concatenate(nrm))
+        return self._world[i]
 
-    return scene
+    def target(self, i: int, q: np.ndarray) -> Target:
+        rp, rn = self.surface.posed(np.asarray(q)[None])[0]
+        p, n = self.world(i)
+        return Target(np.concatenate([p, rp]), np.concatenate([n, rn]))
+
+    def at(self, q: np.ndarray):
+        cache: dict[int, Target] = {}
+
+        def scene(i: int) -> Target:
+            if i not in cache:
+                cache[i] = self.target(i, q[i])
+            return cache[i]
+
+        return scene
 
 
 def _solve(c: str, starts: list[np.ndarray], focal_known: bool, scale_known: bool, q: np.ndarray, depths: dict,
            principal: dict, results: dict[str, CameraResult], mounts: Mapping[str, str], robot, surface: RobotSurface,
-           config: ScratchConfig, log) -> tuple[list[CameraResult], list[str]]:
-    """Camera ``c`` from each focal start: (the answers, the refusals' reasons)."""
-    tries, why = [], []
+           config: ScratchConfig, log) -> tuple[list[CameraResult], list[str], list[CameraResult]]:
+    """Camera ``c`` from each focal start, with the robot at joint vectors ``q`` of the candidate frames:
+    (the answers, the refusals' reasons, the poor fits that were refused)."""
+    tries, why, poor = [], [], []
     for K in starts:
         try:
             if c not in mounts:
@@ -156,12 +173,43 @@ def _solve(c: str, starts: list[np.ndarray], focal_known: bool, scale_known: boo
                     "fixed camera with depth was calibrated in this run (calibrate one in the same run, or give a "
                     "rough mount to `imac qa refine`)")
             lp = robot.link_poses(torch.as_tensor(q))[mounts[c]].numpy()
-            tries.append(solve_mounted(c, q, depths[c], lp, _scene_targets(fixed, depths, principal, q, surface),
+            tries.append(solve_mounted(c, q, depths[c], lp, _Scene(fixed, depths, principal, surface).at(q),
                                        K[0, 0], principal[c], config, focal_known=focal_known,
                                        scale_known=scale_known, log=log))
         except CalibrationRefused as e:
             why.append(str(e))
-    return tries, why
+            if e.result is not None:
+                poor.append(e.result)
+    return tries, why, poor
+
+
+def _problem_at(c: str, frames: list[int], q_at, mounts: Mapping[str, str], robot, surface: RobotSurface,
+                results: dict[str, CameraResult], depths: dict, principal: dict):
+    """``offset -> (A, targets)``: camera ``c``'s depth fit on candidate ``frames`` with the robot at the
+    joint states of ``t + offset`` (:func:`~.time_offset.search_offset`)."""
+    frames = np.asarray(frames)
+    scene = _Scene({f: r for f, r in results.items() if f not in mounts}, depths, principal, surface) \
+        if c in mounts else None
+
+    def problem(offset: float):
+        qd = q_at(offset)[frames]
+        if scene is None:
+            return np.repeat(np.eye(4)[None], len(frames), axis=0), [Target(p, n) for p, n in surface.posed(qd)]
+        A = robot.link_poses(torch.as_tensor(qd))[mounts[c]].numpy()
+        return A, [scene.target(int(i), qd[k]) for k, i in enumerate(frames)]
+
+    return problem
+
+
+def _with_offset(res: CameraResult, search: OffsetSearch, problem, focal_known: bool, scale_known: bool) -> CameraResult:
+    """``res`` fitted to convergence at the searched offset, from the search's pose there."""
+    obs = res.problem[0]
+    A, targets = problem(search.offset_s)
+    f = search.fit
+    fit = fit_pose(obs, A, f.X, targets, f.focal, scale0=f.scale, free_focal=not focal_known,
+                   free_scale=not scale_known, schedule=(0.02, 0.012, 0.008))
+    conf = dict(res.confidence, inlier_ratio=fit.inlier_ratio, residual_mm=fit.residual_mm)
+    return CameraResult(res.name, fit.X, fit.focal, fit.scale, conf, res.frames, (obs, A, targets))
 
 
 def _pick(camera: str, tries: list[CameraResult], why: list[str], config: ScratchConfig) -> CameraResult:
@@ -186,9 +234,10 @@ def _camera(name: str, K: np.ndarray, res: CameraResult, hw, link: str | None) -
     K = K.copy()
     K[0, 0] = K[1, 1] = res.focal
     H, W = hw
+    offset = float(res.confidence.get("time_offset_s", 0.0))
     if link:
-        return Camera(name, K, W, H, link=link, T_link_cam=_rigid(res.X))
-    return Camera(name, K, W, H, T_world_cam=_rigid(res.X))
+        return Camera(name, K, W, H, link=link, T_link_cam=_rigid(res.X), time_offset_s=offset)
+    return Camera(name, K, W, H, T_world_cam=_rigid(res.X), time_offset_s=offset)
 
 
 def _rigid(X: np.ndarray) -> np.ndarray:
@@ -205,13 +254,15 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
                            estimate_depth_scale: bool = False,
                            config: ScratchConfig | None = None, candidates: int = 60, refine: str = "edges",
                            near: float = 0.0, report: str | Path | None = None, overwrite: bool = False,
-                           progress: bool = True, log=None) -> dict:
+                           time_offset_window: float = 0.2, progress: bool = True, log=None) -> dict:
     """Calibrate every camera of ``source`` from nothing; write ``out`` (the cameras found) and the
     report directory; return the report dict. ``mounts``: camera -> URDF link for wrist cameras;
     ``fov``: camera (or ``"*"``) -> nominal vertical field of view in degrees (none: :data:`FOV_SWEEP`
     is tried); ``intrinsics``: a calibration file whose K are used as recorded;
     ``estimate_depth_scale``: the recorded depth's scale is not trusted and is estimated with the
-    pose (always so for Depth Anything 3). Inputs are checked before any work."""
+    pose (always so for Depth Anything 3); ``time_offset_window``: each camera's constant time offset to
+    the joint states is searched within +- this many seconds (0: not searched; :mod:`.time_offset`).
+    Inputs are checked before any work."""
     log = log or (lambda msg: None)
     config = config or ScratchConfig()
     mounts, fov = dict(mounts or {}), dict(fov or {})
@@ -223,6 +274,8 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
         raise InputError(f"--refine must be 'edges' or 'none', got {refine!r}")
     if not (math.isfinite(near) and near >= 0):
         raise InputError(f"--near must be >= 0 metres, got {near}")
+    if not (math.isfinite(time_offset_window) and 0 <= time_offset_window <= 2.0):
+        raise InputError(f"--max-time-offset must be within 0-2000 ms, got {1e3 * time_offset_window:g} ms")
     if candidates < config.frames:
         raise InputError(f"--candidates ({candidates}) must be at least --frames ({config.frames})")
     recipe_path = Path(recipe) if isinstance(recipe, (str, Path)) else (Path(recipe.file) if recipe.file else None)
@@ -279,32 +332,84 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
     principal = {c: (Ks[c][0][0][0, 2], Ks[c][0][0][1, 2]) for c in cams}
     results: dict[str, CameraResult] = {}
     order = [c for c in cams if c not in mounts and c in depths] + [c for c in cams if c in mounts and c in depths]
+    fps = recipe.fps if recipe.fps is not None else getattr(frames, "fps", None)
+    window = float(time_offset_window) if fps else 0.0
+    if time_offset_window > 0 and not fps:
+        log("[calibrate] the recording's frame rate is unknown (no fps in the recipe or the episodes): the cameras' "
+            "time offsets are not searched")
+    shifted: dict[float, np.ndarray] = {0.0: q}
+
+    def q_at(offset: float) -> np.ndarray:
+        if offset not in shifted:
+            shifted[offset] = episode_joints_at(joints, refs, offset * fps)
+        return shifted[offset]
+
     for c in tqdm(order, desc="calibrate", unit="camera", disable=not progress):
         starts, how = Ks[c]
         if depths[c] is None:
             log(f"[calibrate] {c}: Depth Anything 3 on {len(refs)} frames")
             depths[c] = _da3_depth(model, frames, c, refs, starts[0])
         scale_known = depth == "recorded" and not estimate_depth_scale
+        focal_known = how == "recorded"
         tc = time.perf_counter()
-        tries, why = _solve(c, starts, how == "recorded", scale_known, q, depths, principal, results, mounts, robot,
-                            surface, config, log)
+        common = (depths, principal, results, mounts, robot, surface, config, log)
+        tries, why, poor = _solve(c, starts, focal_known, scale_known, q, *common)
         try:
-            res = _pick(c, tries, why, config)
+            res, reason = _pick(c, tries, why, config), None
         except CalibrationRefused as e:
-            refused[c] = str(e)
-            log(f"[calibrate] REFUSED {e}")
+            res, reason = None, str(e)
+        base = res if res is not None else max(poor, key=lambda r: r.confidence["inlier_ratio"], default=None)
+        search = None
+
+        def offset_search(r: CameraResult) -> tuple[OffsetSearch, object]:
+            problem = _problem_at(c, r.frames, q_at, mounts, robot, surface, results, depths, principal)
+            found = search_offset(problem, r.problem[0], r.X, r.focal, r.scale, fps=fps, window_s=window,
+                                  free_focal=not focal_known, free_scale=not scale_known)
+            log(f"[calibrate] {c}: time offset {1e3 * found.offset_s:+.1f} ms (cost {found.cost:.4f}, at 0 ms "
+                f"{found.cost_at_zero:.4f}; {found.rise:+.0%} one frame away; {len(found.curve)} fits)")
+            return found, problem
+
+        if base is not None and window > 0:
+            search, problem = offset_search(base)
+            if res is not None:
+                if search.observable and search.offset_s != 0:
+                    res = _with_offset(res, search, problem, focal_known, scale_known)
+            elif search.clearly_better:
+                log(f"[calibrate] {c}: refused in step with the joint states, but the depth fits {1e3 * search.offset_s:+.0f} ms "
+                    "off far better: solving again there")
+                tries, why, _ = _solve(c, starts, focal_known, scale_known, q_at(search.offset_s), *common)
+                try:
+                    res = _pick(c, tries, why, config)
+                except CalibrationRefused as e:
+                    reason = timing_refusal(c, search, str(e))
+                else:
+                    again, problem = offset_search(res)
+                    if again.observable:
+                        search = again
+                        res = _with_offset(res, search, problem, focal_known, scale_known)
+                    else:  # the solve at the first estimate stands
+                        res.problem = (res.problem[0], *problem(search.offset_s))
+        if res is None:
+            refused[c] = reason
+            log(f"[calibrate] REFUSED {reason}")
             continue
+        offset = search.offset_s if search is not None and search.observable else 0.0
         res.confidence.update(wall_s=time.perf_counter() - tc, focal_starts_tried=len(starts))
+        res.confidence.update(search.report() if search is not None else {"time_offset_window_s": 0.0})
+        res.confidence["time_offset_s"] = offset
         results[c] = res
         log(f"[calibrate] {c}: {100 * res.confidence['inlier_ratio']:.1f}% inliers, residual "
-            f"{res.confidence['residual_mm']:.2f} mm, focal {res.focal:.1f} px, depth scale {res.scale:.4f}")
+            f"{res.confidence['residual_mm']:.2f} mm, focal {res.focal:.1f} px, depth scale {res.scale:.4f}, "
+            f"time offset {1e3 * offset:+.1f} ms")
     if not results:
         raise CalibrationRefused("no camera could be calibrated: " + "; ".join(refused.values()))
     found = {c: _camera(c, Ks[c][0][0], r, hw[c], mounts.get(c)) for c, r in results.items()}
+    summary_fps = fps
     summary = {"source": str(source), "out": str(out), "robot": robot.name, "robot_urdf_sha256": robot.urdf_hash,
                "depth": depth, "depth_scale_estimated": depth == "da3" or estimate_depth_scale,
                "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
-               "candidate_frames": len(refs), "cameras": {}, "refused": refused,
+               "candidate_frames": len(refs), "fps": summary_fps, "time_offset_window_s": window,
+               "cameras": {}, "refused": refused,
                "depth_model": model.describe() if model is not None else None}
     for c, r in results.items():
         summary["cameras"][c] = {
@@ -368,14 +473,24 @@ def _finish(source: Path, out: Path, report: Path, recipe, found: dict[str, Came
         raise
 
 
+def _offset_text(entry: dict) -> str:
+    """The time offset column: ms, "?" when the curve had no clear minimum, "-" when not searched."""
+    if not entry.get("time_offset_window_s"):
+        return "-"
+    if not entry.get("time_offset_observable", False):
+        return "?"
+    return f"{1e3 * entry['time_offset_s']:+.1f}"
+
+
 def format_calibration_report(summary: dict) -> str:
     """The table ``qa calibrate`` prints, refusals last."""
     lines = [f"wrote {summary['out']} ({len(summary['cameras'])} camera(s)); search {summary['search_wall_s']:.0f} s wall",
-             f"{'camera':<18} {'inliers':>8} {'resid mm':>9} {'focal px':>9} {'scale':>7} {'outline px':>11}  refined"]
+             f"{'camera':<18} {'inliers':>8} {'resid mm':>9} {'focal px':>9} {'scale':>7} {'offset ms':>10} "
+             f"{'outline px':>11}  refined"]
     for c, e in summary["cameras"].items():
         outline = e.get("outline_px_after_refine")
         lines.append(f"{c:<18} {100 * e['inlier_ratio']:>7.1f}% {e['residual_mm']:>9.2f} {e['focal_px']:>9.1f} "
-                     f"{e['depth_scale']:>7.4f} {'-' if outline is None else f'{outline:.2f}':>11}  "
+                     f"{e['depth_scale']:>7.4f} {_offset_text(e):>10} {'-' if outline is None else f'{outline:.2f}':>11}  "
                      f"{'-' if 'refine_accepted' not in e else ('kept' if e['refine_accepted'] else 'rejected by depth')}")
     for c, why in summary["refused"].items():
         lines.append(f"REFUSED {c}: {why}")

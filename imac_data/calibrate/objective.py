@@ -200,7 +200,7 @@ def level_camera(camera: Camera, lv: Level) -> Camera:
     K = c.K.copy()
     K[0, 2] += lv.m
     K[1, 2] += lv.m
-    return Camera(c.name, K, lv.w + 2 * lv.m, lv.h + 2 * lv.m, c.T_world_cam, c.link, c.T_link_cam)
+    return Camera(c.name, K, lv.w + 2 * lv.m, lv.h + 2 * lv.m, c.T_world_cam, c.link, c.T_link_cam, c.time_offset_s)
 
 
 @dataclass

@@ -10,6 +10,7 @@ would get worse keeps its input pose. ``docs/calibration.md`` has the method and
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -137,6 +138,7 @@ def refine_calibration(source: str | Path, out: str | Path, *, recipe=None, cali
         original = rig.cameras[c]
         new = fit.camera.rescaled(original.width, original.height) \
             if (fit.camera.height, fit.camera.width) != (original.height, original.width) else fit.camera
+        new = dataclasses.replace(new, time_offset_s=original.time_offset_s)  # refine moves the pose only
         score = "boundary_px" if edges else "iou"
         kept = not (agree1[score] <= agree0[score] if edges else agree1[score] >= agree0[score])
         if kept:  # never hand back a worse calibration

@@ -35,7 +35,19 @@ __all__ = ["CalibrationRefused", "ScratchConfig", "CameraResult", "check_poses",
 
 
 class CalibrationRefused(InputError):
-    """A camera the command will not write, with the camera and the reason in the message."""
+    """A camera the command will not write, with the camera and the reason in the message.
+    ``fit``/``result``: for a refusal because the best pose explains the depth poorly, that pose (a
+    :class:`~.register.Fit`, and as a :class:`CameraResult` with its problem once the solver adds it),
+    so that the caller can ask whether a time offset explains the depth (:mod:`.time_offset`)."""
+
+    fit: Fit | None = None
+    result: CameraResult | None = None
+
+    @classmethod
+    def poor_fit(cls, fit: Fit, message: str) -> CalibrationRefused:
+        e = cls(message)
+        e.fit = fit
+        return e
 
 
 @dataclass(frozen=True)
@@ -148,7 +160,7 @@ def _judge(camera: str, fits: list[Fit], config: ScratchConfig) -> tuple[Fit, di
     conf = {"inlier_ratio": best.inlier_ratio, "residual_mm": best.residual_mm,
             "runner_up_inlier_ratio": rival.inlier_ratio if rival else None, "candidates": len(fits)}
     if best.inlier_ratio < config.min_inlier_ratio or best.residual_mm > config.max_residual_mm:
-        raise CalibrationRefused(
+        raise CalibrationRefused.poor_fit(best, 
             f"camera {camera!r}: no pose explains the depth (best: {100 * best.inlier_ratio:.0f}% of the points within "
             f"reach of the robot, residual {best.residual_mm:.1f} mm; needs {100 * config.min_inlier_ratio:.0f}% and "
             f"<= {config.max_residual_mm} mm). Check the joint map, the depth's units, and that the camera sees the arm")
@@ -209,7 +221,7 @@ def solve_fixed(camera: str, q: np.ndarray, depth: np.ndarray, focal: float, pri
                      schedule=(0.05, 0.03), iterations=8) for X, f0, s0 in starts[:6]]
     if not fits:
         raise CalibrationRefused(f"camera {camera!r}: global registration found no candidate pose")
-    fit, conf = _converge(camera, fits, obs, A, targets, focal_known, scale_known, config)
+    fit, conf = _converge_or_keep(camera, fits, obs, A, targets, focal_known, scale_known, config, sel)
     conf.update(inlier_ratio=fit.inlier_ratio, residual_mm=fit.residual_mm, wall_s=time.perf_counter() - t0,
                 coverage=float(coverage[sel].mean()))
     return CameraResult(camera, fit.X, fit.focal, fit.scale, conf, sel.tolist(), (obs, A, targets))
@@ -233,6 +245,18 @@ def _converge(camera, coarse: list[Fit], obs, A, targets, focal_known: bool, sca
     full = [fit_pose(obs, A, f.X, targets, f.focal, scale0=f.scale, free_focal=not focal_known,
                      free_scale=not scale_known) for f in _dedupe(coarse, config)[:3]]
     return _judge(camera, _dedupe(full, config), config)
+
+
+def _converge_or_keep(camera, coarse, obs, A, targets, focal_known, scale_known, config, sel) -> tuple[Fit, dict]:
+    """:func:`_converge`; a refusal for a poor fit carries that fit as a :class:`CameraResult` with its problem."""
+    try:
+        return _converge(camera, coarse, obs, A, targets, focal_known, scale_known, config)
+    except CalibrationRefused as e:
+        if e.fit is not None:
+            e.result = CameraResult(camera, e.fit.X, e.fit.focal, e.fit.scale,
+                                    {"inlier_ratio": e.fit.inlier_ratio, "residual_mm": e.fit.residual_mm},
+                                    np.asarray(sel).tolist(), (obs, A, targets))
+        raise
 
 
 def _dedupe(fits: list[Fit], config: ScratchConfig) -> list[Fit]:
@@ -285,6 +309,6 @@ def solve_mounted(camera: str, q: np.ndarray, depth: np.ndarray, link_poses: np.
                                                      0.02))
     fits = [fit_pose(obs, A, X, targets, focal, scale0=s if not scale_known else 1.0, free_focal=not focal_known,
                      free_scale=not scale_known, schedule=(0.05, 0.03), iterations=8) for X, s in scored[:6]]
-    fit, conf = _converge(camera, fits, obs, A, targets, focal_known, scale_known, config)
+    fit, conf = _converge_or_keep(camera, fits, obs, A, targets, focal_known, scale_known, config, sel)
     conf.update(inlier_ratio=fit.inlier_ratio, residual_mm=fit.residual_mm, wall_s=time.perf_counter() - t0)
     return CameraResult(camera, fit.X, fit.focal, fit.scale, conf, sel.tolist(), (obs, A, targets))

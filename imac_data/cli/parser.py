@@ -149,6 +149,9 @@ def _calibrate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--refine", default="edges", choices=("edges", "none"),
                    help="hand the result to `qa refine` with the edge cue (default), or not")
     p.add_argument("--near", type=float, default=0.0, help="renderer near clip for the refinement (simulated: 0.166)")
+    p.add_argument("--max-time-offset", type=float, default=200.0, metavar="MS",
+                   help="search each camera's time offset to the joint states within +- MS milliseconds "
+                        "(default 200; 0: cameras in step, not searched)")
     p.add_argument("--report", default=None, help="report directory (default: <out>.report beside --out)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs (never inputs)")
     p.add_argument("--no-progress", action="store_true")

@@ -57,8 +57,8 @@ def _calibrate(args: argparse.Namespace) -> None:
         intrinsics=args.intrinsics, depth=args.depth, da3_model=args.da3_model,
         estimate_depth_scale=args.estimate_depth_scale,
         config=ScratchConfig(frames=args.frames), candidates=args.candidates, refine=args.refine, near=args.near,
-        report=args.report, overwrite=args.overwrite, progress=not args.no_progress,
-        log=lambda m: print(m, file=sys.stderr))
+        report=args.report, overwrite=args.overwrite, time_offset_window=args.max_time_offset / 1000.0,
+        progress=not args.no_progress, log=lambda m: print(m, file=sys.stderr))
     print(format_calibration_report(summary))
 
 

@@ -10,6 +10,8 @@ Conventions (docs/dataset-format.md):
   :func:`rescale_intrinsics` is the only place where K follows an image resize.
 * A camera is *fixed* (constant ``T_world_cam``) or *mounted* on a robot link:
   ``T_world_cam(t) = FK(q_t)[link] @ T_link_cam``.
+* ``time_offset_s``: the camera's frame stamped ``t`` shows the robot at the joint states of
+  ``t + time_offset_s`` (negative: the camera lags); 0, the default, is left out of the files.
 
 The math is torch (batched, any leading shape, CPU or CUDA) because the world
 model calls it online; calibration files are JSON.
@@ -96,9 +98,14 @@ class Camera:
     T_world_cam: np.ndarray | None = None
     link: str | None = None
     T_link_cam: np.ndarray | None = field(default=None)
+    time_offset_s: float = 0.0  # the frame stamped t shows the joint states of t + time_offset_s
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "K", _matrix(self.K, (3, 3), f"camera {self.name!r} K"))
+        off = self.time_offset_s
+        if isinstance(off, bool) or not isinstance(off, (int, float)) or not math.isfinite(off) or abs(off) > 10.0:
+            raise InputError(f"camera {self.name!r} time_offset_s: a number of seconds within +-10, got {off!r}")
+        object.__setattr__(self, "time_offset_s", float(off))
         if (self.T_world_cam is None) == (self.link is None):
             raise InputError(
                 f"camera {self.name!r}: give either T_world_cam (fixed) or link + T_link_cam (mounted)"
@@ -128,7 +135,7 @@ class Camera:
     def rescaled(self, width: int, height: int) -> Camera:
         """The same camera with its image resized to ``width`` x ``height``."""
         K = rescale_intrinsics(self.K, (self.height, self.width), (height, width))
-        return Camera(self.name, K, width, height, self.T_world_cam, self.link, self.T_link_cam)
+        return Camera(self.name, K, width, height, self.T_world_cam, self.link, self.T_link_cam, self.time_offset_s)
 
     def for_images(self, height: int, width: int, *, where: str = "images") -> Camera:
         """This camera for images of ``height`` x ``width``: itself, or rescaled when the
@@ -166,6 +173,8 @@ class Camera:
         else:
             d["link"] = self.link
             d["T_link_cam"] = self.T_link_cam.tolist()
+        if self.time_offset_s:  # absent = 0: files without an offset stay as they were
+            d["time_offset_s"] = self.time_offset_s
         return d
 
 
@@ -279,7 +288,8 @@ def backproject(depth: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor)
 
 
 def save_calibration(path: str | Path, cameras: Mapping[str, Camera]) -> None:
-    """Write a rig calibration as JSON: ``{"cameras": {name: {K, width, height, T_world_cam | link, T_link_cam}}}``."""
+    """Write a rig calibration as JSON: ``{"cameras": {name: {K, width, height, T_world_cam | link, T_link_cam
+    [, time_offset_s]}}}``."""
     payload = {
         "convention": "camera-to-world, OpenCV axes (x right, y down, z forward), metres",
         "cameras": {name: cam.to_dict() for name, cam in cameras.items()},
@@ -300,7 +310,8 @@ def camera_from_dict(name: str, entry, where: str = "camera") -> Camera:
             raise InputError(f"{where}.{key}: expected a whole number of pixels, got {v!r}")
     try:
         return Camera(name=name, K=entry["K"], width=int(entry["width"]), height=int(entry["height"]),
-                      T_world_cam=entry.get("T_world_cam"), link=entry.get("link"), T_link_cam=entry.get("T_link_cam"))
+                      T_world_cam=entry.get("T_world_cam"), link=entry.get("link"), T_link_cam=entry.get("T_link_cam"),
+                      time_offset_s=entry.get("time_offset_s", 0.0))
     except InputError as e:
         raise InputError(f"{where}: {e}") from None
     except (TypeError, ValueError) as e:

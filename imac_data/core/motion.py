@@ -17,7 +17,7 @@ import torch
 
 from imac_data.errors import InputError
 
-__all__ = ["GripperActionMap", "Controller", "rollout", "frame_configurations", "SOURCES", "MODES"]
+__all__ = ["GripperActionMap", "Controller", "rollout", "frame_configurations", "joints_at", "SOURCES", "MODES"]
 
 SOURCES = ("action", "state")
 MODES = ("absolute", "delta")
@@ -267,3 +267,17 @@ def frame_configurations(state, action=None, *, source: str = "action",
     step = rollout(state[:-1], action[:-1, None, :], controller)[:, 0]
     lib = _lib(state)
     return lib.concatenate([state[:1], step]) if lib is np else torch.cat([state[:1], step])
+
+
+def joints_at(q: np.ndarray, frames) -> np.ndarray:
+    """Joint vectors ``(N, D)`` of an episode's ``q`` ``(T, D)`` at fractional frame positions
+    ``frames`` ``(N,)``: linear interpolation between frames, clamped to ``[0, T - 1]``."""
+    q = np.asarray(q, dtype=np.float64)
+    f = np.clip(np.asarray(frames, dtype=np.float64), 0.0, len(q) - 1.0)
+    i0 = np.minimum(np.floor(f).astype(np.int64), len(q) - 1)
+    i1 = np.minimum(i0 + 1, len(q) - 1)
+    w = (f - i0)[:, None]
+    out = q[i0] * (1.0 - w) + q[i1] * w
+    exact = w[:, 0] == 0.0  # whole frames: the recorded vector itself, bit for bit
+    out[exact] = q[i0[exact]]
+    return out

@@ -1,0 +1,176 @@
+"""Cameras out of step with the joint states (``qa calibrate``'s time offset, the calibration file's
+``time_offset_s``, the build at each camera's own time).
+
+The oracle is the simulator recorded at 50 fps and subsampled to 25 fps with the RGB and depth taken a
+known number of 20 ms control steps away from the joint states (``benchmarks.calibration_scenes.
+aloha_out_of_step``), so whole and half frames are exact. The simulator's own frames lag its joint states
+by one physics step (2 ms, :func:`~benchmarks.calibration_scenes.sim_render_lag`), which the truth includes.
+The full grid (1-3 frames and half a frame, every ALOHA camera) is ``benchmarks/calibration_time_offset.py``.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from benchmarks.calibration_scenes import (
+    ALOHA_FOVY,
+    ALOHA_MOUNTS,
+    ALOHA_RECIPE,
+    aloha_out_of_step,
+    aloha_recorded_50fps,
+)
+from imac_data.calibrate.from_nothing import calibrate_from_nothing
+from imac_data.calibrate.register import Fit
+from imac_data.calibrate.scratch import pose_distance
+from imac_data.calibrate.time_offset import OffsetSearch, timing_refusal
+from imac_data.core.cameras import Camera, intrinsics_from_fovy, load_calibration, save_calibration
+from imac_data.core.motion import joints_at
+from imac_data.errors import InputError
+
+HW = (120, 160)
+GOALS = {"cam_high": (3.0, 0.3), "cam_left_wrist": (5.0, 0.5)}
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """One scripted transfer-cube episode at 50 fps (300 control steps, 120x160) and the hidden truth."""
+    out = tmp_path_factory.mktemp("offset") / "raw50"
+    return out, aloha_recorded_50fps(out, seed=3, episodes=1, height=HW[0], width=HW[1], max_steps=300)
+
+
+def _error(truth: Camera, found: Camera) -> tuple[float, float]:
+    a = truth.T_link_cam if truth.is_mounted else truth.T_world_cam
+    b = found.T_link_cam if found.is_mounted else found.T_world_cam
+    return pose_distance(a, b)
+
+
+def _calibrate(src, out, cams):
+    return calibrate_from_nothing(src, out, recipe=ALOHA_RECIPE, cameras=cams,
+                                  mounts={c: ALOHA_MOUNTS[c] for c in cams if c in ALOHA_MOUNTS},
+                                  fov={c: ALOHA_FOVY[c] * 1.15 for c in cams}, refine="none", progress=False)
+
+
+def test_a_wrist_camera_one_frame_late_and_a_head_camera_in_step(recording, tmp_path):
+    """The left wrist camera's RGB and depth one frame (40 ms at 25 fps) behind the joint states, the
+    head camera in step: each offset is found within 5 ms (the head's is 0 within 5 ms), both cameras
+    come back within their goals, and the file carries the offsets."""
+    raw, truth = recording
+    true = aloha_out_of_step(raw, tmp_path / "eps", {"cam_left_wrist": -2})  # -40 ms; all: the simulator's -2 ms
+    out = tmp_path / "calib.json"
+    summary = _calibrate(tmp_path / "eps", out, ["cam_high", "cam_left_wrist"])
+    found = load_calibration(out)
+    assert summary["refused"] == {}
+    assert abs(found["cam_high"].time_offset_s) <= 0.005
+    for c, (mm, deg) in GOALS.items():
+        t, r = _error(truth[c], found[c])
+        assert t <= mm and r <= deg, (c, t, r)
+        assert abs(found[c].time_offset_s - true[c]) <= 0.005, (c, found[c].time_offset_s, true[c])
+        e = summary["cameras"][c]
+        assert e["time_offset_observable"] and e["time_offset_rise"] > 0.5  # a sharp minimum
+    wrist = summary["cameras"]["cam_left_wrist"]
+    assert wrist["inlier_ratio_at_best_offset"] > wrist["inlier_ratio_at_zero_offset"] + 0.02
+    assert wrist["time_offset_cost"] < 0.6 * wrist["time_offset_cost_at_zero"]
+    saved = json.loads(out.read_text())["cameras"]
+    assert saved["cam_left_wrist"]["time_offset_s"] == found["cam_left_wrist"].time_offset_s
+
+
+def test_joints_between_frames_are_interpolated_and_clamped():
+    q = np.array([[0.0, 10.0], [1.0, 20.0], [3.0, 40.0]])
+    np.testing.assert_allclose(joints_at(q, [0.5, 1.25, -2.0, 7.0]), [[0.5, 15.0], [1.5, 25.0], [0.0, 10.0], [3.0, 40.0]])
+    assert joints_at(q, [1.0]).tobytes() == q[1:2].tobytes()  # whole frames: the recorded vector itself
+
+
+def test_the_calibration_file_carries_the_offset_and_old_files_load(tmp_path):
+    K = intrinsics_from_fovy(60.0, 160, 120)
+    cams = {"a": Camera("a", K, 160, 120, T_world_cam=np.eye(4), time_offset_s=-0.04),
+            "b": Camera("b", K, 160, 120, link="l", T_link_cam=np.eye(4))}
+    save_calibration(tmp_path / "c.json", cams)
+    raw = json.loads((tmp_path / "c.json").read_text())
+    assert raw["cameras"]["a"]["time_offset_s"] == -0.04 and "time_offset_s" not in raw["cameras"]["b"]
+    back = load_calibration(tmp_path / "c.json")
+    assert back["a"].time_offset_s == -0.04 and back["b"].time_offset_s == 0.0
+    assert back["a"].rescaled(320, 240).time_offset_s == -0.04
+    raw["cameras"]["a"]["time_offset_s"] = "soon"
+    (tmp_path / "bad.json").write_text(json.dumps(raw))
+    with pytest.raises(InputError, match="cameras.a.*time_offset_s"):
+        load_calibration(tmp_path / "bad.json")
+
+
+def test_a_refusal_that_an_offset_explains_names_timing_first():
+    fit = Fit(np.eye(4), 100.0, 1.0, 0.75, 4.0, 10)
+    search = OffsetSearch(offset_s=-0.2, cost=0.05, inlier_ratio=0.78, cost_at_zero=0.2, inlier_ratio_at_zero=0.55,
+                          rise=0.8, fit=fit, window_s=0.2)
+    assert search.clearly_better and search.at_window_edge
+    msg = timing_refusal("cam_x", search, "camera 'cam_x': no pose explains the depth (best: 78% ...)")
+    assert msg.startswith("camera 'cam_x': the camera looks out of step with the joint states by about 200 ms")
+    assert "lags" in msg and "edge of the searched" in msg and "no pose explains" in msg
+    flat = OffsetSearch(offset_s=-0.04, cost=0.2, inlier_ratio=0.56, cost_at_zero=0.2, inlier_ratio_at_zero=0.55,
+                        rise=0.001, fit=fit, window_s=0.2)
+    assert not flat.observable and not flat.clearly_better
+
+
+# ----------------------------------------------------------------------------- the build
+
+
+def _chunks(path, cameras, settings, fps=50.0, depth=True):
+    from imac_data.augment.pipeline import EpisodePipeline
+    from imac_data.core.rig import Rig
+    from imac_data.recipes import load_recipe
+    from imac_data.sources.depth import NoDepth, RecordedDepth
+    from imac_data.sources.hdf5 import EpisodeReader
+
+    rig = Rig.from_recipe(load_recipe(ALOHA_RECIPE), calibration=cameras)
+    pipe = EpisodePipeline(rig, settings, RecordedDepth() if depth else NoDepth(), threads=1, fps=fps)
+    with EpisodeReader(path) as reader:
+        outs = list(pipe.chunks(reader))
+    streams = {k: np.concatenate([o.streams[k] for o in outs]) for k in outs[0].streams}
+    poses = {c: np.concatenate([o.poses[c] for o in outs]) for c in outs[0].poses}
+    return streams, poses
+
+
+def test_the_build_draws_each_camera_at_its_own_time(recording, tmp_path):
+    """A camera one frame (20 ms at 50 fps) ahead is drawn and posed at the next frame's joint states
+    (motion images, camera poses), clamped at the episode's end; a camera in step is drawn as before,
+    bit for bit; an offset of 0 everywhere is the build as it always was."""
+    import dataclasses
+
+    from imac_data.recipes import AugmentSettings
+    from imac_data.sources.hdf5 import read_episode, write_episode
+
+    raw, truth = recording
+    ep = read_episode(sorted(raw.glob("*.hdf5"))[0])
+    n = 12
+    ep = dataclasses.replace(ep, qpos=ep.qpos[100:100 + n], action=ep.action[100:100 + n], qvel=None,
+                             images={c: v[100:100 + n] for c, v in ep.images.items()},
+                             depth_mm={c: v[100:100 + n] for c, v in ep.depth_mm.items()}, segmentation={},
+                             segmentation_labels={})
+    path = tmp_path / "episode_0.hdf5"
+    write_episode(path, ep, sim=False)
+    settings = AugmentSettings(height=60, width=80, contact_chunk=4)
+    base, base_poses = _chunks(path, truth, settings)
+    shifted = {c: dataclasses.replace(cam, time_offset_s=0.02) if c == "cam_left_wrist" else cam
+               for c, cam in truth.items()}
+    out, poses = _chunks(path, shifted, settings)
+    for c in truth:
+        m0, m1 = base[f"control.motion.{c}"], out[f"control.motion.{c}"]
+        if c == "cam_left_wrist":
+            np.testing.assert_array_equal(m1[:-1], m0[1:])
+            np.testing.assert_array_equal(m1[-1], m0[-1])
+            np.testing.assert_allclose(poses[c][:-1], base_poses[c][1:], atol=1e-12)
+            assert not np.array_equal(m1, m0)
+        else:
+            np.testing.assert_array_equal(m1, m0)
+            np.testing.assert_array_equal(poses[c], base_poses[c])
+        np.testing.assert_array_equal(out[f"observation.depth.{c}"], base[f"observation.depth.{c}"])
+    assert not np.array_equal(out["control.contact_r2s.cam_left_wrist"], base["control.contact_r2s.cam_left_wrist"])
+    # every camera half a frame late: between the frames; no depth (motion only) works alike
+    late = {c: dataclasses.replace(cam, time_offset_s=-0.01) for c, cam in truth.items()}
+    half, _ = _chunks(path, late, settings, depth=False)
+    assert set(half) == {f"control.motion.{c}" for c in truth}
+    (tmp_path / "no_fps").mkdir()
+    write_episode(tmp_path / "no_fps" / "episode_0.hdf5", dataclasses.replace(ep, fps=None), sim=False)
+    with pytest.raises(InputError, match="frame rate"):
+        _chunks(tmp_path / "no_fps" / "episode_0.hdf5", late, settings, fps=None, depth=False)
