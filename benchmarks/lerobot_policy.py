@@ -30,7 +30,7 @@ from imac_data.layout import STATE, image_key, info_path
 from imac_model.experiments.ranking.datasets import link_episodes
 from imac_model.experiments.ranking.plan import POLICY_MODULE, RECIPE, RankingPlan
 from imac_model.experiments.ranking.policies import WORKSPACE
-from imac_model.experiments.stages import REPO_ROOT, python, run_all, then_mark_done
+from imac_model.experiments.stages import REPO_ROOT, StageLog, python, run_all, then_mark_done
 
 CONFIG = REPO_ROOT / "benchmarks" / "configs" / "lerobot_act.yaml"
 DEMO_SEED0 = 300_000  # demonstration d starts from DEMO_SEED0 + d: never an evaluation start or a training rollout's
@@ -159,9 +159,12 @@ def main(argv: list[str] | None = None) -> int:
     work = args.work.resolve()
     if not args.list:
         plan = RankingPlan(work=work, docs=work)  # the benchmark's protocol: view size, views, chunks, settling
-        simulate_demos(work, plan, args.demos, args.jobs)
-        data = select_features(work, build_demos(work, args.jobs))
-        train(work, train_config(work, data, plan, args.steps, args.save_every, args.seed), args.steps, args.threads)
+        stages = StageLog(work / "stages.json", tag="lerobot_policy")  # wall and CPU seconds, children included
+        stages.run("demos", lambda: simulate_demos(work, plan, args.demos, args.jobs))
+        stages.run("build", lambda: build_demos(work, args.jobs))
+        stages.run("select", lambda: select_features(work, work / "demos"))
+        config = train_config(work, work / "policy_data", plan, args.steps, args.save_every, args.seed)
+        stages.run("train", lambda: train(work, config, args.steps, args.threads))
     specs = [f"lerobot:{c}" for c in checkpoints(work)]
     print("\n".join(specs) if specs else f"lerobot_policy: no checkpoint under {work / 'train'}", flush=True)
     return 0

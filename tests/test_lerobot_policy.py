@@ -23,6 +23,8 @@ def test_demonstrations_become_act_checkpoints_that_resume_and_act_on_the_world_
     assert [s.rsplit("/", 2)[-2] for s in specs] == ["000001", "000002"]
     assert "'resume': True" in (work / "logs" / "train.log").read_text()  # lerobot-train's own config print
 
+    stages = json.loads((work / "stages.json").read_text())  # each run's cost, stage by stage
+    assert [e["stage"] for e in stages] == ["demos", "build", "select", "train"] * 2
     demos = json.loads(info_path(work / "demos").read_text())["features"]
     assert any(k.startswith("control.motion.") for k in demos)  # an imac build, every stream
     kept = json.loads(info_path(work / "policy_data").read_text())["features"]
