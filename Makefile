@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test bench experiment ranking da3 clean
+.PHONY: setup demo test bench experiment ranking ranking-checkpoints da3 clean
 
 setup:
 	@bash scripts/setup.sh
@@ -45,6 +45,14 @@ experiment: setup
 # under runs/ranking (spread it over days if need be).
 ranking: setup
 	$(PY) -m imac_model ranking --work runs/ranking --docs docs/ranking
+
+# Ranking policy checkpoints (docs/ranking.md, "Ranking checkpoints"): ACT trained with lerobot-train on the
+# project's own dataset, then the checkpoint preset (graded scripted policies and every kept checkpoint, 100 starts,
+# motion+contact from 3 training seeds). Estimated at about 16 CPU-hours in all (docs/ranking.md, "Budget");
+# both commands resume where they stopped, so spread it over days.
+ranking-checkpoints: setup
+	$(PY) -m benchmarks.lerobot_policy --work runs/lerobot_act
+	$(PY) -m imac_model ranking --preset checkpoints --work runs/checkpoints --docs docs/ranking
 
 # Depth Anything 3's code (no weights): scripts/setup.sh installs it; this re-runs that install.
 da3: setup
