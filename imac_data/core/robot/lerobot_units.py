@@ -28,8 +28,10 @@ from imac_data.errors import InputError
 
 UNITS = ("degrees", "range_m100_100")  # a body joint's; the gripper's is always range_0_100
 CALIBRATION_HINT = ("LeRobot writes it when the arm is calibrated, as <id>.json under "
-                    "$HF_LEROBOT_CALIBRATION/robots/<robot type>/ (by default ~/.cache/huggingface/lerobot/calibration/"
-                    "robots/so_follower/, so101_follower/ or koch_follower/, by LeRobot version)")
+                    "$HF_LEROBOT_CALIBRATION/robots/<robot type>/: by default "
+                    "~/.cache/huggingface/lerobot/calibration/robots/so101_follower/<id>.json for an SO-101 "
+                    "(so_follower/<id>.json from LeRobot 0.4 on, koch_follower/<id>.json for a Koch), <id> the "
+                    "robot's --robot.id")
 
 
 @dataclass(frozen=True)
@@ -92,7 +94,8 @@ def body_map(units: str, calibration: MotorCalibration | None = None, resolution
     if units != "range_m100_100":
         raise InputError(f"LeRobot units {units!r}: one of {list(UNITS)} for a body joint")
     if calibration is None:
-        raise InputError("joint values in -100..100 map to angles only through the robot's calibration file "
+        raise InputError("joint values in -100..100 (LeRobot's range_m100_100 units) map to angles only through the "
+                         "robot's calibration file "
                          f"(range_min, range_max, drive_mode per motor): {CALIBRATION_HINT}")
     scale = (calibration.range_max - calibration.range_min) / 200.0 * 2.0 * math.pi / (resolution - 1)
     return (-scale if calibration.drive_mode else scale), 0.0
