@@ -158,10 +158,10 @@ def test_round_trip_calibrate_build_and_masks_on_mujocos_segmentation(so101_reco
 def test_units_that_do_not_match_the_recipe(so101_recording, tmp_path, capsys):
     """A -100..100 dataset read as degrees lies inside the URDF's limits (LeRobot clamps -100..100, and the SO-101's
     limits are 95-163 degrees), so the build's joint-range check cannot see it and nothing refuses it before work.
-    ``imac qa calibrate`` refuses the front camera (no pose explains the depth, "check the joint map"); the side
-    camera, in this recording, is NOT refused: it is written with a focal length some 50 times its nominal one
-    (a known gap of qa calibrate, docs/new-robot.md). A -100..100 joint map without its calibration file is
-    refused before any work, naming the file LeRobot writes."""
+    ``imac qa calibrate`` refuses both cameras: the front one because no pose explains the depth ("check the joint
+    map"), the side one because its best pose needs a focal length some 50 times its nominal one, the joints'
+    units named first. A -100..100 joint map without its calibration file is refused before any work, naming
+    the file LeRobot writes."""
     from imac_data.cli import main as imac_main
     from imac_data.core.rig import Rig
     from imac_data.core.robot.joint_ranges import joint_range_problems
@@ -178,6 +178,9 @@ def test_units_that_do_not_match_the_recipe(so101_recording, tmp_path, capsys):
     imac_main(args)
     err = capsys.readouterr().err
     assert "REFUSED camera 'front': no pose explains the depth" in err and "Check the joint map" in err
+    # the side camera's best pose needs a lens no camera has: refused, the joints' units named first
+    assert "REFUSED camera 'side'" in err and "times its start" in err and "Check the joint map's units first" in err
+    assert not (tmp_path / "c.json").exists()  # every camera refused: nothing written
     # no calibration file: refused before anything is printed or searched, naming where LeRobot writes it
     assert imac_main(["robot", "joints", str(so101.urdf_path()), "--lerobot-robot", "so101_follower",
                       "--lerobot-units", "range_m100_100"]) == 2

@@ -62,6 +62,10 @@ CALIBRATE_GOES_ON = ("Calibration goes on with the joints as recorded: a robot p
 # Without a nominal field of view, these are tried in turn: each one's fit starts from focal lengths
 # 30 % too short to 50 % too long (measured, docs/calibration.md), so together they cover about 17-110 deg.
 FOV_SWEEP = (25.0, 50.0, 90.0)
+# A fitted focal length more than this many times off its start is no lens the start could stand for: the sweep's
+# starts are 1.8 times apart, a nominal field of view is within tens of percent. A robot posed wrongly (joint values
+# in other units than the joint map's) is what such a fit explains (docs/calibration.md, "Refusals").
+FOCAL_SPAN = 2.0
 
 
 def _intrinsics(cams, hw, intrinsics: Path | None, fov: Mapping[str, float]) -> dict[str, tuple[list, str]]:
@@ -163,8 +167,9 @@ def _solve(c: str, starts: list[np.ndarray], focal_known: bool, scale_known: boo
     for K in starts:
         try:
             if c not in mounts:
-                tries.append(solve_fixed(c, q, depths[c], K[0, 0], principal[c], surface, config,
-                                         focal_known=focal_known, scale_known=scale_known, log=log))
+                tries.append(_plausible(c, solve_fixed(c, q, depths[c], K[0, 0], principal[c], surface, config,
+                                                       focal_known=focal_known, scale_known=scale_known, log=log),
+                                        K[0, 0], principal[c]))
                 continue
             fixed = {f: r for f, r in results.items() if f not in mounts}
             if not fixed:
@@ -173,14 +178,28 @@ def _solve(c: str, starts: list[np.ndarray], focal_known: bool, scale_known: boo
                     "fixed camera with depth was calibrated in this run (calibrate one in the same run, or give a "
                     "rough mount to `imac qa refine`)")
             lp = robot.link_poses(torch.as_tensor(q))[mounts[c]].numpy()
-            tries.append(solve_mounted(c, q, depths[c], lp, _Scene(fixed, depths, principal, surface).at(q),
-                                       K[0, 0], principal[c], config, focal_known=focal_known,
-                                       scale_known=scale_known, log=log))
+            tries.append(_plausible(c, solve_mounted(c, q, depths[c], lp, _Scene(fixed, depths, principal, surface).at(q),
+                                                     K[0, 0], principal[c], config, focal_known=focal_known,
+                                                     scale_known=scale_known, log=log), K[0, 0], principal[c]))
         except CalibrationRefused as e:
             why.append(str(e))
             if e.result is not None:
                 poor.append(e.result)
     return tries, why, poor
+
+
+def _plausible(c: str, res: CameraResult, start: float, principal) -> CameraResult:
+    """``res``, unless its focal length is more than ``FOCAL_SPAN`` times off its ``start``: refused, the likelier
+    cause (the joints' units) first."""
+    ratio = res.focal / start
+    if 1 / FOCAL_SPAN <= ratio <= FOCAL_SPAN:
+        return res
+    fov = 2 * np.degrees(np.arctan(principal[1] / res.focal))
+    raise CalibrationRefused(
+        f"camera {c!r}: the pose that explains the depth best needs a focal length of {res.focal:.0f} px (a {fov:.1f} "
+        f"deg field of view), {ratio:.2g} times its start of {start:.0f} px: no camera, but a robot posed wrongly. "
+        "Check the joint map's units first (LeRobot records degrees or -100..100 with the robot's calibration file: "
+        "`imac robot joints URDF --lerobot-robot TYPE` prints the map), then the depth's units, then --fov")
 
 
 def _problem_at(c: str, frames: list[int], q_at, mounts: Mapping[str, str], robot, surface: RobotSurface,
