@@ -5,7 +5,8 @@ the README promises a user makes them:
    the box settled) and the scripted ``closed_loop`` policy, from starts no evaluation uses; the successes are kept;
 2. ``build``: ``imac build`` makes them a LeRobot dataset with every stream (``<work>/demos``);
 3. ``select``: LeRobot's own ``remove_feature`` keeps what the policy sees, the workspace view, the state and the
-   actions (``<work>/policy_data``: one video to decode a sample instead of twenty);
+   actions (``<work>/policy_data``: one video to decode a sample instead of twenty), and its ``delete_episodes``
+   the demonstrations whose arm took the expert's other IK branch (:func:`other_branch`);
 4. ``train``: ``lerobot-train`` trains ACT on it (``benchmarks/configs/lerobot_act.yaml``), keeping a checkpoint
    every ``--save-every`` steps.
 
@@ -24,12 +25,13 @@ import shutil
 import sys
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from imac_data.layout import STATE, image_key, info_path
 from imac_model.experiments.ranking.datasets import link_episodes
 from imac_model.experiments.ranking.plan import POLICY_MODULE, RECIPE, RankingPlan
-from imac_model.experiments.ranking.policies import WORKSPACE
+from imac_model.experiments.ranking.policies import RIGHT_ARM, WORKSPACE
 from imac_model.experiments.stages import REPO_ROOT, StageLog, python, run_all, then_mark_done
 
 CONFIG = REPO_ROOT / "benchmarks" / "configs" / "lerobot_act.yaml"
@@ -37,6 +39,7 @@ DEMO_SEED0 = 300_000  # demonstration d starts from DEMO_SEED0 + d: never an eva
 EXPERT = f"python:{POLICY_MODULE}:closed_loop"  # MuJoCo success 1.00 on the evaluation starts
 DEMO_REPO, POLICY_REPO = "local/lift_demos", "local/lift_demos_policy"
 KEEP = (image_key(WORKSPACE), STATE, "action")  # what the policy sees and does
+ROLLS = (RIGHT_ARM.start + 3, RIGHT_ARM.start + 5)  # the right forearm's and wrist's roll joints in the actions
 
 
 def simulate_demos(work: Path, plan: RankingPlan, demos: int, jobs: int) -> None:
@@ -83,8 +86,17 @@ def build_demos(work: Path, jobs: int) -> Path:
     return root
 
 
+def other_branch(actions: np.ndarray, episodes: np.ndarray) -> list[int]:
+    """The demonstrations whose arm took the other inverse-kinematics branch: the expert's IK reaches the same grasp
+    with the right forearm and wrist rolled by about pi in some episodes (docs/ranking.md), a second mode that a
+    policy trained on both would average into neither."""
+    rolled = np.abs(actions[:, list(ROLLS)]).max(axis=1) > np.pi / 2
+    return sorted({int(e) for e in episodes[rolled]})
+
+
 def select_features(work: Path, demos: Path) -> Path:
-    """What the policy trains on: the built dataset cut to ``KEEP`` by LeRobot's ``remove_feature``."""
+    """What the policy trains on, cut from the built dataset by LeRobot's own tools: ``KEEP`` (``remove_feature``),
+    and the demonstrations of one IK branch (``delete_episodes``); which were dropped goes to ``selection.json``."""
     out = work / "policy_data"
     if info_path(out).is_file():
         return out
@@ -94,10 +106,24 @@ def select_features(work: Path, demos: Path) -> Path:
     dataset = LeRobotDataset(DEMO_REPO, root=demos)
     drop = [k for k, f in dataset.meta.features.items()
             if k not in KEEP and (f["dtype"] in ("video", "image") or k.startswith(("camera_pose.", "control.")))]
-    tmp = out.with_name(out.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    dataset_tools.remove_feature(dataset, feature_names=drop, output_dir=tmp, repo_id=POLICY_REPO)
-    os.replace(tmp, out)
+    columns = dataset.hf_dataset.with_format("numpy")
+    dropped = other_branch(np.stack(columns["action"]), np.asarray(columns["episode_index"]))
+    if len(dropped) == dataset.meta.total_episodes:
+        raise SystemExit(f"lerobot_policy: every demonstration in {demos} took the other IK branch; simulate more")
+    tmp = [out.with_name(out.name + s) for s in (".episodes", ".tmp")]
+    for t in tmp:
+        shutil.rmtree(t, ignore_errors=True)
+    # episodes first: LeRobot 0.4.4's remove_feature keeps the removed features' per-episode statistics, on which
+    # its delete_episodes then fails ("Shape of quantile 'min' must be (3,1,1)")
+    if dropped:
+        dataset = dataset_tools.delete_episodes(dataset, episode_indices=dropped, output_dir=tmp[0],
+                                                repo_id=DEMO_REPO)
+    dataset_tools.remove_feature(dataset, feature_names=drop, output_dir=tmp[1], repo_id=POLICY_REPO)
+    shutil.rmtree(tmp[0], ignore_errors=True)
+    os.replace(tmp[1], out)
+    (work / "selection.json").write_text(json.dumps({"demonstrations": dataset.meta.total_episodes + len(dropped),
+                                                     "kept": dataset.meta.total_episodes,
+                                                     "other_ik_branch": dropped}, indent=1))
     return out
 
 

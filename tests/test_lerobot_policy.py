@@ -27,6 +27,10 @@ def test_demonstrations_become_act_checkpoints_that_resume_and_act_on_the_world_
     assert [e["stage"] for e in stages] == ["demos", "build", "select", "train"] * 2
     demos = json.loads(info_path(work / "demos").read_text())["features"]
     assert any(k.startswith("control.motion.") for k in demos)  # an imac build, every stream
+    # the demonstration whose arm rolled onto the expert's other IK branch is dropped by LeRobot's delete_episodes
+    selection = json.loads((work / "selection.json").read_text())
+    assert selection == {"demonstrations": 2, "kept": 1, "other_ik_branch": [1]}
+    assert json.loads(info_path(work / "policy_data").read_text())["total_episodes"] == 1
     kept = json.loads(info_path(work / "policy_data").read_text())["features"]
     assert {k for k, f in kept.items() if f["dtype"] == "video"} == {image_key(WORKSPACE)}
     assert {STATE, "action"} <= set(kept) and not any(k.startswith(("control.", "camera_pose.")) for k in kept)
