@@ -11,6 +11,8 @@ directory of its own, with nothing else: no calibration file, no segmentation. T
 * :func:`panda_episodes`: the Franka Panda URDF that pybullet ships, moving between random
   waypoints above a floor, rendered by pybullet's TinyRenderer from random placements.
 * :func:`degrade_depth`: depth scaled and with Gaussian noise, as from a monocular estimator.
+* :func:`sensor_depth`: the faults of a depth sensor (axial noise growing with the square of the distance,
+  holes, flying pixels at depth edges).
 * :func:`aloha_out_of_step`: the ALOHA episodes with the cameras out of step with the joint states
   by a known time offset (recorded at 50 fps, subsampled to 25 fps).
 """
@@ -123,6 +125,40 @@ def degrade_depth(src: Path, out: Path, camera: str, *, scale: float, noise: flo
         valid = d > 0
         d = d * scale * (1.0 + noise * rng.standard_normal(d.shape).astype(np.float32))
         ep.depth_mm[camera] = np.where(valid, np.maximum(d, 1.0), 0.0).astype(np.float32)
+        write_episode(out / p.name, ep, sim=False)
+
+
+def sensor_faults(d: np.ndarray, rng: np.random.Generator, *, axial: float = 0.002, holes: float = 0.05,
+                  hole_px: int = 6, edge_mm: float = 50.0, flying: float = 0.5) -> np.ndarray:
+    """One depth image ``(H, W)`` in millimetres (0 = invalid) as a stereo or time-of-flight sensor gives it:
+    Gaussian axial noise of ``axial`` z^2 (metres), square holes of ``hole_px`` covering about ``holes`` of the
+    image, and at depth edges (a neighbour more than ``edge_mm`` away) ``flying`` of the pixels mixed between
+    their depth and the neighbour's, at a uniform ratio."""
+    z = d.astype(np.float64) / 1000.0
+    valid = d > 0
+    out = z + axial * z**2 * rng.standard_normal(z.shape)
+    far = np.zeros_like(z)  # each pixel's most distant 4-neighbour across an edge, 0 where none
+    for axis in (0, 1):
+        for shift in (1, -1):
+            n = np.roll(z, shift, axis=axis)
+            edge = valid & (n > 0) & (np.abs(n - z) * 1000.0 > edge_mm) & ((far == 0) | (np.abs(n - z) > np.abs(far - z)))
+            far = np.where(edge, n, far)
+    fly = (far > 0) & (rng.random(z.shape) < flying)
+    out = np.where(fly, z + rng.random(z.shape) * (far - z), out)
+    H, W = z.shape
+    blocks = rng.random(((H + hole_px - 1) // hole_px, (W + hole_px - 1) // hole_px)) < holes
+    hole = np.kron(blocks, np.ones((hole_px, hole_px), bool))[:H, :W]
+    return np.where(valid & ~hole, np.maximum(out, 1e-3) * 1000.0, 0.0).astype(np.float32)
+
+
+def sensor_depth(src: Path, out: Path, *, seed: int, **faults) -> None:
+    """Copy ``src``'s episodes to ``out`` with every camera's depth through :func:`sensor_faults` (float mm)."""
+    rng = np.random.default_rng(seed)
+    out.mkdir(parents=True, exist_ok=True)
+    for p in episode_paths(src):
+        ep = read_episode(p)
+        for camera, depth in ep.depth_mm.items():
+            ep.depth_mm[camera] = np.stack([sensor_faults(d, rng, **faults) for d in depth])
         write_episode(out / p.name, ep, sim=False)
 
 
