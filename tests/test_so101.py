@@ -128,7 +128,7 @@ def test_round_trip_calibrate_build_and_masks_on_mujocos_segmentation(so101_reco
     the shipped recipe's platform within 3 mm and 0.3 degrees (nominal fields of view 15 % off); the -100..100
     episodes, built by ``python -m imac_data.build`` with the joint map made from LeRobot's calibration file and
     that calibration, draw the arm where MuJoCo's segmentation has it: IoU >= 0.97 per camera (the benchmark:
-    >= 0.99 at 480x640; at 96x128 the outline's pixels weigh more, and the true cameras give 0.99)."""
+    >= 0.99 at 480x640; at 96x128 the outline's pixels weigh more)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     from benchmarks import so101_round_trip as rt
