@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from imac_data import lerobot_compat as lr
 from imac_data.layout import STATE, image_key, info_path
 from imac_model.experiments.ranking.datasets import link_episodes
 from imac_model.experiments.ranking.plan import POLICY_MODULE, RECIPE, RankingPlan
@@ -100,10 +101,7 @@ def select_features(work: Path, demos: Path) -> Path:
     out = work / "policy_data"
     if info_path(out).is_file():
         return out
-    from lerobot.datasets import dataset_tools
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    dataset = LeRobotDataset(DEMO_REPO, root=demos)
+    dataset = lr.LeRobotDataset(DEMO_REPO, root=demos)
     drop = [k for k, f in dataset.meta.features.items()
             if k not in KEEP and (f["dtype"] in ("video", "image") or k.startswith(("camera_pose.", "control.")))]
     columns = dataset.hf_dataset.with_format("numpy")
@@ -116,9 +114,9 @@ def select_features(work: Path, demos: Path) -> Path:
     # episodes first: LeRobot 0.4.4's remove_feature keeps the removed features' per-episode statistics, on which
     # its delete_episodes then fails ("Shape of quantile 'min' must be (3,1,1)")
     if dropped:
-        dataset = dataset_tools.delete_episodes(dataset, episode_indices=dropped, output_dir=tmp[0],
+        dataset = lr.delete_episodes(dataset, episode_indices=dropped, output_dir=tmp[0],
                                                 repo_id=DEMO_REPO)
-    dataset_tools.remove_feature(dataset, feature_names=drop, output_dir=tmp[1], repo_id=POLICY_REPO)
+    lr.remove_feature(dataset, feature_names=drop, output_dir=tmp[1], repo_id=POLICY_REPO)
     shutil.rmtree(tmp[0], ignore_errors=True)
     os.replace(tmp[1], out)
     (work / "selection.json").write_text(json.dumps({"demonstrations": dataset.meta.total_episodes + len(dropped),

@@ -30,6 +30,7 @@ import numpy as np
 import yaml
 
 from benchmarks import so101_sim
+from imac_data import lerobot_compat as lr
 from imac_data.core.cameras import Camera, intrinsics_from_fovy, load_calibration
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -145,8 +146,6 @@ def hand_placed(truth: dict[str, Camera], seed: int = 0) -> dict[str, Camera]:
 def round_trip(work: Path, *, height: int, width: int, episodes: int, frames: int, lerobot: bool = True,
                log=print) -> list[dict]:
     """The whole round trip in ``work``; one row per convention and camera."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-
     from imac_data.core.rig import Rig
     from imac_data.recipes import load_recipe
 
@@ -165,7 +164,7 @@ def round_trip(work: Path, *, height: int, width: int, episodes: int, frames: in
         t_cal = time.perf_counter() - t0
         t_build = build(recipe, work / f"built_{units}", f"local/so101_round_trip_{units}")
         root = work / f"built_{units}"
-        rig = Rig.from_info(LeRobotDatasetMetadata(f"local/so101_round_trip_{units}", root=root))
+        rig = Rig.from_info(lr.LeRobotDatasetMetadata(f"local/so101_round_trip_{units}", root=root))
         states = built_states(root)
         built = iou(rig.robot, {c: rig.cameras[c] for c in truth}, states, masks)
         robot = Rig.robot_from_recipe(load_recipe(recipe))

@@ -30,6 +30,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from imac_data import lerobot_compat as lr
 from imac_data.core.cameras import Camera, look_at, save_calibration
 from imac_data.core.mujoco_gl import mujoco
 from imac_data.core.robot import so101
@@ -80,8 +81,7 @@ def lerobot_calibration(seed: int = 7) -> dict:
     """A LeRobot calibration of the arm (motor -> id, drive_mode, homing_offset, range_min, range_max): each body
     range covers its URDF limits with some margin, around a middle off 2048, drive modes mixed; the gripper's
     range is its URDF range."""
-    from lerobot.motors.motors_bus import MotorCalibration
-
+    MotorCalibration = lr.MotorCalibration
     rng = np.random.default_rng(seed)
     limits = {"shoulder_pan": 1.91986, "shoulder_lift": 1.74533, "elbow_flex": 1.69, "wrist_flex": 1.65806,
               "wrist_roll": 2.84121}
@@ -109,8 +109,7 @@ def save_lerobot_calibration(path: Path, calibration: dict) -> None:
 def lerobot_values(angles: np.ndarray, calibration: dict, units: str) -> np.ndarray:
     """What LeRobot records for the arm at ``angles (T, 6)`` radians: ticks from each range's middle (the gripper's
     from its URDF lower limit at ``range_min``), normalised by LeRobot's own ``MotorsBus._normalize``."""
-    from lerobot.motors.motors_bus import Motor, MotorNormMode, MotorsBus
-
+    Motor, MotorNormMode, MotorsBus = lr.Motor, lr.MotorNormMode, lr.MotorsBus
     names = (*so101.ARM.body, so101.ARM.gripper)
     mode = {"degrees": MotorNormMode.DEGREES, "range_m100_100": MotorNormMode.RANGE_M100_100}[units]
     motors = {m: Motor(calibration[m].id, "sts3215", MotorNormMode.RANGE_0_100 if m == "gripper" else mode)
@@ -209,15 +208,13 @@ def masks_of(path: Path) -> dict[str, np.ndarray]:
 def write_lerobot(root: Path, episodes: list, height: int, width: int) -> Path:
     """A LeRobot dataset (v3.0, no depth) of ``episodes`` ``[(values (T, 6), rgb {camera: (T, H, W, 3)})]`` by
     LeRobot's own writer, as ``so101_follower`` records: ``<joint>.pos`` state and action, one video per camera."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
     names = list(so101.STATE_NAMES)
     features = {"observation.state": {"dtype": "float32", "shape": (6,), "names": names},
                 "action": {"dtype": "float32", "shape": (6,), "names": names}}
     for c in CAMERAS:
         features[f"observation.images.{c}"] = {"dtype": "video", "shape": (height, width, 3),
                                                "names": ["height", "width", "channels"]}
-    ds = LeRobotDataset.create("local/so101_sim", fps=FPS, features=features, root=root, robot_type="so101_follower",
+    ds = lr.LeRobotDataset.create("local/so101_sim", fps=FPS, features=features, root=root, robot_type="so101_follower",
                                use_videos=True)
     for values, rgb in episodes:
         for t in range(len(values)):

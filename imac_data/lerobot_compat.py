@@ -45,6 +45,13 @@ NAMES: dict[str, tuple[str, ...]] = {
     "update_chunk_file_indices": ("lerobot.datasets.utils",),
     "decode_video_frames": ("lerobot.datasets.video_utils",),
     "encode_video_frames": ("lerobot.datasets.video_utils",),
+    "remove_feature": ("lerobot.datasets.dataset_tools",),
+    "delete_episodes": ("lerobot.datasets.dataset_tools",),
+    # the motor bus's normalisation, for the benchmarks' simulated LeRobot arms (benchmarks/so101_sim.py)
+    "Motor": ("lerobot.motors.motors_bus",),
+    "MotorCalibration": ("lerobot.motors.motors_bus",),
+    "MotorNormMode": ("lerobot.motors.motors_bus",),
+    "MotorsBus": ("lerobot.motors.motors_bus",),
     "convert_dataset": (
         "lerobot.scripts.convert_dataset_v21_to_v30",  # >= 0.5.1
         "lerobot.datasets.v30.convert_dataset_v21_to_v30",  # 0.4.4 and 0.5.0

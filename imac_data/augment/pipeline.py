@@ -23,6 +23,7 @@ from imac_data.console import raise_if_interrupted
 from imac_data.core.contact.images import chunk_plan
 from imac_data.core.depth import DepthCodec, resize_depth
 from imac_data.core.motion import joints_at
+from imac_data.core.rig import RobotViews
 from imac_data.errors import InputError
 from imac_data.layout import CAP_KEY, MOTION, R2S, S2G, depth_key, depth_map_key, stream_keys
 from imac_data.sources.depth import EpisodeViews, RecordedDepth
@@ -71,8 +72,6 @@ class _CameraTimes:
     def views(self, lo: int, hi: int, res, *, gripper: bool = True, measured: bool = False):
         """:meth:`Rig.robot_views` of frames ``lo .. hi - 1``, each camera at its own time (drawn
         configurations, or the measured state), views in the rig's order."""
-        from imac_data.core.rig import RobotViews
-
         parts = [sub.robot_views(link_poses=sub.link_poses(torch.as_tensor((m if measured else d)[lo:hi],
                                                                            dtype=torch.float32)),
                                  resolution=res, gripper=False) for sub, m, d in self.groups]
