@@ -95,6 +95,20 @@ def other_branch(actions: np.ndarray, episodes: np.ndarray) -> list[int]:
     return sorted({int(e) for e in episodes[rolled]})
 
 
+STD_FLOOR = 0.01  # radians (and the gripper's 0..1): the least spread a joint's statistics may claim
+
+
+def floor_std(stats_file: Path) -> None:
+    """The state's and actions' standard deviations raised to ``STD_FLOOR``. The left arm holds still: its joints
+    spread by 1e-6 to 1e-3 rad over the demonstrations, so LeRobot's mean-std normalisation made a 1e-4 rad
+    difference (commanded against measured, as the runners give it after the first chunk) an input of up to 100
+    standard deviations, and the left arm's jitter a target the policy cannot predict."""
+    stats = json.loads(stats_file.read_text())
+    for key in (STATE, "action"):
+        stats[key]["std"] = [max(float(x), STD_FLOOR) for x in stats[key]["std"]]
+    stats_file.write_text(json.dumps(stats, indent=4))
+
+
 def select_features(work: Path, demos: Path) -> Path:
     """What the policy trains on, cut from the built dataset by LeRobot's own tools: ``KEEP`` (``remove_feature``),
     and the demonstrations of one IK branch (``delete_episodes``); which were dropped goes to ``selection.json``."""
@@ -118,6 +132,7 @@ def select_features(work: Path, demos: Path) -> Path:
                                                 repo_id=DEMO_REPO)
     lr.remove_feature(dataset, feature_names=drop, output_dir=tmp[1], repo_id=POLICY_REPO)
     shutil.rmtree(tmp[0], ignore_errors=True)
+    floor_std(tmp[1] / "meta" / "stats.json")
     os.replace(tmp[1], out)
     (work / "selection.json").write_text(json.dumps({"demonstrations": dataset.meta.total_episodes + len(dropped),
                                                      "kept": dataset.meta.total_episodes,

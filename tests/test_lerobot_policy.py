@@ -31,6 +31,8 @@ def test_demonstrations_become_act_checkpoints_that_resume_and_act_on_the_world_
     selection = json.loads((work / "selection.json").read_text())
     assert selection == {"demonstrations": 2, "kept": 1, "other_ik_branch": [1]}
     assert json.loads(info_path(work / "policy_data").read_text())["total_episodes"] == 1
+    stats = json.loads((work / "policy_data" / "meta" / "stats.json").read_text())
+    assert min(stats[STATE]["std"] + stats["action"]["std"]) == lerobot_policy.STD_FLOOR  # the still left arm
     kept = json.loads(info_path(work / "policy_data").read_text())["features"]
     assert {k for k, f in kept.items() if f["dtype"] == "video"} == {image_key(WORKSPACE)}
     assert {STATE, "action"} <= set(kept) and not any(k.startswith(("control.", "camera_pose.")) for k in kept)
