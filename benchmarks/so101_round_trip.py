@@ -31,7 +31,13 @@ import yaml
 
 from benchmarks import so101_sim
 from imac_data import lerobot_compat as lr
+from imac_data.cli import main as imac_main
 from imac_data.core.cameras import Camera, intrinsics_from_fovy, load_calibration
+from imac_data.core.render import make_renderer
+from imac_data.core.rig import Rig
+from imac_data.core.robot import so101
+from imac_data.core.robot.lerobot_units import joint_map, read_calibration
+from imac_data.recipes import load_recipe
 
 ROOT = Path(__file__).resolve().parent.parent
 RECIPE = ROOT / "recipes" / "so101_lerobot.yaml"
@@ -47,8 +53,6 @@ def write_recipes(work: Path, paths: dict, hw: tuple[int, int]) -> dict[str, Pat
     """Per convention, a copy of ``recipes/so101_lerobot.yaml`` reading the HDF5 episodes (their recorded depth) and
     the calibration ``qa calibrate`` writes (``<work>/<convention>.calibration.json``); the -100..100 copy's
     ``robot:`` block is the one ``imac robot joints`` prints for the calibration file."""
-    from imac_data.core.robot import so101
-    from imac_data.core.robot.lerobot_units import joint_map, read_calibration
 
     base = yaml.safe_load(RECIPE.read_text())
     out = {}
@@ -71,10 +75,9 @@ def write_recipes(work: Path, paths: dict, hw: tuple[int, int]) -> dict[str, Pat
 
 def calibrate(source: Path, recipe: Path, out: Path, truth: dict[str, Camera]) -> dict:
     """``imac qa calibrate`` (in this process), nominal fields of view; returns its report."""
-    from imac_data.cli import main
 
     fov = [a for c, cam in truth.items() for a in ("--fov", f"{c}={NOMINAL[c] * fovy(cam):.2f}")]
-    rc = main(["qa", "calibrate", str(source), "--recipe", str(recipe), "--out", str(out), *fov, "--refine", "none",
+    rc = imac_main(["qa", "calibrate", str(source), "--recipe", str(recipe), "--out", str(out), *fov, "--refine", "none",
                "--max-time-offset", "0", "--no-progress", "--overwrite"])
     if rc != 0:
         raise RuntimeError(f"qa calibrate exited {rc}")
@@ -111,7 +114,6 @@ def iou(robot, cameras: dict[str, Camera], states: list[np.ndarray], masks: dict
     with MuJoCo's arm ``masks`` (``episode_E/camera``)."""
     import torch
 
-    from imac_data.core.render import make_renderer
 
     renderer = make_renderer(robot)
     inter = {c: 0 for c in cameras}
@@ -146,8 +148,6 @@ def hand_placed(truth: dict[str, Camera], seed: int = 0) -> dict[str, Camera]:
 def round_trip(work: Path, *, height: int, width: int, episodes: int, frames: int, lerobot: bool = True,
                log=print) -> list[dict]:
     """The whole round trip in ``work``; one row per convention and camera."""
-    from imac_data.core.rig import Rig
-    from imac_data.recipes import load_recipe
 
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

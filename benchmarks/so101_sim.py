@@ -31,10 +31,11 @@ from types import SimpleNamespace
 import numpy as np
 
 from imac_data import lerobot_compat as lr
-from imac_data.core.cameras import Camera, look_at, save_calibration
+from imac_data.core.cameras import Camera, intrinsics_from_fovy, look_at, save_calibration
 from imac_data.core.mujoco_gl import mujoco
 from imac_data.core.robot import so101
 from imac_data.sources.hdf5 import RawEpisode, write_episode
+from imac_data.sources.sim.env import FrameRenderer
 
 RESOLUTION = 4096  # STS3215 ticks a turn
 FPS = 25
@@ -60,7 +61,6 @@ def scene(cameras=CAMERAS):
 
 def truth(height: int, width: int, cameras=CAMERAS) -> dict[str, Camera]:
     """The cameras as placed, in the calibration's terms (OpenCV axes, the URDF's root = MuJoCo's world)."""
-    from imac_data.core.cameras import intrinsics_from_fovy
 
     return {n: Camera(n, intrinsics_from_fovy(f, width, height), width, height, T_world_cam=look_at(e, t))
             for n, (e, t, f) in cameras.items()}
@@ -137,7 +137,6 @@ def render(model, angles: np.ndarray, height: int, width: int) -> dict:
     """MuJoCo's frames of the arm at ``angles (T, 6)``: ``rgb``, ``depth_mm`` (uint16) and ``mask`` (the arm's
     geoms in MuJoCo's segmentation of the arm alone), each camera -> ``(T, ...)``; ``segmentation`` (the scene's
     geom ids, -1 none)."""
-    from imac_data.sources.sim.env import FrameRenderer
 
     cams = {f"imac_{c}": c for c in CAMERAS}  # the scene has a "front" camera of its own
     data = mujoco.MjData(model)
