@@ -38,6 +38,7 @@ from imac_data.metadata import dataset_info
 from imac_data.sources.hdf5 import write_episode
 from imac_data.sources.sim.env import SimEnv
 from imac_model.cli import main as model_main
+from imac_model.cli.ranking import _run_stages as run_stages
 from imac_model.config import RunConfig
 from imac_model.data import mosaic
 from imac_model.data.chunks import open_metadata
@@ -575,7 +576,7 @@ def test_a_mode_trained_again_from_another_seed_is_a_run_of_its_own_and_the_goal
         dataclasses.replace(plan, modes=("motion+contact@seedX",))
 
 
-def test_the_checkpoint_preset_is_its_files_plan_and_refuses_a_missing_checkpoint(tmp_path):
+def test_the_checkpoint_preset_is_its_files_plan_and_its_policy_stages_refuse_a_missing_checkpoint(tmp_path):
     shipped = yaml.safe_load(CHECKPOINTS.read_text())
     names = [slug(p) for p in shipped["policies"]]
     assert len(set(names)) == len(names) >= 10 and "lerobot_020000" in names
@@ -588,9 +589,14 @@ def test_the_checkpoint_preset_is_its_files_plan_and_refuses_a_missing_checkpoin
     plan = checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)
     assert plan.names == [slug(p) for p in scripted] + ["lerobot_002000"] and plan.modes == tuple(shipped["modes"])
     assert len(plan.eval_seeds()) == len(plan.wm_starts()) == 100  # the same starts in MuJoCo and the world model
+    plan.check_policies()
     (ckpt / "config.json").unlink()
-    with pytest.raises(InputError, match="benchmarks.lerobot_policy"):
-        checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)
+    missing = checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)  # the world models may train meanwhile
+    with pytest.raises(InputError, match=f"no LeRobot checkpoint .* at lerobot:{ckpt}; .*benchmarks.lerobot_policy"):
+        missing.check_policies()
+    with pytest.raises(InputError, match="no LeRobot checkpoint"):  # before any stage runs
+        run_stages(missing, ["simulate"])
+    assert not (tmp_path / "work").exists()
     preset.write_text(yaml.safe_dump({"policy": scripted}))
     with pytest.raises(InputError, match=r"not settings of a ranking plan: \['policy'\]"):
         checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)

@@ -110,6 +110,8 @@ def _ranking(args: argparse.Namespace) -> int:
 
 
 def _run_stages(plan: RankingPlan, stages: list[str]) -> int:
+    if {"simulate", "build", "evaluate"} & set(stages):  # the stages that run every policy
+        plan.check_policies()
     (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
     log = StageLog(plan.work / "stages.json", tag="ranking")
     try:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from imac_data.layout import info_path
 from imac_model.experiments.ranking.plan import EVAL_REPO, GATED_MODE, RECIPE, TRAIN_REPO, RankingPlan, internal
-from imac_model.experiments.ranking.simulate import SIDES
+from imac_model.experiments.ranking.simulate import SIDES, stage_simulate
 from imac_model.experiments.stages import python, run_all
 from imac_model.training.dataset_source import decode_to_cache
 
@@ -58,3 +58,11 @@ def stage_decode(plan: RankingPlan) -> None:
     if any((plan.work / "chunkcache").glob("*")):
         return
     run_all([("decode", internal(plan, "decode"), plan.work / "logs" / "decode.log")], 1, tag="ranking")
+
+
+def training_side(plan: RankingPlan) -> None:
+    """What training needs of the earlier stages, each skipped when done: the training rollouts simulated, built
+    and decoded, none of the evaluation episodes (so the world models can train while the policies still do)."""
+    stage_simulate(plan, ("train",))
+    stage_build(plan, ("train",))
+    stage_decode(plan)

@@ -18,9 +18,8 @@ from imac_data.errors import InputError
 from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.data.pack import export_pack
 from imac_model.experiments.ranking.ablations import ablation
-from imac_model.experiments.ranking.datasets import stage_build, stage_decode
+from imac_model.experiments.ranking.datasets import training_side
 from imac_model.experiments.ranking.plan import GATED_MODE, SEED_MARK, TRAIN_REPO, RankingPlan, internal, run_mode
-from imac_model.experiments.ranking.simulate import stage_simulate
 from imac_model.experiments.stages import REPO_ROOT, python, run_all
 from imac_model.models.checkpoint import list_checkpoints
 from imac_model.modes import SCENE_WARP
@@ -82,9 +81,7 @@ def stage_pack(plan: RankingPlan) -> None:
         return
     # run before the others (--stages pack on a new work directory, a GPU waiting): only the training side, so
     # the pack is ready in about half the time and the evaluation episodes can be made while the GPU trains
-    stage_simulate(plan, ("train",))
-    stage_build(plan, ("train",))
-    stage_decode(plan)
+    training_side(plan)
     run_all([("pack", internal(plan, "pack"), plan.work / "logs" / "pack.log")], 1, tag="ranking")
 
 

@@ -134,6 +134,16 @@ class RankingPlan:
         if self.gate_every is not None and not 0 < self.gate_every <= self.cpu_minutes:
             raise InputError(f"ranking: gate_every must be in (0, cpu_minutes], got {self.gate_every}")
 
+    def check_policies(self) -> None:
+        """Refuse ``lerobot:`` checkpoints that are not there, naming them all, before a stage runs a policy (the
+        world models' training side needs none, so it may start while the policies still train)."""
+        missing = [p for p in self.policies if p.startswith("lerobot:")
+                   and not Path(p[len("lerobot:"):], "config.json").is_file()]
+        if missing:
+            raise InputError(f"ranking: no LeRobot checkpoint (config.json) at {', '.join(missing)}; "
+                             "`python -m benchmarks.lerobot_policy` trains the checkpoint preset's (docs/ranking.md, "
+                             "\"LeRobot checkpoints\"), and `--stages train` trains the world models meanwhile")
+
     # ------------------------------------------------------------------ paths and indices
     @property
     def names(self) -> list[str]:
@@ -229,19 +239,14 @@ def gpu_plan(work: Path, docs: Path) -> RankingPlan:
 
 def checkpoints_plan(work: Path, docs: Path, path: Path = CHECKPOINTS) -> RankingPlan:
     """The checkpoint preset (docs/ranking.md, "Ranking checkpoints"): ``path``'s settings, a YAML file of
-    RankingPlan fields, over the defaults; its ``lerobot:`` policies, relative to the repository, must exist."""
+    RankingPlan fields, over the defaults; its ``lerobot:`` policies are relative to the repository (the
+    stages that run them refuse a missing one: :meth:`RankingPlan.check_policies`)."""
     data = yaml.safe_load(Path(path).read_text()) or {}
     unknown = set(data) - {f.name for f in dataclasses.fields(RankingPlan)} | {"work", "docs"} & set(data)
     if unknown:
         raise InputError(f"{path}: not settings of a ranking plan: {sorted(unknown)}")
-    policies = []
-    for spec in data.get("policies", ()):
-        if spec.startswith("lerobot:"):
-            spec = f"lerobot:{REPO_ROOT / spec[len('lerobot:'):]}"
-            if not Path(spec[len("lerobot:"):], "config.json").is_file():
-                raise InputError(f"{path}: policy {spec}: no LeRobot checkpoint there; `python -m "
-                                 "benchmarks.lerobot_policy` trains them (docs/ranking.md, \"LeRobot checkpoints\")")
-        policies.append(spec)
+    policies = [f"lerobot:{REPO_ROOT / s[len('lerobot:'):]}" if s.startswith("lerobot:") else s
+                for s in data.get("policies", ())]
     data.update({"policies": policies} if policies else {})
     return RankingPlan(work=work, docs=docs, **{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import sys
 from functools import partial
 
+from imac_model.experiments.ranking.datasets import training_side
 from imac_model.experiments.ranking.gate import gate_minutes, gate_verdict, read_gates
 from imac_model.experiments.ranking.gpu import train_on_gpu
 from imac_model.experiments.ranking.plan import GATED_MODE, RankingPlan, internal, slug
@@ -55,6 +56,7 @@ def train_gated(plan: RankingPlan) -> None:
 
 
 def stage_train(plan: RankingPlan) -> None:
+    training_side(plan)  # so that `--stages train` alone trains the world models while the policies still train
     if plan.on_gpu:
         return train_on_gpu(plan)
     gated = plan.gate_every is not None and GATED_MODE in plan.modes
