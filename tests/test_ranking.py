@@ -54,9 +54,10 @@ from imac_model.experiments.ranking.gpu import export_runs, import_gpu_runs, run
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import CHECKPOINTS, EVAL_REPO, TRAIN_REPO, RankingPlan, checkpoints_plan, slug
-from imac_model.experiments.ranking.policies import VIEWS, LiftPolicy, closed_loop, open_loop
+from imac_model.experiments.ranking.policies import VIEWS, WORKSPACE, LiftPolicy, closed_loop, open_loop
 from imac_model.experiments.ranking.report import _relative, rewrite_report, training_log, write_report
 from imac_model.experiments.ranking.report_text import parting_chunks, verdict_pairs
+from imac_model.experiments.ranking.shipped import sha256
 from imac_model.experiments.ranking.training import GateStop, stage_train
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
@@ -600,6 +601,36 @@ def test_the_checkpoint_preset_is_its_files_plan_and_its_policy_stages_refuse_a_
     preset.write_text(yaml.safe_dump({"policy": scripted}))
     with pytest.raises(InputError, match=r"not settings of a ranking plan: \['policy'\]"):
         checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)
+
+
+def test_the_shipped_models_rerun_the_reports_closed_loops_bit_for_bit_without_training(toy_run, tmp_path):
+    """The report ships its motion+contact model as it evaluated it (float16 EMA weights); --from-models reruns the
+    report's first start from that archive alone and gets the same frames, actions and verdicts."""
+    work, docs = toy_run
+    results = json.loads((docs / "results.json").read_text())
+    (archive,) = (docs / "models").iterdir()
+    assert results["shipped"] == {"motion_contact": {"mode": "motion+contact", "sha256": sha256(archive),
+                                                     "bytes": archive.stat().st_size}}
+    weights = load_file(str(work / "shipped" / "motion_contact" / "model.safetensors"))
+    assert {v.dtype for v in weights.values() if v.is_floating_point()} == {torch.float16}
+    assert model_main(["ranking", "--from-models", str(docs / "models"), "--work", str(tmp_path / "rerun"),
+                       "--starts", "1", "--policies", "python:imac_model.experiments.ranking.policies:open_loop"]) == 0
+    rerun = RankingPlan.load(tmp_path / "rerun" / "plan.json")
+    assert not (rerun.work / "runs").exists() and rerun.modes == ("motion+contact",)  # nothing trained
+    assert rerun.names == ["closed_loop", "open_loop"]  # the report's first policy first: its episodes give the starts
+    out = json.loads((rerun.docs / "rerun.json").read_text())
+    assert out["policies"]["closed_loop"]["real_same_as_report"] == 1 and "real_same_as_report" not in out["policies"]["open_loop"]
+    assert out["policies"]["closed_loop"]["modes"]["motion+contact"]["same_as_report"] == 1
+    ours = LeRobotDataset("local/closed_loop", root=rerun.wm_dir("motion+contact") / "closed_loop")
+    theirs = LeRobotDataset("local/closed_loop", root=work / "wm" / "motion_contact" / "closed_loop")
+    n = int(ours.meta.episodes["dataset_to_index"][0])
+    assert n > 8 and n == int(theirs.meta.episodes["dataset_to_index"][0])
+    for i in range(n):  # the start is the report's first: episode 0 of both
+        a, b = ours[i], theirs[i]
+        assert torch.equal(a["action"], b["action"]) and torch.equal(a[image_key(WORKSPACE)], b[image_key(WORKSPACE)])
+    assert "| closed_loop | " in (rerun.docs / "README.md").read_text()
+    assert model_main(["ranking", "--from-models", str(docs / "models"), "--work", str(tmp_path / "x"),
+                       "--starts", "9"]) != 0  # more starts than the report ran
 
 
 def test_the_pack_stage_alone_makes_only_the_training_side_and_the_same_pack(toy_run, tmp_path):

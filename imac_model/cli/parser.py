@@ -176,9 +176,16 @@ def _experiment(p: argparse.ArgumentParser) -> None:
 
 def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--work", default="runs/ranking", help="cache of every stage (resumable)")
-    p.add_argument("--docs", default="docs/ranking", help="where the report goes")
+    p.add_argument("--docs", help="where the report goes (default docs/ranking; with --from-models, <work>/report)")
     p.add_argument("--policies", nargs="+", metavar="SPEC",
-                   help="python:MODULE:NAME policies to rank (default: the benchmark's six lift policies)")
+                   help="python:MODULE:NAME or lerobot:DIR policies to rank (default: the preset's; with "
+                        "--from-models, the report's)")
+    p.add_argument("--from-models", nargs="?", const="docs/ranking/models", metavar="DIR",
+                   help="rank with the world models shipped in DIR (default docs/ranking/models), with no training: "
+                        "the report beside DIR's plan, on --policies, its rows put beside the report's "
+                        "(docs/ranking.md, 'The shipped world models')")
+    p.add_argument("--starts", type=int, metavar="K",
+                   help="with --from-models: only the report's first K starts (a quick check of its verdicts)")
     p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 120)")
     p.add_argument("--steps", type=int, help="Euler steps at evaluation (default 10)")
     p.add_argument("--jobs", type=int, help="processes at a time (default 2)")

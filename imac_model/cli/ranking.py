@@ -19,6 +19,7 @@ from imac_model.experiments.ranking.gate import measure_gate
 from imac_model.experiments.ranking.gpu import export_runs, export_training_pack, import_gpu_runs
 from imac_model.experiments.ranking.plan import STAGES, RankingPlan, checkpoints_plan, gpu_plan, toy_plan
 from imac_model.experiments.ranking.report import rewrite_report
+from imac_model.experiments.ranking.shipped import rerun_plan, run_from_models
 from imac_model.experiments.ranking.simulate import simulate_training_part
 from imac_model.experiments.ranking.status import status
 from imac_model.experiments.ranking.training import GateStop
@@ -32,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _plan(args: argparse.Namespace) -> RankingPlan:
-    work, docs = Path(args.work).resolve(), Path(args.docs).resolve()
+    work, docs = Path(args.work).resolve(), Path(args.docs or "docs/ranking").resolve()
     if args.toy and args.preset != "cpu":
         raise InputError(f"--toy and --preset {args.preset} are two sizes; choose one")
     plan = toy_plan(work, docs) if args.toy else gpu_plan(work, docs) if args.preset == "gpu" else \
@@ -43,7 +44,26 @@ def _plan(args: argparse.Namespace) -> RankingPlan:
                                  ("training_offsets", args.training_offsets), ("settle_s", args.settle),
                                  ("views", tuple(args.views or ()) or None))
                if v is not None}
-    plan = dataclasses.replace(plan, **changes)
+    return same_as_saved(dataclasses.replace(plan, **changes))
+
+
+def _rerun_plan(args: argparse.Namespace) -> RankingPlan:
+    models, work = Path(args.from_models).resolve(), Path(args.work).resolve()
+    docs = Path(args.docs).resolve() if args.docs else work / "report"
+    if docs == models.parent:
+        raise InputError(f"--docs {args.docs}: the report the models belong to is there; the rerun's goes elsewhere")
+    given = [k for k in ("preset", "cpu_minutes", "steps", "training_offsets", "settle", "views", "stages")
+             if getattr(args, k) not in (None, "cpu")] + (["toy"] if args.toy else [])
+    if given:
+        raise InputError(f"--from-models runs the report's plan; {', '.join('--' + k.replace('_', '-') for k in given)} "
+                         "would change it")
+    plan = rerun_plan(models, work, docs, tuple(args.policies or ()), args.starts)
+    return same_as_saved(dataclasses.replace(plan, jobs=args.jobs) if args.jobs else plan)
+
+
+def same_as_saved(plan: RankingPlan) -> RankingPlan:
+    """``plan``, refused when its work directory holds a run with other settings."""
+    work = plan.work
     saved = work / "plan.json"
     if saved.is_file():
         before = RankingPlan.load(saved)
@@ -93,6 +113,18 @@ def _ranking(args: argparse.Namespace) -> int:
         return 0
     if args.rewrite_report:
         print(f"rewrote {rewrite_report(Path(args.docs))}")
+        return 0
+    if args.starts is not None and not args.from_models:
+        raise InputError("--starts picks starts of the report that --from-models reruns; give --from-models")
+    if args.from_models:
+        plan = _rerun_plan(args)
+        plan.check_policies()
+        plan.work.mkdir(parents=True, exist_ok=True)
+        with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
+            (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
+            StageLog(plan.work / "stages.json", tag="ranking").run(
+                "from-models", lambda: run_from_models(plan, Path(args.from_models)))
+        print(f"report: {plan.docs / 'README.md'}")
         return 0
     plan = _plan(args)
     stages = stages_to_run(args.stages, plan)

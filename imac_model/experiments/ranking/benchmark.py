@@ -27,6 +27,7 @@ from imac_model.experiments.ranking.gate import read_gates
 from imac_model.experiments.ranking.gpu import stage_pack
 from imac_model.experiments.ranking.plan import RankingPlan, internal, run_mode, slug
 from imac_model.experiments.ranking.report import write_report
+from imac_model.experiments.ranking.shipped import freeze_models
 from imac_model.experiments.ranking.simulate import stage_simulate
 from imac_model.experiments.ranking.training import stage_train
 from imac_model.experiments.stages import run_all
@@ -49,6 +50,7 @@ def _gated_at_the_end(plan: RankingPlan, mode: str) -> bool:
 
 
 def stage_evaluate(plan: RankingPlan) -> None:
+    freeze_models(plan)  # every mode evaluated as it ships
     # the gate of every compared mode at the end of its training, beside motion+contact's hourly ones
     gates = [(f"gate {mode}", internal(plan, "gate", f"{plan.budget_minutes:g}", mode), plan.work / "logs" / "gate.log")
              for mode in plan.modes if not run_mode(mode).blind and not _gated_at_the_end(plan, mode)]

@@ -258,7 +258,7 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
     mode's world model, judged against MuJoCo's labels; cached as ``wm/<mode>/replays.json``. Run
     alone (``--internal replays MODE [RUN]``) it measures the gate before any closed loop; ``RUN``
     names another trained run of the mode under ``runs/`` (an ablation)."""
-    run_dir, wm_dir = ((plan.run_dir(mode), plan.wm_dir(mode)) if run is None else
+    run_dir, wm_dir = ((plan.evaluated_model(mode), plan.wm_dir(mode)) if run is None else
                        (plan.work / "runs" / run, plan.work / "wm" / run))
     done = wm_dir / "replays.json"
     if done.is_file():
@@ -292,7 +292,7 @@ def evaluate_policy(plan: RankingPlan, mode: str, policy: str) -> dict:
     (cached: :func:`policy_dir`). The evaluate stage runs each policy in a process of its own, so that the
     machine's cores share the work evenly; :func:`evaluate_mode` then finds it done."""
     torch.set_num_threads(1)
-    model = load_world_model(plan.run_dir(mode), weights="ema", device=plan.device)[0]
+    model = load_world_model(plan.evaluated_model(mode), weights="ema", device=plan.device)[0]
     chunks = open_chunks(model.spec, EVAL_REPO, str(plan.eval_dataset), episodes=_start_episodes(plan))
     return _policy_closed_loop(plan, mode, policy, model, chunks, _online(plan, model, chunks))
 
@@ -315,7 +315,7 @@ def _policy_closed_loop(plan: RankingPlan, mode: str, policy: str, model, chunks
                               sampler_steps=plan.steps, seed=plan.seed)
     t0, c0 = time.time(), time.process_time()
     result = run_closed_loop(model, chunks, online, load_policy(policy), out, config=config,
-                             repo_id=f"local/{out.name}", judge=LiftJudge(), checkpoint=str(plan.run_dir(mode)),
+                             repo_id=f"local/{out.name}", judge=LiftJudge(), checkpoint=str(plan.evaluated_model(mode)),
                              overwrite=True, progress=False).to_dict()
     classifier = _classifier(plan)
     if classifier is not None:
@@ -384,7 +384,7 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     torch.set_num_threads(1)
     t0, c0 = time.time(), time.process_time()
     out = plan.wm_dir(mode)
-    model, spec = load_world_model(plan.run_dir(mode), weights="ema", device=plan.device)
+    model, spec = load_world_model(plan.evaluated_model(mode), weights="ema", device=plan.device)
     evaluation = lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
     labels = dataset_success_labels(evaluation)
     starts = _start_episodes(plan)

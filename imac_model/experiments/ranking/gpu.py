@@ -110,6 +110,8 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
         shutil.rmtree(run, ignore_errors=True)
         os.replace(tmp, run)
         shutil.rmtree(plan.work / "wm" / name, ignore_errors=True)
+        shutil.rmtree(plan.work / "shipped" / name, ignore_errors=True)  # frozen from the run replaced
+        (plan.work / "shipped" / f"{name}.tar.xz").unlink(missing_ok=True)
         done.append(name)
     if not done:
         raise InputError(f"{directory}: no run archive <run>.tar or <run>.tar.xz there")

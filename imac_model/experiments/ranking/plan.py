@@ -101,6 +101,9 @@ class RankingPlan:
     settle_s: float = 0.3
     gpu_minutes: float | None = None  # the GPU preset: each compared mode trained this long on one GPU from the pack
     gpu_ablations: tuple[str, ...] = ()  # the GPU preset also trains these arms (ablations.ABLATIONS) beside its modes
+    # every mode is evaluated as it ships: its EMA weights in float16 (shipped.py), so that anyone rerunning the shipped
+    # models gets the report's verdicts; plans saved before 2026-12-01 evaluated the float32 EMA
+    evaluate_half: bool = True
     toy: bool = False  # the CI run: tiny backbone, a few training steps
     overrides: dict = field(default_factory=dict)  # extra run-config overrides for every mode
 
@@ -180,6 +183,15 @@ class RankingPlan:
     def run_dir(self, mode: str) -> Path:
         return self.work / "runs" / mode.replace("+", "_").replace("-", "_").replace("@", "_")
 
+    def shipped_archive(self, mode: str) -> Path:
+        """``mode``'s trained run as it ships (:mod:`.shipped`): a run archive of its float16 EMA weights."""
+        return self.work / "shipped" / f"{self.run_dir(mode).name}.tar.xz"
+
+    def evaluated_model(self, mode: str) -> Path:
+        """The checkpoint ``mode`` is evaluated with: its shipped archive unpacked, or (``evaluate_half`` off, plans
+        saved before it) the run's latest checkpoint."""
+        return self.work / "shipped" / self.run_dir(mode).name if self.evaluate_half else self.run_dir(mode)
+
     def wm_dir(self, mode: str) -> Path:
         return self.work / "wm" / mode.replace("+", "_").replace("-", "_").replace("@", "_")
 
@@ -225,7 +237,7 @@ class RankingPlan:
     def from_dict(cls, data: dict) -> RankingPlan:
         """A plan from :meth:`to_dict`'s output (``plan.json``, or the ``plan`` of a report's ``results.json``)."""
         # a plan saved before these settings existed
-        data = {"training_offsets": "disc", "settle_s": 0.0, "views": VIEWS, **data}
+        data = {"training_offsets": "disc", "settle_s": 0.0, "views": VIEWS, "evaluate_half": False, **data}
         return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()})
 
 

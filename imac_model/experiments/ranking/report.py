@@ -22,6 +22,7 @@ from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
 from imac_model.experiments.ranking.gate import read_gates
 from imac_model.experiments.ranking.plan import EVAL_REPO, RankingPlan, run_mode, slug
 from imac_model.experiments.ranking.report_text import markdown, shown_path, stopped_markdown
+from imac_model.experiments.ranking.shipped import ship_models
 from imac_model.experiments.stages import REPO_ROOT, StageLog, git, machine
 from imac_model.models.checkpoint import list_checkpoints, read_spec
 from imac_model.models.world_model import WorldModel
@@ -153,7 +154,7 @@ def write_report(plan: RankingPlan) -> Path:
     examples = _examples(plan, real, shown)
     for outcome, (policy, start) in examples.items():
         side_by_side(plan, shown, policy, start, docs / f"rollout_{outcome}.png")
-    results.update(real={f"{p}/{g}": v for (p, g), v in real.items()}, statistics=stats,
+    results.update(shipped=ship_models(plan), real={f"{p}/{g}": v for (p, g), v in real.items()}, statistics=stats,
                    judges=json.loads((plan.work / "judges" / "real.json").read_text()),
                    evaluations={m: json.loads((plan.wm_dir(m) / "outcomes.json").read_text()) for m in plan.modes},
                    examples=examples)
