@@ -134,6 +134,12 @@ def _header(plan: RankingPlan, r: dict) -> list[str]:
         f"each; in the world model the first {plan.wm_per_group} starts of each group, {plan.chunks} chunks of 8 "
         f"frames (10 fps), {plan.steps} Euler steps; {plan.train_episodes} training rollouts.", "",
     ]
+    if r.get("shipped"):
+        lines += ["**Shipped models.** " + "; ".join(
+            f"`models/{run}.tar.xz` ({s['mode']}, {s['bytes'] / 2**20:.1f} MiB, SHA-256 {s['sha256'][:12]})"
+            for run, s in r["shipped"].items()) + ": the float16 EMA weights every verdict below comes from. "
+            "`imac-model ranking --from-models` ranks any policy with them, with no training (docs/ranking.md, "
+            "\"The shipped world models\").", ""]
     return lines
 
 
