@@ -53,10 +53,18 @@ from imac_model.experiments.ranking.gate import measure_gate, read_gates
 from imac_model.experiments.ranking.gpu import export_runs, import_gpu_runs, runs_file
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import redness, without_cube
-from imac_model.experiments.ranking.plan import CHECKPOINTS, EVAL_REPO, TRAIN_REPO, RankingPlan, checkpoints_plan, slug
+from imac_model.experiments.ranking.plan import (
+    CHECKPOINTS,
+    EVAL_REPO,
+    POLICY_MODULE,
+    TRAIN_REPO,
+    RankingPlan,
+    checkpoints_plan,
+    slug,
+)
 from imac_model.experiments.ranking.policies import VIEWS, WORKSPACE, LiftPolicy, closed_loop, open_loop
 from imac_model.experiments.ranking.report import _relative, rewrite_report, training_log, write_report
-from imac_model.experiments.ranking.report_text import parting_chunks, verdict_pairs
+from imac_model.experiments.ranking.report_text import _by_family, parting_chunks, verdict_pairs
 from imac_model.experiments.ranking.shipped import sha256
 from imac_model.experiments.ranking.training import GateStop, stage_train
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT
@@ -1135,3 +1143,28 @@ def test_the_offset_curve_runs_the_benchmarks_own_policies():
                                                                       runner=runner, progress=False)]))
                 for cm, make in (("0", policies.open_loop), ("3", policies.open_loop_3cm))}
     assert got == want
+
+
+def test_each_family_alone_is_ranked_as_scipy_ranks_it(tmp_path):
+    """The report's scripted-alone and LeRobot-alone rows: Pearson and Spearman as scipy computes them, MMRV as the
+    brute-force definition (every pair, the worst real gap each policy is ordered against)."""
+    from scipy.stats import pearsonr, spearmanr
+
+    scripted = [f"python:{POLICY_MODULE}:{p}" for p in ("closed_loop", "open_loop", "open_loop_3cm")]
+    learned = [f"lerobot:{tmp_path}/act/checkpoints/{s:06d}/pretrained_model" for s in (2000, 4000, 6000, 8000)]
+    plan = RankingPlan(work=tmp_path, docs=tmp_path, policies=tuple(scripted + learned), groups=1, real_per_group=10,
+                       wm_per_group=10, modes=("motion+contact",))
+    real = dict(zip(plan.names, [0.9, 0.5, 0.1, 0.0, 0.3, 0.6, 0.7]))
+    wm = dict(zip(plan.names, [0.8, 0.6, 0.0, 0.1, 0.2, 0.8, 0.6]))
+    r = {"real": {f"{n}/g0": [i < round(10 * real[n]) for i in range(10)] for n in plan.names},
+         "statistics": {"motion+contact": {"lift_geometry": {"points": [
+             {"policy": n, "world_model": wm[n], "n_world_model": 10} for n in plan.names]}}}}
+    rows = {line.split(" | ")[0].lstrip("| "): line.strip(" |").split(" | ") for line in _by_family(plan, r)
+            if line.startswith("| scripted") or line.startswith("| LeRobot")}
+    assert set(rows) == {"scripted", "LeRobot"}
+    for family, names in (("scripted", plan.names[:3]), ("LeRobot", plan.names[3:])):
+        x, y = [wm[n] for n in names], [real[n] for n in names]
+        worst = [max([abs(y[i] - y[j]) for j in range(len(y)) if (x[i] > x[j]) != (y[i] > y[j])], default=0.0)
+                 for i in range(len(y))]
+        assert rows[family][1:6] == [str(len(names)), "motion+contact", f"{pearsonr(x, y)[0]:.3f}",
+                                     f"{spearmanr(x, y)[0]:.3f}", f"{np.mean(worst):.3f}"]

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from imac_model.evaluate.statistics import STATISTICS, balanced_accuracy, best_two_level_guess
+from imac_model.evaluate.statistics import STATISTICS, balanced_accuracy, best_two_level_guess, mmrv, pearson, spearman
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
 from imac_model.experiments.ranking.gate import GATED_MODE, cube_by_view, gate_verdict
 from imac_model.experiments.ranking.plan import BASELINE_MODE, RankingPlan, base_mode, slug
@@ -98,6 +98,34 @@ def _against_a_guess(plan: RankingPlan, r: dict) -> list[str]:
             both = [p for n in names for p in pairs[n]]
             cells += [_fmt(balanced_accuracy([a for a, _ in both], [b for _, b in both])), str(len(both))]
         lines.append(f"| {mode} | " + " | ".join(cells) + " |")
+    return lines
+
+
+FAMILIES = {"scripted": "python:", "LeRobot": "lerobot:"}  # a policy's family, by its spec's prefix
+
+
+def _by_family(plan: RankingPlan, r: dict) -> list[str]:
+    """The LeRobot policies alone and the scripted ones alone (no goal of their own): policy-level Pearson,
+    Spearman and MMRV of each mode (lift judge, point values), with the family's best two-level guess beside."""
+    families = {f: [n for n, spec in zip(plan.names, plan.policies) if spec.startswith(prefix)]
+                for f, prefix in FAMILIES.items()}
+    families = {f: names for f, names in families.items() if len(names) >= 3 and len(names) < len(plan.names)}
+    if not families:
+        return []
+    rates = real_rates(plan, r)
+    lines = ["", "### Each family alone", "", "The scripted policies alone and the LeRobot checkpoints alone (policy "
+             "level, lift judge; no goal of their own, no intervals):", "",
+             "| family | policies | mode | Pearson | Spearman | MMRV | best two-level guess's MMRV |",
+             "|---|---|---|---|---|---|---|"]
+    for family, names in families.items():
+        real = np.asarray([rates[n] for n in names])
+        guess = best_two_level_guess({n: rates[n] for n in names})["mmrv"]
+        for mode in plan.modes:
+            pts = r["statistics"][mode]["lift_geometry"]["points"]
+            wm = np.asarray([sum(p["world_model"] * p["n_world_model"] for p in pts if p["policy"] == n)
+                             / sum(p["n_world_model"] for p in pts if p["policy"] == n) for n in names])
+            cells = [_fmt(float(f(wm, real))) for f in (pearson, spearman, mmrv)]
+            lines.append(f"| {family} | {len(names)} | {mode} | " + " | ".join(cells) + f" | {_fmt(guess)} |")
     return lines
 
 
@@ -326,7 +354,7 @@ def markdown(plan: RankingPlan, r: dict) -> str:
                 g = r["statistics"][mode][judge]["levels"][level]
                 cells = [f"{_fmt(g[s]['value'])}{_ci(g[s]['ci'])}" for s in STATISTICS]
                 lines.append(f"| {mode} | {judge} | {level} | {g['n_points']} | " + " | ".join(cells) + " |")
-    lines += ["", _verdict(r["statistics"])] + _against_a_guess(plan, r)
+    lines += ["", _verdict(r["statistics"])] + _against_a_guess(plan, r) + _by_family(plan, r)
     for mode in plan.modes:
         lines += ["", f"![{mode}](scatter_{slug(mode.replace('+', '_'))}.png)"]
     lines += _start_by_start(plan, r) + _which_chunk(plan, r)
