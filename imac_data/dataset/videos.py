@@ -99,11 +99,14 @@ class VideoEncoding:
         object.__setattr__(self, "options", dict(sorted(options.items())))
 
     @classmethod
-    def lossless_rgb(cls, gop: int = 10, preset: str = "medium", threads: int = 1) -> VideoEncoding:
+    def lossless_rgb(cls, gop: int = 10, preset: str = "ultrafast", threads: int = 1) -> VideoEncoding:
         """H.264 in RGB (libx264rgb, stored as planar GBR), qp 0: bit-exact RGB, the depth and
         control streams' settings (``benchmarks/depth_fidelity.py``). ``threads`` is fixed because
         x264's bytes depend on its thread count; one, because the pipeline already encodes its
-        streams in parallel. Older datasets written with 2 threads decode to the same pixels."""
+        streams in parallel. Older datasets written with 2 threads decode to the same pixels.
+        ``ultrafast``: a lossless stream decodes to the same values at any preset, and this one codes
+        in an eighth of ``medium``'s CPU and decodes in half, at 1.9 times the bytes
+        (``benchmarks/lossless_presets.py``); datasets built before 2026-12-01 used ``medium``."""
         return cls(codec="libx264rgb", pix_fmt="rgb24", qp=0, crf=None, preset=preset, gop=gop, threads=threads)
 
     @classmethod
