@@ -22,7 +22,8 @@ from imac_data.core.depth import DepthCodec
 from imac_data.core.depth_map import DepthMapParams
 from imac_data.core.motion import Controller
 from imac_data.core.robot.aloha import SIM_TASKS
-from imac_data.core.robot.platforms import PLATFORMS, platform, simulated_platforms
+from imac_data.core.robot.lerobot_units import CALIBRATION_HINT, LEROBOT_ARMS, UNITS, convention
+from imac_data.core.robot.platforms import PLATFORMS, lerobot_platforms, platform, simulated_platforms
 from imac_data.errors import InputError
 from imac_data.layout import ACTION, STATE
 from imac_data.metadata import imac_block
@@ -78,6 +79,10 @@ class RobotSection:
     gripper_links: tuple[str, ...] = ()
     package_dirs: dict[str, str] = field(default_factory=dict)
     controller: ControllerSection | None = None
+    # a platform recorded in LeRobot's units (lerobot_platforms()): the body's units (default: the platform's),
+    # and the arm's LeRobot calibration file, which range_m100_100 needs (docs/new-robot.md)
+    units: str | None = None
+    calibration: str | None = None
 
     def joint_map_entries(self) -> list:
         """The joint map in :meth:`imac_data.core.robot.model.RobotConfig.parse_joint_map`'s input form."""
@@ -313,6 +318,7 @@ def _validate(recipe: Recipe) -> None:
         if extra:
             raise InputError(f"{f}: robot: platform {r.platform!r} brings its own robot and controller; "
                              f"remove {extra} (or drop 'platform' and describe your robot)")
+    _validate_units(r, f)
     if r.controller is not None:
         try:
             Controller.from_dict(dataclasses.asdict(r.controller), where="robot.controller").validate(
@@ -361,6 +367,41 @@ def _validate(recipe: Recipe) -> None:
         raise InputError(f"{f}: source.sim.noise: must be in [0, 1], got {sim.noise}")
     if sim.height <= 0 or sim.width <= 0 or sim.frame_stride <= 0:
         raise InputError(f"{f}: source.sim: height, width and frame_stride must be positive")
+
+
+def _validate_units(r: RobotSection, f: str) -> None:
+    """``robot.units`` and ``robot.calibration``: options of a platform recorded in LeRobot's units."""
+    if r.units is None and r.calibration is None:
+        arm = PLATFORMS[r.platform].lerobot_arm if r.platform is not None else None
+        if arm is not None and LEROBOT_ARMS[arm].units == "range_m100_100":
+            raise InputError(f"{f}: robot.calibration: platform {r.platform!r} records -100..100 by default, which "
+                             f"maps to angles only through the arm's calibration file ({CALIBRATION_HINT})")
+        return
+    given = [k for k in ("units", "calibration") if getattr(r, k) is not None]
+    if r.platform is None or PLATFORMS[r.platform].lerobot_arm is None:
+        what = f"platform {r.platform!r}" if r.platform is not None else "a robot given by urdf and joint_map"
+        raise InputError(f"{f}: robot: {given} are options of a platform recorded in LeRobot's units "
+                         f"({list(lerobot_platforms())}), not of {what}; a urdf recipe's joint_map carries its units "
+                         "in each entry's scale and offset (imac robot joints URDF --lerobot-robot TYPE "
+                         "--lerobot-units UNITS --lerobot-calibration FILE prints them)")
+    if r.units is not None and r.units not in UNITS:
+        raise InputError(f"{f}: robot.units: one of {list(UNITS)} (the body joints' LeRobot units; the gripper "
+                         f"always records 0..100), got {r.units!r}")
+    units = r.units or LEROBOT_ARMS[PLATFORMS[r.platform].lerobot_arm].units
+    if units == "range_m100_100" and r.calibration is None:
+        raise InputError(f"{f}: robot.calibration: required with robot.units range_m100_100: values in -100..100 "
+                         f"map to angles only through the arm's calibration file ({CALIBRATION_HINT})")
+
+
+def joint_units(recipe: Recipe) -> dict | None:
+    """The LeRobot units the recipe's joint map takes (:func:`~imac_data.core.robot.lerobot_units.convention`,
+    what a build records as ``imac.build.joint_units``), or None: a robot not recorded in LeRobot's units, or one
+    whose recipe writes its own joint map."""
+    r = recipe.robot
+    arm = PLATFORMS[r.platform].lerobot_arm if r.platform is not None else None
+    if arm is None:
+        return None
+    return convention(arm, r.units, recipe.resolve_path(r.calibration))
 
 
 def parse_recipe(data: dict, file: str = "") -> Recipe:
@@ -436,6 +477,7 @@ def missing_inputs(recipe: Recipe, source_path: Path | None = None) -> list[str]
         for name, value in r.package_dirs.items():
             check(f"robot.package_dirs.{name}", value, f"the directory of package://{name}/", "where the meshes are",
                   is_dir=True)
+    check("robot.calibration", r.calibration, "the arm's LeRobot calibration file", CALIBRATION_HINT)
     check("cameras.calibration", recipe.cameras.calibration, "the camera calibration JSON",
           "format in docs/calibration.md")
     if source_path is None:

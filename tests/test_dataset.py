@@ -113,7 +113,7 @@ def built(tmp_path_factory):
 def test_built_dataset_is_valid_every_frame(built, capsys):
     report = validate_dataset(built[0], full=True)
     assert report.ok, report.format()
-    assert set(report.results) == {"metadata", "frame_counts", "imac_block", "rig", "calibration", "caps",
+    assert set(report.results) == {"metadata", "frame_counts", "imac_block", "rig", "joint_units", "calibration", "caps",
                                    "decode", "depth"}
     assert imac_main(["validate", str(built[0])]) == 0
     assert "OK" in capsys.readouterr().out

@@ -64,5 +64,6 @@ def input_paths(req: BuildRequest) -> dict[str, Path | None]:
         "calibration": recipe.resolve_path(recipe.cameras.calibration),
         "recipe": Path(recipe.file) if recipe.file else None,
         "robot URDF": recipe.resolve_path(recipe.robot.urdf),
+        "LeRobot calibration": recipe.resolve_path(recipe.robot.calibration),
         "episode metadata": recipe.resolve_path(recipe.source.metadata),
     }

@@ -24,6 +24,7 @@ from imac_data.core.cameras import same_aspect
 from imac_data.core.rig import Rig
 from imac_data.core.robot.description import description_bytes, write_description
 from imac_data.core.robot.joint_ranges import joint_range_warning
+from imac_data.core.robot.lerobot_units import units_refusal
 from imac_data.core.robot.platforms import simulated_platforms
 from imac_data.dataset.card import write_card
 from imac_data.dataset.ingest import BaseWriter, IngestOptions
@@ -31,7 +32,7 @@ from imac_data.dataset.merge import merge_datasets
 from imac_data.dataset.output import check_output, estimate_build_bytes, refuse_overlap, warn_if_short_of_space
 from imac_data.errors import InputError
 from imac_data.layout import CALIBRATION, cache_home
-from imac_data.recipes import Recipe
+from imac_data.recipes import Recipe, joint_units
 from imac_data.sources.depth import check_depth_inputs
 from imac_data.sources.hdf5 import EpisodeReader, check_episodes, episode_paths
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
@@ -106,6 +107,11 @@ def build_from_episodes(req: BuildRequest, robot, *, executor: str = "local", wo
                                   recipe=recipe.file or "the recipe")
     if warning:
         print(warning, file=sys.stderr)
+    units = joint_units(recipe)  # the LeRobot units the joint map takes: values they cannot record are refused
+    refusal = units and units_refusal(units, *probe["qpos_range"], source=f"the episodes in {paths[0].parent}",
+                                      recipe=recipe.file or "the recipe")
+    if refusal:
+        raise InputError(refusal)
     check_depth_inputs(recipe.depth, recipe.file, len(rig.names))
     _check_stream_resolution(recipe, rig.cameras)
     need = estimate_build_bytes(probe["total_frames"], probe["image_hw"], recipe.augment.resolution,
@@ -139,7 +145,8 @@ def build_from_episodes(req: BuildRequest, robot, *, executor: str = "local", wo
         t_jobs = time.perf_counter() - t_jobs
         with timer("merge"):
             merge_datasets([j.shard_dir for j in jobs], stage.dataset, req.repo_id, description_dir=description,
-                           imac_extra={"build": {"recipe": recipe.name, "episodes": len(jobs),
+                           imac_extra={**({"joint_units": units} if units else {}),
+                                       "build": {"recipe": recipe.name, "episodes": len(jobs),
                                                  "command": f"python -m imac_data.build --repo {req.repo_id}"}})
             write_card(stage.dataset, req.repo_id, recipe)
         timings = _timings_report(jobs, timer)  # read before the swap removes staging

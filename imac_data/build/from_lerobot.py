@@ -20,6 +20,7 @@ from imac_data.build.streams import add_episode_streams
 from imac_data.build.workers import pin_threads, threads_per_worker
 from imac_data.core.rig import Rig
 from imac_data.core.robot.joint_ranges import joint_range_warning
+from imac_data.core.robot.lerobot_units import units_refusal
 from imac_data.dataset.card import write_card
 from imac_data.dataset.columns import add_episode_columns, add_frame_column
 from imac_data.dataset.files import copy_source
@@ -28,6 +29,7 @@ from imac_data.dataset.ingest import episode_column_types, write_rig
 from imac_data.dataset.output import refuse_overlap
 from imac_data.errors import InputError
 from imac_data.layout import POSE_NAMES, image_key, pose_key
+from imac_data.recipes import joint_units
 from imac_data.sources.depth import check_depth_inputs, make_depth_source
 from imac_data.sources.lerobot_dataset import (
     SourceDataset,
@@ -82,6 +84,11 @@ def build_from_lerobot(req: BuildRequest, robot) -> None:
                                       source=f"{src.root} ({src_cfg.state_key})", recipe=where)
         if warning:
             print(warning, file=sys.stderr)
+        units = joint_units(recipe)  # the LeRobot units the joint map takes: values they cannot record are refused
+        refusal = units and units_refusal(units, recorded.min(axis=0), recorded.max(axis=0),
+                                          source=f"{src.root} ({src_cfg.state_key})", recipe=where)
+        if refusal:
+            raise InputError(refusal)
         by_cam = {cam: key for key, cam in cameras.items()}
         rig = rig.with_image_sizes({cam: src.image_hw(key) for cam, key in by_cam.items()})
         depth_source = make_depth_source(recipe.depth, recipe.file, len(rig.names))
@@ -102,7 +109,7 @@ def build_from_lerobot(req: BuildRequest, robot) -> None:
                    for i, row in enumerate(out.episodes))
         add_episode_streams(work, readers, rig, recipe.augment, depth_source=depth_source,
                             states=list(zip(states, actions)), timer=timer, threads=threads, progress=req.progress)
-        update_imac_info(work, {"build": {
+        update_imac_info(work, {**({"joint_units": units} if units else {}), "build": {
             "recipe": recipe.name, "episodes": len(src.episodes),
             "command": f"python -m imac_data.build --repo {req.repo_id}",
             "source": {"type": "lerobot", **origin, "cameras": cameras, "state_key": src_cfg.state_key,

@@ -63,7 +63,7 @@ def _augment(p: argparse.ArgumentParser) -> None:
 
 
 def _validate(p: argparse.ArgumentParser) -> None:
-    checks = ("metadata", "frame_counts", "imac_block", "rig", "calibration", "caps", "decode", "depth")
+    checks = ("metadata", "frame_counts", "imac_block", "rig", "joint_units", "calibration", "caps", "decode", "depth")
     p.add_argument("root", type=Path, help="dataset directory")
     p.add_argument("--full", action="store_true", help="decode every frame of every video (default: samples)")
     p.add_argument("--sample", type=int, default=4, help="frames sampled per episode (default 4)")

@@ -29,6 +29,7 @@ from imac_data.core.depth import DepthCodec, resize_depth
 from imac_data.core.motion import Controller, frame_configurations, rollout
 from imac_data.core.render import make_renderer
 from imac_data.core.robot.description import check_description, description_manifest
+from imac_data.core.robot.lerobot_units import LEROBOT_ARMS, read_calibration
 from imac_data.core.robot.model import RobotConfig, RobotModel
 from imac_data.core.robot.platforms import platform as get_platform
 from imac_data.core.scene_warp import DEFAULT_FILL, splat
@@ -138,7 +139,14 @@ class Rig:
         fail on a bad URDF before any work starts."""
         r = recipe.robot
         if r.platform is not None:
-            return RobotModel(get_platform(r.platform, f"{recipe.file}: robot.platform").robot())
+            entry = get_platform(r.platform, f"{recipe.file}: robot.platform")
+            options = {}
+            if entry.lerobot_arm is not None:  # the recipe's LeRobot units (checked by the recipe's validation)
+                path = recipe.resolve_path(r.calibration)
+                arm = LEROBOT_ARMS[entry.lerobot_arm]
+                options = {"units": r.units,
+                           "calibration": None if path is None else read_calibration(path, (*arm.body, arm.gripper))}
+            return RobotModel(entry.robot(**options))
         urdf = recipe.resolve_path(r.urdf)
         if not urdf.is_file():
             raise InputError(f"{recipe.file}: robot.urdf: file not found: {urdf}")

@@ -3,7 +3,7 @@
 
 Each check is a function ``(ctx) -> [problem, ...]`` in :data:`CHECKS`, run in order (a check
 whose prerequisite failed is skipped, saying so): ``metadata``, ``frame_counts``,
-``imac_block``, ``rig``, ``calibration``, ``caps``, ``decode``, ``depth``
+``imac_block``, ``rig``, ``joint_units``, ``calibration``, ``caps``, ``decode``, ``depth``
 (``docs/building.md``, "Checking a dataset"). Video frames are sampled per episode unless ``full``."""
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from imac_data.core.depth import depth_codec_of, walk_distance
 from imac_data.core.depth_map import PIX_FMT as DEPTH_MAP_PIX_FMT
 from imac_data.core.depth_map import params_of_feature
 from imac_data.core.rig import Rig
+from imac_data.core.robot.lerobot_units import value_problems
 from imac_data.dataset.info import RIG_KEYS, STREAM_KEYS, imac_block, read_info
 from imac_data.dataset.streams import episode_files
 from imac_data.dataset.videos import read_video_frames
@@ -32,6 +33,7 @@ from imac_data.layout import (
     IMAC_INFO,
     IMAGE_PREFIX,
     POSE_PREFIX,
+    STATE,
     info_path,
     is_added_stream,
     video_column,
@@ -233,6 +235,22 @@ def check_rig(ctx: _Context) -> list[str]:
                                                    f"cameras {sorted(have)}"]
 
 
+def check_joint_units(ctx: _Context) -> list[str]:
+    """The recorded joint states against the LeRobot units the dataset says its joint map took (``imac.joint_units``,
+    absent: nothing to check): values those units cannot record mean the joint map reads them wrongly."""
+    units = unchecked_imac_block(ctx.info).get("joint_units")
+    if not units:
+        return []
+    if STATE not in ctx.features:
+        return [f"imac.joint_units: the dataset has no {STATE} to check"]
+    _, states = ctx.data_column(STATE)
+    if not len(states):
+        return []
+    return [f"{STATE} {p} (imac.joint_units: body {units.get('body')}, gripper {units.get('gripper')}; the joint map "
+            "reads the recording in other units than it was made in)"
+            for p in value_problems(units, states.min(axis=0), states.max(axis=0))]
+
+
 def check_calibration(ctx: _Context) -> list[str]:
     problems = []
     for name, c in unchecked_imac_block(ctx.info).get("cameras", {}).items():
@@ -343,12 +361,14 @@ CHECKS: list[tuple[str, Callable[[_Context], list[str]]]] = [
     ("frame_counts", check_frame_counts),
     ("imac_block", check_imac_block),
     ("rig", check_rig),
+    ("joint_units", check_joint_units),
     ("calibration", check_calibration),
     ("caps", check_caps),
     ("decode", check_decode),
     ("depth", check_depth),
 ]
-_NEEDS = {"frame_counts": "metadata", "imac_block": "metadata", "rig": "imac_block", "calibration": "imac_block",
+_NEEDS = {"frame_counts": "metadata", "imac_block": "metadata", "rig": "imac_block", "joint_units": "imac_block",
+          "calibration": "imac_block",
           "caps": "metadata", "decode": "frame_counts", "depth": "decode"}
 
 

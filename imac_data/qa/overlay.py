@@ -3,7 +3,8 @@
 Per camera an mp4 (or PNGs), with the ground-truth outline and the per-frame mask IoU where
 the episode carries a robot segmentation (simulated episodes), and a ``summary.json``. The
 output directory appears only complete. ``--source action`` renders what the motion images
-show, which lags the images by the controller's tracking delay.
+show, which lags the images by the controller's tracking delay. A camera with a time offset
+(``time_offset_s`` in the calibration) is drawn at its image's own time, as the build draws it.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import torch
 
 from imac_data.core.cameras import load_calibration
 from imac_data.core.masks import ground_truth_robot_mask, mask_iou, outline
-from imac_data.core.motion import SOURCES, frame_configurations
+from imac_data.core.motion import SOURCES, frame_configurations, joints_at
 from imac_data.core.render import make_renderer
 from imac_data.core.rig import Rig
 from imac_data.core.robot.model import RobotModel
@@ -99,6 +100,14 @@ class _Mp4:
         self.container.close()
 
 
+def _configurations_at_camera_times(q: np.ndarray, offsets: dict[str, float], fps: float) -> dict[float, np.ndarray]:
+    """Per distinct time offset, the configurations ``q`` ``(T, D)`` at each frame's time plus the offset, as the
+    build draws a camera (:func:`~imac_data.core.motion.joints_at`: linear, clamped at the episode's ends; an offset
+    of 0 keeps ``q`` itself)."""
+    frames = np.arange(len(q), dtype=np.float64)
+    return {d: q if d == 0 else joints_at(q, frames + d * fps) for d in dict.fromkeys(offsets.values())}
+
+
 # ----------------------------------------------------------------------------- overlay
 
 
@@ -166,6 +175,12 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
         episode_fps, fps_from = ep.fps, "episode"
     else:
         episode_fps, fps_from = DEFAULT_FPS, "default"
+    offsets = {c: rig[c].time_offset_s for c in cams}
+    if any(offsets.values()) and fps_from == "default":
+        raise InputError(f"{calibration_path}: camera time offsets {({c: d for c, d in offsets.items() if d})} s need "
+                         f"the recording's frame rate, and {episode_path} has no 'fps' attribute: pass --recipe with "
+                         "its fps")
+    q_cam = _configurations_at_camera_times(q_all, offsets, episode_fps)
     fps = episode_fps / sel.step
 
     made = [p for p in reversed(out_dir.absolute().parents) if not p.exists()]  # removed again on failure
@@ -184,7 +199,10 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
         idx = list(sel)
         for s in range(0, len(idx), batch):
             chunk = idx[s:s + batch]
-            views = renderer.render(torch.as_tensor(q_all[chunk]), rig)
+            views = {}
+            for group in dict.fromkeys(offsets.values()):  # the cameras of one offset render together
+                views.update(renderer.render(torch.as_tensor(q_cam[group][chunk]),
+                                             {c: rig[c] for c in cams if offsets[c] == group}))
             for c in cams:
                 masks = views[c].mask.cpu().numpy()
                 for j, t in enumerate(chunk):
@@ -211,7 +229,7 @@ def overlay(episode_path: str | Path, calibration_path: str | Path, out_dir: str
             "cameras": {},
         }
         for c in cams:
-            entry = {"width": rig[c].width, "height": rig[c].height,
+            entry = {"width": rig[c].width, "height": rig[c].height, "time_offset_s": offsets[c],
                      "mean_rendered_coverage": float(np.mean(coverage[c])) if coverage[c] else None}
             if has_truth[c]:
                 vals = np.array(ious[c], dtype=float)

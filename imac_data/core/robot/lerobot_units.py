@@ -19,14 +19,23 @@ LeRobot's own ``_normalize``), and what was not (a physical arm)."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from imac_data.errors import InputError
 
 UNITS = ("degrees", "range_m100_100")  # a body joint's; the gripper's is always range_0_100
+GRIPPER_UNITS = "range_0_100"
+# what each mode can record at all: the ranged modes clamp the ticks to range_min..range_max, so they stay within
+# their ends; degrees takes the ticks unclamped, but both they and the range's middle lie within one turn's
+# 0..resolution - 1, so a value in degrees is at most a turn from 0 (ticks recorded as they are go beyond)
+VALUE_RANGES = {"degrees": (-360.0, 360.0), "range_m100_100": (-100.0, 100.0), GRIPPER_UNITS: (0.0, 100.0)}
+VALUE_SLACK = 1e-3  # float32 storage of a value at an end
 CALIBRATION_HINT = ("LeRobot writes it when the arm is calibrated, as <id>.json under "
                     "$HF_LEROBOT_CALIBRATION/robots/<robot type>/: by default "
                     "~/.cache/huggingface/lerobot/calibration/robots/so101_follower/<id>.json for an SO-101 "
@@ -63,8 +72,9 @@ class MotorCalibration:
     range_max: int
 
 
-def read_calibration(path: str | Path) -> dict[str, MotorCalibration]:
-    """LeRobot's calibration file (JSON, one entry per motor), checked: a clear error names the file and motor."""
+def read_calibration(path: str | Path, motors: tuple[str, ...] = ()) -> dict[str, MotorCalibration]:
+    """LeRobot's calibration file (JSON, one entry per motor), checked: a clear error names the file and motor;
+    ``motors``: the motors it must hold (a robot type's)."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -84,6 +94,10 @@ def read_calibration(path: str | Path) -> dict[str, MotorCalibration]:
                              f"{out[motor].range_min}")
     if not out:
         raise InputError(f"{path}: no motors in it (a LeRobot calibration file maps motor names to their ranges)")
+    absent = [m for m in motors if m not in out]
+    if absent:
+        raise InputError(f"{path}: no motors {absent} in it (the robot's motors are {list(motors)}): the calibration "
+                         "file of another robot type?")
     return out
 
 
@@ -127,5 +141,47 @@ def joint_map(robot: str, joints: dict[str, tuple[float, float]], *, units: str 
     return out + [dict(zip(("joint", "scale", "offset"), (arm.gripper, *gripper_map(*joints[arm.gripper]))))]
 
 
-__all__ = ["LEROBOT_ARMS", "LeRobotArm", "MotorCalibration", "UNITS", "body_map", "gripper_map", "joint_map",
-           "read_calibration"]
+def convention(robot: str, units: str | None = None, calibration: str | Path | None = None) -> dict:
+    """What a dataset records of the LeRobot units its joint map took (``imac.build.joint_units``): the robot
+    type, the body's units (default: the type's), the gripper's, and the calibration file (path and sha256) that
+    the -100..100 map came from, or None."""
+    arm = LEROBOT_ARMS[robot]
+    cal = None
+    if calibration is not None:
+        path = Path(calibration)
+        cal = {"file": str(path.resolve()), "sha256": hashlib.sha256(path.read_bytes()).hexdigest()}
+    return {"lerobot_robot": robot, "joints": [*arm.body, arm.gripper], "body": units or arm.units,
+            "gripper": GRIPPER_UNITS, "calibration": cal}
+
+
+def value_problems(conv: dict, lo, hi) -> list[str]:
+    """The joint-vector entries whose recorded range ``lo[i]..hi[i]`` (``(D,)`` arrays) leaves what the units of
+    convention ``conv`` (:func:`convention`) can record: one message per entry, naming its index, joint and units."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    joints = conv["joints"]
+    problems = []
+    for i, joint in enumerate(joints[:len(lo)]):
+        units = conv["gripper"] if i == len(joints) - 1 else conv["body"]
+        a, b = VALUE_RANGES[units]
+        if lo[i] >= a - VALUE_SLACK and hi[i] <= b + VALUE_SLACK:
+            continue
+        problems.append(f"index {i} ({joint!r}, {units}): recorded {lo[i]:.5g}..{hi[i]:.5g}, outside the {a:g}..{b:g} "
+                        f"LeRobot's {units} can record")
+    return problems
+
+
+def units_refusal(conv: dict, lo, hi, *, source: str, recipe: str) -> str | None:
+    """The build's refusal when the recorded values of ``source`` contradict the recipe's LeRobot units (None when
+    they do not): what is out, and what to check."""
+    problems = value_problems(conv, lo, hi)
+    if not problems:
+        return None
+    return (f"{source}: the recorded joint values contradict the LeRobot units of {recipe}'s robot (body "
+            f"{conv['body']}, gripper {conv['gripper']}):\n  - " + "\n  - ".join(problems)
+            + "\n  Set robot.units to the units the dataset was recorded in (degrees, or range_m100_100 with "
+            "robot.calibration: the arm's calibration file), or check that source.state_key holds LeRobot's joint "
+            "positions (docs/new-robot.md, \"LeRobot's joint units\")")
+
+
+__all__ = ["GRIPPER_UNITS", "LEROBOT_ARMS", "LeRobotArm", "MotorCalibration", "UNITS", "VALUE_RANGES", "body_map",
+           "convention", "gripper_map", "joint_map", "read_calibration", "units_refusal", "value_problems"]
