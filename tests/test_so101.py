@@ -4,19 +4,32 @@ driven by the recorded degrees (or -100..100 with the arm's calibration file) an
 
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata
+import json
+from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 import torch
 import yaml
 
+from benchmarks import so101_round_trip, so101_sim
+from imac_data.cli import main as imac_main
+from imac_data.core.cameras import load_calibration
 from imac_data.core.mujoco_gl import mujoco
+from imac_data.core.rig import Rig
 from imac_data.core.robot import so101
 from imac_data.core.robot.lerobot_units import MotorCalibration
 from imac_data.core.robot.model import RobotModel
 from imac_data.core.robot.platforms import platform
 from imac_data.errors import InputError
+from imac_data.layout import STATE
+from imac_data.metadata import dataset_info
+from imac_data.recipes import joint_units, load_recipe, missing_inputs
+from imac_data.sources.hdf5 import RawEpisode, episode_paths, read_episode, write_episode
 
 LINKS = {"shoulder_link": "shoulder", "upper_arm_link": "upper_arm", "lower_arm_link": "lower_arm",
          "wrist_link": "wrist", "gripper_link": "gripper", "moving_jaw_so101_v1_link": "moving_jaw_so101_v1"}
@@ -186,3 +199,171 @@ def test_units_that_do_not_match_the_recipe(so101_recording, tmp_path, capsys):
                       "--lerobot-units", "range_m100_100"]) == 2
     err = capsys.readouterr().err
     assert "-100..100" in err and "calibration/robots/so101_follower/<id>.json" in err
+
+
+# ----------------------------------------------------------------------------- the convention, recorded and checked
+
+
+def _recipe(tmp_path, robot: dict, **over) -> Path:
+    data = {"name": "so101_units", "task": "t", "fps": 25, "robot": robot,
+            "cameras": {"calibration": str(tmp_path / "c.json")},
+            "source": {"type": "aloha_hdf5", "path": str(tmp_path)}, **over}
+    path = tmp_path / "units.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_the_platform_takes_lerobot_units_and_calibration_from_the_recipe(tmp_path):
+    """``robot: {platform: so101, units: range_m100_100, calibration: FILE}`` poses the arm from -100..100 values as
+    the default (degrees) platform poses it from the same encoder ticks (LeRobot's formulas, worked by hand). Without
+    the file it is refused, naming the file LeRobot writes and where; units on a platform not recorded in LeRobot's
+    units, unknown units, a calibration file without the arm's motors and a missing file are refused by name."""
+    names = (*so101.ARM.body, so101.ARM.gripper)
+    cal = {m: {"id": i + 1, "drive_mode": i % 2, "homing_offset": 0, "range_min": 900 + 20 * i, "range_max": 3100}
+           for i, m in enumerate(names)}
+    (tmp_path / "arm.json").write_text(json.dumps(cal))
+    recipe = load_recipe(_recipe(tmp_path, {"platform": "so101", "units": "range_m100_100", "calibration": "arm.json"}))
+    robot = Rig.robot_from_recipe(recipe)
+    ticks = {m: 1500 + 211 * i for i, m in enumerate(so101.ARM.body)}
+    ranged = [(-1 if cal[m]["drive_mode"] else 1) * ((t - cal[m]["range_min"]) / (3100 - cal[m]["range_min"]) * 200
+                                                     - 100) for m, t in ticks.items()]
+    degrees = [(t - (cal[m]["range_min"] + 3100) / 2) * 360 / 4095 for m, t in ticks.items()]
+    a = robot.link_poses(torch.tensor([*ranged, 30.0], dtype=torch.float64)[None])
+    b = RobotModel(so101.robot_config()).link_poses(torch.tensor([*degrees, 30.0], dtype=torch.float64)[None])
+    for link in LINKS:
+        torch.testing.assert_close(a[link], b[link], atol=1e-9, rtol=0)
+    assert joint_units(recipe)["body"] == "range_m100_100" and joint_units(recipe)["gripper"] == "range_0_100"
+    assert joint_units(load_recipe(_recipe(tmp_path, {"platform": "so101"})))["body"] == "degrees"
+    refusals = [
+        ({"platform": "so101", "units": "range_m100_100"},
+         r"robot.calibration: required with robot.units range_m100_100: .*calibration/robots/so101_follower/<id>.json"),
+        ({"platform": "aloha_sim", "units": "degrees"}, r"robot: \['units'\] are options of a platform recorded in "
+                                                       r"LeRobot's units \(\['so101'\]\), not of platform 'aloha_sim'"),
+        ({"platform": "so101", "units": "radians"}, r"robot.units: one of \['degrees', 'range_m100_100'\]"),
+    ]
+    for robot_block, match in refusals:
+        with pytest.raises(InputError, match=match):
+            load_recipe(_recipe(tmp_path, robot_block))
+    del cal["wrist_roll"]
+    (tmp_path / "other.json").write_text(json.dumps(cal))
+    with pytest.raises(InputError, match=r"other.json: no motors \['wrist_roll'\] in it"):
+        Rig.robot_from_recipe(load_recipe(_recipe(tmp_path, {"platform": "so101", "units": "range_m100_100",
+                                                            "calibration": "other.json"})))
+    absent = load_recipe(_recipe(tmp_path, {"platform": "so101", "units": "range_m100_100",
+                                            "calibration": "absent.json"}))
+    assert any(p.startswith("robot.calibration: the arm's LeRobot calibration file not found")
+               for p in missing_inputs(absent))
+
+
+@pytest.fixture(scope="module")
+def so101_lerobot_source(so101_recording):
+    """The -100..100 recording's first episode as a LeRobot dataset (no depth) by LeRobot's own writer."""
+    work, paths, _ = so101_recording
+    ep = read_episode(episode_paths(paths["hdf5"]["range_m100_100"])[0], load_depth=False)
+    return so101_sim.write_lerobot(work / "lerobot_range", [(ep.qpos, ep.images)], *ep.images["front"].shape[1:3])
+
+
+def _lerobot_recipe(tmp_path, paths, source: Path, robot: dict) -> Path:
+    return _recipe(tmp_path, robot, cameras={"calibration": str(paths["truth"])},
+                   source={"type": "lerobot", "path": str(source),
+                           "cameras": {"observation.images.front": "front", "observation.images.side": "side"}},
+                   augment={"height": 48, "width": 64, "contact_chunk": 4, "motion_source": "state"},
+                   depth={"source": "none"})
+
+
+def test_a_lerobot_source_records_its_units_and_validate_checks_them(so101_recording, so101_lerobot_source,
+                                                                      tmp_path, capsys):
+    """A LeRobot dataset recorded in -100..100, built with ``platform: so101, units: range_m100_100, calibration:
+    FILE``: the built dataset's imac block records the convention (robot type, the body's and the gripper's units,
+    the calibration file and its sha256), and its arm lies where MuJoCo's segmentation has it (IoU >= 0.97 at 96x128,
+    as the round trip). ``imac validate`` checks the recorded states against that convention: states rewritten
+    with the gripper in encoder ticks (0..4095) are caught, naming the index, the joint and the units."""
+    work, paths, _ = so101_recording
+    recipe = _lerobot_recipe(tmp_path, paths, so101_lerobot_source,
+                             {"platform": "so101", "units": "range_m100_100", "calibration": str(paths["calibration"])})
+    root = tmp_path / "built"
+    assert imac_main(["build", "--repo", "local/so101_units", "--recipe", str(recipe), "--root", str(root),
+                      "--no-progress"]) == 0, capsys.readouterr().err
+    units = dataset_info(root)["imac"]["joint_units"]
+    assert units == {"lerobot_robot": "so101_follower", "joints": list(so101.ARM.body) + ["gripper"],
+                     "body": "range_m100_100", "gripper": "range_0_100",
+                     "calibration": {"file": str(paths["calibration"].resolve()),
+                                     "sha256": hashlib.sha256(paths["calibration"].read_bytes()).hexdigest()}}
+    rig = Rig.from_dataset(root)
+    truth = load_calibration(paths["truth"])
+    ious = so101_round_trip.iou(rig.robot, {c: truth[c] for c in truth}, so101_round_trip.built_states(root),
+                                so101_sim.masks_of(paths["masks"]))
+    assert min(ious.values()) >= 0.97, ious
+    assert imac_main(["validate", str(root), "--check", "joint_units"]) == 0
+    for f in sorted((root / "data").rglob("*.parquet")):  # a tool rewrote the states: the gripper now in ticks
+        table = pq.read_table(f)
+        states = np.asarray(table.column(STATE).to_pylist())
+        states[:, 5] *= 40.95
+        column = pa.array(states.tolist(), type=table.schema.field(STATE).type)
+        pq.write_table(table.set_column(table.schema.get_field_index(STATE), STATE, column), f)
+    capsys.readouterr()
+    assert imac_main(["validate", str(root), "--check", "joint_units"]) == 2
+    out = capsys.readouterr().out
+    assert "FAIL joint_units" in out and "observation.state index 5 ('gripper', range_0_100): recorded" in out
+    assert "outside the 0..100 LeRobot's range_0_100 can record" in out
+
+
+def test_values_the_recipes_units_cannot_record_are_refused_before_work(so101_recording, tmp_path, capsys):
+    """The build refuses, before any work and naming the index, joint and units, a recording its recipe's LeRobot
+    units cannot have made: a LeRobot dataset whose gripper is in encoder ticks (LeRobot's 0..100 is clamped), and
+    HDF5 episodes whose body joints are raw ticks (beyond the turn either side that degrees can reach)."""
+    work, paths, _ = so101_recording
+    ep = read_episode(episode_paths(paths["hdf5"]["degrees"])[0], load_depth=False)
+    ticks = ep.qpos[:6].copy()
+    ticks[:, 5] *= 40.95
+    source = so101_sim.write_lerobot(tmp_path / "gripper_ticks", [(ticks, {c: v[:6] for c, v in ep.images.items()})],
+                                     *ep.images["front"].shape[1:3])
+    recipe = _lerobot_recipe(tmp_path, paths, source, {"platform": "so101"})
+    assert imac_main(["build", "--repo", "local/so101_ticks", "--recipe", str(recipe), "--root",
+                      str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "the recorded joint values contradict the LeRobot units of" in err
+    assert "index 5 ('gripper', range_0_100): recorded" in err and "Set robot.units" in err
+    assert not (tmp_path / "out").exists()
+    (tmp_path / "eps").mkdir()
+    raw_ticks = np.c_[ep.qpos[:6, :5] / 360 * 4095 + 2048, ep.qpos[:6, 5:]]  # the body as the encoder reads it
+    write_episode(tmp_path / "eps" / "episode_0.hdf5", RawEpisode(
+        qpos=raw_ticks, action=raw_ticks, images={c: v[:6] for c, v in ep.images.items()}, fps=25.0))
+    recipe = _recipe(tmp_path, {"platform": "so101"}, cameras={"calibration": str(paths["truth"])},
+                     source={"type": "aloha_hdf5", "path": str(tmp_path / "eps")}, depth={"source": "none"})
+    assert imac_main(["build", "--repo", "local/so101_ticks", "--recipe", str(recipe), "--root",
+                      str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "index 0 ('shoulder_pan', degrees): recorded" in err and "outside the -360..360" in err
+
+
+# ----------------------------------------------------------------------------- the printed block, as printed
+
+
+def test_the_printed_joints_block_runs_qa_calibrate_as_printed(so101_recording, tmp_path, capsys):
+    """``imac robot joints so101_new_calib.urdf --lerobot-robot so101_follower`` printed, pasted into a recipe as
+    text: ``qa calibrate`` runs on the degrees recording with it and finds the front camera within 3 mm and
+    0.3 degrees. The URDF's own block (no --lerobot-robot) lists the same joints in the same order, the
+    kinematic chain's, which is LeRobot's state order."""
+    work, paths, _ = so101_recording
+    urdf = str(so101.urdf_path())
+    assert imac_main(["robot", "joints", urdf]) == 0
+    plain = capsys.readouterr().out
+    assert imac_main(["robot", "joints", urdf, "--lerobot-robot", "so101_follower"]) == 0
+    printed = capsys.readouterr().out
+    block = printed[printed.index("# Recipe `robot:` block"):]
+    joints = [e["joint"] for e in yaml.safe_load(block)["robot"]["joint_map"]]
+    assert yaml.safe_load(plain[plain.index("# Recipe `robot:` block"):])["robot"]["joint_map"] == joints
+    assert joints == [*so101.ARM.body, so101.ARM.gripper]
+    recipe = tmp_path / "printed.yaml"
+    recipe.write_text("name: so101_printed\ntask: t\nfps: 25\n" + block
+                      + f"cameras:\n  calibration: {tmp_path / 'calibration.json'}\n"
+                      + f"source:\n  type: aloha_hdf5\n  path: {paths['hdf5']['degrees']}\n")
+    truth = load_calibration(paths["truth"])
+    fov = so101_round_trip.NOMINAL["front"] * so101_round_trip.fovy(truth["front"])
+    assert imac_main(["qa", "calibrate", str(paths["hdf5"]["degrees"]), "--recipe", str(recipe), "--cameras", "front",
+                      "--fov", f"front={fov:.2f}", "--out", str(tmp_path / "calibration.json"), "--refine", "none",
+                      "--max-time-offset", "0", "--no-progress"]) == 0, capsys.readouterr().err
+    assert "outside the URDF limits" not in capsys.readouterr().err  # the joint-range check: units as recorded
+    mm, deg = so101_round_trip.pose_error(load_calibration(tmp_path / "calibration.json")["front"], truth["front"])
+    assert mm < 3.0 and deg < 0.3, (mm, deg)
