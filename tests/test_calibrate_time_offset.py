@@ -10,8 +10,11 @@ The full grid (1-3 frames and half a frame, every ALOHA camera) is ``benchmarks/
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import shutil
 
+import h5py
 import numpy as np
 import pytest
 
@@ -23,12 +26,17 @@ from benchmarks.calibration_scenes import (
     aloha_recorded_50fps,
 )
 from imac_data.calibrate.from_nothing import calibrate_from_nothing
+from imac_data.calibrate.pose import apply_update, pose_change
+from imac_data.calibrate.refine import refine_calibration
 from imac_data.calibrate.register import Fit
 from imac_data.calibrate.scratch import pose_distance
 from imac_data.calibrate.time_offset import OffsetSearch, timing_refusal
+from imac_data.cli import main as imac_main
 from imac_data.core.cameras import Camera, intrinsics_from_fovy, load_calibration, save_calibration
 from imac_data.core.motion import joints_at
 from imac_data.errors import InputError
+from imac_data.sources.hdf5 import RawEpisode, read_episode, write_episode
+from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 HW = (120, 160)
 GOALS = {"cam_high": (3.0, 0.3), "cam_left_wrist": (5.0, 0.5)}
@@ -174,3 +182,96 @@ def test_the_build_draws_each_camera_at_its_own_time(recording, tmp_path):
     write_episode(tmp_path / "no_fps" / "episode_0.hdf5", dataclasses.replace(ep, fps=None), sim=False)
     with pytest.raises(InputError, match="frame rate"):
         _chunks(tmp_path / "no_fps" / "episode_0.hdf5", late, settings, fps=None, depth=False)
+
+
+# ----------------------------------------------------------------------------- qa overlay and qa refine
+
+LAG = {"cam_high": 2, "cam_left_wrist": 1, "cam_right_wrist": 0}  # frames each camera's images are ahead
+
+
+@pytest.fixture(scope="module")
+def shifted(tmp_path_factory):
+    """A recording in step (40 frames at 25 fps, 120x160, MuJoCo's segmentation) and the same recording with each
+    camera's images (and segmentation) :data:`LAG` frames ahead of the joint states: its frame t shows the robot at
+    the joint states of t + LAG, so its true offset is LAG / 25 s (the simulator's own 2 ms aside)."""
+    tmp = tmp_path_factory.mktemp("shifted")
+    record_dataset(SimConfig(num_episodes=1, width=HW[1], height=HW[0], with_segmentation=True, noise=0.0,
+                             max_steps=80), tmp / "in_step", progress=False)
+    ep = read_episode(tmp / "in_step" / "episode_0.hdf5", load_segmentation=True)
+    n = len(ep.qpos) - max(LAG.values())
+    (tmp / "shifted").mkdir()
+    write_episode(tmp / "shifted" / "episode_0.hdf5", RawEpisode(
+        qpos=ep.qpos[:n], action=ep.action[:n], images={c: v[LAG[c]:LAG[c] + n] for c, v in ep.images.items()},
+        segmentation={c: v[LAG[c]:LAG[c] + n] for c, v in ep.segmentation.items()},
+        segmentation_labels=ep.segmentation_labels, fps=25.0))
+    truth = load_calibration(tmp / "in_step" / "calibration.json")
+    save_calibration(tmp / "offsets.json", {c: dataclasses.replace(cam, time_offset_s=LAG[c] / 25.0)
+                                            for c, cam in truth.items()})
+    return tmp, truth
+
+
+def _ious(out) -> dict[str, np.ndarray]:
+    rows = (out / "iou.csv").read_text().split()
+    cams = rows[0].split(",")[1:]
+    values = np.array([[float(x) for x in r.split(",")] for r in rows[1:]])
+    return {c: dict(zip(values[:, 0].astype(int), values[:, 1 + i])) for i, c in enumerate(cams)}
+
+
+def test_qa_overlay_draws_each_camera_at_its_images_own_time(shifted, tmp_path, capsys):
+    """``imac qa overlay`` of the shifted recording with the offsets in the calibration is the overlay of the same
+    images in step: each camera's IoU with MuJoCo's segmentation at frame t equals the in-step recording's at
+    frame t + LAG (the same image, the same joint vector). Without the offsets the cameras ahead are drawn a frame
+    or two early, and their IoU drops; the camera in step is drawn as before. An episode without an 'fps' attribute
+    cannot say how many frames an offset is, and is refused unless a recipe gives its fps."""
+    tmp, truth = shifted
+    save_calibration(tmp_path / "no_offsets.json", truth)
+
+    def run(episode, calibration, out, frames="4:36"):
+        assert imac_main(["qa", "overlay", str(episode), "--calibration", str(calibration), "--out", str(out),
+                          "--frames", frames, "--format", "png"]) == 0, capsys.readouterr().err
+        return _ious(out), json.loads((out / "summary.json").read_text())
+
+    in_step, _ = run(tmp / "in_step" / "episode_0.hdf5", tmp_path / "no_offsets.json", tmp_path / "in_step", "4:38")
+    drawn, summary = run(tmp / "shifted" / "episode_0.hdf5", tmp / "offsets.json", tmp_path / "with")
+    blind, _ = run(tmp / "shifted" / "episode_0.hdf5", tmp_path / "no_offsets.json", tmp_path / "without")
+    for c, lag in LAG.items():
+        assert summary["cameras"][c]["time_offset_s"] == lag / 25.0
+        for t, iou in drawn[c].items():
+            assert iou == pytest.approx(in_step[c][t + lag], abs=1e-9), (c, t)
+        mean, mean_blind = np.mean(list(drawn[c].values())), np.mean(list(blind[c].values()))
+        assert mean > 0.97, (c, mean)
+        if lag:
+            assert mean_blind < mean - 0.05, (c, mean, mean_blind)  # 0.93 and 0.88 here
+        else:
+            assert blind[c] == drawn[c]
+    bare = tmp_path / "bare.hdf5"
+    shutil.copy(tmp / "shifted" / "episode_0.hdf5", bare)
+    with h5py.File(bare, "r+") as f:
+        del f.attrs["fps"]
+    assert imac_main(["qa", "overlay", str(bare), "--calibration", str(tmp / "offsets.json"), "--out",
+                      str(tmp_path / "bare")]) == 2
+    err = capsys.readouterr().err
+    assert "offsets.json: camera time offsets" in err and "no 'fps' attribute: pass --recipe" in err
+    assert not (tmp_path / "bare").exists()
+
+
+def test_qa_refine_fits_each_camera_at_its_images_own_time(shifted, tmp_path):
+    """``qa refine`` of the left wrist camera of the shifted recording (a frame ahead), from a start 1 cm and 3 deg
+    off with the offset in the calibration, comes back within 2 mm and 0.5 deg of the truth and keeps the offset;
+    the robot is fitted at the joint vectors of each image's own time. Fitted at the recorded frames' joints
+    instead (the offset ignored) the same start came back 6.5 mm and 0.85 deg off."""
+    tmp, truth = shifted
+    cam = "cam_left_wrist"
+    start = load_calibration(tmp / "offsets.json")
+    rng = np.random.default_rng(1)
+    dt, dr = rng.normal(size=3), rng.normal(size=3)
+    start[cam] = apply_update(start[cam], np.r_[dt / np.linalg.norm(dt), dr / np.linalg.norm(dr) * 3.0])  # cm, deg
+    save_calibration(tmp_path / "start.json", start)
+    report = refine_calibration(tmp / "shifted", tmp_path / "refined.json", recipe=ALOHA_RECIPE,
+                                calibration=tmp_path / "start.json", robot_pixels="sim", cameras=[cam], frames=6)
+    refined = load_calibration(tmp_path / "refined.json")
+    assert pose_change(truth[cam], start[cam])["t_mm"] >= 9.9
+    err = pose_change(truth[cam], refined[cam])
+    assert err["t_mm"] <= 2.0 and err["r_deg"] <= 0.5, err
+    assert refined[cam].time_offset_s == report["cameras"][cam]["time_offset_s"] == LAG[cam] / 25.0
+    assert report["cameras"][cam]["iou_after"] > 0.97

@@ -10,6 +10,7 @@ computed by hand.
 
 import json
 import math
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -23,13 +24,14 @@ from imac_data.cli import main as imac_main
 from imac_data.core.contact.clouds import dilate_mask
 from imac_data.core.contact.images import JET_LUT, chunk_plan
 from imac_data.core.contact.nearest import DEFAULT_TOLERANCE
-from imac_data.core.depth import depth_codec_of, depth_from_millimetres, walk_distance
+from imac_data.core.depth import DepthCodec, depth_codec_of, depth_from_millimetres, walk_distance
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
 from imac_data.metadata import dataset_info
 from imac_data.recipes import RECIPES_DIR, AugmentSettings
 from imac_data.sources.depth import RecordedDepth
 from imac_data.sources.hdf5 import EpisodeReader, read_episode
+from imac_data.sources.sim import rig as sim_rig
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 from imac_model.cli import main as model_main
 from imac_model.config import RolloutConfig, RunConfig, load_run_config, parse, save_config, to_dict
@@ -452,6 +454,25 @@ def test_the_scene_warp_is_derived_for_training_and_rebuilt_online_alike(built):
 
 
 # --------------------------------------------------------------------------- config, trainer and sampler
+
+
+def test_online_controls_warn_about_a_camera_out_of_step():
+    """A dataset whose camera has a time offset had that camera's controls drawn at the image's own time; a
+    rollout has no joint states before its reference or past its chunk, so the online controls draw it at the
+    joint states' time (the same images as without the offset) and say so, naming the camera and its offset.
+    Without an offset nothing is said."""
+    cameras = sim_rig.camera_calibration(sim_rig.load_mujoco_model("transfer_cube"), HW[1], HW[0])
+    late = {c: replace(cam, time_offset_s=-0.04) if c == "cam_left_wrist" else cam for c, cam in cameras.items()}
+    codec = DepthCodec.preset()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning at all without an offset
+        plain = OnlineControls(Rig.from_platform("aloha_sim", cameras), codec, VIEWS, (32, 40), HW)
+    with pytest.warns(UserWarning, match=r"camera time offsets \{'cam_left_wrist': -0.04\} s: online motion and "
+                                         r"contact images draw every camera at the joint states' time"):
+        shifted = OnlineControls(Rig.from_platform("aloha_sim", late), codec, VIEWS, (32, 40), HW)
+    q = torch.zeros(1, 2, 14)
+    q[0, 1, [1, 8]] = 0.4  # both shoulders raised in the second frame
+    assert torch.equal(shifted.motion(q), plain.motion(q))
 
 
 def test_rollout_config_is_typed_validated_and_round_trips(tmp_path):

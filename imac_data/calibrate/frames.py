@@ -37,6 +37,7 @@ from imac_data.core.cameras import Camera
 from imac_data.core.depth import depth_codec_of
 from imac_data.core.depth_map import depth_marker
 from imac_data.core.masks import ground_truth_robot_mask
+from imac_data.core.motion import joints_at
 from imac_data.errors import InputError
 from imac_data.layout import IMAGE_PREFIX, STATE, depth_key, info_path
 from imac_data.recipes import DepthSection
@@ -333,17 +334,21 @@ def _candidates(T: int, budget: int) -> np.ndarray:
 
 
 def choose_frames(frames, camera: Camera, renderer, pixels: RobotPixels, count: int, *,
-                  min_separation: float = 0.1, budget: int = 400) -> CameraFrames:
+                  min_separation: float = 0.1, budget: int = 400, shift: float = 0.0) -> CameraFrames:
     """Choose ``count`` frames of ``camera`` (at the frames' resolution) over all episodes of
     ``frames`` and read their images and robot pixels. Coverage comes from the robot pixels
     (``sim``, ``masks``) or, for the edge cue, from the robot as the current calibration
-    renders it. At most ``budget`` candidate frames are scanned, evenly spread."""
+    renders it. At most ``budget`` candidate frames are scanned, evenly spread. ``shift``: the
+    camera's time offset in frames; each image is paired with the joint vectors at its own time,
+    frame + ``shift``, as the build draws it (:func:`~imac_data.core.motion.joints_at`)."""
     name, links = camera.name, renderer.link_names
     hw = frames.image_hw(name)
     per_episode = max(8, budget // len(frames.episodes))
     q_all, cov_all, refs = [], [], []
     for ep in frames.episodes:
         q = frames.joints(ep)
+        if shift:
+            q = joints_at(q, np.arange(len(q), dtype=np.float64) + shift)
         if pixels.kind == "masks":
             files = pixels._mask_files(frames, ep, name)
             idx = np.array(sorted(t for t in files if 0 <= t < len(q)), dtype=np.int64)

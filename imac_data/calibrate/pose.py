@@ -52,9 +52,11 @@ def apply_update(camera: Camera, p: Sequence[float]) -> Camera:
     s = math.exp(p[6] * UNITS[6])
     K[0, :2] *= s
     K[1, 1] *= s
-    if camera.is_mounted:
-        return Camera(camera.name, K, camera.width, camera.height, link=camera.link, T_link_cam=camera.T_link_cam @ M)
-    return Camera(camera.name, K, camera.width, camera.height, T_world_cam=camera.T_world_cam @ M)
+    if camera.is_mounted:  # the time offset is the camera's, not its pose's: it stays
+        return Camera(camera.name, K, camera.width, camera.height, link=camera.link, T_link_cam=camera.T_link_cam @ M,
+                      time_offset_s=camera.time_offset_s)
+    return Camera(camera.name, K, camera.width, camera.height, T_world_cam=camera.T_world_cam @ M,
+                  time_offset_s=camera.time_offset_s)
 
 
 def _parent_pose(camera: Camera) -> np.ndarray:

@@ -4,7 +4,8 @@ The source is raw HDF5 episodes or a LeRobot dataset; the rig comes from a recip
 calibration, or from a dataset built by imac. Per camera, frames are chosen, the robot's
 pixels taken from the chosen cue, and the pose refined (:mod:`imac_data.calibrate`). It writes
 the whole rig as a calibration file with the refined cameras replaced, and a report
-directory; neither is ever an input, and both appear only complete. A camera whose overlay
+directory; neither is ever an input, and both appear only complete. A camera with a time offset
+(``time_offset_s``) is fitted with the joint vectors at its images' own time, as the build draws it. A camera whose overlay
 would get worse keeps its input pose. ``docs/calibration.md`` has the method and the figures.
 """
 
@@ -49,7 +50,9 @@ def _check_outputs(out: Path, report: Path, inputs: dict, overwrite: bool) -> No
 
 
 def _rig(src, recipe, calibration: Path | None):
-    """The rig and the calibration file it was made from (``None``: the dataset's own)."""
+    """The rig, the calibration file it was made from (``None``: the dataset's own) and the recording's frame rate
+    (the recipe's fps, else the source's)."""
+    fps = getattr(src, "fps", None)
     if recipe is None:
         if not isinstance(src, DatasetFrames):
             raise InputError("--recipe is required for raw episodes (the robot and its cameras); only a dataset "
@@ -58,14 +61,15 @@ def _rig(src, recipe, calibration: Path | None):
         if calibration is not None:
             rig = Rig(rig.robot, load_calibration(calibration), rig.controller, rig.state_names,
                       rig.gripper_spacing)
-        return rig, calibration
+        return rig, calibration, fps
     recipe = load_recipe(recipe) if isinstance(recipe, (str, Path)) else recipe
     if calibration is None:
         calibration = recipe.resolve_path(recipe.cameras.calibration)
         if calibration is None:
             raise InputError(f"{recipe.file or 'recipe'}: no calibration given (--calibration, or the recipe's "
                              "cameras.calibration)")
-    return Rig.from_recipe(recipe, calibration), Path(calibration)  # mounted cameras' links checked
+    fps = recipe.fps if recipe.fps is not None else fps
+    return Rig.from_recipe(recipe, calibration), Path(calibration), fps  # mounted cameras' links checked
 
 
 def refine_calibration(source: str | Path, out: str | Path, *, recipe=None, calibration: str | Path | None = None,
@@ -90,7 +94,7 @@ def refine_calibration(source: str | Path, out: str | Path, *, recipe=None, cali
     inputs = {"source": source, "calibration": calibration, "recipe": Path(recipe_path) if recipe_path else None}
     _check_outputs(out, report, inputs, overwrite)
     src = open_frames(source)
-    rig, calibration = _rig(src, recipe, calibration)
+    rig, calibration, fps = _rig(src, recipe, calibration)
     if calibration is not None and inputs["calibration"] is None:  # the recipe's calibration is an input too
         _check_outputs(out, report, {**inputs, "calibration": calibration}, overwrite)
     cams = list(cameras) if cameras else [c for c in src.cameras if c in rig.cameras]
@@ -103,6 +107,10 @@ def refine_calibration(source: str | Path, out: str | Path, *, recipe=None, cali
         raise InputError(f"{where}: no calibration for camera(s) {uncalibrated} (calibrated: {sorted(rig.cameras)})")
     if not cams:
         raise InputError(f"no camera is both in the source ({src.cameras}) and calibrated ({sorted(rig.cameras)})")
+    offsets = {c: rig.cameras[c].time_offset_s for c in cams if rig.cameras[c].time_offset_s}
+    if offsets and not fps:
+        raise InputError(f"{where}: camera time offsets {offsets} s need the recording's frame rate, which neither "
+                         f"the recipe (fps) nor {source} gives: set fps in the recipe")
     dof = src.joints(src.episodes[0]).shape[1]
     if dof != rig.dof:
         raise InputError(f"{source}: joint vectors have {dof} entries, robot {rig.robot.name!r} expects {rig.dof}")
@@ -123,7 +131,7 @@ def refine_calibration(source: str | Path, out: str | Path, *, recipe=None, cali
         log(f"[refine] {c}: choosing frames")
         cam0 = sized[c]
         chosen = choose_frames(src, cam0, renderer, pixels, frames, min_separation=min_separation,
-                               budget=candidate_budget)
+                               budget=candidate_budget, shift=offsets.get(c, 0.0) * (fps or 0.0))  # its own time
         log(f"[refine] {c}: frames {[f'{Path(e).stem}:{t}' for e, t in chosen.refs]}")
         if edges:
             fit, chosen.target = refine_camera_edges(renderer, cam0, chosen.q, chosen.images, config,
@@ -147,6 +155,7 @@ def refine_calibration(source: str | Path, out: str | Path, *, recipe=None, cali
             new, after, agree1 = original, before, agree0
         refined[c] = new
         result["cameras"][c] = camera_entry(original, new, agree0, agree1, refs=chosen.refs, kept=kept, fit=fit)
+        result["cameras"][c]["time_offset_s"] = original.time_offset_s  # the joints fitted: those of t + offset
         overlays[c] = tuple(draw_overlay(chosen.images, m, chosen.target, f"{c} {when}: " + (
             f"outline {a['boundary_px']:.2f} px from the edges" if edges else f"IoU {a['iou']:.4f}"), edges=edges)
             for when, m, a in (("before", before, agree0), ("after", after, agree1)))

@@ -66,6 +66,18 @@ class OnlineChunkControls:
 # --------------------------------------------------------------------------- the rebuilder
 
 
+def warn_about_time_offsets(cameras: Mapping) -> None:
+    """A warning when a camera has a time offset (``time_offset_s``): the build drew its controls at the joint
+    states of the image's own time, interpolated over the whole episode, and a rollout has no such states (not
+    before its reference, not past its chunk), so the online controls draw every camera at the joint states' time."""
+    offsets = {name: cam.time_offset_s for name, cam in cameras.items() if cam.time_offset_s}
+    if offsets:
+        warnings.warn(f"camera time offsets {offsets} s: online motion and contact images draw every camera at the "
+                      "joint states' time, while the dataset's were drawn at each image's own time (t + offset); "
+                      "for these cameras the rollout's controls are off by that much (docs/world-model.md, "
+                      "\"Rollouts: controls rebuilt online\")", stacklevel=3)
+
+
 class OnlineControls:
     """A dataset's rig, depth codec and contact settings, bound to a model's views and size.
 
@@ -84,6 +96,7 @@ class OnlineControls:
         if not 0 < max_walk_distance:
             raise InputError(f"rollout.max_walk_distance: must be > 0, got {max_walk_distance}")
         self.rig = rig.for_views(views)
+        warn_about_time_offsets(self.rig.cameras)
         self.scene = SceneWarp(self.rig, codec, views, view_hw, dilate_px=dict(contact or {}).get("dilate_px", DEFAULT_DILATE_PX),
                                max_walk_distance=max_walk_distance)
         self.codec = codec
