@@ -29,7 +29,8 @@ from benchmarks.calibration_scenes import (
     random_placements,
 )
 from imac_data.calibrate.from_nothing import calibrate_from_nothing
-from imac_data.calibrate.scratch import CalibrationRefused, ScratchConfig, pose_distance
+from imac_data.calibrate.register import Fit
+from imac_data.calibrate.scratch import CalibrationRefused, ScratchConfig, _judge, pose_distance
 from imac_data.cli import main as imac_main
 from imac_data.core.cameras import load_calibration, look_at
 from imac_data.core.render import RaycastRenderer
@@ -257,6 +258,23 @@ def test_two_different_poses_that_fit_alike_are_refused_as_ambiguous():
     assert best.X is a and conf["runner_up_inlier_ratio"] == 0.5
     with pytest.raises(CalibrationRefused, match=r"camera 'cam_x': no pose explains the depth"):
         _judge("cam_x", [Fit(a, 500.0, 1.0, 0.6, 0.8, 10)], cfg)
+
+
+def test_an_ambiguous_refusal_names_the_joint_map_before_the_frames():
+    """Two different poses fitting about alike most often mean a robot posed wrongly: the SO-101 block copied in
+    the URDF's joint order gave two poses 156 mm and 73.5 deg apart. The refusal names the joint map, its order and
+    its units, before the advice on frames and on `qa refine`."""
+    a, b = np.eye(4), np.eye(4)
+    b[:3, 3] = [0.156, 0.0, 0.0]
+    with pytest.raises(CalibrationRefused) as refused:
+        _judge("front", [Fit(a, 500.0, 1.0, 0.92, 0.8, 10), Fit(b, 500.0, 1.0, 0.9, 0.8, 10)], ScratchConfig())
+    msg = str(refused.value)
+    assert msg.startswith("camera 'front': ambiguous: two poses 156 mm and 0.0 deg apart")
+    advice = msg[msg.index("inliers)"):]
+    first = advice.index("check the joint map")
+    assert first < advice.index("order") < advice.index("unit") < advice.index("frames where more of the arm moves")
+    assert advice.index("frames where") < advice.index("`imac qa refine`")
+    assert "imac robot joints" in advice[:advice.index("frames where")]
 
 
 def test_a_built_lerobot_dataset_is_calibrated_from_its_own_depth_stream(sim, tmp_path, capsys):

@@ -168,8 +168,11 @@ def _judge(camera: str, fits: list[Fit], config: ScratchConfig) -> tuple[Fit, di
         t, r = pose_distance(best.X, rival.X)
         raise CalibrationRefused(
             f"camera {camera!r}: ambiguous: two poses {t:.0f} mm and {r:.1f} deg apart explain the depth about equally "
-            f"well ({100 * best.inlier_ratio:.0f}% vs {100 * rival.inlier_ratio:.0f}% inliers). Use frames where more "
-            "of the arm moves through the view, or give a rough start to `imac qa refine`")
+            f"well ({100 * best.inlier_ratio:.0f}% vs {100 * rival.inlier_ratio:.0f}% inliers). Most often the robot "
+            "is posed wrongly: check the joint map first, its joints in the order of the dataset's joint vector and "
+            "each in the unit it was recorded in (`imac robot joints URDF` prints the joints in chain order; "
+            "`--lerobot-robot TYPE` prints a LeRobot arm's map in its units). If the joint map is right, use frames "
+            "where more of the arm moves through the view, or give a rough start to `imac qa refine`")
     return best, conf
 
 
