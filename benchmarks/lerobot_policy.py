@@ -26,9 +26,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 import yaml
 
 from imac_data import lerobot_compat as lr
+from imac_data.core.motion import rollout
+from imac_data.core.robot.platforms import PLATFORMS, simulator_platform
 from imac_data.layout import STATE, image_key, info_path
 from imac_model.experiments.ranking.datasets import link_episodes
 from imac_model.experiments.ranking.plan import POLICY_MODULE, RECIPE, RankingPlan
@@ -109,9 +112,49 @@ def floor_std(stats_file: Path) -> None:
     stats_file.write_text(json.dumps(stats, indent=4))
 
 
+def commanded_states(states: np.ndarray, actions: np.ndarray, episodes: np.ndarray) -> np.ndarray:
+    """The state the benchmark's runners give a policy (:mod:`imac_model.evaluate.simulator`, and the world model's
+    closed loop alike): each episode's measured configuration at its first frame, then the configuration its actions
+    so far command (phi, the simulator rig's controller). The recording's measured state differs from it most where
+    the gripper closes on the cube (0.22 rad on average at the chunk starts, up to 0.56): ACT trained on the
+    measured state erred four times as much given the commanded one (docs/ranking.md, "LeRobot checkpoints")."""
+    controller = PLATFORMS[simulator_platform()].controller("lift")  # the benchmark's task
+    out = np.empty_like(states, dtype=np.float32)
+    for e in np.unique(episodes):
+        rows = np.flatnonzero(episodes == e)
+        q0 = torch.as_tensor(states[rows[0]], dtype=torch.float32)[None]
+        chain = rollout(q0, torch.as_tensor(actions[rows[:-1]], dtype=torch.float32)[None], controller)[0]
+        out[rows] = torch.cat([q0, chain]).numpy()
+    return out
+
+
+def with_commanded_state(dataset, output_dir: Path):
+    """``dataset`` with its ``observation.state`` replaced by :func:`commanded_states`, by LeRobot's own
+    ``remove_feature`` and ``modify_features``, and the statistics of the new column (LeRobot's
+    ``get_feature_stats``) written into ``stats.json``, which ``modify_features`` leaves without them."""
+    columns = dataset.hf_dataset.with_format("numpy")
+    index = np.asarray(columns["index"])
+    commanded = dict(zip(index.tolist(), commanded_states(np.stack(columns[STATE]), np.stack(columns["action"]),
+                                                          np.asarray(columns["episode_index"]))))
+    info = dict(dataset.meta.features[STATE])
+    bare = output_dir.with_name(output_dir.name + ".bare")
+    shutil.rmtree(bare, ignore_errors=True)
+    stripped = lr.remove_feature(dataset, feature_names=[STATE], output_dir=bare, repo_id=POLICY_REPO)
+    out = lr.modify_features(stripped, add_features={STATE: (lambda row, ep, frame: commanded[int(row["index"])], info)},
+                             output_dir=output_dir, repo_id=POLICY_REPO)
+    shutil.rmtree(bare, ignore_errors=True)
+    stats_file = output_dir / "meta" / "stats.json"
+    stats = json.loads(stats_file.read_text())
+    values = np.stack([commanded[i] for i in sorted(commanded)])
+    stats[STATE] = {k: np.asarray(v).tolist() for k, v in lr.get_feature_stats(values, axis=0, keepdims=False).items()}
+    stats_file.write_text(json.dumps(stats, indent=4))
+    return out
+
+
 def select_features(work: Path, demos: Path) -> Path:
     """What the policy trains on, cut from the built dataset by LeRobot's own tools: ``KEEP`` (``remove_feature``),
-    and the demonstrations of one IK branch (``delete_episodes``); which were dropped goes to ``selection.json``."""
+    the demonstrations of one IK branch (``delete_episodes``; which were dropped goes to ``selection.json``), and
+    the state as the runners give it (:func:`with_commanded_state`)."""
     out = work / "policy_data"
     if info_path(out).is_file():
         return out
@@ -122,7 +165,7 @@ def select_features(work: Path, demos: Path) -> Path:
     dropped = other_branch(np.stack(columns["action"]), np.asarray(columns["episode_index"]))
     if len(dropped) == dataset.meta.total_episodes:
         raise SystemExit(f"lerobot_policy: every demonstration in {demos} took the other IK branch; simulate more")
-    tmp = [out.with_name(out.name + s) for s in (".episodes", ".tmp")]
+    tmp = [out.with_name(out.name + s) for s in (".episodes", ".cut", ".tmp")]
     for t in tmp:
         shutil.rmtree(t, ignore_errors=True)
     # episodes first: LeRobot 0.4.4's remove_feature keeps the removed features' per-episode statistics, on which
@@ -130,10 +173,12 @@ def select_features(work: Path, demos: Path) -> Path:
     if dropped:
         dataset = lr.delete_episodes(dataset, episode_indices=dropped, output_dir=tmp[0],
                                                 repo_id=DEMO_REPO)
-    lr.remove_feature(dataset, feature_names=drop, output_dir=tmp[1], repo_id=POLICY_REPO)
-    shutil.rmtree(tmp[0], ignore_errors=True)
-    floor_std(tmp[1] / "meta" / "stats.json")
-    os.replace(tmp[1], out)
+    cut = lr.remove_feature(dataset, feature_names=drop, output_dir=tmp[1], repo_id=POLICY_REPO)
+    with_commanded_state(cut, tmp[2])
+    for t in tmp[:2]:
+        shutil.rmtree(t, ignore_errors=True)
+    floor_std(tmp[2] / "meta" / "stats.json")
+    os.replace(tmp[2], out)
     (work / "selection.json").write_text(json.dumps({"demonstrations": dataset.meta.total_episodes + len(dropped),
                                                      "kept": dataset.meta.total_episodes,
                                                      "other_ik_branch": dropped}, indent=1))

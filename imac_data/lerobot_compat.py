@@ -47,6 +47,7 @@ NAMES: dict[str, tuple[str, ...]] = {
     "encode_video_frames": ("lerobot.datasets.video_utils",),
     "remove_feature": ("lerobot.datasets.dataset_tools",),
     "delete_episodes": ("lerobot.datasets.dataset_tools",),
+    "modify_features": ("lerobot.datasets.dataset_tools",),
     # the motor bus's normalisation, for the benchmarks' simulated LeRobot arms (benchmarks/so101_sim.py)
     "Motor": ("lerobot.motors.motors_bus",),
     "MotorCalibration": ("lerobot.motors.motors_bus",),

@@ -7,10 +7,13 @@ from __future__ import annotations
 import json
 
 import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from benchmarks import lerobot_policy
 from imac_data.layout import STATE, image_key, info_path
-from imac_model.evaluate.policies import load_policy, make_observation
+from imac_model.evaluate.policies import load_policy, make_observation, recorded_actions_policy
+from imac_model.evaluate.simulator import SimRunConfig, SimRunner
+from imac_model.experiments.ranking.plan import RankingPlan
 from imac_model.experiments.ranking.policies import WORKSPACE
 
 
@@ -36,6 +39,20 @@ def test_demonstrations_become_act_checkpoints_that_resume_and_act_on_the_world_
     kept = json.loads(info_path(work / "policy_data").read_text())["features"]
     assert {k for k, f in kept.items() if f["dtype"] == "video"} == {image_key(WORKSPACE)}
     assert {STATE, "action"} <= set(kept) and not any(k.startswith(("control.", "camera_pose.")) for k in kept)
+
+    # the state is the one the benchmark's runners give at each chunk start: MuJoCo's own runner, replaying the kept
+    # demonstration's actions, hands the policy the measured state first and the commanded one after
+    data = LeRobotDataset("local/policy", root=work / "policy_data").hf_dataset.with_format("torch")
+    states, actions = torch.stack(list(data[STATE])), torch.stack(list(data["action"]))
+    plan = RankingPlan(work=work, docs=work)
+    with SimRunner(SimRunConfig(chunks=plan.chunks, view_height=plan.view_size[0], view_width=plan.view_size[1],
+                                views=plan.views, settle_s=plan.settle_s)) as runner:
+        replay = runner.run_episode(recorded_actions_policy(actions), lerobot_policy.DEMO_SEED0, keep_observations=True)
+    given = torch.stack([o[STATE] for o in replay.observations])
+    starts = [8 * n for n in range(plan.chunks)]
+    assert torch.allclose(given, states[starts], atol=1e-6), (given - states[starts]).abs().max()
+    measured = torch.as_tensor(replay.qpos[starts], dtype=torch.float32)
+    assert torch.equal(states[0], measured[0]) and (states[starts[1:]] - measured[1:]).abs().max() > 1e-3
 
     policy = load_policy(specs[-1])
     assert policy.image_shapes == {image_key(WORKSPACE): (3, 48, 64)}
