@@ -2,25 +2,38 @@
 
 1. ``benchmarks/so101_sim.py`` records the arm in MuJoCo from two fixed cameras of known placement, its joint
    states in LeRobot's own units: the body in degrees, and in -100..100 through a LeRobot calibration file made
-   for it (the gripper 0..100 in both); HDF5 episodes with depth, and LeRobot datasets without depth.
-2. ``imac qa calibrate`` finds both cameras from depth and joint states alone, per convention, with the recipe
-   ``recipes/so101_lerobot.yaml`` (degrees: the platform as shipped) or its copy whose ``robot:`` block is what
-   ``imac robot joints --lerobot-robot so101_follower --lerobot-units range_m100_100 --lerobot-calibration FILE``
-   prints; nominal fields of view 15 % off the truth, no refinement, no time-offset search (the cameras are in
-   step).
-3. ``python -m imac_data.build`` builds each convention's episodes with the calibration found, and the built
-   dataset's robot masks (its rig, read back from the dataset alone, at its recorded states: what its motion
-   images draw) are compared with MuJoCo's segmentation of the arm. The blind baseline is a camera placed by hand:
-   the truth 2 cm and 2 degrees off, at the nominal field of view.
+   for it (the gripper 0..100 in both); HDF5 episodes with depth, LeRobot datasets without depth, and (LeRobot 0.6
+   and later) LeRobot datasets with LeRobot's own depth maps, each by LeRobot's own writer.
+2. ``imac qa calibrate`` finds both cameras from depth and joint states alone, per leg and convention; nominal
+   fields of view 15 % off the truth, no refinement, no time-offset search (the cameras are in step).
+3. ``python -m imac_data.build`` builds each with the calibration found, and the built dataset's robot masks (its
+   rig, read back from the dataset alone, at its recorded states: what its motion images draw) are compared with
+   MuJoCo's segmentation of the arm. The blind baseline is a camera placed by hand: the truth 2 cm and 2 degrees
+   off, at the nominal field of view.
 
-``python -m benchmarks.so101_round_trip [--height 480 --width 640 --episodes 2 --frames 120 --work DIR]`` prints
-the table (convention, camera, position error mm, angle error deg, IoU, the baseline's IoU).
+The legs (``--legs``), each in both conventions:
+
+* ``hdf5``: the HDF5 episodes, calibrated from their recorded depth and built, with ``recipes/so101_lerobot.yaml``'s
+  robot (degrees: the platform as shipped) or, for -100..100, the ``robot:`` block that ``imac robot joints
+  --lerobot-robot so101_follower --lerobot-units range_m100_100 --lerobot-calibration FILE`` prints;
+* ``lerobot``: the LeRobot dataset without depth, through ``recipes/so101_lerobot.yaml`` itself (source type
+  ``lerobot``; ``depth: none``; for -100..100 the platform with ``units: range_m100_100`` and the calibration
+  file): a dataset without depth cannot place its cameras, so ``qa calibrate`` reads the same recording's HDF5
+  depth; the build reads the LeRobot dataset alone;
+* ``lerobot_depth`` (LeRobot 0.6 and later, the Python 3.12 line): the LeRobot dataset with LeRobot's depth maps,
+  through the same recipe with its shipped ``depth:`` section (``observation.images.{cam}_depth``): ``qa
+  calibrate`` finds the cameras from the dataset's own depth, and the build reads it alone.
+
+``python -m benchmarks.so101_round_trip [--legs hdf5,lerobot] [--height 480 --width 640 --episodes 2 --frames 120
+--work DIR]`` prints the table (leg, convention, camera, position error mm, angle error deg, IoU, the baseline's
+IoU). The default legs are every leg the installed LeRobot can write.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import platform
 import subprocess
 import sys
 import time
@@ -42,6 +55,7 @@ from imac_data.recipes import load_recipe
 ROOT = Path(__file__).resolve().parent.parent
 RECIPE = ROOT / "recipes" / "so101_lerobot.yaml"
 NOMINAL = {"front": 1.15, "side": 0.85}  # nominal field of view / truth
+LEGS = ("hdf5", "lerobot", "lerobot_depth")
 
 
 def fovy(cam: Camera) -> float:
@@ -73,6 +87,26 @@ def write_recipes(work: Path, paths: dict, hw: tuple[int, int]) -> dict[str, Pat
     return out
 
 
+def lerobot_recipe(work: Path, paths: dict, units: str, hw: tuple[int, int], *, depth: bool) -> Path:
+    """``recipes/so101_lerobot.yaml`` as a user fills it in for the convention's LeRobot dataset: the dataset
+    without depth (``depth: none``) or, with ``depth``, the one with LeRobot's depth maps (the shipped ``depth:``
+    section); the calibration at ``<work>/<leg>_<units>.calibration.json``; for -100..100 the platform with its
+    ``units`` and LeRobot's calibration file."""
+    leg = "lerobot_depth" if depth else "lerobot"
+    r = yaml.safe_load(RECIPE.read_text())
+    r.update(name=f"so101_round_trip_{leg}_{units}", fps=so101_sim.FPS)
+    r["cameras"] = {"calibration": str(work / f"{leg}_{units}.calibration.json")}
+    r["source"]["path"] = str(paths[leg][units])
+    r["augment"].update(height=hw[0], width=hw[1])
+    if not depth:
+        r["depth"] = {"source": "none"}
+    if units != "degrees":
+        r["robot"] = {"platform": "so101", "units": units, "calibration": str(paths["calibration"])}
+    out = work / f"{leg}_{units}.yaml"
+    out.write_text(yaml.safe_dump(r, sort_keys=False))
+    return out
+
+
 def calibrate(source: Path, recipe: Path, out: Path, truth: dict[str, Camera]) -> dict:
     """``imac qa calibrate`` (in this process), nominal fields of view; returns its report."""
 
@@ -81,7 +115,10 @@ def calibrate(source: Path, recipe: Path, out: Path, truth: dict[str, Camera]) -
                "--max-time-offset", "0", "--no-progress", "--overwrite"])
     if rc != 0:
         raise RuntimeError(f"qa calibrate exited {rc}")
-    return json.loads((out.with_name(out.stem + ".report") / "report.json").read_text())
+    report = json.loads((out.with_name(out.stem + ".report") / "report.json").read_text())
+    if report.get("refused"):
+        raise RuntimeError(f"qa calibrate on {source} refused camera(s) {report['refused']} (its log above says why)")
+    return report
 
 
 def pose_error(a: Camera, b: Camera) -> tuple[float, float]:
@@ -145,46 +182,69 @@ def hand_placed(truth: dict[str, Camera], seed: int = 0) -> dict[str, Camera]:
     return out
 
 
-def round_trip(work: Path, *, height: int, width: int, episodes: int, frames: int, lerobot: bool = True,
-               log=print) -> list[dict]:
-    """The whole round trip in ``work``; one row per convention and camera."""
+def default_legs() -> tuple[str, ...]:
+    """Every leg the installed LeRobot can write: ``lerobot_depth`` needs its depth maps (0.6 and later)."""
+    try:
+        so101_sim.check_depth_maps()
+    except RuntimeError:
+        return LEGS[:2]
+    return LEGS
 
+
+def round_trip(work: Path, *, height: int, width: int, episodes: int, frames: int, legs=("hdf5",),
+               log=print) -> list[dict]:
+    """The whole round trip in ``work``; one row per leg, convention and camera."""
+
+    unknown = [leg for leg in legs if leg not in LEGS]
+    if unknown:
+        raise ValueError(f"legs {unknown}: not among {LEGS}")
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     paths = so101_sim.record(work / "recorded", episodes=episodes, frames=frames, height=height, width=width,
-                             lerobot=lerobot)
+                             lerobot="lerobot" in legs, depth_maps="lerobot_depth" in legs)
     log(f"recorded {episodes} x {frames} frames at {height}x{width} in {time.perf_counter() - t0:.0f} s")
     truth = load_calibration(paths["truth"])
     masks = so101_sim.masks_of(paths["masks"])
-    recipes = write_recipes(work, paths, (height, width))
+    runs = []  # (leg, units, recipe, the source qa calibrate reads)
+    if "hdf5" in legs:
+        runs += [("hdf5", u, r, paths["hdf5"][u]) for u, r in write_recipes(work, paths, (height, width)).items()]
+    for leg in (leg for leg in legs if leg != "hdf5"):
+        depth = leg == "lerobot_depth"  # else the LeRobot dataset has none: the same recording's HDF5 depth
+        runs += [(leg, u, lerobot_recipe(work, paths, u, (height, width), depth=depth),
+                  paths["lerobot_depth"][u] if depth else paths["hdf5"][u]) for u in so101_sim.CONVENTIONS]
     rows = []
-    for units, recipe in recipes.items():
+    for leg, units, recipe, source in runs:
+        name = units if leg == "hdf5" else f"{leg}_{units}"
+        calib = work / f"{name}.calibration.json"
         t0 = time.perf_counter()
-        report = calibrate(paths["hdf5"][units], recipe, work / f"{units}.calibration.json", truth)
+        report = calibrate(source, recipe, calib, truth)
         t_cal = time.perf_counter() - t0
-        t_build = build(recipe, work / f"built_{units}", f"local/so101_round_trip_{units}")
-        root = work / f"built_{units}"
-        rig = Rig.from_info(lr.LeRobotDatasetMetadata(f"local/so101_round_trip_{units}", root=root))
+        root, repo = work / f"built_{name}", f"local/so101_round_trip_{name}"
+        t_build = build(recipe, root, repo)
+        rig = Rig.from_info(lr.LeRobotDatasetMetadata(repo, root=root))
         states = built_states(root)
         built = iou(rig.robot, {c: rig.cameras[c] for c in truth}, states, masks)
         robot = Rig.robot_from_recipe(load_recipe(recipe))
         exact = iou(robot, truth, states, masks)
         blind = iou(robot, hand_placed(truth), states, masks)
-        found = load_calibration(work / f"{units}.calibration.json")
+        found = load_calibration(calib)
         for c in truth:
             mm, deg = pose_error(found[c], truth[c])
-            rows.append({"convention": units, "camera": c, "position_mm": mm, "angle_deg": deg,
+            rows.append({"leg": leg, "convention": units, "camera": c, "position_mm": mm, "angle_deg": deg,
                          "focal_pct": 100 * (found[c].K[0, 0] / truth[c].K[0, 0] - 1), "iou": built[c],
                          "iou_truth": exact[c], "iou_blind": blind[c], "calibrate_s": t_cal, "build_s": t_build,
-                         "inliers": report["cameras"][c].get("inlier_ratio") if "cameras" in report else None})
+                         "inliers": report["cameras"][c].get("inlier_ratio") if "cameras" in report else None,
+                         "calibrated_from": str(Path(source).relative_to(work)), "lerobot": lr.version(),
+                         "python": platform.python_version()})
     return rows
 
 
 def format_table(rows: list[dict]) -> str:
-    lines = ["| convention | camera | position error mm | angle error deg | focal % | IoU (built) | IoU (true camera) "
-             "| IoU (hand-placed, blind) |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| leg | convention | camera | position error mm | angle error deg | focal % | IoU (built) "
+             "| IoU (true camera) | IoU (hand-placed, blind) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['convention']} | {r['camera']} | {r['position_mm']:.2f} | {r['angle_deg']:.3f} | "
+        lines.append(f"| {r.get('leg', 'hdf5')} | {r['convention']} | {r['camera']} | {r['position_mm']:.2f} | "
+                     f"{r['angle_deg']:.3f} | "
                      f"{r['focal_pct']:+.2f} | {r['iou']:.4f} | {r['iou_truth']:.4f} | {r['iou_blind']:.4f} |")
     return "\n".join(lines)
 
@@ -196,11 +256,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--episodes", type=int, default=2)
     p.add_argument("--frames", type=int, default=120)
     p.add_argument("--work", type=Path, default=Path.home() / ".cache" / "imac" / "bench" / "so101_round_trip")
-    p.add_argument("--no-lerobot", action="store_true", help="skip writing the LeRobot datasets")
+    p.add_argument("--legs", default=None,
+                   help=f"comma-separated, of {','.join(LEGS)} (default: every leg this LeRobot can write)")
     p.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = p.parse_args(argv)
+    legs = tuple(args.legs.split(",")) if args.legs else default_legs()
     rows = round_trip(args.work, height=args.height, width=args.width, episodes=args.episodes, frames=args.frames,
-                      lerobot=not args.no_lerobot)
+                      legs=legs)
     print(format_table(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))

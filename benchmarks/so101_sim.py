@@ -16,8 +16,12 @@ unrounded encoder: the angle as ticks from the calibrated range's middle, 4096 a
 
 Each is written as HDF5 episodes (``docs/building.md``: ``/observations/qpos``, ``/action`` (the same absolute
 targets), RGB, depth, MuJoCo's segmentation) and, with ``lerobot=True``, as a LeRobot dataset without depth by
-LeRobot's own writer (``LeRobotDataset.create``, ``add_frame``, ``save_episode``). The truth
-(``truth.json``, the calibration format) and the arm's masks stay outside the episode directories.
+LeRobot's own writer (``LeRobotDataset.create``, ``add_frame``, ``save_episode``); with ``depth_maps=True``
+(LeRobot 0.6 and later) also as a LeRobot dataset with LeRobot's own depth maps, by the same writer: one
+``observation.images.<camera>_depth`` feature per camera, ``(H, W, 1)`` with ``info.is_depth_map`` (as LeRobot's
+``hw_to_dataset_features`` declares a depth camera), fed MuJoCo's depth in millimetres (uint16, so LeRobot records
+``depth_unit: mm``) and quantised and encoded by LeRobot. The truth (``truth.json``, the calibration format) and
+the arm's masks stay outside the episode directories.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+from packaging.version import Version
 
 from imac_data import lerobot_compat as lr
 from imac_data.core.cameras import Camera, intrinsics_from_fovy, look_at, save_calibration
@@ -163,15 +168,19 @@ def render(model, angles: np.ndarray, height: int, width: int) -> dict:
 
 
 def record(out: Path, *, episodes: int = 2, frames: int = 120, height: int = 480, width: int = 640,
-           seed: int = 0, lerobot: bool = True) -> dict:
+           seed: int = 0, lerobot: bool = True, depth_maps: bool = False, conventions=CONVENTIONS) -> dict:
     """Record ``episodes`` into ``out`` (module docstring); returns the paths: ``hdf5[convention]``,
-    ``lerobot[convention]``, ``calibration`` (LeRobot's file), ``truth`` and ``masks`` (``.npz``)."""
+    ``lerobot[convention]`` (no depth; with ``lerobot``), ``lerobot_depth[convention]`` (LeRobot's depth maps; with
+    ``depth_maps``, LeRobot 0.6 and later), ``calibration`` (LeRobot's file), ``truth`` and ``masks`` (``.npz``);
+    the LeRobot datasets of ``conventions`` only."""
+    if depth_maps:
+        check_depth_maps()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = scene()
     calibration = lerobot_calibration()
-    paths = {"hdf5": {u: out / u for u in CONVENTIONS}, "lerobot": {}, "calibration": out / CALIBRATION_FILE,
-             "truth": out / "truth.json", "masks": out / "masks.npz"}
+    paths = {"hdf5": {u: out / u for u in CONVENTIONS}, "lerobot": {}, "lerobot_depth": {},
+             "calibration": out / CALIBRATION_FILE, "truth": out / "truth.json", "masks": out / "masks.npz"}
     save_lerobot_calibration(paths["calibration"], calibration)
     save_calibration(paths["truth"], truth(height, width))
     recorded = {u: [] for u in CONVENTIONS}
@@ -183,7 +192,7 @@ def record(out: Path, *, episodes: int = 2, frames: int = 120, height: int = 480
             masks[f"episode_{e}/{c}"] = np.packbits(m, axis=-1)
         for u in CONVENTIONS:
             values = lerobot_values(angles, calibration, u)
-            recorded[u].append((values, frames_["rgb"]))
+            recorded[u].append((values, frames_["rgb"], frames_["depth_mm"]))
             paths["hdf5"][u].mkdir(exist_ok=True)
             write_episode(paths["hdf5"][u] / f"episode_{e}.hdf5",
                           RawEpisode(qpos=values, action=values, images=frames_["rgb"], depth_mm=frames_["depth_mm"],
@@ -191,9 +200,11 @@ def record(out: Path, *, episodes: int = 2, frames: int = 120, height: int = 480
     np.savez_compressed(paths["masks"], width=width, **masks)
     (out / "angles.json").write_text(json.dumps({f"episode_{e}": trajectory(frames, seed + e).tolist()
                                                  for e in range(episodes)}))
-    if lerobot:
-        for u in CONVENTIONS:
-            paths["lerobot"][u] = write_lerobot(out / f"lerobot_{u}", recorded[u], height, width)
+    for u in conventions:
+        if lerobot:
+            paths["lerobot"][u] = write_lerobot(out / f"lerobot_{u}", [e[:2] for e in recorded[u]], height, width)
+        if depth_maps:
+            paths["lerobot_depth"][u] = write_lerobot(out / f"lerobot_depth_{u}", recorded[u], height, width)
     return paths
 
 
@@ -204,23 +215,44 @@ def masks_of(path: Path) -> dict[str, np.ndarray]:
         return {k: np.unpackbits(z[k], axis=-1, count=width).astype(bool) for k in z.files if k != "width"}
 
 
+DEPTH_MAPS_SINCE = "0.6.0"  # LeRobot's depth maps (info.is_depth_map, gray12le): 0.4.4 writes a (H, W, 1) video as RGB
+
+
+def check_depth_maps() -> None:
+    """Refuse, naming the version, to write depth maps with a LeRobot that has none."""
+    if Version(lr.version()) < Version(DEPTH_MAPS_SINCE):
+        raise RuntimeError(f"LeRobot {lr.version()} has no depth maps (they came in {DEPTH_MAPS_SINCE}): the SO-101's "
+                           "LeRobot dataset with depth maps is written on the Python 3.12 line (.venv312)")
+
+
 def write_lerobot(root: Path, episodes: list, height: int, width: int) -> Path:
-    """A LeRobot dataset (v3.0, no depth) of ``episodes`` ``[(values (T, 6), rgb {camera: (T, H, W, 3)})]`` by
-    LeRobot's own writer, as ``so101_follower`` records: ``<joint>.pos`` state and action, one video per camera."""
+    """A LeRobot dataset (v3.0) of ``episodes`` ``[(values (T, 6), rgb {camera: (T, H, W, 3)}[, depth_mm {camera:
+    (T, H, W) uint16}])]`` by LeRobot's own writer, as ``so101_follower`` records: ``<joint>.pos`` state and action,
+    one video per camera; with depth (LeRobot 0.6 and later), LeRobot's depth map ``observation.images.<camera>_depth``
+    per camera, its ``depth_unit`` inferred by LeRobot from the uint16 millimetres."""
     names = list(so101.STATE_NAMES)
+    depth = bool(episodes) and len(episodes[0]) == 3
+    if depth:
+        check_depth_maps()
     features = {"observation.state": {"dtype": "float32", "shape": (6,), "names": names},
                 "action": {"dtype": "float32", "shape": (6,), "names": names}}
     for c in CAMERAS:
         features[f"observation.images.{c}"] = {"dtype": "video", "shape": (height, width, 3),
                                                "names": ["height", "width", "channels"]}
+        if depth:  # as LeRobot's hw_to_dataset_features declares a depth camera
+            features[f"observation.images.{c}_depth"] = {"dtype": "video", "shape": (height, width, 1),
+                                                         "names": ["height", "width", "channels"],
+                                                         "info": {"is_depth_map": True}}
     ds = lr.LeRobotDataset.create("local/so101_sim", fps=FPS, features=features, root=root, robot_type="so101_follower",
                                use_videos=True)
-    for values, rgb in episodes:
+    for values, rgb, *maps in episodes:
         for t in range(len(values)):
             frame = {"observation.state": values[t].astype(np.float32), "action": values[t].astype(np.float32),
                      "task": "move the arm through both views"}
             for c in CAMERAS:
                 frame[f"observation.images.{c}"] = rgb[c][t]
+                if depth:
+                    frame[f"observation.images.{c}_depth"] = np.asarray(maps[0][c][t], dtype=np.uint16)[..., None]
             ds.add_frame(frame)
         ds.save_episode()
     ds.finalize()
