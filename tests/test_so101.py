@@ -9,6 +9,7 @@ import importlib.metadata
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -17,12 +18,14 @@ import torch
 import yaml
 
 from benchmarks import so101_round_trip, so101_sim
+from imac_data.calibrate.frames import EpisodeFrames, RobotPixels, choose_frames, select_frames
 from imac_data.cli import main as imac_main
-from imac_data.core.cameras import load_calibration
+from imac_data.core.cameras import Camera, load_calibration
 from imac_data.core.mujoco_gl import mujoco
+from imac_data.core.render import RaycastRenderer
 from imac_data.core.rig import Rig
 from imac_data.core.robot import so101
-from imac_data.core.robot.lerobot_units import MotorCalibration
+from imac_data.core.robot.lerobot_units import MotorCalibration, body_map, gripper_map
 from imac_data.core.robot.model import RobotModel
 from imac_data.core.robot.platforms import platform
 from imac_data.errors import InputError
@@ -75,6 +78,55 @@ def test_values_in_minus_100_to_100_pose_the_arm_as_the_same_ticks_in_degrees():
     b = ranged.link_poses(torch.tensor([*in_range, 50.0], dtype=torch.float64)[None])
     for link in LINKS:
         torch.testing.assert_close(a[link], b[link], atol=1e-9, rtol=0)
+
+
+def test_frames_are_chosen_alike_whatever_units_the_joints_were_recorded_in(tmp_path):
+    """One trajectory in radians, recorded as LeRobot's degrees and as -100..100 (each through its own affine map per
+    joint, :mod:`~imac_data.core.robot.lerobot_units`; the gripper 0..100 in both): ``qa refine``'s frame choice
+    (:func:`~imac_data.calibrate.frames.choose_frames`, a segmenter's masks giving the coverage) picks the same
+    frames from both with the matching joint map, although in the recorded units the two choices differ."""
+    rng = np.random.default_rng(3)
+    names = (*so101.ARM.body, so101.ARM.gripper)
+    cal = {m: MotorCalibration(id=i + 1, drive_mode=int(rng.integers(0, 2)), homing_offset=0,
+                               range_min=int(lo), range_max=int(lo) + int(span))
+           for i, (m, lo, span) in enumerate(zip(names, rng.integers(0, 1000, 6), rng.integers(1200, 3000, 6)))}
+    robots = {"degrees": RobotModel(so101.robot_config()), "range": RobotModel(so101.robot_config("range_m100_100", cal))}
+    limits = [robots["degrees"].joint_limits[j] for j in names]
+    maps = {"degrees": [body_map("degrees") for _ in so101.ARM.body],
+            "range": [body_map("range_m100_100", cal[m]) for m in so101.ARM.body]}
+    for units in maps:
+        maps[units].append(gripper_map(*limits[-1][1:]))
+    scale, offset = ({u: np.array([m[k] for m in maps[u]]) for u in maps} for k in (0, 1))
+    lo, hi = np.array([lim[1] for lim in limits]), np.array([lim[2] for lim in limits])
+    radians = [lo + (hi - lo) * rng.random((40, 6)) for _ in range(2)]  # two episodes
+    masks = tmp_path / "masks"
+    for e in range(2):
+        for t in range(40):  # the robot covers 5-40 % of the view, at random
+            m = np.zeros((12, 16), np.uint8)
+            m[:, : int(rng.integers(1, 7))] = 255
+            (masks / f"episode_{e}" / "front").mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(masks / f"episode_{e}" / "front" / f"{t:06d}.png"), m)
+    camera = Camera("front", np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]]), 16, 12, T_world_cam=np.eye(4))
+    chosen, recorded = {}, {}
+    for units, robot in robots.items():
+        recorded[units] = [(q - offset[units]) / scale[units] for q in radians]
+        (tmp_path / units).mkdir()
+        for e, q in enumerate(recorded[units]):
+            write_episode(tmp_path / units / f"episode_{e}.hdf5",
+                          RawEpisode(q, q, {"front": np.zeros((40, 12, 16, 3), np.uint8)}, fps=25.0))
+        np.testing.assert_allclose(robot.mapped_joints(np.concatenate(recorded[units])), np.concatenate(radians),
+                                   atol=1e-9)
+        chosen[units] = choose_frames(EpisodeFrames(tmp_path / units), camera, RaycastRenderer(robot),
+                                      RobotPixels("masks", masks), 8, min_separation=0.1)
+    assert [t for _, t in chosen["degrees"].refs] == [t for _, t in chosen["range"].refs]
+    assert [Path(e).name for e, _ in chosen["degrees"].refs] == [Path(e).name for e, _ in chosen["range"].refs]
+    assert len(chosen["degrees"].refs) == 8
+    np.testing.assert_allclose(chosen["range"].q, np.concatenate(recorded["range"])[
+        [40 * int(Path(e).stem[-1]) + t for e, t in chosen["range"].refs]])  # the recorded joints are handed back
+    coverage = np.array([cv2.imread(str(masks / f"episode_{e}" / "front" / f"{t:06d}.png"), 0).mean() / 255
+                         for e in range(2) for t in range(40)])
+    raw = {u: select_frames(np.concatenate(q), coverage, 8, min_separation=0.1).tolist() for u, q in recorded.items()}
+    assert raw["degrees"] != raw["range"]  # measured in the recorded units, the two recordings would differ
 
 
 def test_without_its_package_the_platform_says_how_to_install_it(monkeypatch):
@@ -171,10 +223,10 @@ def test_round_trip_calibrate_build_and_masks_on_mujocos_segmentation(so101_reco
 def test_units_that_do_not_match_the_recipe(so101_recording, tmp_path, capsys):
     """A -100..100 dataset read as degrees lies inside the URDF's limits (LeRobot clamps -100..100, and the SO-101's
     limits are 95-163 degrees), so the build's joint-range check cannot see it and nothing refuses it before work.
-    ``imac qa calibrate`` refuses both cameras: the front one because no pose explains the depth ("check the joint
-    map"), the side one because its best pose needs a focal length some 50 times its nominal one, the joints'
-    units named first. A -100..100 joint map without its calibration file is refused before any work, naming
-    the file LeRobot writes."""
+    ``imac qa calibrate`` refuses both cameras, each because no pose explains the depth ("check the joint map").
+    (While frames were chosen in the recorded units, the side camera's best pose instead needed a focal length some
+    50 times its nominal one, refused naming the joints' units first.) A -100..100 joint map without its calibration
+    file is refused before any work, naming the file LeRobot writes."""
     from imac_data.cli import main as imac_main
     from imac_data.core.rig import Rig
     from imac_data.core.robot.joint_ranges import joint_range_problems
@@ -190,9 +242,10 @@ def test_units_that_do_not_match_the_recipe(so101_recording, tmp_path, capsys):
             "--out", str(tmp_path / "c.json"), "--refine", "none", "--max-time-offset", "0", "--no-progress"]
     imac_main(args)
     err = capsys.readouterr().err
-    assert "REFUSED camera 'front': no pose explains the depth" in err and "Check the joint map" in err
-    # the side camera's best pose needs a lens no camera has: refused, the joints' units named first
-    assert "REFUSED camera 'side'" in err and "times its start" in err and "Check the joint map's units first" in err
+    refused = {line.split("'")[1]: line for line in err.splitlines() if line.startswith("[calibrate] REFUSED camera")}
+    assert sorted(refused) == ["front", "side"]
+    for line in refused.values():
+        assert "no pose explains the depth" in line and "Check the joint map" in line, line
     assert not (tmp_path / "c.json").exists()  # every camera refused: nothing written
     # no calibration file: refused before anything is printed or searched, naming where LeRobot writes it
     assert imac_main(["robot", "joints", str(so101.urdf_path()), "--lerobot-robot", "so101_follower",
@@ -367,6 +420,27 @@ def test_the_printed_joints_block_runs_qa_calibrate_as_printed(so101_recording, 
     assert "outside the URDF limits" not in capsys.readouterr().err  # the joint-range check: units as recorded
     mm, deg = so101_round_trip.pose_error(load_calibration(tmp_path / "calibration.json")["front"], truth["front"])
     assert mm < 3.0 and deg < 0.3, (mm, deg)
+
+
+def test_qa_calibrate_chooses_the_same_frames_in_degrees_and_in_minus_100_to_100(so101_recording, tmp_path, capsys):
+    """The same recording in LeRobot's degrees and in -100..100, each with its recipe's joint map: ``imac qa
+    calibrate`` registers the front camera on the same frames (chosen by distance after the joint map) and finds it
+    within 3 mm and 0.3 degrees from both. Chosen in the recorded units, the -100..100 frames differed, and at this
+    size (96x128, 2 x 30 frames) the front camera was refused as ambiguous."""
+    work, paths, recipes = so101_recording
+    truth = load_calibration(paths["truth"])
+    fov = so101_round_trip.NOMINAL["front"] * so101_round_trip.fovy(truth["front"])
+    frames = {}
+    for units in ("degrees", "range_m100_100"):
+        out = tmp_path / f"{units}.json"
+        assert imac_main(["qa", "calibrate", str(paths["hdf5"][units]), "--recipe", str(recipes[units]), "--cameras",
+                          "front", "--fov", f"front={fov:.2f}", "--out", str(out), "--refine", "none",
+                          "--max-time-offset", "0", "--no-progress"]) == 0, capsys.readouterr().err
+        report = json.loads((tmp_path / f"{units}.report" / "report.json").read_text())
+        frames[units] = [(Path(e).name, t) for e, t in report["cameras"]["front"]["frames"]]
+        mm, deg = so101_round_trip.pose_error(load_calibration(out)["front"], truth["front"])
+        assert mm < 3.0 and deg < 0.3, (units, mm, deg)
+    assert frames["degrees"] == frames["range_m100_100"] and len(frames["degrees"]) == 10
 
 
 # ----------------------------------------------------------------------------- a LeRobot dataset without depth

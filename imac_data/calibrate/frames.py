@@ -2,8 +2,11 @@
 
 Frames (:func:`select_frames`): the robot covers much of the view and the joint
 configurations are far apart, so that every axis, the depth along the view included, is
-constrained. Degenerate sets are refused with a clear :class:`InputError`: no frame shows
-the robot, or too few distinct configurations do.
+constrained. Distances are measured in the robot's configuration space, the joint vectors
+through the recipe's joint map (:meth:`~imac_data.core.robot.model.RobotModel.mapped_joints`:
+radians, metres), so the choice does not depend on the units the joints were recorded in.
+Degenerate sets are refused with a clear :class:`InputError`: no frame shows the robot, or too
+few distinct configurations do.
 
 Robot pixels (``RobotPixels``), a pluggable source:
 
@@ -271,13 +274,16 @@ def select_frames(q: np.ndarray, coverage: np.ndarray, count: int = 8, *, min_co
     """Pick ``count`` frames for calibration: the robot covers much of the view and the joint
     configurations are far apart (different depths and directions constrain every axis).
 
-    ``q`` ``(M, D)`` joint vectors of the candidate frames, ``coverage`` ``(M,)`` the fraction
-    of each view the robot covers. Frames with coverage below ``min_coverage`` do not
-    count; of the rest, the better-covered three quarters are candidates. Greedy
-    farthest-point sampling in joint space, starting at the best-covered frame; a frame
-    closer than ``min_separation`` (joint-vector units, radians for revolute joints) to a
-    chosen one is not a distinct pose. Returns candidate indices (sorted) or raises
-    :class:`InputError` when the robot is not visible or too few distinct poses exist.
+    ``q`` ``(M, D)`` the candidate frames' configurations: their joint vectors through the
+    robot's joint map (:meth:`~imac_data.core.robot.model.RobotModel.mapped_joints`, radians
+    for revolute joints, metres for prismatic ones; :func:`choose_frames` maps them), so that
+    the choice is the same whatever units the joints were recorded in. ``coverage`` ``(M,)``
+    the fraction of each view the robot covers. Frames with coverage below ``min_coverage`` do
+    not count; of the rest, the better-covered three quarters are candidates. Greedy
+    farthest-point sampling in configuration space, starting at the best-covered frame; a
+    frame closer than ``min_separation`` (radians, metres) to a chosen one is not a distinct
+    pose. Returns candidate indices (sorted) or raises :class:`InputError` when the robot is
+    not visible or too few distinct poses exist.
     """
     q = np.asarray(q, dtype=np.float64)
     coverage = np.asarray(coverage, dtype=np.float64)
@@ -312,8 +318,8 @@ def select_frames(q: np.ndarray, coverage: np.ndarray, count: int = 8, *, min_co
     if len(chosen) < count:
         raise InputError(
             f"too few distinct poses{where}: the frames that show the robot hold only {len(chosen)} joint "
-            f"configuration(s) at least {min_separation} apart, and refinement needs {count}. A camera pose is "
-            "only pinned down by views of the robot in different configurations: use episodes where the arms "
+            f"configuration(s) at least {min_separation} apart (radians after the joint map), and refinement "
+            f"needs {count}. A camera pose is only pinned down by views of the robot in different configurations: use episodes where the arms "
             "move, more episodes, or ask for fewer frames (fewer constrain the pose less)")
     return np.sort(np.array(chosen, dtype=np.int64))
 
@@ -340,7 +346,9 @@ def choose_frames(frames, camera: Camera, renderer, pixels: RobotPixels, count: 
     (``sim``, ``masks``) or, for the edge cue, from the robot as the current calibration
     renders it. At most ``budget`` candidate frames are scanned, evenly spread. ``shift``: the
     camera's time offset in frames; each image is paired with the joint vectors at its own time,
-    frame + ``shift``, as the build draws it (:func:`~imac_data.core.motion.joints_at`)."""
+    frame + ``shift``, as the build draws it (:func:`~imac_data.core.motion.joints_at`). Frames are
+    spread by distance between the joint vectors mapped through the joint map of ``renderer``'s robot
+    (:func:`select_frames`); the returned ``q`` are the recorded ones."""
     name, links = camera.name, renderer.link_names
     hw = frames.image_hw(name)
     per_episode = max(8, budget // len(frames.episodes))
@@ -368,7 +376,8 @@ def choose_frames(frames, camera: Camera, renderer, pixels: RobotPixels, count: 
     if not refs:
         raise InputError(f"no robot visible in camera {name!r}: no frame has a mask under {pixels.mask_dir}")
     q_all = np.concatenate(q_all)
-    sel = select_frames(q_all, np.concatenate(cov_all), count, min_separation=min_separation, camera=name)
+    sel = select_frames(renderer.robot.mapped_joints(q_all), np.concatenate(cov_all), count,
+                        min_separation=min_separation, camera=name)
     chosen = [refs[i] for i in sel]
     images, target = [], []
     for ep in dict.fromkeys(e for e, _ in chosen):  # refs are in episode order, frames ascending

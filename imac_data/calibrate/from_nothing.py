@@ -179,8 +179,9 @@ def _solve(c: str, starts: list[np.ndarray], focal_known: bool, scale_known: boo
                     "rough mount to `imac qa refine`)")
             lp = robot.link_poses(torch.as_tensor(q))[mounts[c]].numpy()
             tries.append(_plausible(c, solve_mounted(c, q, depths[c], lp, _Scene(fixed, depths, principal, surface).at(q),
-                                                     K[0, 0], principal[c], config, focal_known=focal_known,
-                                                     scale_known=scale_known, log=log), K[0, 0], principal[c]))
+                                                     K[0, 0], principal[c], config, robot=robot,
+                                                     focal_known=focal_known, scale_known=scale_known, log=log),
+                                        K[0, 0], principal[c]))
         except CalibrationRefused as e:
             why.append(str(e))
             if e.result is not None:

@@ -55,7 +55,7 @@ class ScratchConfig:
     """How a camera is found from nothing (validated on construction)."""
 
     frames: int = 10  # frames registered together
-    min_separation: float = 0.3  # joint-space distance between two distinct arm poses
+    min_separation: float = 0.3  # distance between two distinct arm poses (radians, after the joint map)
     min_coverage: float = 0.01  # the robot's share of the view (depth-moving pixels) to count a frame
     points_per_frame: int = 4000  # observed points kept per frame (voxel-thinned, then subsampled)
     voxel: float = 0.015  # FPFH/RANSAC voxel (metres)
@@ -112,7 +112,9 @@ def pose_distance(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
 
 
 def check_poses(camera: str, q: np.ndarray, config: ScratchConfig) -> None:
-    """Refuse before any work when the joint states hold too few distinct arm poses."""
+    """Refuse before any work when the joint states hold too few distinct arm poses. ``q``: the frames'
+    configurations, joint vectors through the robot's joint map (radians, metres:
+    :meth:`~imac_data.core.robot.model.RobotModel.mapped_joints`)."""
     q = np.asarray(q, dtype=np.float64)
     chosen = [0]
     dist = np.linalg.norm(q - q[0], axis=1)
@@ -125,12 +127,17 @@ def check_poses(camera: str, q: np.ndarray, config: ScratchConfig) -> None:
     if len(chosen) < 3:
         raise CalibrationRefused(
             f"camera {camera!r}: too few distinct arm poses: the frames hold {len(chosen)} joint configuration(s) "
-            f"at least {config.min_separation} apart, and a pose from depth needs the arm in at least 3 different "
+            f"at least {config.min_separation} rad apart, and a pose from depth needs the arm in at least 3 different "
             "places (more is better). Use episodes where the arm moves, or more episodes")
 
 
 def _spread(q: np.ndarray, score: np.ndarray, count: int, min_sep: float) -> np.ndarray:
-    """Farthest-point choice in joint space among frames, starting at the best-scoring one."""
+    """Farthest-point choice of up to ``count`` frames (sorted indices) among configurations ``q``, starting at
+    the best-scoring frame; frames scoring 0 or less are not chosen, nor a frame closer than ``min_sep`` to a
+    chosen one. ``q``: joint vectors through the robot's joint map
+    (:meth:`~imac_data.core.robot.model.RobotModel.mapped_joints`, radians, metres), so that the frames chosen do
+    not depend on the units the joints were recorded in (degrees or LeRobot's -100..100 would weigh the joints
+    differently, and ``min_sep`` would mean another distance in each)."""
     chosen = [int(np.argmax(score))]
     dist = np.linalg.norm(q - q[chosen[0]], axis=1)
     dist[score <= 0] = -1
@@ -183,7 +190,8 @@ def solve_fixed(camera: str, q: np.ndarray, depth: np.ndarray, focal: float, pri
     depth ``(M, H, W)`` metres (0 = invalid). ``focal``: the recorded or nominal focal length (px)."""
     log = log or (lambda m: None)
     t0 = time.perf_counter()
-    check_poses(camera, q, config)
+    poses = surface.robot.mapped_joints(q)  # distances between poses in radians, whatever the recorded units
+    check_poses(camera, poses, config)
     bg = static_background(depth)
     moving = moving_pixels(depth, bg, config.depth_margin)
     kernel = np.ones((3, 3), np.uint8)
@@ -195,11 +203,11 @@ def solve_fixed(camera: str, q: np.ndarray, depth: np.ndarray, focal: float, pri
             f"camera {camera!r}: robot too small in view: in none of the {len(q)} frames does the moving arm cover "
             f"{100 * config.min_coverage:.0f}% of the image in depth (at most {100 * coverage.max():.2f}%). Use a camera "
             "that sees the arm, or frames where it moves in front of the camera")
-    sel = _spread(q, np.where(usable, coverage, 0.0), config.frames, config.min_separation)
+    sel = _spread(poses, np.where(usable, coverage, 0.0), config.frames, config.min_separation)
     if len(sel) < 3:
         raise CalibrationRefused(
             f"camera {camera!r}: too few distinct arm poses in view: {len(sel)} frame(s) show the arm (>= "
-            f"{100 * config.min_coverage:.0f}% of the image) in configurations {config.min_separation} apart; needs 3")
+            f"{100 * config.min_coverage:.0f}% of the image) in configurations {config.min_separation} rad apart; needs 3")
     rng = np.random.default_rng(0)
     obs = [_thin(camera_points(depth[i], moving[i], principal), focal, config, rng) for i in sel]
     # every link is a target (a link that moves little still shows as moving pixels), but only the links that
@@ -273,17 +281,18 @@ def _dedupe(fits: list[Fit], config: ScratchConfig) -> list[Fit]:
 
 
 def solve_mounted(camera: str, q: np.ndarray, depth: np.ndarray, link_poses: np.ndarray, scene,
-                  focal: float, principal: tuple[float, float], config: ScratchConfig, *, focal_known: bool,
+                  focal: float, principal: tuple[float, float], config: ScratchConfig, *, robot, focal_known: bool,
                   scale_known: bool, log=None) -> CameraResult:
     """A wrist camera's mount ``T_link_cam`` from candidate frames: ``q`` ``(M, D)``, depth
     ``(M, H, W)``, ``link_poses`` ``(M, 4, 4)`` (FK of its link), ``scene(i)``: the
     :class:`~.register.Target` world at candidate frame i (fixed cameras' depth and the robot's
-    surface) to register to."""
+    surface) to register to; ``robot``: its joint map measures how far apart the frames' poses are."""
     log = log or (lambda m: None)
     t0 = time.perf_counter()
-    check_poses(camera, q, config)
+    poses = robot.mapped_joints(q)
+    check_poses(camera, poses, config)
     valid = (depth > 0).mean(axis=(1, 2))
-    sel = _spread(q, valid, config.frames, config.min_separation)
+    sel = _spread(poses, valid, config.frames, config.min_separation)
     if len(sel) < 3:
         raise CalibrationRefused(f"camera {camera!r}: too few distinct arm poses with depth: {len(sel)} (needs 3)")
     rng = np.random.default_rng(0)

@@ -104,7 +104,8 @@ def _refine(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cameras", default=None, help="comma-separated cameras (default: every calibrated one)")
     p.add_argument("--frames", type=int, default=8, help="frames per camera (default 8)")
     p.add_argument("--min-separation", type=float, default=0.1,
-                   help="smallest joint-space distance between chosen frames (default 0.1)")
+                   help="smallest distance between chosen frames' joint vectors, in radians after the "
+                        "recipe's joint map (default 0.1)")
     p.add_argument("--method", default=None, help="gradient (default), nelder-mead or powell")
     p.add_argument("--refine-focal", action="store_true", help="also refine the focal length")
     p.add_argument("--near", type=float, default=0.0,

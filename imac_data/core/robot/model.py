@@ -381,6 +381,17 @@ class RobotModel:
         src = self._src.to(q.device)
         return q[..., src] * self._a.to(q) + self._b.to(q)
 
+    def mapped_joints(self, q) -> np.ndarray:
+        """Dataset joint vectors ``(*B, D)`` (the recorded units) -> ``(*B, D)`` float64: each entry through its
+        joint-map entry, ``offset + scale * value``, the value of the URDF joint it drives (radians, metres). The
+        robot's configuration whatever units the recording used: what distances between poses are measured in."""
+        q = np.asarray(q, dtype=np.float64)
+        if q.ndim == 0 or q.shape[-1] != self.dof:
+            raise InputError(f"robot {self.name!r}: joint vector must have {self.dof} entries in its last "
+                             f"dimension, got shape {q.shape}")
+        entries = [self.config.joint_entry(i) for i in range(self.dof)]
+        return np.array([e.offset for e in entries]) + np.array([e.scale for e in entries]) * q
+
     # ------------------------------------------------------------------ kinematics
 
     def _fk(self, th: torch.Tensor) -> dict[str, torch.Tensor]:
