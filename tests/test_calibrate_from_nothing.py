@@ -28,9 +28,9 @@ from benchmarks.calibration_scenes import (
     degrade_depth,
     random_placements,
 )
-from imac_data.calibrate.from_nothing import calibrate_from_nothing
+from imac_data.calibrate.from_nothing import _plausible, calibrate_from_nothing
 from imac_data.calibrate.register import Fit
-from imac_data.calibrate.scratch import CalibrationRefused, ScratchConfig, _judge, pose_distance
+from imac_data.calibrate.scratch import CalibrationRefused, CameraResult, ScratchConfig, _judge, pose_distance
 from imac_data.cli import main as imac_main
 from imac_data.core.cameras import load_calibration, look_at
 from imac_data.core.render import RaycastRenderer
@@ -300,3 +300,17 @@ def test_a_built_lerobot_dataset_is_calibrated_from_its_own_depth_stream(sim, tm
                       "--refine", "none", "--no-progress"]) == 0, capsys.readouterr().err
     t, r = error(truth["cam_high"], load_calibration(out)["cam_high"])
     assert t <= 3.0 and r <= 0.3, (t, r)
+
+
+def test_a_focal_length_far_from_its_start_is_refused_with_the_joint_units_named_first():
+    """The focal bound (``FOCAL_SPAN``): a pose that needs a focal length more than twice (or less than half) its
+    start is a robot posed wrongly; the refusal names the joint map's units before the depth's and --fov."""
+    start, principal = 400.0, (240.0, 320.0)
+    for ratio in (0.51, 1.0, 1.99):
+        res = CameraResult("cam", np.eye(4), start * ratio, 1.0)
+        assert _plausible("cam", res, start, principal) is res
+    for ratio in (0.45, 2.1, 56.0):
+        with pytest.raises(CalibrationRefused, match=r"times its start of 400 px") as refused:
+            _plausible("cam", CameraResult("cam", np.eye(4), start * ratio, 1.0), start, principal)
+        message = str(refused.value)
+        assert message.index("joint map's units") < message.index("depth's units") < message.index("--fov")
