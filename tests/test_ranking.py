@@ -484,7 +484,9 @@ def test_the_toy_run_reproduces_the_golden_values_of_the_code_before_the_trainer
         for steps, rows in by_steps.items():
             assert [r[:3] for r in got["replays"][mode][steps]] == [r[:3] for r in rows]
             errors = [x for r in got["replays"][mode][steps] for x in r[3]]
-            assert errors == pytest.approx([x for r in rows for x in r[3]], rel=1e-5)
+            # the golden errors come from the trainer's float32 EMA weights; the run evaluates the float16 ones it
+            # ships since 2026-12-01 (shipped.py), which move them in the third digit
+            assert errors == pytest.approx([x for r in rows for x in r[3]], rel=1e-2)
 
 
 def test_the_evaluate_stage_in_a_process_per_policy_gives_what_one_process_gives(toy_run, tmp_path):

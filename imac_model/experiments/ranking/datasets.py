@@ -63,6 +63,7 @@ def stage_decode(plan: RankingPlan) -> None:
 def training_side(plan: RankingPlan) -> None:
     """What training needs of the earlier stages, each skipped when done: the training rollouts simulated, built
     and decoded, none of the evaluation episodes (so the world models can train while the policies still do)."""
-    stage_simulate(plan, ("train",))
-    stage_build(plan, ("train",))
+    if not info_path(plan.train_dataset).is_file():  # built: its rollouts are not needed again
+        stage_simulate(plan, ("train",))
+        stage_build(plan, ("train",))
     stage_decode(plan)

@@ -258,7 +258,7 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
     mode's world model, judged against MuJoCo's labels; cached as ``wm/<mode>/replays.json``. Run
     alone (``--internal replays MODE [RUN]``) it measures the gate before any closed loop; ``RUN``
     names another trained run of the mode under ``runs/`` (an ablation)."""
-    run_dir, wm_dir = ((plan.evaluated_model(mode), plan.wm_dir(mode)) if run is None else
+    run_dir, wm_dir = ((_evaluated(plan, mode), plan.wm_dir(mode)) if run is None else
                        (plan.work / "runs" / run, plan.work / "wm" / run))
     done = wm_dir / "replays.json"
     if done.is_file():
@@ -277,6 +277,15 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
     return result
 
 
+def _evaluated(plan: RankingPlan, mode: str) -> Path:
+    """The checkpoint ``mode`` is evaluated with, frozen as it ships when the evaluate stage has not done it (a step
+    run alone)."""
+    from imac_model.experiments.ranking.shipped import freeze_models  # shipped.py imports this module
+
+    freeze_models(plan, (mode,))
+    return plan.evaluated_model(mode)
+
+
 def evaluated_policies(plan: RankingPlan, mode: str) -> tuple[str, ...]:
     """The policies run closed loop in ``mode``'s world model (``none`` is policy-blind: one, once)."""
     return plan.policies[:1] if run_mode(mode).blind else plan.policies
@@ -292,7 +301,7 @@ def evaluate_policy(plan: RankingPlan, mode: str, policy: str) -> dict:
     (cached: :func:`policy_dir`). The evaluate stage runs each policy in a process of its own, so that the
     machine's cores share the work evenly; :func:`evaluate_mode` then finds it done."""
     torch.set_num_threads(1)
-    model = load_world_model(plan.evaluated_model(mode), weights="ema", device=plan.device)[0]
+    model = load_world_model(_evaluated(plan, mode), weights="ema", device=plan.device)[0]
     chunks = open_chunks(model.spec, EVAL_REPO, str(plan.eval_dataset), episodes=_start_episodes(plan))
     return _policy_closed_loop(plan, mode, policy, model, chunks, _online(plan, model, chunks))
 
@@ -384,7 +393,7 @@ def evaluate_mode(plan: RankingPlan, mode: str) -> None:
     torch.set_num_threads(1)
     t0, c0 = time.time(), time.process_time()
     out = plan.wm_dir(mode)
-    model, spec = load_world_model(plan.evaluated_model(mode), weights="ema", device=plan.device)
+    model, spec = load_world_model(_evaluated(plan, mode), weights="ema", device=plan.device)
     evaluation = lr.LeRobotDataset(EVAL_REPO, root=plan.eval_dataset)
     labels = dataset_success_labels(evaluation)
     starts = _start_episodes(plan)

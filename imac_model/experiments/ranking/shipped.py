@@ -40,19 +40,19 @@ MAX_BYTES = 12 * 2**20  # one shipped model at most: the repository travels to a
 
 def _unpack(archive: Path, directory: Path) -> None:
     """A run archive's checkpoint as ``directory``, whole or not at all."""
-    tmp = directory.with_name(directory.name + ".unpacking")
+    tmp = directory.with_name(f"{directory.name}.unpacking{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     unpack_checkpoint(archive, tmp)
     shutil.rmtree(directory, ignore_errors=True)
     os.replace(tmp, directory)
 
 
-def freeze_models(plan: RankingPlan) -> None:
-    """Each of the plan's trained modes as it ships (``evaluate_half``): its float16 EMA archive, and the checkpoint
-    the evaluation loads unpacked from it (skipped where done)."""
+def freeze_models(plan: RankingPlan, modes: tuple[str, ...] | None = None) -> None:
+    """Each of the plan's trained modes (or ``modes``) as it ships (``evaluate_half``): its float16 EMA archive, and
+    the checkpoint the evaluation loads unpacked from it (skipped where done)."""
     if not plan.evaluate_half:
         return
-    for mode in plan.modes:
+    for mode in modes or plan.modes:
         archive, unpacked = plan.shipped_archive(mode), plan.evaluated_model(mode)
         if unpacked.is_dir():
             continue
