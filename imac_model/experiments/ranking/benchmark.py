@@ -23,11 +23,11 @@ from pathlib import Path
 
 from imac_model.experiments.ranking.datasets import stage_build, stage_decode
 from imac_model.experiments.ranking.evaluation import evaluated_policies, policy_dir
+from imac_model.experiments.ranking.freeze import freeze_models
 from imac_model.experiments.ranking.gate import read_gates
 from imac_model.experiments.ranking.gpu import stage_pack
 from imac_model.experiments.ranking.plan import RankingPlan, internal, run_mode, slug
 from imac_model.experiments.ranking.report import write_report
-from imac_model.experiments.ranking.shipped import freeze_models
 from imac_model.experiments.ranking.simulate import stage_simulate
 from imac_model.experiments.ranking.training import stage_train
 from imac_model.experiments.stages import run_all

@@ -43,6 +43,7 @@ from imac_model.evaluate.success import (
     evaluate_judge,
     train_success_classifier,
 )
+from imac_model.experiments.ranking.freeze import freeze_models
 from imac_model.experiments.ranking.gate import reseeded
 from imac_model.experiments.ranking.judge import LiftJudge
 from imac_model.experiments.ranking.perception import RED_THRESHOLD, interior, redness, without_cube
@@ -280,8 +281,6 @@ def replays(plan: RankingPlan, mode: str, run: str | None = None) -> dict:
 def _evaluated(plan: RankingPlan, mode: str) -> Path:
     """The checkpoint ``mode`` is evaluated with, frozen as it ships when the evaluate stage has not done it (a step
     run alone)."""
-    from imac_model.experiments.ranking.shipped import freeze_models  # shipped.py imports this module
-
     freeze_models(plan, (mode,))
     return plan.evaluated_model(mode)
 

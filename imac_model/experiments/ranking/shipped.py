@@ -1,9 +1,7 @@
 """The world models behind a ranking report, as the repository ships them, and a ranking from them with no training
 (``imac-model ranking --from-models``; docs/ranking.md, "The shipped world models").
 
-* :func:`freeze_models`: each trained mode's latest checkpoint as a run archive of its EMA weights in float16
-  (``<work>/shipped/<run>.tar.xz``), unpacked beside it. The evaluate stage runs these, so the report's verdicts
-  are the shipped models' own, not those of weights that differ in the last bits.
+* the models are frozen as they ship by :mod:`~imac_model.experiments.ranking.freeze`, before evaluation;
 * :func:`ship_models`: the archives of :data:`SHIPPED_MODES`, copied beside the report (``<docs>/models``).
 * :func:`rerun_plan` and :func:`run_from_models`: the report's plan on other policies (or a few of its starts),
   with the shipped models in place of training; :func:`rerun_report` puts their rows beside the report's.
@@ -14,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 import shutil
 import time
 from pathlib import Path
@@ -25,42 +22,16 @@ from imac_data.errors import InputError
 from imac_model.evaluate.statistics import best_two_level_guess, policy_correlation
 from imac_model.experiments.ranking.datasets import stage_build
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS, policy_dir
+from imac_model.experiments.ranking.freeze import unpack_run
 from imac_model.experiments.ranking.plan import BASELINE_MODE, GATED_MODE, RankingPlan, internal, slug
 from imac_model.experiments.ranking.simulate import stage_simulate
 from imac_model.experiments.stages import REPO_ROOT, cpu_seconds, run_all
-from imac_model.models.checkpoint import list_checkpoints
-from imac_model.training.archive import archives_in, run_name, unpack_checkpoint, write_archive
-from imac_model.training.log import LOG_FILE
+from imac_model.training.archive import archives_in, run_name
 
 SHIPPED_MODES = (GATED_MODE, BASELINE_MODE)  # training seed 0's motion+contact, and the baseline at its budget
 MODELS = "models"  # the report directory's folder of shipped models
 REPORT = "results.json"  # the report a models folder belongs to, one level up
 MAX_BYTES = 12 * 2**20  # one shipped model at most: the repository travels to a GPU machine within 64 MiB
-
-
-def _unpack(archive: Path, directory: Path) -> None:
-    """A run archive's checkpoint as ``directory``, whole or not at all."""
-    tmp = directory.with_name(f"{directory.name}.unpacking{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    unpack_checkpoint(archive, tmp)
-    shutil.rmtree(directory, ignore_errors=True)
-    os.replace(tmp, directory)
-
-
-def freeze_models(plan: RankingPlan, modes: tuple[str, ...] | None = None) -> None:
-    """Each of the plan's trained modes (or ``modes``) as it ships (``evaluate_half``): its float16 EMA archive, and
-    the checkpoint the evaluation loads unpacked from it (skipped where done)."""
-    if not plan.evaluate_half:
-        return
-    for mode in modes or plan.modes:
-        archive, unpacked = plan.shipped_archive(mode), plan.evaluated_model(mode)
-        if unpacked.is_dir():
-            continue
-        found = list_checkpoints(plan.run_dir(mode))
-        if not found:
-            raise InputError(f"{plan.run_dir(mode)}: {mode} has no trained checkpoint to evaluate (run the train stage)")
-        write_archive(found[-1], plan.run_dir(mode) / LOG_FILE, archive, ema_half=True)
-        _unpack(archive, unpacked)
 
 
 def sha256(path: Path) -> str:
@@ -149,7 +120,7 @@ def run_from_models(plan: RankingPlan, models: Path) -> None:
             archive.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy(src, archive)
             shutil.rmtree(plan.wm_dir(mode), ignore_errors=True)  # evaluations of another model
-            _unpack(archive, plan.evaluated_model(mode))
+            unpack_run(archive, plan.evaluated_model(mode))
     run_all([(f"evaluate {m} {slug(p)}", internal(plan, "evaluate", m, p),
               plan.work / "logs" / f"evaluate_{slug(m.replace('+', '_'))}_{slug(p)}.log")
              for m in plan.modes for p in plan.policies
@@ -274,5 +245,5 @@ def _rerun_markdown(plan: RankingPlan, report: dict, out: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["MAX_BYTES", "MODELS", "SHIPPED_MODES", "freeze_models", "rerun_plan", "rerun_report", "run_from_models",
+__all__ = ["MAX_BYTES", "MODELS", "SHIPPED_MODES", "rerun_plan", "rerun_report", "run_from_models",
            "ship_models"]
