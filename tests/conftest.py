@@ -24,3 +24,16 @@ def _usual_scheduling():
     restore_scheduling(_USUAL)
     yield
     restore_scheduling(_USUAL)
+
+
+# The files that take minutes, collected first: `make test` hands pytest-xdist whole files (--dist loadfile) in
+# collection order, so a long file collected late (test_ranking.py, about 11 minutes of one process) became the
+# run's tail while the other process sat idle (docs/verification.md, "The test suite").
+LONGEST_FIRST = ("test_ranking.py", "test_calibrate_from_nothing.py", "test_so101.py", "test_build.py",
+                 "test_faults.py", "test_benchmarks.py", "test_calibrate_time_offset.py", "test_model_scale.py",
+                 "test_lerobot_policy.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: a file's own order is kept

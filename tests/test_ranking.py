@@ -45,8 +45,10 @@ from imac_model.data.chunks import open_metadata
 from imac_model.data.pack import Pack, write_pack
 from imac_model.data.scene_warp import SceneWarp
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
+from imac_model.evaluate.policies import load_policy
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
+from imac_model.experiments.ranking import plan as plan_module
 from imac_model.experiments.ranking.benchmark import STAGE_FUNCTIONS
 from imac_model.experiments.ranking.evaluation import chunk_end_heights, evaluate_mode
 from imac_model.experiments.ranking.gate import measure_gate, read_gates
@@ -350,6 +352,41 @@ def test_built_episodes_record_their_simulated_start(lift):
     assert eps.features["imac/sim_seed"].dtype == "int64" and list(eps["imac/sim_settle_s"]) == [0.0, 0.0]
 
 
+class StartRecording(Recording):
+    """A :class:`Recording` that takes the start the runner names, and keeps it."""
+
+    takes_start = True
+
+    def __init__(self, policy):
+        super().__init__(policy)
+        self.starts = []
+
+    def reset(self, start=None):
+        self.starts.append(start)
+        self.seen.clear()
+        self.answered.clear()
+        self.policy.reset(start)
+
+
+def test_both_runners_name_the_simulated_start_to_a_policy_that_takes_it(runner, lift):
+    """A policy declaring ``takes_start`` is reset with the start's gym seed: by MuJoCo's runner from the seed it
+    runs, by the world model's from the episode's recorded ``imac/sim_seed``. So graded action noise
+    (``noisy:STD:SPEC``) draws the same noise from the same start in both: its first chunk less the clean policy's
+    answer to the same observation is the same in both runners."""
+    noise = {}
+    for name, run in (("mujoco", lambda p: runner.run_episode(p, SEED)),
+                      ("world model", lambda p: list(rollout_episode(
+                          lift["model"], lift["online"], p, episode_starts(lift["chunks"], [0], horizon_chunks=1)[0])))):
+        recording = StartRecording(load_policy(f"noisy:0.05:python:{POLICY_MODULE}:closed_loop"))
+        run(recording)
+        clean = closed_loop()
+        clean.reset()
+        assert recording.starts == [SEED]
+        noise[name] = recording.answered[0] - clean(recording.seen[0])
+    torch.testing.assert_close(noise["mujoco"], noise["world model"])
+    assert 0.04 < float(noise["mujoco"].std()) < 0.06
+
+
 def test_a_policy_of_another_task_is_refused_by_the_closed_loop(lift, tmp_path, monkeypatch, capsys):
     (tmp_path / "insert_policy.py").write_text("from imac_model.evaluate.policies import hold_policy\n\n\n"
                                                "def inserter(observation):\n    return hold_policy(observation)\n\n\n"
@@ -587,7 +624,8 @@ def test_a_mode_trained_again_from_another_seed_is_a_run_of_its_own_and_the_goal
         dataclasses.replace(plan, modes=("motion+contact@seedX",))
 
 
-def test_the_checkpoint_preset_is_its_files_plan_and_its_policy_stages_refuse_a_missing_checkpoint(tmp_path):
+def test_the_checkpoint_preset_is_its_files_plan_and_its_policy_stages_refuse_a_missing_checkpoint(tmp_path,
+                                                                                                  monkeypatch):
     shipped = yaml.safe_load(CHECKPOINTS.read_text())
     names = [slug(p) for p in shipped["policies"]]
     assert len(set(names)) == len(names) >= 10 and "lerobot_020000" in names
@@ -596,14 +634,20 @@ def test_the_checkpoint_preset_is_its_files_plan_and_its_policy_stages_refuse_a_
     (ckpt / "config.json").write_text("{}")  # the plan checks that a checkpoint is there; loading it is the runners'
     preset = tmp_path / "preset.yaml"
     scripted = [p for p in shipped["policies"] if p.startswith("python:")]
-    preset.write_text(yaml.safe_dump({**shipped, "policies": [*scripted, f"lerobot:{ckpt}"]}))
+    relative = ckpt.relative_to(tmp_path)  # the preset's paths are relative to the repository
+    monkeypatch.setattr(plan_module, "REPO_ROOT", tmp_path)
+    preset.write_text(yaml.safe_dump({**shipped, "policies": [*scripted, f"lerobot:{relative}",
+                                                              f"noisy:0.05:lerobot:{relative}"]}))
     plan = checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)
-    assert plan.names == [slug(p) for p in scripted] + ["lerobot_002000"] and plan.modes == tuple(shipped["modes"])
+    assert plan.policies[-2:] == (f"lerobot:{ckpt}", f"noisy:0.05:lerobot:{ckpt}")
+    assert plan.names == [slug(p) for p in scripted] + ["lerobot_002000", "lerobot_002000_noise0p05"]
+    assert plan.modes == tuple(shipped["modes"])
     assert len(plan.eval_seeds()) == len(plan.wm_starts()) == 100  # the same starts in MuJoCo and the world model
     plan.check_policies()
     (ckpt / "config.json").unlink()
     missing = checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)  # the world models may train meanwhile
-    with pytest.raises(InputError, match=f"no LeRobot checkpoint .* at lerobot:{ckpt}; .*benchmarks.lerobot_policy"):
+    with pytest.raises(InputError, match=f"no LeRobot checkpoint .* at lerobot:{ckpt}, noisy:0.05:lerobot:{ckpt}; "
+                       ".*benchmarks.lerobot_policy"):
         missing.check_policies()
     with pytest.raises(InputError, match="no LeRobot checkpoint"):  # before any stage runs
         run_stages(missing, ["simulate"])

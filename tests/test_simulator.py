@@ -208,6 +208,35 @@ def test_an_episode_re_simulates_from_its_own_file(in_tmp):
         read_episode(in_tmp / "sim" / "episode_1.hdf5")
 
 
+def test_graded_action_noise_reaches_mujoco_as_drawn_and_repeats_at_each_start(in_tmp):
+    """``noisy:STD:SPEC`` adds Gaussian noise to every action: read back from MuJoCo's recording (Stretch commands
+    the state it is given plus fixed offsets, so each chunk's noise is its actions minus that), it has the asked
+    spread and no bias, the same start meets the same noise, and STD 0 is the policy itself."""
+    (in_tmp / "stretch_policy.py").write_text(textwrap.dedent(POLICIES))
+    spec, std = "python:stretch_policy:Stretch", 0.02
+    config = SimRunConfig(chunks=4)
+    clean = run_policy(load_policy(spec), [7], in_tmp / "clean", progress=False, config=config)
+    run_policy(load_policy(f"noisy:0:{spec}"), [7], in_tmp / "zero", progress=False, config=config)
+    run_policy(load_policy(f"noisy:{std}:{spec}"), [7, 9, 7], in_tmp / "noisy", progress=False, config=config)
+    assert clean and read_episode(in_tmp / "zero" / "episode_0.hdf5").action.tolist() == \
+        read_episode(in_tmp / "clean" / "episode_0.hdf5").action.tolist()
+    first, other, again = (read_episode(in_tmp / "noisy" / f"episode_{i}.hdf5") for i in range(3))
+    np.testing.assert_array_equal(first.action, again.action)
+    offsets = np.zeros((8, 14))
+    offsets[:, 8], offsets[:, 11] = -np.linspace(0.01, 0.08, 8), np.linspace(0.02, 0.16, 8)
+    noise = []
+    for ep in (first, other):
+        chunks = ep.action[:32].reshape(4, 8, 14)
+        given = np.concatenate([ep.qpos[:1], chunks[:-1, -1]])  # measured at the start, then the last command
+        noise.append(chunks - given[:, None] - offsets)
+    noise = np.concatenate(noise).reshape(-1)
+    assert abs(noise.std() / std - 1) < 0.1 and abs(noise.mean()) < 4 * std / np.sqrt(noise.size)
+    assert not np.allclose(noise[:448], noise[448:])  # another start, other noise
+    for bad in ("noisy:-1:hold", "noisy:abc:hold", "noisy:0.1"):
+        with pytest.raises(InputError, match=f"policy '{bad}': expected noisy:STD:SPEC"):
+            load_policy(bad)
+
+
 def test_settling_puts_the_box_on_the_table_before_the_first_frame():
     """gym-aloha starts the box 3 cm above its resting height; with settle_s the first frame shows it at rest, where
     MuJoCo keeps it (its own contact solution is the oracle: the same height a second later, no velocity), at the

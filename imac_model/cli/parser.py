@@ -85,7 +85,8 @@ def _evaluate(p: argparse.ArgumentParser) -> None:
     _model_args(c)
     c.add_argument("--policy", required=True,
                    help="recorded (replay each start episode's actions), hold, lerobot:DIR (a LeRobot policy "
-                        "checkpoint directory) or python:MODULE:NAME (a callable observation -> (K, D) actions)")
+                        "checkpoint directory) or python:MODULE:NAME (a callable observation -> (K, D) actions); "
+                        "noisy:STD:SPEC adds Gaussian noise of STD (action units) to every action of SPEC")
     c.add_argument("--camera-map", nargs="+", metavar="POLICY_KEY=VIEW",
                    help="lerobot policies: which world-model view feeds each of the policy's camera keys "
                         "(default: observation.images.X reads view X)")
@@ -102,7 +103,8 @@ def _evaluate(p: argparse.ArgumentParser) -> None:
 
     m = sub.add_parser("simulator", help="run a policy in MuJoCo (the simulated ALOHA rig) under the closed loop's "
                                          "observation contract; write HDF5 episodes with their success")
-    m.add_argument("--policy", required=True, help="hold or python:MODULE:NAME (as closed-loop)")
+    m.add_argument("--policy", required=True,
+                   help="hold, lerobot:DIR, python:MODULE:NAME or noisy:STD:SPEC (as closed-loop)")
     m.add_argument("--task", default="lift", help="simulated task (default lift)")
     m.add_argument("--seeds", nargs="+", required=True, metavar="SEED",
                    help="episode start seeds (gym-aloha's reset(seed)), one episode each: integers or inclusive "

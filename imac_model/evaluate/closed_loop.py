@@ -26,7 +26,7 @@ from imac_data.dataset.episodes import EpisodeWriter
 from imac_data.dataset.info import update_imac_info
 from imac_data.dataset.output import check_output, refuse_overlap
 from imac_data.errors import InputError
-from imac_data.layout import ACTION, EPISODE_COLUMNS, SUCCESS_COLUMN, control_key, depth_key, image_key
+from imac_data.layout import ACTION, EPISODE_COLUMNS, SIM_COLUMNS, SUCCESS_COLUMN, control_key, depth_key, image_key
 from imac_model.data import meta as dataset_meta
 from imac_model.data import mosaic
 from imac_model.data.batch import ChunkBatch, unit_frames
@@ -46,6 +46,8 @@ SOURCE = "world_model"
 
 # --------------------------------------------------------------------------- starts
 
+SIM_SEED = SIM_COLUMNS[1]  # meta/episodes: a simulated episode's start seed
+
 
 @dataclass(frozen=True)
 class Start:
@@ -59,6 +61,7 @@ class Start:
     seed: int
     task: str
     recorded_actions: torch.Tensor  # (T - frame, D): the episode's recorded actions from the start frame
+    sim_seed: int | None = None  # a simulated episode's start seed (its reset(seed)): policies are told it
 
 
 def episode_starts(chunks, episodes: Sequence[int], *, seed: int = 0, horizon_chunks: int | None = None
@@ -87,11 +90,13 @@ def episode_starts(chunks, episodes: Sequence[int], *, seed: int = 0, horizon_ch
                                for a in chunks.lerobot.hf_dataset.select(range(lo + frame, hi))["action"]])
         n = horizon_chunks if horizon_chunks is not None else max(1, math.ceil((hi - lo - 1 - frame) / H))
         tasks = meta.episodes["tasks"][e]
+        sim_seed = meta.episodes[SIM_SEED][e] if SIM_SEED in meta.episodes.column_names else None
         ref = item["reference"]
         out.append(Start(episode=int(e), frame=int(frame),
                          reference=unit_frames(ref),
                          state=item["state"].float(), chunks=int(n), seed=int(seed) + int(e),
-                         task=tasks[0] if tasks else "", recorded_actions=actions))
+                         task=tasks[0] if tasks else "", recorded_actions=actions,
+                         sim_seed=None if sim_seed is None else int(sim_seed)))
     return out
 
 
@@ -138,7 +143,7 @@ def rollout_episode(model, online, policy, start: Start, *, steps: int | None = 
     if online is None:
         raise InputError("closed loop: the dataset's OnlineControls are needed (the next state is phi(q, actions))")
     queue = policy if isinstance(policy, ActionQueue) else ActionQueue(policy, spec.action_dim)
-    queue.reset()
+    queue.reset(start.sim_seed)
     device = next(base.parameters()).device
     reference = start.reference[None].to(device)
     start_frame = reference  # the first frame a model conditioned on it keeps (conditioning.first_frame)

@@ -21,6 +21,7 @@ code's one place for LeRobot (``docs/lerobot.md``)."""
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import os
 import sys
@@ -28,6 +29,7 @@ from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -113,11 +115,13 @@ class ActionQueue:
         self.queue: deque[torch.Tensor] = deque()
         self.calls = 0
 
-    def reset(self) -> None:
+    def reset(self, start: int | None = None) -> None:
+        """A new episode from ``start`` (the simulated start's seed, None where unknown): a policy that declares
+        ``takes_start = True`` is told it (``reset(start)``), any other is reset as LeRobot's are."""
         self.queue.clear()
         reset = getattr(self.policy, "reset", None)
         if callable(reset):
-            reset()
+            reset(start) if getattr(self.policy, "takes_start", False) else reset()
 
     def take(self, observation: Observation, n: int) -> torch.Tensor:
         """The next ``n`` actions ``(n, D)``; the policy sees ``observation`` whenever the queue runs out."""
@@ -277,6 +281,77 @@ class LeRobotPolicy:
         return self.postprocessor(actions)[0].float().cpu()  # (n_action_steps, D)
 
 
+# --------------------------------------------------------------------------- graded action noise
+
+NOISY = "noisy:"  # noisy:STD:SPEC, the policy SPEC with Gaussian noise of STD on every action
+
+
+def split_noisy(spec: str) -> tuple[float | None, str]:
+    """``noisy:STD:SPEC`` -> ``(STD, SPEC)``; any other spec -> ``(None, spec)``."""
+    if not spec.startswith(NOISY):
+        return None, spec
+    std, _, inner = spec[len(NOISY):].partition(":")
+    try:
+        value = float(std)
+    except ValueError:
+        value = -1.0
+    if not inner or not value >= 0 or value == float("inf"):
+        raise InputError(f"policy {spec!r}: expected noisy:STD:SPEC with STD a finite number >= 0 (action units) "
+                         "and SPEC a policy, e.g. noisy:0.05:lerobot:DIR")
+    return value, inner
+
+
+def lerobot_dir(spec: str) -> str | None:
+    """The LeRobot checkpoint directory a policy spec runs (``lerobot:DIR``, under noise or not), else None."""
+    inner = split_noisy(spec)[1]
+    return inner[len("lerobot:"):] if inner.startswith("lerobot:") else None
+
+
+def with_lerobot_dir(spec: str, change: Callable[[str], str]) -> str:
+    """``spec`` with its LeRobot checkpoint directory replaced by ``change(dir)`` (any other spec as it is)."""
+    inner = split_noisy(spec)[1]
+    if not inner.startswith("lerobot:"):
+        return spec
+    return spec[:len(spec) - len(inner)] + "lerobot:" + str(change(inner[len("lerobot:"):]))  # noise prefix kept
+
+
+class NoisyPolicy:
+    """``policy`` with Gaussian noise of standard deviation ``std`` (action units) added to every action it returns:
+    a graded family of worse policies from one good one. Each episode draws its noise from a generator seeded by
+    ``seed`` and the start the runner names (``reset(start)``: the simulated start's seed, in MuJoCo and in the world
+    model alike), or, where the runner names none, the episode's first state (rounded to 0.1 mrad)."""
+
+    takes_start = True
+
+    def __init__(self, policy: Policy, std: float, seed: int = 0, name: str | None = None):
+        self.policy, self.std, self.seed = policy, float(std), int(seed)
+        self.name = name or f"{NOISY}{std:g}:{policy_name(policy)}"
+        self.start: int | None = None
+        self.generator: torch.Generator | None = None  # seeded at an episode's first call
+        if hasattr(policy, "tasks"):
+            self.tasks = policy.tasks
+
+    def check(self, **kwargs) -> None:
+        check = getattr(self.policy, "check", None)
+        if callable(check):
+            check(**kwargs)
+
+    def reset(self, start: int | None = None) -> None:
+        self.start, self.generator = start, None
+        reset = getattr(self.policy, "reset", None)
+        if callable(reset):
+            reset(start) if getattr(self.policy, "takes_start", False) else reset()
+
+    def __call__(self, observation: Observation) -> torch.Tensor:
+        if self.generator is None:
+            key = (np.array([self.start], np.int64) if self.start is not None else
+                   torch.as_tensor(observation[STATE_KEY]).double().mul(1e4).round().to(torch.int64).numpy())
+            digest = hashlib.sha256(key.tobytes() + self.seed.to_bytes(8, "little", signed=True)).digest()
+            self.generator = torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") >> 1)
+        actions = torch.as_tensor(self.policy(observation)).float()
+        return actions + self.std * torch.randn(actions.shape, generator=self.generator)
+
+
 def import_from_cwd(module: str):
     """Import ``module`` as ``python -m`` would: the current directory first, then
     ``PYTHONPATH``. A console script's ``sys.path`` starts with its own bin directory instead,
@@ -316,8 +391,11 @@ def python_object(spec: str, what: str):
 
 def load_policy(spec: str, *, camera_map: Mapping[str, str] | None = None, device: str = "cpu") -> Policy:
     """A policy from a command-line spec: ``lerobot:DIR`` (a LeRobot checkpoint directory),
-    ``hold``, or ``python:MODULE:NAME`` (:func:`python_object`). ``recorded`` is resolved per
-    episode by the closed loop."""
+    ``hold``, ``python:MODULE:NAME`` (:func:`python_object`), or any of these under graded action noise,
+    ``noisy:STD:SPEC`` (:class:`NoisyPolicy`). ``recorded`` is resolved per episode by the closed loop."""
+    std, inner = split_noisy(spec)
+    if std is not None:
+        return NoisyPolicy(load_policy(inner, camera_map=camera_map, device=device), std, name=spec)
     if spec.startswith("lerobot:"):
         return LeRobotPolicy.from_pretrained(spec[len("lerobot:"):], camera_map=camera_map, device=device)
     if camera_map:
@@ -326,9 +404,10 @@ def load_policy(spec: str, *, camera_map: Mapping[str, str] | None = None, devic
         return hold_policy
     if spec.startswith("python:"):
         return python_object(spec, "policy")
-    raise InputError(f"unknown policy {spec!r}: use recorded, hold, lerobot:DIR or python:MODULE:NAME")
+    raise InputError(f"unknown policy {spec!r}: use recorded, hold, lerobot:DIR, python:MODULE:NAME or "
+                     "noisy:STD:SPEC")
 
 
-__all__ = ["ActionQueue", "LeRobotPolicy", "as_action_chunk", "check_task", "hold_policy", "image_key",
-           "import_from_cwd", "load_policy", "make_observation", "policy_name", "python_object",
-           "recorded_actions_policy"]
+__all__ = ["NOISY", "ActionQueue", "LeRobotPolicy", "NoisyPolicy", "as_action_chunk", "check_task", "hold_policy",
+           "image_key", "import_from_cwd", "lerobot_dir", "load_policy", "make_observation", "policy_name",
+           "python_object", "recorded_actions_policy", "split_noisy", "with_lerobot_dir"]

@@ -148,7 +148,7 @@ class SimRunner:
         """Run ``policy`` (a callable or an :class:`ActionQueue`) from the start of ``seed``."""
         c, env = self.config, self.env
         queue = policy if isinstance(policy, ActionQueue) else ActionQueue(policy, ACTION_DIM, self.target)
-        queue.reset()
+        queue.reset(int(seed))
         env.reset(int(seed))
         T = c.frames
         qpos, action = np.empty((T, ACTION_DIM)), np.empty((T, ACTION_DIM))

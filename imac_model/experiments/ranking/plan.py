@@ -13,6 +13,7 @@ import yaml
 from imac_data.errors import InputError
 from imac_data.sources.sim.rig import RIG_CAMERAS
 from imac_model.config import load_run_config
+from imac_model.evaluate.policies import lerobot_dir, split_noisy, with_lerobot_dir
 from imac_model.experiments.ranking.policies import POLICIES, TRAINING_OFFSETS, VIEWS, WORKSPACE
 from imac_model.experiments.stages import REPO_ROOT, python
 from imac_model.modes import MODES, ConditioningMode, conditioning_mode
@@ -50,7 +51,11 @@ def run_mode(run: str) -> ConditioningMode:
 
 def slug(spec: str) -> str:
     """A policy's name in tables and paths: ``python:M:NAME`` -> ``NAME``; a lerobot-train checkpoint,
-    ``lerobot:.../checkpoints/STEP/pretrained_model`` -> ``lerobot_STEP``."""
+    ``lerobot:.../checkpoints/STEP/pretrained_model`` -> ``lerobot_STEP``; under noise, ``noisy:0.05:SPEC`` ->
+    ``<SPEC's name>_noise0p05``."""
+    std, inner = split_noisy(spec)
+    if std is not None:
+        return f"{slug(inner)}_noise{std:g}".replace(".", "p")
     parts = Path(spec.split(":", 1)[-1]).parts
     if spec.startswith("lerobot:") and len(parts) >= 3 and parts[-3:-2] == ("checkpoints",) and parts[-2].isdigit():
         return f"lerobot_{parts[-2]}"
@@ -140,8 +145,7 @@ class RankingPlan:
     def check_policies(self) -> None:
         """Refuse ``lerobot:`` checkpoints that are not there, naming them all, before a stage runs a policy (the
         world models' training side needs none, so it may start while the policies still train)."""
-        missing = [p for p in self.policies if p.startswith("lerobot:")
-                   and not Path(p[len("lerobot:"):], "config.json").is_file()]
+        missing = [p for p in self.policies if lerobot_dir(p) and not Path(lerobot_dir(p), "config.json").is_file()]
         if missing:
             raise InputError(f"ranking: no LeRobot checkpoint (config.json) at {', '.join(missing)}; "
                              "`python -m benchmarks.lerobot_policy` trains the checkpoint preset's (docs/ranking.md, "
@@ -257,8 +261,7 @@ def checkpoints_plan(work: Path, docs: Path, path: Path = CHECKPOINTS) -> Rankin
     unknown = set(data) - {f.name for f in dataclasses.fields(RankingPlan)} | {"work", "docs"} & set(data)
     if unknown:
         raise InputError(f"{path}: not settings of a ranking plan: {sorted(unknown)}")
-    policies = [f"lerobot:{REPO_ROOT / s[len('lerobot:'):]}" if s.startswith("lerobot:") else s
-                for s in data.get("policies", ())]
+    policies = [with_lerobot_dir(s, lambda d: REPO_ROOT / d) for s in data.get("policies", ())]
     data.update({"policies": policies} if policies else {})
     return RankingPlan(work=work, docs=docs, **{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
 

@@ -17,6 +17,7 @@ from imac_data import lerobot_compat as lr
 from imac_data.errors import InputError
 from imac_data.layout import image_key
 from imac_model.evaluate.pictures import label
+from imac_model.evaluate.policies import lerobot_dir, with_lerobot_dir
 from imac_model.evaluate.statistics import plot_policy_scatter, policy_correlation
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
 from imac_model.experiments.ranking.gate import read_gates
@@ -239,8 +240,8 @@ def _relative(value):
         return {k: _relative(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_relative(v) for v in value]
-    if isinstance(value, str) and value.startswith("lerobot:"):  # a policy spec
-        return "lerobot:" + _relative(value[len("lerobot:"):])
+    if isinstance(value, str) and lerobot_dir(value):  # a policy spec
+        return with_lerobot_dir(value, _relative)
     if isinstance(value, (str, Path)) and Path(value).is_absolute() and Path(value).is_relative_to(REPO_ROOT):
         return shown_path(Path(value))
     return value

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imac_model.evaluate.policies import split_noisy
 from imac_model.evaluate.statistics import STATISTICS, balanced_accuracy, best_two_level_guess, mmrv, pearson, spearman
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS
 from imac_model.experiments.ranking.gate import GATED_MODE, cube_by_view, gate_verdict
@@ -101,19 +102,19 @@ def _against_a_guess(plan: RankingPlan, r: dict) -> list[str]:
     return lines
 
 
-FAMILIES = {"scripted": "python:", "LeRobot": "lerobot:"}  # a policy's family, by its spec's prefix
+FAMILIES = {"scripted": "python:", "LeRobot": "lerobot:"}  # a policy's family, by its spec's prefix (noise aside)
 
 
 def _by_family(plan: RankingPlan, r: dict) -> list[str]:
     """The LeRobot policies alone and the scripted ones alone (no goal of their own): policy-level Pearson,
     Spearman and MMRV of each mode (lift judge, point values), with the family's best two-level guess beside."""
-    families = {f: [n for n, spec in zip(plan.names, plan.policies) if spec.startswith(prefix)]
+    families = {f: [n for n, spec in zip(plan.names, plan.policies) if split_noisy(spec)[1].startswith(prefix)]
                 for f, prefix in FAMILIES.items()}
     families = {f: names for f, names in families.items() if len(names) >= 3 and len(names) < len(plan.names)}
     if not families:
         return []
     rates = real_rates(plan, r)
-    lines = ["", "### Each family alone", "", "The scripted policies alone and the LeRobot checkpoints alone (policy "
+    lines = ["", "### Each family alone", "", "The scripted policies alone and the LeRobot policies alone (policy "
              "level, lift judge; no goal of their own, no intervals):", "",
              "| family | policies | mode | Pearson | Spearman | MMRV | best two-level guess's MMRV |",
              "|---|---|---|---|---|---|---|"]

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from imac_data.errors import InputError
+from imac_model.evaluate.policies import lerobot_dir, with_lerobot_dir
 from imac_model.evaluate.statistics import best_two_level_guess, policy_correlation
 from imac_model.experiments.ranking.datasets import stage_build
 from imac_model.experiments.ranking.evaluation import JUDGE_COLUMNS, policy_dir
@@ -64,8 +65,8 @@ def ship_models(plan: RankingPlan) -> dict[str, dict]:
 
 def _in_repo(value: str) -> str:
     """A path the committed report names relative to the repository, made absolute (``lerobot:`` specs too)."""
-    if value.startswith("lerobot:"):
-        return "lerobot:" + _in_repo(value[len("lerobot:"):])
+    if lerobot_dir(value):
+        return with_lerobot_dir(value, _in_repo)
     return value if Path(value).is_absolute() else str(REPO_ROOT / value)
 
 
@@ -87,7 +88,7 @@ def rerun_plan(models: Path, work: Path, docs: Path, policies: tuple[str, ...] =
     report = read_report(models)
     data = dict(report["plan"])
     data.update(work=str(work), docs=str(docs), config=_in_repo(data["config"]),
-                policies=[_in_repo(p) if p.startswith("lerobot:") else p for p in data["policies"]])
+                policies=[with_lerobot_dir(p, _in_repo) for p in data["policies"]])
     base = RankingPlan.from_dict(data)
     if not base.evaluate_half:
         raise InputError(f"{models.parent / REPORT}: this report evaluated float32 weights, so no model of it ships; "
