@@ -165,6 +165,13 @@ def iou(robot, cameras: dict[str, Camera], states: list[np.ndarray], masks: dict
     return {c: inter[c] / max(union[c], 1) for c in cameras}
 
 
+def built_iou(root: Path, cameras, masks: dict[str, np.ndarray]) -> tuple[list[np.ndarray], dict[str, float]]:
+    """A built dataset's states per episode, and :func:`iou` of its own robot and ``cameras`` at those states."""
+    rig = Rig.from_dataset(root)
+    states = built_states(root)
+    return states, iou(rig.robot, {c: rig.cameras[c] for c in cameras}, states, masks)
+
+
 def hand_placed(truth: dict[str, Camera], seed: int = 0) -> dict[str, Camera]:
     """The blind baseline: each camera 2 cm and 2 degrees off the truth (random directions), at its nominal field
     of view."""
@@ -221,9 +228,7 @@ def round_trip(work: Path, *, height: int, width: int, episodes: int, frames: in
         t_cal = time.perf_counter() - t0
         root, repo = work / f"built_{name}", f"local/so101_round_trip_{name}"
         t_build = build(recipe, root, repo)
-        rig = Rig.from_info(lr.LeRobotDatasetMetadata(repo, root=root))
-        states = built_states(root)
-        built = iou(rig.robot, {c: rig.cameras[c] for c in truth}, states, masks)
+        states, built = built_iou(root, truth, masks)
         robot = Rig.robot_from_recipe(load_recipe(recipe))
         exact = iou(robot, truth, states, masks)
         blind = iou(robot, hand_placed(truth), states, masks)

@@ -194,12 +194,10 @@ def test_round_trip_calibrate_build_and_masks_on_mujocos_segmentation(so101_reco
     episodes, built by ``python -m imac_data.build`` with the joint map made from LeRobot's calibration file and
     that calibration, draw the arm where MuJoCo's segmentation has it: IoU >= 0.97 per camera (the benchmark:
     >= 0.99 at 480x640; at 96x128 the outline's pixels weigh more)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     from benchmarks import so101_round_trip as rt
     from benchmarks import so101_sim
     from imac_data.core.cameras import load_calibration
-    from imac_data.core.rig import Rig
 
     work, paths, recipes = so101_recording
     truth = load_calibration(paths["truth"])
@@ -214,9 +212,7 @@ def test_round_trip_calibrate_build_and_masks_on_mujocos_segmentation(so101_reco
     recipe["cameras"]["calibration"] = str(calib)
     (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
     rt.build(tmp_path / "r.yaml", tmp_path / "built", "local/so101_rt")
-    rig = Rig.from_info(LeRobotDatasetMetadata("local/so101_rt", root=tmp_path / "built"))
-    ious = rt.iou(rig.robot, {c: rig.cameras[c] for c in truth}, rt.built_states(tmp_path / "built"),
-                  so101_sim.masks_of(paths["masks"]))
+    ious = rt.built_iou(tmp_path / "built", truth, so101_sim.masks_of(paths["masks"]))[1]
     assert min(ious.values()) >= 0.97, ious
 
 
@@ -475,9 +471,6 @@ def test_a_lerobot_dataset_without_depth_is_calibrated_from_its_recordings_depth
         assert mm < 3.0 and deg < 0.3, (c, mm, deg)
     assert imac_main(["build", "--repo", "local/so101_lerobot_rt", "--recipe", str(recipe), "--root",
                       str(tmp_path / "built"), "--workers", "1", "--no-progress"]) == 0
-    rig = Rig.from_dataset(tmp_path / "built")
-    states = so101_round_trip.built_states(tmp_path / "built")
+    states, ious = so101_round_trip.built_iou(tmp_path / "built", truth, so101_sim.masks_of(paths["masks"]))
     assert [len(q) for q in states] == [30]
-    ious = so101_round_trip.iou(rig.robot, {c: rig.cameras[c] for c in truth}, states,
-                                so101_sim.masks_of(paths["masks"]))
     assert min(ious.values()) >= 0.97, ious

@@ -14,7 +14,6 @@ from packaging.version import Version
 from benchmarks import so101_round_trip, so101_sim
 from imac_data.cli import main as imac_main
 from imac_data.core.cameras import load_calibration
-from imac_data.core.rig import Rig
 from imac_data.lerobot_compat import version as lerobot_version
 
 pytestmark = pytest.mark.skipif(Version(lerobot_version()) < Version(so101_sim.DEPTH_MAPS_SINCE),
@@ -49,9 +48,6 @@ def test_a_lerobot_061_dataset_with_its_depth_maps_is_calibrated_from_them_and_b
         assert mm < 3.0 and deg < 0.3, (c, mm, deg)
     assert imac_main(["build", "--repo", "local/so101_depth_maps", "--recipe", str(recipe), "--root",
                       str(tmp_path / "built"), "--workers", "1", "--no-progress"]) == 0
-    rig = Rig.from_dataset(tmp_path / "built")
-    states = so101_round_trip.built_states(tmp_path / "built")
+    states, ious = so101_round_trip.built_iou(tmp_path / "built", truth, so101_sim.masks_of(paths["masks"]))
     assert [len(q) for q in states] == [20, 20]
-    ious = so101_round_trip.iou(rig.robot, {c: rig.cameras[c] for c in truth}, states,
-                                so101_sim.masks_of(paths["masks"]))
     assert min(ious.values()) >= 0.97, ious
