@@ -4,6 +4,7 @@ driven by the recorded degrees (or -100..100 with the arm's calibration file) an
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib.metadata
 import json
@@ -474,3 +475,42 @@ def test_a_lerobot_dataset_without_depth_is_calibrated_from_its_recordings_depth
     states, ious = so101_round_trip.built_iou(tmp_path / "built", truth, so101_sim.masks_of(paths["masks"]))
     assert [len(q) for q in states] == [30]
     assert min(ious.values()) >= 0.97, ious
+
+
+def test_augment_records_the_joint_units_and_refuses_states_they_cannot_hold(so101_recording, tmp_path, capsys):
+    """``imac augment`` of an SO-101 dataset recorded in degrees writes the streams and records the LeRobot units
+    its joint map took, as the build does; the same recording rewritten in raw motor ticks (0..4095) is refused
+    before any work, naming the out-of-range joints, and the dataset is left without streams."""
+    from imac_data.build.from_episodes import ingest_episodes
+    from imac_data.dataset.ingest import IngestOptions
+
+    _, paths, recipes = so101_recording
+    data = yaml.safe_load(recipes["degrees"].read_text())
+    data["cameras"]["calibration"] = str(paths["truth"])
+    recipe_path = tmp_path / "degrees.yaml"
+    recipe_path.write_text(yaml.safe_dump(data))
+    rig = Rig(Rig.robot_from_recipe(load_recipe(recipe_path)), load_calibration(paths["truth"]))
+    ticks = tmp_path / "recorded_in_ticks"
+    ticks.mkdir()
+    for p in episode_paths(paths["hdf5"]["degrees"]):  # what a tool reading the motors' registers would record
+        ep = read_episode(p, load_segmentation=True)
+        write_episode(ticks / p.name, dataclasses.replace(ep, qpos=ep.qpos * 4096 / 360 + 2048,
+                                                          action=ep.action * 4096 / 360 + 2048), sim=True)
+    for name, source, ok in (("degrees", paths["hdf5"]["degrees"], True), ("ticks", ticks, False)):
+        root = tmp_path / name
+        ingest_episodes(episode_paths(source), rig=rig, repo_id=f"local/{name}", root=root,
+                        options=IngestOptions(fps=so101_sim.FPS, task="t"), progress=False)
+        code = imac_main(["augment", "--repo", f"local/{name}", "--root", str(root), "--recipe", str(recipe_path),
+                          "--source", str(source), "--no-progress"])
+        info = dataset_info(root)
+        if ok:
+            assert code == 0 and info["imac"]["joint_units"] == {
+                "lerobot_robot": "so101_follower", "joints": list(so101.ARM.body) + ["gripper"], "body": "degrees",
+                "gripper": "range_0_100", "calibration": None}
+            assert any(k.startswith("control.motion.") for k in info["features"])
+        else:
+            err = capsys.readouterr().err
+            assert code == 2 and f"{root} ({STATE}): the recorded joint values contradict the LeRobot units" in err
+            assert "index 0 ('shoulder_pan', degrees)" in err and "index 5 ('gripper', range_0_100)" in err
+            assert not any(k.startswith("control.") for k in info["features"]) and "joint_units" not in info["imac"]
+            assert not (root.parent / f".{root.name}.staging").exists()

@@ -12,12 +12,14 @@ import numpy as np
 from imac_data.build.staging import staged_output
 from imac_data.build.streams import add_episode_streams
 from imac_data.core.rig import Rig
-from imac_data.dataset.info import read_info
+from imac_data.core.robot.lerobot_units import units_refusal
+from imac_data.dataset.info import read_info, update_imac_info
 from imac_data.dataset.ingest import write_rig
 from imac_data.dataset.output import refuse_overlap
 from imac_data.errors import InputError
 from imac_data.layout import ACTION, STATE, is_added_stream
 from imac_data.metadata import unchecked_imac_block
+from imac_data.recipes import joint_units
 from imac_data.sources.hdf5 import EpisodeReader, episode_paths
 from imac_data.sources.lerobot_dataset import SourceDataset, episode_states
 
@@ -60,7 +62,16 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
             if ep == 0:
                 rig = rig.with_image_sizes(raw.image_hw)
         states.append((state, action))
+    units = joint_units(recipe)  # as the build: values the joint map's LeRobot units cannot record are refused
+    if units and states:
+        recorded = np.concatenate([s for s, _ in states])
+        refusal = units_refusal(units, recorded.min(axis=0), recorded.max(axis=0), source=f"{root} ({STATE})",
+                                recipe=str(recipe.file or "the recipe"))
+        if refusal:
+            raise InputError(refusal)
     with staged_output(root, edit=True, sample=4) as stage:
         write_rig(stage.dataset, rig)
         add_episode_streams(stage.dataset, (EpisodeReader(p) for p in paths), rig, recipe.augment, states=states,
                             progress=progress)
+        if units:
+            update_imac_info(stage.dataset, {"joint_units": units})
