@@ -1199,7 +1199,8 @@ def test_each_family_alone_is_ranked_as_scipy_ranks_it(tmp_path):
     from scipy.stats import pearsonr, spearmanr
 
     scripted = [f"python:{POLICY_MODULE}:{p}" for p in ("closed_loop", "open_loop", "open_loop_3cm")]
-    learned = [f"lerobot:{tmp_path}/act/checkpoints/{s:06d}/pretrained_model" for s in (2000, 4000, 6000, 8000)]
+    learned = [f"lerobot:{tmp_path}/act/checkpoints/{s:06d}/pretrained_model" for s in (2000, 4000, 6000)]
+    learned.append(f"noisy:0.02:{learned[-1]}")  # a checkpoint under action noise is a LeRobot policy too
     plan = RankingPlan(work=tmp_path, docs=tmp_path, policies=tuple(scripted + learned), groups=1, real_per_group=10,
                        wm_per_group=10, modes=("motion+contact",))
     real = dict(zip(plan.names, [0.9, 0.5, 0.1, 0.0, 0.3, 0.6, 0.7]))
