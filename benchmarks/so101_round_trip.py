@@ -128,6 +128,12 @@ def pose_error(a: Camera, b: Camera) -> tuple[float, float]:
     return float(1000 * np.linalg.norm(a.T_world_cam[:3, 3] - b.T_world_cam[:3, 3])), float(angle)
 
 
+def pose_errors(calibration: Path, truth: dict[str, Camera]) -> dict[str, tuple[float, float]]:
+    """Per camera of ``truth``, :func:`pose_error` of the one the calibration file ``calibration`` holds."""
+    found = load_calibration(calibration)
+    return {c: pose_error(found[c], truth[c]) for c in truth}
+
+
 def build(recipe: Path, root: Path, repo: str) -> float:
     """``python -m imac_data.build`` as a user runs it; returns its wall time."""
     t0 = time.perf_counter()

@@ -204,10 +204,8 @@ def test_round_trip_calibrate_build_and_masks_on_mujocos_segmentation(so101_reco
     truth = load_calibration(paths["truth"])
     calib = work / "degrees.calibration.json"
     rt.calibrate(paths["hdf5"]["degrees"], recipes["degrees"], calib, truth)
-    found = load_calibration(calib)
-    for c in truth:
-        mm, deg = rt.pose_error(found[c], truth[c])
-        assert mm < 3.0 and deg < 0.3, (c, mm, deg)
+    errors = rt.pose_errors(calib, truth)
+    assert all(mm < 3.0 and deg < 0.3 for mm, deg in errors.values()), errors
     # the same cameras serve the -100..100 recording: its recipe reads the calibration found above
     recipe = yaml.safe_load(recipes["range_m100_100"].read_text())
     recipe["cameras"]["calibration"] = str(calib)
@@ -466,10 +464,8 @@ def test_a_lerobot_dataset_without_depth_is_calibrated_from_its_recordings_depth
                       "--max-time-offset", "0", "--no-progress"]) == 2
     assert f"no depth recorded in {dataset}" in capsys.readouterr().err and not calib.exists()
     so101_round_trip.calibrate(paths["hdf5"]["degrees"], recipe, calib, truth)
-    found = load_calibration(calib)
-    for c in truth:
-        mm, deg = so101_round_trip.pose_error(found[c], truth[c])
-        assert mm < 3.0 and deg < 0.3, (c, mm, deg)
+    errors = so101_round_trip.pose_errors(calib, truth)
+    assert all(mm < 3.0 and deg < 0.3 for mm, deg in errors.values()), errors
     assert imac_main(["build", "--repo", "local/so101_lerobot_rt", "--recipe", str(recipe), "--root",
                       str(tmp_path / "built"), "--workers", "1", "--no-progress"]) == 0
     states, ious = so101_round_trip.built_iou(tmp_path / "built", truth, so101_sim.masks_of(paths["masks"]))

@@ -42,10 +42,8 @@ def test_a_lerobot_061_dataset_with_its_depth_maps_is_calibrated_from_them_and_b
     calib = tmp_path / "lerobot_depth_degrees.calibration.json"
     report = so101_round_trip.calibrate(dataset, recipe, calib, truth)
     assert report["source"] == str(dataset) and report["depth"] == "recorded"
-    found = load_calibration(calib)
-    for c in truth:
-        mm, deg = so101_round_trip.pose_error(found[c], truth[c])
-        assert mm < 3.0 and deg < 0.3, (c, mm, deg)
+    errors = so101_round_trip.pose_errors(calib, truth)
+    assert all(mm < 3.0 and deg < 0.3 for mm, deg in errors.values()), errors
     assert imac_main(["build", "--repo", "local/so101_depth_maps", "--recipe", str(recipe), "--root",
                       str(tmp_path / "built"), "--workers", "1", "--no-progress"]) == 0
     states, ious = so101_round_trip.built_iou(tmp_path / "built", truth, so101_sim.masks_of(paths["masks"]))
