@@ -104,6 +104,15 @@ def as_action_chunk(actions, action_dim: int, who: str = "policy", target: str =
     return a
 
 
+def reset_policy(policy: Policy, start: int | None = None) -> None:
+    """A new episode for ``policy``, if it has a ``reset``: ``reset(start)`` for one that declares
+    ``takes_start = True`` (told the simulated start's seed, None where unknown), ``reset()`` for any other, as
+    LeRobot's policies are reset."""
+    reset = getattr(policy, "reset", None)
+    if callable(reset):
+        reset(start) if getattr(policy, "takes_start", False) else reset()
+
+
 class ActionQueue:
     """``select_action`` semantics for a chunk policy (see the module docstring); ``target``
     names what the actions drive, for the error on a wrong action size."""
@@ -116,12 +125,9 @@ class ActionQueue:
         self.calls = 0
 
     def reset(self, start: int | None = None) -> None:
-        """A new episode from ``start`` (the simulated start's seed, None where unknown): a policy that declares
-        ``takes_start = True`` is told it (``reset(start)``), any other is reset as LeRobot's are."""
+        """A new episode from ``start`` (the simulated start's seed, None where unknown)."""
         self.queue.clear()
-        reset = getattr(self.policy, "reset", None)
-        if callable(reset):
-            reset(start) if getattr(self.policy, "takes_start", False) else reset()
+        reset_policy(self.policy, start)
 
     def take(self, observation: Observation, n: int) -> torch.Tensor:
         """The next ``n`` actions ``(n, D)``; the policy sees ``observation`` whenever the queue runs out."""
@@ -338,9 +344,7 @@ class NoisyPolicy:
 
     def reset(self, start: int | None = None) -> None:
         self.start, self.generator = start, None
-        reset = getattr(self.policy, "reset", None)
-        if callable(reset):
-            reset(start) if getattr(self.policy, "takes_start", False) else reset()
+        reset_policy(self.policy, start)
 
     def __call__(self, observation: Observation) -> torch.Tensor:
         if self.generator is None:
@@ -410,4 +414,4 @@ def load_policy(spec: str, *, camera_map: Mapping[str, str] | None = None, devic
 
 __all__ = ["NOISY", "ActionQueue", "LeRobotPolicy", "NoisyPolicy", "as_action_chunk", "check_task", "hold_policy",
            "image_key", "import_from_cwd", "lerobot_dir", "load_policy", "make_observation", "policy_name",
-           "python_object", "recorded_actions_policy", "split_noisy", "with_lerobot_dir"]
+           "python_object", "recorded_actions_policy", "reset_policy", "split_noisy", "with_lerobot_dir"]
