@@ -22,7 +22,8 @@ from imac_data.console import scheduling_kept
 from imac_data.errors import InputError
 
 __all__ = ["NAMES", "default_root", "version", "create_dataset", "set_streaming_encoder",
-           "close_writers", "video_backend", "convert_v21", "encode_image_dir", "use_linear_features"]
+           "close_writers", "video_backend", "convert_v21", "encode_image_dir", "use_linear_features",
+           "open_videos_anew"]
 
 # name -> the modules that define it, newest layout first
 NAMES: dict[str, tuple[str, ...]] = {
@@ -200,6 +201,16 @@ def close_writers(ds) -> None:
 def video_backend(ds) -> str | None:
     """The video decoder a ``LeRobotDataset`` reads with (public in 0.4.4, private from 0.5.1)."""
     return getattr(ds, "video_backend", None) or getattr(ds, "_video_backend", None)
+
+
+def open_videos_anew(_worker: int | None = None) -> None:
+    """Give this process its own open video files: a DataLoader worker's ``worker_init_fn``.
+
+    LeRobot (0.4.4 to 0.6.x) keeps each video's open file and decoder in a module-level cache
+    (``video_utils._default_decoder_cache``); a forked worker inherits it, and reading through it moves the
+    file offset the two processes share, which garbles the stream in both."""
+    video_utils = importlib.import_module("lerobot.datasets.video_utils")
+    video_utils._default_decoder_cache = type(video_utils._default_decoder_cache)()
 
 
 def convert_v21(dataset_root: Path, repo_id: str) -> str:

@@ -5,6 +5,7 @@ the module path that version has."""
 from __future__ import annotations
 
 import ast
+import importlib
 from pathlib import Path
 
 import pytest
@@ -62,6 +63,12 @@ def test_every_name_resolves_through_the_path_of_the_installed_version():
     # the riskiest names: private ones of LeRobot's quantile histogram (dataset/videos.py)
     rq = lr.RunningQuantileStats()
     assert rq._num_quantile_bins == 5000 and callable(rq._compute_single_quantile)
+    # and the video decoder cache that a DataLoader worker replaces (open_videos_anew)
+    video_utils = importlib.import_module("lerobot.datasets.video_utils")
+    cache = video_utils._default_decoder_cache
+    lr.open_videos_anew()
+    assert video_utils._default_decoder_cache is not cache and callable(video_utils._default_decoder_cache.get_decoder)
+    video_utils._default_decoder_cache = cache
     if lr.version() == "0.4.4":  # the fallbacks really run: these moved in 0.5.1
         assert lr._find("LeRobotDatasetMetadata")[1] == "lerobot.datasets.lerobot_dataset"
         assert lr._find("convert_dataset")[1] == "lerobot.datasets.v30.convert_dataset_v21_to_v30"

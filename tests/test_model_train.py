@@ -96,6 +96,25 @@ def test_chunks_are_lerobots_frames_in_the_mosaic(dataset):
     assert not all(chunks[len(chunks.episode_chunks(0)) - 1]["future_valid"])  # the last chunk is padded
 
 
+def test_decoding_in_a_worker_after_the_parent_read_the_videos(dataset):
+    """LeRobot caches one open video file per path; a forked worker that read through the parent's would move
+    the file offset they share and garble both ("Invalid data found when processing input"). The oracle: the
+    items this process decodes alone, before and after three worker preloads."""
+    data = DataConfig(dataset="local/model_tiny", root=str(dataset), view_height=64)
+    layout = resolve_layout(dataset_info(open_metadata(data)), data, ("motion",), spatial_multiple=8,
+                            temporal_factor=1, mode="motion")
+    alone = ChunkDataset("local/model_tiny", layout, root=dataset, cache="none")
+    truth = [alone[i] for i in range(len(alone))]  # the parent now holds every video open
+    for _ in range(3):
+        preloaded = ChunkDataset("local/model_tiny", layout, root=dataset, cache="memory")
+        preloaded.preload(num_workers=1, progress=False)
+        for i in (len(alone) - 1, 0, len(alone) // 2):  # the parent reads again, out of order
+            assert torch.equal(alone[i]["future"], truth[i]["future"])
+        for i, item in enumerate(truth):
+            for key in ("reference", "future", "control.motion"):
+                assert torch.equal(preloaded[i][key], item[key]), (i, key)
+
+
 def test_a_batch_carries_each_chunks_episode_first_frame(dataset):
     """``ChunkBatch.first_frame`` against LeRobot's own loader: frame 0 of each chunk's episode."""
     data = DataConfig(dataset="local/model_tiny", root=str(dataset), view_height=64)

@@ -263,7 +263,8 @@ class ChunkDataset(Dataset):
         if not todo:
             self._preload_derived(progress)
             return
-        loader = DataLoader(Subset(_Uncached(self), todo), batch_size=None, num_workers=num_workers)
+        loader = DataLoader(Subset(_Uncached(self), todo), batch_size=None, num_workers=num_workers,
+                            worker_init_fn=lr.open_videos_anew)
         for i, item in zip(todo, tqdm(loader, total=len(todo), desc="decoding chunks", disable=not progress,
                                       unit="chunk")):
             self.cache[i] = item
