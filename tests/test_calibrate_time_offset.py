@@ -39,7 +39,7 @@ from imac_data.sources.hdf5 import RawEpisode, read_episode, write_episode
 from imac_data.sources.sim.recorder import SimConfig, record_dataset
 
 HW = (120, 160)
-GOALS = {"cam_high": (3.0, 0.3), "cam_left_wrist": (5.0, 0.5)}
+GOALS = {"cam_high": (3.0, 0.3), "cam_right_wrist": (5.0, 0.5)}
 
 
 @pytest.fixture(scope="module")
@@ -61,14 +61,16 @@ def _calibrate(src, out, cams):
                                   fov={c: ALOHA_FOVY[c] * 1.15 for c in cams}, refine="none", progress=False)
 
 
-def test_a_wrist_camera_one_frame_late_and_a_head_camera_in_step(recording, tmp_path):
-    """The left wrist camera's RGB and depth one frame (40 ms at 25 fps) behind the joint states, the
+def test_a_wrist_camera_two_frames_late_and_a_head_camera_in_step(recording, tmp_path):
+    """The right wrist camera's RGB and depth two frames (80 ms at 25 fps) behind the joint states, the
     head camera in step: each offset is found within 5 ms (the head's is 0 within 5 ms), both cameras
-    come back within their goals, and the file carries the offsets."""
+    come back within their goals, and the file carries the offsets. The right arm moves from the first
+    frame on, so a candidate frame whose shifted joint states were clamped at the episode's start would
+    pull its answer off (it did: -76.7 ms and 0.88 deg before the candidates kept the search's margin)."""
     raw, truth = recording
-    true = aloha_out_of_step(raw, tmp_path / "eps", {"cam_left_wrist": -2})  # -40 ms; all: the simulator's -2 ms
+    true = aloha_out_of_step(raw, tmp_path / "eps", {"cam_right_wrist": -4})  # -80 ms; all: the simulator's -2 ms
     out = tmp_path / "calib.json"
-    summary = _calibrate(tmp_path / "eps", out, ["cam_high", "cam_left_wrist"])
+    summary = _calibrate(tmp_path / "eps", out, ["cam_high", "cam_right_wrist"])
     found = load_calibration(out)
     assert summary["refused"] == {}
     assert abs(found["cam_high"].time_offset_s) <= 0.005
@@ -78,11 +80,14 @@ def test_a_wrist_camera_one_frame_late_and_a_head_camera_in_step(recording, tmp_
         assert abs(found[c].time_offset_s - true[c]) <= 0.005, (c, found[c].time_offset_s, true[c])
         e = summary["cameras"][c]
         assert e["time_offset_observable"] and e["time_offset_rise"] > 0.5  # a sharp minimum
-    wrist = summary["cameras"]["cam_left_wrist"]
+    wrist = summary["cameras"]["cam_right_wrist"]
     assert wrist["inlier_ratio_at_best_offset"] > wrist["inlier_ratio_at_zero_offset"] + 0.02
     assert wrist["time_offset_cost"] < 0.6 * wrist["time_offset_cost_at_zero"]
     saved = json.loads(out.read_text())["cameras"]
-    assert saved["cam_left_wrist"]["time_offset_s"] == found["cam_left_wrist"].time_offset_s
+    assert saved["cam_right_wrist"]["time_offset_s"] == found["cam_right_wrist"].time_offset_s
+    # no candidate frame within the search's +-200 ms (5 frames) of the episode's ends
+    frames = [t for _, t in summary["cameras"]["cam_right_wrist"]["frames"]]
+    assert min(frames) >= 5 and max(frames) <= len(read_episode(next((tmp_path / "eps").glob("*.hdf5"))).qpos) - 6
 
 
 def test_joints_between_frames_are_interpolated_and_clamped():

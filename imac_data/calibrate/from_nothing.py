@@ -12,6 +12,7 @@ not written. ``docs/calibration.md`` ("No calibration at all") has the method an
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -86,6 +87,9 @@ def _intrinsics(cams, hw, intrinsics: Path | None, fov: Mapping[str, float]) -> 
         else:
             out[c] = ([intrinsics_from_fovy(d, W, H) for d in FOV_SWEEP], "sweep")
     return out
+
+
+RESOLVE_ROUNDS = 3  # solves at an offset for a camera refused in step (each from the last one's best poor pose)
 
 
 def _candidates(lengths: Mapping[str, int], budget: int) -> list[tuple[str, int]]:
@@ -221,6 +225,19 @@ def _problem_at(c: str, frames: list[int], q_at, mounts: Mapping[str, str], robo
     return problem
 
 
+def _away_from_ends(res: CameraResult, refs: list[tuple[str, int]], lengths: Mapping[str, int],
+                    margin: int) -> CameraResult:
+    """``res`` on its frames at least ``margin`` frames from their episode's ends (all of them if fewer than 3
+    are): the offset search poses the robot up to ``margin`` frames away, and joint states clamped at an end
+    are not what the image shows (an arm moving from the first frame pulled offset and pose off)."""
+    keep = [k for k, i in enumerate(res.frames) if margin <= refs[i][1] < lengths[refs[i][0]] - margin]
+    if len(keep) == len(res.frames) or len(keep) < 3:
+        return res
+    obs, A, targets = res.problem
+    problem = ([obs[k] for k in keep], np.asarray(A)[keep], [targets[k] for k in keep])
+    return dataclasses.replace(res, frames=[res.frames[k] for k in keep], problem=problem)
+
+
 def _with_offset(res: CameraResult, search: OffsetSearch, problem, focal_known: bool, scale_known: bool) -> CameraResult:
     """``res`` fitted to convergence at the searched offset, from the search's pose there."""
     obs = res.problem[0]
@@ -334,7 +351,8 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
     if depth == "da3":
         model = DepthAnything3Metric(da3_model or DEFAULT_DA3_METRIC_MODEL, local_files_only=True)
 
-    refs = _candidates({ep: len(q) for ep, q in joints.items()}, candidates)
+    lengths = {ep: len(q) for ep, q in joints.items()}
+    refs = _candidates(lengths, candidates)
     q = np.concatenate([joints[ep][[t for e, t in refs if e == ep]] for ep in dict.fromkeys(e for e, _ in refs)])
     refused: dict[str, str] = {}
     depths = {}
@@ -381,34 +399,47 @@ def calibrate_from_nothing(source: str | Path, out: str | Path, *, recipe, camer
         base = res if res is not None else max(poor, key=lambda r: r.confidence["inlier_ratio"], default=None)
         search = None
 
-        def offset_search(r: CameraResult) -> tuple[OffsetSearch, object]:
+        def offset_search(r: CameraResult) -> tuple[OffsetSearch, object, CameraResult]:
+            r = _away_from_ends(r, refs, lengths, math.ceil(window * fps - 1e-9))
             problem = _problem_at(c, r.frames, q_at, mounts, robot, surface, results, depths, principal)
             found = search_offset(problem, r.problem[0], r.X, r.focal, r.scale, fps=fps, window_s=window,
                                   free_focal=not focal_known, free_scale=not scale_known)
             log(f"[calibrate] {c}: time offset {1e3 * found.offset_s:+.1f} ms (cost {found.cost:.4f}, at 0 ms "
-                f"{found.cost_at_zero:.4f}; {found.rise:+.0%} one frame away; {len(found.curve)} fits)")
-            return found, problem
+                f"{found.cost_at_zero:.4f}; {found.rise:+.0%} one frame away; {len(found.curve)} fits on "
+                f"{len(r.frames)} frames)")
+            return found, problem, r
 
         if base is not None and window > 0:
-            search, problem = offset_search(base)
+            search, problem, searched = offset_search(base)
             if res is not None:
                 if search.observable and search.offset_s != 0:
-                    res = _with_offset(res, search, problem, focal_known, scale_known)
+                    res = _with_offset(searched, search, problem, focal_known, scale_known)
             elif search.clearly_better:
-                log(f"[calibrate] {c}: refused in step with the joint states, but the depth fits {1e3 * search.offset_s:+.0f} ms "
-                    "off far better: solving again there")
-                tries, why, _ = _solve(c, starts, focal_known, scale_known, q_at(search.offset_s), *common)
-                try:
-                    res = _pick(c, tries, why, config)
-                except CalibrationRefused as e:
-                    reason = timing_refusal(c, search, str(e))
-                else:
-                    again, problem = offset_search(res)
+                for _ in range(RESOLVE_ROUNDS):  # a better poor pose searches the offset better: alternate
+                    log(f"[calibrate] {c}: refused in step with the joint states, but the depth fits "
+                        f"{1e3 * search.offset_s:+.0f} ms off far better: solving again there")
+                    tries, why, poor = _solve(c, starts, focal_known, scale_known, q_at(search.offset_s), *common)
+                    try:
+                        res = _pick(c, tries, why, config)
+                        break
+                    except CalibrationRefused as e:
+                        reason = timing_refusal(c, search, str(e))
+                    better = max(poor, key=lambda r: r.confidence["inlier_ratio"], default=None)
+                    if better is None or better.confidence["inlier_ratio"] <= base.confidence["inlier_ratio"]:
+                        break
+                    base = better
+                    again = offset_search(base)
+                    if not again[0].clearly_better:
+                        break
+                    search, problem, searched = again
+                if res is not None:
+                    again, problem, searched = offset_search(res)
                     if again.observable:
                         search = again
-                        res = _with_offset(res, search, problem, focal_known, scale_known)
-                    else:  # the solve at the first estimate stands
-                        res.problem = (res.problem[0], *problem(search.offset_s))
+                        res = _with_offset(searched, search, problem, focal_known, scale_known)
+                    else:  # the solve at the estimate stands
+                        res.problem = (res.problem[0], *_problem_at(c, res.frames, q_at, mounts, robot, surface,
+                                                                    results, depths, principal)(search.offset_s))
         if res is None:
             refused[c] = reason
             log(f"[calibrate] REFUSED {reason}")
