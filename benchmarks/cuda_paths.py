@@ -1,4 +1,4 @@
-"""The CUDA paths of the build's core, on their own: forward kinematics and contact images.
+"""The CUDA paths of the build's core, on their own: forward kinematics, the robot raster and contact images.
 
     python -m benchmarks.cuda_paths export DIR            # here: MuJoCo + Open3D make the inputs
     python -m benchmarks.cuda_paths run DIR [--json PATH]  # on the GPU machine: times and checks
@@ -25,10 +25,13 @@ A GPU machine without MuJoCo's renderer, Open3D or LeRobot (the ``device`` tool'
     algorithm, so agreement is a check of both: the exact distances must agree to float32
     rounding and the certified ones lie within the tolerance above the exact ones.
 
-The robot raster stays on the CPU (Open3D's Embree ray caster; there is no GPU renderer),
-so it is not timed here. The CPU rows run pinned to ``--cpu-threads`` cores and to all
-cores. ``--bruteforce-cpu``: without CUDA, the CUDA algorithm runs on the CPU and is
-checked the same way (the test does this at 120x160). Timings: the first pass over the chunks warms up kernels and
+  - the robot raster of every frame (3 views) with the torch rasteriser (``imac build --device cuda``'s
+    renderer), checked against the export's Open3D ray casting (the CPU build's renderer, another
+    algorithm): mask IoU and depth within 1 mm.
+
+The CPU rows run pinned to ``--cpu-threads`` cores and to all
+cores. ``--bruteforce-cpu``: without CUDA, the CUDA algorithms (brute-force contact, the rasteriser) run on
+the CPU and are checked the same way (the test does this at 120x160). Timings: the first pass over the chunks warms up kernels and
 caches and is not counted; CUDA times are wall time between ``torch.cuda.synchronize``.
 """
 
@@ -321,6 +324,37 @@ def contact_figures(rig, data, H: int, W: int, cpu_threads: int, bruteforce_cpu:
     return row
 
 
+def render_figures(rig, data, H: int, W: int, bruteforce_cpu: bool = False) -> dict:
+    """The torch rasteriser on every exported frame, 3 views: wall ms per frame, and its masks and depth
+    against the export's (Open3D ray casting)."""
+    from imac_data.core.render import RasterRenderer
+
+    if torch.cuda.is_available():
+        dev, acc = "cuda", "cuda"
+    elif bruteforce_cpu:
+        dev, acc = "cpu", "raster_cpu"
+    else:
+        return {}
+    _progress(f"render {H}x{W} {acc}")
+    renderer = RasterRenderer(rig.robot, device=dev)
+    cams = rig.stream_cameras((H, W))
+    q = torch.as_tensor(data["q"]).to(dev)
+    if acc == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    seconds = _timed(lambda: renderer.render(q, cams), 3 if acc == "cuda" else 1)
+    views = renderer.render(q, cams)
+    got = torch.stack([views[c].depth.cpu() for c in rig.names], 1)  # (T, V, H, W), as exported
+    want = torch.as_tensor(data["robot_depth"])
+    a, b = got > 0, want > 0
+    both = a & b
+    row = {f"{acc}_ms_per_frame": 1e3 * seconds / len(q),
+           f"{acc}_mask_iou_vs_raycast": float((both.sum() / (a | b).sum().clamp(min=1))),
+           f"{acc}_depth_within_1mm_vs_raycast": float(((got - want).abs()[both] <= 1e-3).float().mean())}
+    if acc == "cuda":
+        row["cuda_peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    return row
+
+
 def run(inputs: Path, cpu_threads: int = 2, repeats: int = 5, batches=FK_BATCHES, bruteforce_cpu: bool = False) -> dict:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     _progress("loading the rig")
@@ -335,10 +369,11 @@ def run(inputs: Path, cpu_threads: int = 2, repeats: int = 5, batches=FK_BATCHES
     _progress("FK vs MuJoCo")
     out["fk_vs_mujoco"] = fk_vs_mujoco(rig, data[first])
     out["fk"] = fk_figures(rig, torch.as_tensor(data[first]["q"]), cpu_threads, repeats, batches)
-    out["contact"] = {}
+    out["contact"], out["render"] = {}, {}
     for name, (H, W, _) in sizes.items():
         out["contact"][name] = contact_figures(rig, data[name], H, W, cpu_threads, bruteforce_cpu)
         out["contact"][name]["frames"] = int(len(data[name]["q"]))
+        out["render"][name] = render_figures(rig, data[name], H, W, bruteforce_cpu)
     return out
 
 
@@ -377,6 +412,13 @@ def report(r: dict) -> str:
                          f"{row[f'{acc}_exact_vs_cpu_exact_s2g_kind_mismatches']}, identical colour pixels "
                          f"{100 * row[f'{acc}_exact_vs_cpu_exact_rgb_identical_fraction']:.3f} %; certified: worst "
                          f"tolerance violation {row[f'{acc}_certified_max_tolerance_violation_m']:.1e} m")
+    for name, row in r.get("render", {}).items():
+        for acc, label in (("cuda", "CUDA"), ("raster_cpu", "the CPU")):
+            if f"{acc}_ms_per_frame" in row:
+                lines.append(f"robot raster {name}, 3 views, torch rasteriser on {label}: {row[f'{acc}_ms_per_frame']:.2f} "
+                             f"ms per frame; vs Open3D ray casting: mask IoU {row[f'{acc}_mask_iou_vs_raycast']:.6f}, "
+                             f"depth within 1 mm on {100 * row[f'{acc}_depth_within_1mm_vs_raycast']:.3f} % of the pixels "
+                             "both draw")
     return "\n".join(lines)
 
 
@@ -386,13 +428,14 @@ def main(argv=None) -> dict | None:
     e = sub.add_parser("export", help="simulate, render and write the inputs (needs MuJoCo and Open3D)")
     e.add_argument("dir", type=Path)
     e.add_argument("--quick", action="store_true", help=f"one small size, few frames ({QUICK_SIZES})")
-    r = sub.add_parser("run", help="time and check FK and contact on the CPU and on CUDA")
+    r = sub.add_parser("run", help="time and check FK, the raster and contact on the CPU and on CUDA")
     r.add_argument("dir", type=Path)
     r.add_argument("--cpu-threads", type=int, default=2, help="the CPU row's threads (default 2, as CI)")
     r.add_argument("--repeats", type=int, default=5, help="FK: timed calls per batch, the fastest counts")
     r.add_argument("--batches", type=int, nargs="+", default=list(FK_BATCHES), help="FK batch sizes")
     r.add_argument("--bruteforce-cpu", action="store_true",
-                   help="without CUDA: run the CUDA algorithm (brute force) on the CPU and check it the same way")
+                   help="without CUDA: run the CUDA algorithms (brute-force contact, the rasteriser) on the CPU and "
+                        "check them the same way")
     r.add_argument("--json", type=Path, help="also write the results here")
     args = p.parse_args(argv)
     if args.command == "export":

@@ -78,7 +78,8 @@ def test_cuda_paths_export_and_run_check_against_their_oracles(tmp_path):
     """``benchmarks.cuda_paths`` (the GPU machine's benchmark) end to end on the CPU:
     export a tiny episode, then run with ``--bruteforce-cpu`` (the CUDA algorithm on the
     CPU). FK is checked against MuJoCo's body poses; the brute-force contact distances
-    against the KD-tree's, exactly (both are exact algorithms in float64)."""
+    against the KD-tree's, exactly (both are exact algorithms in float64); the rasteriser against Open3D's
+    ray casting."""
     from benchmarks import cuda_paths
 
     cuda_paths.export(tmp_path, cuda_paths.QUICK_SIZES)
@@ -96,7 +97,10 @@ def test_cuda_paths_export_and_run_check_against_their_oracles(tmp_path):
     assert row[f"{prefix}_exact_vs_cpu_exact_s2g_kind_mismatches"] == 0
     assert row[f"{prefix}_exact_vs_cpu_exact_rgb_identical_fraction"] == 1.0
     assert row[f"{prefix}_certified_max_tolerance_violation_m"] < 1e-6  # float32 rounding
-    assert "FK vs MuJoCo" in cuda_paths.report(r)
+    (raster,) = r["render"].values()  # the GPU build's rasteriser against the export's ray casting
+    prefix = "cuda" if torch_cuda_available() else "raster_cpu"
+    assert raster[f"{prefix}_mask_iou_vs_raycast"] >= 0.9999 and raster[f"{prefix}_depth_within_1mm_vs_raycast"] >= 0.999
+    assert "FK vs MuJoCo" in cuda_paths.report(r) and "torch rasteriser" in cuda_paths.report(r)
 
 
 def torch_cuda_available() -> bool:

@@ -5,6 +5,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -102,6 +103,21 @@ def test_cli_bad_input_exits_nonzero_and_writes_nothing(sim_dir, tmp_path, capsy
     assert imac_main(["build", "--repo", "local/x", "--recipe", str(write_recipe(tmp_path)), "--root", str(root),
                  "--source", str(tmp_path / "missing")]) == 2
     assert "does not exist" in capsys.readouterr().err
+    assert not root.exists() and not staging_dir(root).exists()
+
+
+def test_a_device_this_machine_lacks_is_refused_in_one_line_before_any_work(sim_dir, tmp_path, capsys):
+    """--device cuda on a machine without CUDA (CI's): one line that says so and how to build anyway."""
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA: --device cuda is accepted here")
+    root = tmp_path / "out"
+    for device, message in (("cuda", "--device cuda: torch sees no CUDA device on this machine (build without "
+                                     "--device to use the CPU path)"),
+                            ("tpu", "--device must be cpu, cuda or cuda:N, got 'tpu'")):
+        assert imac_main(["build", "--repo", "local/x", "--recipe", str(write_recipe(tmp_path)), "--root", str(root),
+                          "--source", str(sim_dir), "--device", device, "--no-progress"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1, err
     assert not root.exists() and not staging_dir(root).exists()
 
 

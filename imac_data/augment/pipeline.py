@@ -206,7 +206,8 @@ class EpisodePipeline:
                 carry = depth_hw[-1]
             with timer("contact"):
                 try:
-                    chunk = rig.contact_images(ref_depth, seen, drawn, **s.contact_options(), threads=self.threads)
+                    chunk = rig.contact_images(ref_depth, seen, drawn, **s.contact_options(), threads=self.threads,
+                                        device=None if rig.device == "cpu" else rig.device)
                 except InputError as e:  # which episode and frame: the contact functions know only tensors
                     raise InputError(f"{reader.path}: contact images of frames {lo}:{hi} (reference frame {ref}, "
                                      f"cameras {names}): {e}. To build such chunks without contact, set "

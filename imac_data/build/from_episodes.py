@@ -138,7 +138,7 @@ def build_from_episodes(req: BuildRequest, robot, *, executor: str = "local", wo
         threads = threads_per_worker(min(workers, len(paths)))
         jobs = [ShardJob(i, p, stage.dir / "shards" / f"episode_{i:06d}", req.repo_id, recipe.augment, block,
                          description, options, stage.dir / "timings" / f"episode_{i:06d}.json", threads,
-                         recipe.depth, recipe.file)
+                         recipe.depth, recipe.file, req.device)
                 for i, p in enumerate(paths)]
         t_jobs = time.perf_counter()
         run_jobs(jobs, executor=executor, workers=workers, ray_address=ray_address, progress=req.progress)

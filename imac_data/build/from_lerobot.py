@@ -51,6 +51,7 @@ def build_from_lerobot(req: BuildRequest, robot) -> None:
     pin_threads(threads)  # this process is the build's one worker
     recipe, src_cfg, where = req.recipe, req.recipe.source, req.recipe.file or "<recipe>"
     rig = Rig.from_recipe(recipe, robot=robot)
+    rig.device = req.device
     check_depth_inputs(recipe.depth, recipe.file, len(rig.names))  # a missing model directory fails here
     path = req.source_path or recipe.resolve_path(src_cfg.path)
     refuse_overlap(req.root, {"source dataset": path})  # the user's; staged copies are ours

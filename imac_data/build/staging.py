@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from imac_data.augment.timing import StageTimer
+from imac_data.core.render import check_device
 from imac_data.dataset.files import copy_for_edit
 from imac_data.dataset.info import read_info
 from imac_data.dataset.output import (
@@ -47,10 +48,12 @@ class BuildRequest:
     progress: bool = True
     timings: Path | None = None  # also write the build's stage timings here (JSON)
     wait: bool = False  # wait for another build of the same root instead of refusing
+    device: str = "cpu"  # where the robot is rendered and contact painted (Rig.device)
 
     def __post_init__(self):
         # absolute, as its siblings are (output_sibling): the swap renames the root itself
         object.__setattr__(self, "root", Path(os.path.abspath(self.root)))
+        check_device(self.device)  # before anything is read or written
 
 
 @dataclass(frozen=True)

@@ -147,6 +147,7 @@ class ShardJob:
     threads: int = 1
     depth: object = None  # the recipe's DepthSection (None: recorded depth)
     recipe_file: str = ""  # for the depth section's relative model paths
+    device: str = "cpu"  # where the worker renders and paints contact (Rig.device)
 
 
 _PROCESS_CACHE: dict = {}
@@ -165,13 +166,14 @@ def worker_depth_source(section, recipe_file: str, num_cameras: int, timer=None)
     return _DEPTH_CACHE[key]
 
 
-def worker_rig(block: dict, description_dir: Path, timer=None):
+def worker_rig(block: dict, description_dir: Path, timer=None, device: str = "cpu"):
     """The rig of a job, built once per worker process (the Open3D scene cannot be pickled,
-    so each process builds its own renderer); the first build is timed as ``setup``."""
-    key = (str(description_dir), json.dumps(block, sort_keys=True))
+    so each process builds its own renderer) on ``device``; the first build is timed as ``setup``."""
+    key = (str(description_dir), json.dumps(block, sort_keys=True), device)
     if key not in _PROCESS_CACHE:
         with timer("setup") if timer is not None else contextlib.nullcontext():
             rig = Rig.from_block(block, description_dir)
+            rig.device = device
             rig.renderer, rig.gripper  # noqa: B018 - built here, counted as setup
         _PROCESS_CACHE.clear()
         _PROCESS_CACHE[key] = rig
@@ -186,7 +188,7 @@ def build_shard(job: ShardJob) -> Path:
     pin_threads(job.threads)
     timer = StageTimer()
     wall, cpu = time.perf_counter(), time.process_time()
-    rig = worker_rig(job.rig_block, job.description_dir, timer)
+    rig = worker_rig(job.rig_block, job.description_dir, timer, job.device)
     depth_source = worker_depth_source(job.depth, job.recipe_file, len(rig.names), timer)
     tmp = job.shard_dir.with_name(f".{job.shard_dir.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)

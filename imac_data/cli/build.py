@@ -34,7 +34,8 @@ def _build(args: argparse.Namespace) -> int:
         raise InputError(f"--workers must be positive, got {args.workers}")
     req = BuildRequest(repo_id=args.repo, recipe=recipe, root=args.root or default_root(args.repo),
                        source_path=args.source, episodes=args.episodes, overwrite=args.overwrite,
-                       progress=not args.no_progress, timings=args.timings, wait=args.wait)
+                       progress=not args.no_progress, timings=args.timings, wait=args.wait,
+                       device=args.device)
     dataset = build_dataset(req, executor=args.executor, workers=args.workers, ray_address=args.ray_address)
     dt = time.perf_counter() - t0
     if args.push_to_hub:

@@ -52,6 +52,10 @@ def _build(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timings", type=Path, help="write the build's stage timings (JSON) here as well")
     p.add_argument("--wait", action="store_true",
                    help="if another build is writing the same output, wait for it (default: refuse, exit 3)")
+    p.add_argument("--device", default="cpu",
+                   help="where the robot is rendered and contact painted: cpu (default: Open3D ray casting, KD-trees) "
+                        "or cuda / cuda:N (a torch rasteriser and brute-force contact on that GPU; docs/building.md, "
+                        "'The GPU path')")
 
 
 def _augment(p: argparse.ArgumentParser) -> None:

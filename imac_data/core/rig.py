@@ -27,7 +27,7 @@ from imac_data.core.contact.images import ContactChunk, contact_chunk
 from imac_data.core.contact.workspace import Workspace, as_workspace, resolve_workspace, saturation_depth
 from imac_data.core.depth import DepthCodec, resize_depth
 from imac_data.core.motion import Controller, frame_configurations, rollout
-from imac_data.core.render import make_renderer
+from imac_data.core.render import check_device, make_renderer
 from imac_data.core.robot.description import check_description, description_manifest
 from imac_data.core.robot.lerobot_units import LEROBOT_ARMS, read_calibration
 from imac_data.core.robot.model import RobotConfig, RobotModel
@@ -73,6 +73,7 @@ class Rig:
     gripper_spacing: float = DEFAULT_GRIPPER_SPACING
     threads: int = 0  # renderer (Embree) and contact threads; 0 = all cores
     workspace: Workspace | None = None  # the contact streams' scene crop; None = none
+    device: str = "cpu"  # cpu: Open3D ray casting, KD-trees; cuda[:N]: the torch rasteriser, brute force there
 
     def __post_init__(self) -> None:
         if not self.cameras:
@@ -91,6 +92,7 @@ class Rig:
         if not (math.isfinite(self.gripper_spacing) and self.gripper_spacing > 0):
             raise InputError(f"rig: gripper spacing must be > 0 metres, got {self.gripper_spacing}")
         self.workspace = as_workspace(self.workspace)
+        self.device = check_device(self.device)
         self._renderer = None
         self._gripper = None
 
@@ -218,7 +220,7 @@ class Rig:
         cams = {name: cam.for_images(*sizes.get(name, (cam.height, cam.width)))
                 for name, cam in self.cameras.items()}
         rig = Rig(self.robot, cams, self.controller, self.state_names, self.gripper_spacing, self.threads,
-                  self.workspace)
+                  self.workspace, self.device)
         rig._renderer, rig._gripper = self._renderer, self._gripper
         return rig
 
@@ -228,7 +230,7 @@ class Rig:
         if missing:
             raise InputError(f"rig: no camera(s) {missing} (has {self.names})")
         return Rig(self.robot, {v: self.cameras[v] for v in views}, self.controller, self.state_names,
-                   self.gripper_spacing, self.threads, self.workspace)
+                   self.gripper_spacing, self.threads, self.workspace, self.device)
 
     # ------------------------------------------------------------------ parts
 
@@ -244,7 +246,8 @@ class Rig:
     @property
     def renderer(self):
         if self._renderer is None:
-            self._renderer = make_renderer(self.robot, nthreads=self.threads)
+            self._renderer = (make_renderer(self.robot, nthreads=self.threads) if self.device == "cpu" else
+                              make_renderer(self.robot, "torch", device=self.device))
         return self._renderer
 
     @property

@@ -1,0 +1,29 @@
+"""Motion images: the robot rendered from its URDF and forward kinematics into camera views.
+
+Backends (:data:`BACKENDS`; a new one is one entry) implement :class:`~.base.Renderer`:
+
+* ``open3d``: :class:`~.raycast.RaycastRenderer` casts rays with Open3D on the CPU against a scene built
+  once, every link in its own frame (the CPU build's);
+* ``torch``: :class:`~.raster.RasterRenderer` rasterises the same triangles with torch, sampled and
+  shaded the same way, on any torch device (``imac build --device cuda``).
+
+``docs/dataset-format.md``, "How the robot is rendered", says what a motion image is."""
+
+from __future__ import annotations
+
+from imac_data.core.render.base import Renderer, RenderOutput, check_device
+from imac_data.core.render.raster import RasterRenderer
+from imac_data.core.render.raycast import RaycastRenderer
+from imac_data.core.robot.model import RobotModel
+from imac_data.errors import InputError
+
+__all__ = ["BACKENDS", "RasterRenderer", "RaycastRenderer", "RenderOutput", "Renderer", "check_device", "make_renderer"]
+
+BACKENDS = {"open3d": RaycastRenderer, "torch": RasterRenderer}
+
+
+def make_renderer(robot: RobotModel, backend: str = "open3d", **options) -> Renderer:
+    """A renderer for ``robot`` by backend name (``"open3d"``, the default, or ``"torch"``)."""
+    if backend not in BACKENDS:
+        raise InputError(f"unknown renderer backend {backend!r}; available: {sorted(BACKENDS)}")
+    return BACKENDS[backend](robot, **options)
