@@ -27,7 +27,9 @@ so both sides see the same machine load:
   shadow map, 4x MSAA) on a few frames;
 * Open3D with the posed robot's scene rebuilt every frame (the reference timing of docs/verification.md;
   FK + one batched vertex transform + BVH build + casting all views; hit distances
-  only, no shading).
+  only, no shading);
+* the torch rasteriser (``imac build --device cuda``'s renderer) on the CPU, batched as ours: what a
+  rasteriser costs on these cores (MuJoCo's passes are the other rasteriser, OpenGL on Mesa's llvmpipe).
 
 ``run()`` returns a flat dict for ``benchmarks.run`` (``render_ms_per_view_240``,
 ``render_ratio_vs_mujoco``, ``mask_iou_head``, ``mask_iou_wrist_min``, ...).
@@ -45,7 +47,7 @@ import mujoco
 import numpy as np
 import torch
 
-from imac_data.core.render import RaycastRenderer
+from imac_data.core.render import RasterRenderer, RaycastRenderer
 from imac_data.core.robot import aloha
 from imac_data.core.robot.model import RobotModel
 from imac_data.sources.sim import rig as sim_rig
@@ -269,15 +271,17 @@ def timing(robot: RobotModel, task: str, q: np.ndarray, height: int, width: int,
     mj = MujocoViews(task, height, width, robot_only=False)
     calib = sim_rig.camera_calibration(mj.model, width, height)
     ours = RaycastRenderer(robot)
+    raster = RasterRenderer(robot)
     rebuild = _RebuildBaseline(robot)
     mj_cams = list(sim_rig.CAMERA_NAMES)
     ours.render(torch.as_tensor(q[:1]), calib)  # warm-up (allocations, caches)
+    raster.render(torch.as_tensor(q[:1]), calib)
     rebuild.render(torch.as_tensor(q[0]), calib)
     for c in mj_cams:
         mj.set(q[0])
         for kind in ("rgb", "depth", "seg"):
             mj.pass_(c, kind)
-    per = {k: [] for k in ("ours_batch", "ours_single", "rebuild", "mj_rgb", "mj_depth", "mj_seg")}
+    per = {k: [] for k in ("ours_batch", "ours_single", "raster_batch", "rebuild", "mj_rgb", "mj_depth", "mj_seg")}
     V = len(mj_cams)
     try:
         for s in range(0, len(q) - batch + 1, batch):
@@ -289,6 +293,9 @@ def timing(robot: RobotModel, task: str, q: np.ndarray, height: int, width: int,
             for row in block:
                 ours.render(torch.as_tensor(row), calib)
             per["ours_single"].append((time.perf_counter() - t) / (batch * V))
+            t = time.perf_counter()
+            raster.render(torch.as_tensor(block), calib)
+            per["raster_batch"].append((time.perf_counter() - t) / (batch * V))
             t = time.perf_counter()
             for row in block:
                 rebuild.render(torch.as_tensor(row), calib)
@@ -353,6 +360,8 @@ def run(quick: bool = False, episodes: int = 1, seed: int = 0, tasks=aloha.TASKS
         "render_ratio_vs_mujoco_480": t480["ours_batch"] / t480["mj_rgb"],
         "render_ratio_vs_mujoco_all_passes": t240["ours_batch"] / (t240["mj_rgb"] + t240["mj_depth"] + t240["mj_seg"]),
         "render_ratio_vs_rebuild": t240["ours_batch"] / t240["rebuild"],
+        "render_ratio_vs_raster": t240["ours_batch"] / t240["raster_batch"],
+        "raster_ms_per_view_240": t240["raster_batch"],
         "mujoco_rgb_ms_per_view_240": t240["mj_rgb"],
         "mujoco_depth_ms_per_view_240": t240["mj_depth"],
         "mask_iou_head": min(cams[(t, HEAD)]["mean_iou"] for t in acc),
@@ -380,15 +389,17 @@ def report(r: dict) -> str:
                          f"{vis:>11} {100 * e['nearer_than_near_plane']:>6.2f}%")
         lines.append(f"  ({task}: {'; '.join(a['source'])})")
     lines += ["", "Time per view (ms; medians over interleaved blocks, 3 views per frame)",
-              f"{'size':<8} {'ours B':>7} {'ours 1':>7} {'O3D rebuild':>11} {'MJ RGB':>7} {'MJ depth':>8} "
+              f"{'size':<8} {'ours B':>7} {'ours 1':>7} {'raster B':>8} {'O3D rebuild':>11} {'MJ RGB':>7} {'MJ depth':>8} "
               f"{'MJ seg':>7} {'MJ RGB shipped':>14} {'ours/MJ RGB':>11} {'ours/MJ all':>11}"]
     for size, t in r["timing_ms_per_view"].items():
         all_ = t["mj_rgb"] + t["mj_depth"] + t["mj_seg"]
-        lines.append(f"{size:<8} {t['ours_batch']:>7.2f} {t['ours_single']:>7.2f} {t['rebuild']:>11.2f} "
+        lines.append(f"{size:<8} {t['ours_batch']:>7.2f} {t['ours_single']:>7.2f} {t.get('raster_batch', float('nan')):>8.2f} "
+                     f"{t['rebuild']:>11.2f} "
                      f"{t['mj_rgb']:>7.2f} {t['mj_depth']:>8.2f} {t['mj_seg']:>7.2f} {t['mj_rgb_shipped']:>14.2f} "
                      f"{t['ours_batch'] / t['mj_rgb']:>11.2f} {t['ours_batch'] / all_:>11.2f}")
     lines.append(f"(ours B: batch of {next(iter(r['timing_ms_per_view'].values()))['batch']} frames; ours 1: one "
-                 f"frame per call. ours = RGB + mask + depth + link ids in one pass; MJ all = RGB + depth + seg "
+                 f"frame per call; raster B: the torch rasteriser, batched. ours = RGB + mask + depth + link ids in one "
+                 f"pass; MJ all = RGB + depth + seg "
                  f"passes. load average {r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} on "
                  f"{os.cpu_count()} cores; {r['seconds']:.0f} s)")
     keys = [k for k, v in r.items() if isinstance(v, float)]
