@@ -91,9 +91,18 @@ def test_a_wrist_camera_two_frames_late_and_a_head_camera_in_step(recording, tmp
 
 
 def test_joints_between_frames_are_interpolated_and_clamped():
-    q = np.array([[0.0, 10.0], [1.0, 20.0], [3.0, 40.0]])
-    np.testing.assert_allclose(joints_at(q, [0.5, 1.25, -2.0, 7.0]), [[0.5, 15.0], [1.5, 25.0], [0.0, 10.0], [3.0, 40.0]])
-    assert joints_at(q, [1.0]).tobytes() == q[1:2].tobytes()  # whole frames: the recorded vector itself
+    """Catmull-Rom: quadratics come back exactly between interior frames (an arm accelerating steadily), which a
+    straight line between samples misses by a quarter of a frame squared times the acceleration; clamped at
+    the ends; whole frames are the recorded vectors."""
+    t = np.arange(8.0)
+    q = np.stack([3.0 - 2.0 * t + 0.7 * t**2, 10.0 + 5.0 * t], axis=1)
+    at = np.array([1.5, 2.25, 3.9, 5.5])
+    want = np.stack([3.0 - 2.0 * at + 0.7 * at**2, 10.0 + 5.0 * at], axis=1)
+    np.testing.assert_allclose(joints_at(q, at), want, rtol=0, atol=1e-12)
+    linear = q[1:2] * 0.5 + q[2:3] * 0.5  # at 1.5: off by 0.7 / 4
+    assert abs(linear[0, 0] - want[0, 0]) == pytest.approx(0.7 / 4)
+    np.testing.assert_allclose(joints_at(q, [-2.0, 7.0, 99.0]), q[[0, 7, 7]])
+    assert joints_at(q, [1.0, 6.0]).tobytes() == q[[1, 6]].tobytes()  # whole frames: the recorded vectors themselves
 
 
 def test_the_calibration_file_carries_the_offset_and_old_files_load(tmp_path):

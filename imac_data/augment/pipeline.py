@@ -34,7 +34,7 @@ __all__ = ["ChunkOutput", "EpisodePipeline"]
 class _CameraTimes:
     """Each camera at its own time: a camera whose frame stamped ``t`` shows the robot at the joint
     states of ``t + time_offset_s`` is rendered and posed at the joint vectors (measured and drawn)
-    interpolated there (:func:`~imac_data.core.motion.joints_at`: linear, clamped at the
+    interpolated there (:func:`~imac_data.core.motion.joints_at`: Catmull-Rom, clamped at the
     episode's ends). Cameras of one offset are rendered together. The s2g stream's gripper, one for all
     views, is placed at the median of the cameras' offsets. ``shifted`` is False when every offset is
     0: the pipeline then runs as it always did (byte-identical output)."""

@@ -2,7 +2,7 @@
 
 USB cameras are often out of step with the joint states: frame ``k`` of a camera shows the robot
 at the joint states' time ``t_k + offset`` (negative: the camera lags). Both the estimate and the
-build read the joint states between frames by linear interpolation, clamped at the episode's ends
+build read the joint states between frames by Catmull-Rom interpolation, clamped at the episode's ends
 (:func:`joints_at`).
 
 The estimate (:func:`search_offset`) is a profile: at each trial offset the camera's depth fit

@@ -271,13 +271,18 @@ def frame_configurations(state, action=None, *, source: str = "action",
 
 def joints_at(q: np.ndarray, frames) -> np.ndarray:
     """Joint vectors ``(N, D)`` of an episode's ``q`` ``(T, D)`` at fractional frame positions
-    ``frames`` ``(N,)``: linear interpolation between frames, clamped to ``[0, T - 1]``."""
+    ``frames`` ``(N,)``: Catmull-Rom between frames (the cubic through the two frames either side, with
+    the neighbours' central differences as slopes), clamped to ``[0, T - 1]``; whole frames give the
+    recorded vector itself, bit for bit. A cubic, because a camera half a frame out of step sees the arm
+    where a straight line between two samples is furthest off (docs/calibration.md)."""
     q = np.asarray(q, dtype=np.float64)
-    f = np.clip(np.asarray(frames, dtype=np.float64), 0.0, len(q) - 1.0)
-    i0 = np.minimum(np.floor(f).astype(np.int64), len(q) - 1)
-    i1 = np.minimum(i0 + 1, len(q) - 1)
-    w = (f - i0)[:, None]
-    out = q[i0] * (1.0 - w) + q[i1] * w
-    exact = w[:, 0] == 0.0  # whole frames: the recorded vector itself, bit for bit
-    out[exact] = q[i0[exact]]
+    T = len(q)
+    f = np.clip(np.asarray(frames, dtype=np.float64), 0.0, T - 1.0)
+    i1 = np.minimum(np.floor(f).astype(np.int64), T - 1)
+    i2 = np.minimum(i1 + 1, T - 1)
+    p0, p1, p2, p3 = q[np.maximum(i1 - 1, 0)], q[i1], q[i2], q[np.minimum(i2 + 1, T - 1)]
+    t = (f - i1)[:, None]
+    out = p1 + 0.5 * t * ((p2 - p0) + t * ((2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) + t * (3.0 * (p1 - p2) + p3 - p0)))
+    exact = t[:, 0] == 0.0
+    out[exact] = p1[exact]
     return out

@@ -102,7 +102,7 @@ class _Mp4:
 
 def _configurations_at_camera_times(q: np.ndarray, offsets: dict[str, float], fps: float) -> dict[float, np.ndarray]:
     """Per distinct time offset, the configurations ``q`` ``(T, D)`` at each frame's time plus the offset, as the
-    build draws a camera (:func:`~imac_data.core.motion.joints_at`: linear, clamped at the episode's ends; an offset
+    build draws a camera (:func:`~imac_data.core.motion.joints_at`: Catmull-Rom, clamped at the episode's ends; an offset
     of 0 keeps ``q`` itself)."""
     frames = np.arange(len(q), dtype=np.float64)
     return {d: q if d == 0 else joints_at(q, frames + d * fps) for d in dict.fromkeys(offsets.values())}
