@@ -119,6 +119,9 @@ def test_a_device_this_machine_lacks_is_refused_in_one_line_before_any_work(sim_
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1, err
     assert not root.exists() and not staging_dir(root).exists()
+    assert imac_main(["augment", "--repo", "local/x", "--root", str(root), "--recipe", str(write_recipe(tmp_path)),
+                      "--source", str(sim_dir), "--device", "cuda", "--no-progress"]) == 2
+    assert "--device cuda: torch sees no CUDA device" in capsys.readouterr().err
 
 
 def custom_robot_recipe(tmp_path, sim_dir, urdf_text: str) -> Path:

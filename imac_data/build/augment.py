@@ -11,6 +11,7 @@ import numpy as np
 
 from imac_data.build.staging import staged_output
 from imac_data.build.streams import add_episode_streams
+from imac_data.core.render import check_device
 from imac_data.core.rig import Rig
 from imac_data.core.robot.lerobot_units import units_refusal
 from imac_data.dataset.info import read_info, update_imac_info
@@ -26,14 +27,16 @@ from imac_data.sources.lerobot_dataset import SourceDataset, episode_states
 __all__ = ["augment_existing"]
 
 
-def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = True) -> None:
-    """Add the control streams to the dataset at ``root``, in place and atomically.
+def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = True, device: str = "cpu") -> None:
+    """Add the control streams to the dataset at ``root``, in place and atomically; ``device``: where the robot
+    is rendered and contact painted (:attr:`~imac_data.core.rig.Rig.device`).
 
     Depth and the rig's image sizes come from the raw episodes in ``source_dir`` (episode
     ``i`` of the dataset = the ``i``-th file in natural order); their states must equal the
     dataset's, which is checked for every episode before any work starts.
     """
     root = Path(root)
+    check_device(device)  # before anything is read
     refuse_overlap(root, {"raw episodes": source_dir,
                           "calibration": recipe.resolve_path(recipe.cameras.calibration)}, what="dataset")
     info = read_info(root)
@@ -46,6 +49,7 @@ def augment_existing(root: Path, recipe, source_dir: Path, *, progress: bool = T
         rig = Rig.from_recipe(recipe, Rig.from_info(info, root).cameras)
     else:
         raise InputError(f"{root}: no calibration: set cameras.calibration in {recipe.file}")
+    rig.device = device
     dataset = SourceDataset.open(root)
     n = len(dataset.episodes)
     paths = episode_paths(source_dir)

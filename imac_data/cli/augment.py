@@ -18,7 +18,7 @@ def run(args: argparse.Namespace) -> int:
     def body() -> None:
         recipe = load_recipe(args.recipe if args.recipe.suffix else find_recipe(str(args.recipe)))
         root = args.root or default_root(args.repo)
-        augment_existing(root, recipe, args.source, progress=not args.no_progress)
+        augment_existing(root, recipe, args.source, progress=not args.no_progress, device=args.device)
         print(f"augmented {args.repo} at {root}")
 
     return run_command(body)

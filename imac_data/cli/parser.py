@@ -64,6 +64,7 @@ def _augment(p: argparse.ArgumentParser) -> None:
     p.add_argument("--recipe", type=Path, required=True, help="recipe YAML: robot, calibration, augment settings")
     p.add_argument("--source", type=Path, required=True, help="raw HDF5 episodes of the dataset (recorded depth)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--device", default="cpu", help="as imac build's: cpu (default) or cuda / cuda:N")
 
 
 def _validate(p: argparse.ArgumentParser) -> None:
