@@ -18,13 +18,14 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from imac_data.core.cameras import Camera
 from imac_data.core.robot.model import RobotModel
 from imac_data.errors import InputError
 
-__all__ = ["RenderOutput", "Renderer", "check_device"]
+__all__ = ["RenderOutput", "Renderer", "check_device", "rigid_inverse"]
 
 
 @dataclass
@@ -122,6 +123,16 @@ class Renderer(abc.ABC):
     def render_link_poses(self, link_poses: Mapping[str, torch.Tensor],
                           cameras: Mapping[str, Camera]) -> dict[str, RenderOutput]:
         """Render posed links (link -> ``(*B, 4, 4)`` world poses) into validated cameras."""
+
+
+def rigid_inverse(T):
+    """Inverses of rigid 4x4 transforms ``(..., 4, 4)``, numpy or torch (both backends' camera <-> link maps)."""
+    R = T[..., :3, :3].swapaxes(-1, -2)
+    out = np.zeros_like(T) if isinstance(T, np.ndarray) else torch.zeros_like(T)
+    out[..., :3, :3] = R
+    out[..., :3, 3] = -(R @ T[..., :3, 3:4])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
 
 
 def check_device(device: str) -> str:

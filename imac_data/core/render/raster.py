@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from imac_data.core.cameras import Camera
-from imac_data.core.render.base import Renderer, RenderOutput, check_device
+from imac_data.core.render.base import Renderer, RenderOutput, check_device, rigid_inverse
 from imac_data.core.robot.model import RobotModel
 from imac_data.errors import InputError
 
@@ -35,15 +35,6 @@ __all__ = ["RasterRenderer"]
 
 _LOW31 = (1 << 31) - 1
 _EMPTY = torch.iinfo(torch.int64).max
-
-
-def _rigid_inverse(T: torch.Tensor) -> torch.Tensor:
-    out = torch.zeros_like(T)
-    R = T[..., :3, :3].transpose(-1, -2)
-    out[..., :3, :3] = R
-    out[..., :3, 3] = -(R @ T[..., :3, 3:4])[..., 0]
-    out[..., 3, 3] = 1.0
-    return out
 
 
 class RasterRenderer(Renderer):
@@ -121,7 +112,7 @@ class RasterRenderer(Renderer):
                 T_wc = torch.as_tensor(cam.T_world_cam, dtype=torch.float64, device=self.device).expand(N, 4, 4)
             if not torch.isfinite(T_wc).all():
                 raise InputError("render: non-finite camera pose")
-            T_cl = _rigid_inverse(T_wc)[:, None] @ T_wl  # (N, L, 4, 4) link -> camera
+            T_cl = rigid_inverse(T_wc)[:, None] @ T_wl  # (N, L, 4, 4) link -> camera
             H, W = cam.height, cam.width
             rgb = torch.zeros((N, H, W, 3), dtype=torch.uint8, device=self.device)
             depth = torch.zeros((N, H, W), dtype=torch.float32, device=self.device)

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from imac_data.core.cameras import Camera
-from imac_data.core.render.base import Renderer, RenderOutput
+from imac_data.core.render.base import Renderer, RenderOutput, rigid_inverse
 from imac_data.core.robot.model import RobotModel
 from imac_data.errors import InputError
 
@@ -20,15 +20,6 @@ __all__ = ["RaycastRenderer"]
 
 # The 12 edges of a box given by its 8 corners (corner c has bit i set = max along axis i).
 _BOX_EDGES = np.array([(a, a | (1 << ax)) for a in range(8) for ax in range(3) if not a & (1 << ax)])
-
-
-def _rigid_inverse(T: np.ndarray) -> np.ndarray:
-    R = np.swapaxes(T[..., :3, :3], -1, -2)
-    out = np.zeros_like(T)
-    out[..., :3, :3] = R
-    out[..., :3, 3] = -(R @ T[..., :3, 3:4])[..., 0]
-    out[..., 3, 3] = 1.0
-    return out
 
 
 def _convex_hull(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -219,8 +210,8 @@ class RaycastRenderer(Renderer):
         if N:
             K = np.stack([c.K for c in cams])
             hw = np.array([[c.height, c.width] for c in cams])
-            T_cam_link = _rigid_inverse(T_wc)[:, :, None] @ T_wl[:, None]  # (N, V, L, 4, 4)
-            T_link_cam = _rigid_inverse(T_cam_link)
+            T_cam_link = rigid_inverse(T_wc)[:, :, None] @ T_wl[:, None]  # (N, V, L, 4, 4)
+            T_link_cam = rigid_inverse(T_cam_link)
             feet = []
             for i in range(0, N, 16):  # bounded memory for the hull projection
                 feet += [(n + i, *rest) for n, *rest in self._footprints(T_cam_link[i:i + 16], K, hw)]
