@@ -2,6 +2,7 @@
 encoder reproduced byte for byte, merging keeps the imac block and refuses two rigs, and
 validation (``imac validate``) finds each kind of damage and names it."""
 
+import functools
 import hashlib
 import json
 import os
@@ -11,8 +12,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+import torch
 import yaml
 from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from imac_data.cli import main as imac_main
 from imac_data.console import restore_scheduling, scheduling, scheduling_kept
@@ -211,3 +214,40 @@ def test_linear_features_constructor_equals_datasets_own(built):
     ours, theirs = both({"a": [Value("int64")], "b": {"c": [[Value("float32")]]}}, d=Value("string"))
     assert dict(ours) == dict(theirs) and ours._column_requires_decoding == theirs._column_requires_decoding
     assert ours["a"] == List(Value("int64"))
+
+
+def test_a_build_merged_as_a_tree_equals_one_merged_at_once(tmp_path, monkeypatch):
+    """Five shards merged two at a time (three levels of LeRobot aggregates) give what one aggregate of all five
+    gives (the oracle: LeRobot's merge as it was always called): the same episodes and timestamps, data rows and
+    decoded frames of every stream, and ``validate --full`` passes."""
+    from imac_data.build import from_episodes
+
+    src = tmp_path / "src"
+    record_dataset(SimConfig(num_episodes=5, width=80, height=64, max_steps=10), src, progress=False)
+    data = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
+    data["augment"] = {"height": 32, "width": 40, "contact_chunk": 4}
+    (tmp_path / "recipe.yaml").write_text(yaml.safe_dump(data))
+
+    def build(root):
+        assert imac_main(["build", "--repo", "local/tree", "--recipe", str(tmp_path / "recipe.yaml"), "--source",
+                          str(src), "--root", str(root), "--no-progress", "--workers", "1", "--episodes", "5"]) == 0
+
+    build(tmp_path / "flat")
+    monkeypatch.setattr(from_episodes, "merge_datasets", functools.partial(merge_datasets, fan_in=2))
+    build(tmp_path / "tree")
+    flat, tree = (LeRobotDataset("local/tree", root=tmp_path / r) for r in ("flat", "tree"))
+    assert flat.meta.total_episodes == tree.meta.total_episodes == 5 and len(flat) == len(tree)
+    for key in ("length", "dataset_from_index", "dataset_to_index", "data/chunk_index", "data/file_index"):
+        assert list(flat.meta.episodes[key]) == list(tree.meta.episodes[key]), key
+    for key in flat.meta.video_keys:
+        np.testing.assert_allclose(flat.meta.episodes[f"videos/{key}/from_timestamp"],
+                                   tree.meta.episodes[f"videos/{key}/from_timestamp"], rtol=0, atol=1e-9)
+    for i in range(len(flat)):
+        a, b = flat[i], tree[i]
+        assert a.keys() == b.keys()
+        for k in a:
+            assert (torch.equal(a[k], b[k]) if isinstance(a[k], torch.Tensor) else a[k] == b[k]), (i, k)
+    assert not list(tmp_path.glob("**/*.levels"))
+    assert validate_dataset(tmp_path / "tree", full=True).ok
+    with pytest.raises(InputError, match="fan_in"):
+        merge_datasets([tmp_path / "flat"], tmp_path / "never", "local/tree", fan_in=1)
