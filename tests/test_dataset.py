@@ -17,6 +17,7 @@ import yaml
 from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from imac_data.build import from_episodes
 from imac_data.cli import main as imac_main
 from imac_data.console import restore_scheduling, scheduling, scheduling_kept
 from imac_data.core.robot.description import DESCRIPTION_DIR
@@ -220,8 +221,6 @@ def test_a_build_merged_as_a_tree_equals_one_merged_at_once(tmp_path, monkeypatc
     """Five shards merged two at a time (three levels of LeRobot aggregates) give what one aggregate of all five
     gives (the oracle: LeRobot's merge as it was always called): the same episodes and timestamps, data rows and
     decoded frames of every stream, and ``validate --full`` passes."""
-    from imac_data.build import from_episodes
-
     src = tmp_path / "src"
     record_dataset(SimConfig(num_episodes=5, width=80, height=64, max_steps=10), src, progress=False)
     data = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
