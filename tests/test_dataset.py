@@ -218,24 +218,24 @@ def test_linear_features_constructor_equals_datasets_own(built):
 
 
 def test_a_build_merged_as_a_tree_equals_one_merged_at_once(tmp_path, monkeypatch):
-    """Five shards merged two at a time (three levels of LeRobot aggregates) give what one aggregate of all five
-    gives (the oracle: LeRobot's merge as it was always called): the same episodes and timestamps, data rows and
+    """Three shards merged two at a time (two levels of LeRobot aggregates, one group of one) give what one
+    aggregate of all three gives (the oracle: LeRobot's merge as it was always called): the same episodes and timestamps, data rows and
     decoded frames of every stream, and ``validate --full`` passes."""
     src = tmp_path / "src"
-    record_dataset(SimConfig(num_episodes=5, width=80, height=64, max_steps=10), src, progress=False)
+    record_dataset(SimConfig(num_episodes=3, width=80, height=64, max_steps=8), src, progress=False)
     data = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
     data["augment"] = {"height": 32, "width": 40, "contact_chunk": 4}
     (tmp_path / "recipe.yaml").write_text(yaml.safe_dump(data))
 
     def build(root):
         assert imac_main(["build", "--repo", "local/tree", "--recipe", str(tmp_path / "recipe.yaml"), "--source",
-                          str(src), "--root", str(root), "--no-progress", "--workers", "1", "--episodes", "5"]) == 0
+                          str(src), "--root", str(root), "--no-progress", "--workers", "1", "--episodes", "3"]) == 0
 
     build(tmp_path / "flat")
     monkeypatch.setattr(from_episodes, "merge_datasets", functools.partial(merge_datasets, fan_in=2))
     build(tmp_path / "tree")
     flat, tree = (LeRobotDataset("local/tree", root=tmp_path / r) for r in ("flat", "tree"))
-    assert flat.meta.total_episodes == tree.meta.total_episodes == 5 and len(flat) == len(tree)
+    assert flat.meta.total_episodes == tree.meta.total_episodes == 3 and len(flat) == len(tree)
     for key in ("length", "dataset_from_index", "dataset_to_index", "data/chunk_index", "data/file_index"):
         assert list(flat.meta.episodes[key]) == list(tree.meta.episodes[key]), key
     for key in flat.meta.video_keys:
