@@ -28,7 +28,7 @@ from imac_data.core.robot.lerobot_units import units_refusal
 from imac_data.core.robot.platforms import simulated_platforms
 from imac_data.dataset.card import write_card
 from imac_data.dataset.ingest import BaseWriter, IngestOptions
-from imac_data.dataset.merge import merge_datasets
+from imac_data.dataset.merge import MERGE_FAN_IN, merge_datasets
 from imac_data.dataset.output import check_output, estimate_build_bytes, refuse_overlap, warn_if_short_of_space
 from imac_data.errors import InputError
 from imac_data.layout import CALIBRATION, cache_home
@@ -115,7 +115,7 @@ def build_from_episodes(req: BuildRequest, robot, *, executor: str = "local", wo
     check_depth_inputs(recipe.depth, recipe.file, len(rig.names))
     _check_stream_resolution(recipe, rig.cameras)
     need = estimate_build_bytes(probe["total_frames"], probe["image_hw"], recipe.augment.resolution,
-                                description_bytes(robot))
+                                description_bytes(robot), copies=3 if len(paths) > MERGE_FAN_IN else 2)
     warn_if_short_of_space(req.root, need)
     fps = recipe.fps if recipe.fps is not None else probe["fps"]  # check_episodes: the same in every episode
     if fps is None:

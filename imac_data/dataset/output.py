@@ -270,7 +270,8 @@ def output_lock(root: Path, *, wait: bool = False, who: str = "build",
 
 
 # ----------------------------------------------------------------------------- free space
-# A build's staging holds every shard and the merged copy of them at once: about twice the output.
+# A build's staging holds every shard and the merged copy of them at once: about twice the output; three times
+# when the merge is a tree (merge.py), whose last call reads a level while it writes the output.
 # The output is bounded below from its pixels: the 15 encoded streams took 0.14-0.22 bytes per pixel
 # and frame on our simulated datasets; a third of the lower figure warns only when the output plainly
 # will not fit.
@@ -279,10 +280,10 @@ STREAMS_PER_CAMERA = 4  # depth, motion, contact r2s, contact s2g (beside the re
 
 
 def estimate_build_bytes(total_frames: int, image_hw: dict[str, tuple[int, int]], stream_hw: tuple[int, int],
-                         description_bytes: int) -> int:
-    """A lower bound of the disk a build needs at its peak (module docstring)."""
+                         description_bytes: int, copies: int = 2) -> int:
+    """A lower bound of the disk a build needs at its peak, ``copies`` times the output (comment above)."""
     pixels = sum(h * w for h, w in image_hw.values()) + STREAMS_PER_CAMERA * len(image_hw) * stream_hw[0] * stream_hw[1]
-    return int(2 * (total_frames * pixels * BYTES_PER_PIXEL + description_bytes))
+    return int(copies * (total_frames * pixels * BYTES_PER_PIXEL + description_bytes))
 
 
 def free_bytes(path: Path) -> int:
