@@ -248,5 +248,12 @@ def test_a_build_merged_as_a_tree_equals_one_merged_at_once(tmp_path, monkeypatc
             assert (torch.equal(a[k], b[k]) if isinstance(a[k], torch.Tensor) else a[k] == b[k]), (i, k)
     assert not list(tmp_path.glob("**/*.levels"))
     assert validate_dataset(tmp_path / "tree", full=True).ok
+    # a merge killed mid-tree leaves its levels in staging: the rerun starts them afresh
+    stale = tmp_path / ".again.merging.levels" / "1" / "000000"
+    stale.mkdir(parents=True)
+    (stale / "junk").write_text("a killed merge's half-made group")
+    merge_datasets([tmp_path / "flat", tmp_path / "tree", tmp_path / "flat"], tmp_path / "again", "local/tree", fan_in=2)
+    assert LeRobotDataset("local/tree", root=tmp_path / "again").meta.total_episodes == 9
+    assert not (tmp_path / ".again.merging.levels").exists()
     with pytest.raises(InputError, match="fan_in"):
         merge_datasets([tmp_path / "flat"], tmp_path / "never", "local/tree", fan_in=1)

@@ -18,9 +18,9 @@ LeRobot's ``aggregate_datasets`` does the merge (data, videos, episodes, stats).
 
 LeRobot appends each input's videos to the output file by rewriting that whole file (a Python loop over its
 packets), so merging N inputs into one file costs O(N^2) packets (1,300 one-episode shards: 235 MB of their 1.3 GB
-of video in 11 minutes, slowing as the files grew; docs/building.md). :func:`merge_datasets` therefore merges at most :data:`MERGE_FAN_IN` inputs at a time, then
-the merged groups, a tree of O(log N) levels that rewrites each packet once a level. Up to ``MERGE_FAN_IN`` inputs
-it is one call, as before.
+of video in 11 minutes, slowing as the files grew; docs/building.md). :func:`merge_datasets` therefore merges at
+most :data:`MERGE_FAN_IN` inputs at a time, then the merged groups, a tree of O(log N) levels that rewrites each
+packet once a level. Up to ``MERGE_FAN_IN`` inputs it is one call, as before.
 
 The merge is staged: it is written to a temporary sibling of ``out`` and renamed into place
 when complete.
@@ -80,6 +80,7 @@ def _aggregate_tree(roots: list[Path], out: Path, repo_id: str, fan_in: int) -> 
     """LeRobot's aggregate of ``roots`` (in order) into ``out``, ``fan_in`` inputs at a time: groups are merged
     into ``<out>.levels/<level>/<group>``, each level removed once the next is made."""
     levels = out.with_name(out.name + ".levels")
+    shutil.rmtree(levels, ignore_errors=True)  # what a killed merge left
     level, inputs = 0, roots
     try:
         while len(inputs) > fan_in:
