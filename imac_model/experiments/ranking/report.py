@@ -141,7 +141,8 @@ def write_report(plan: RankingPlan) -> Path:
     shown_plan = {k: (shown_path(Path(v)) if k in ("work", "docs", "config") else v) for k, v in plan.to_dict().items()}
     results = {"plan": shown_plan, "machine": machine(), "commit": git("rev-parse", "--short", "HEAD"),
                "dirty": _uncommitted_changes(docs), "written": time.strftime("%Y-%m-%d %H:%M"), "stages": stages,
-               "gates": gates, "training": {m: {k: v for k, v in t.items() if k != "rows"} for m, t in training.items()}}
+               "gates": gates, "training": {m: {k: v for k, v in t.items() if k != "rows"} for m, t in training.items()},
+               "policy_training": policy_training(plan)}
     if not all((plan.wm_dir(m) / "outcomes.json").is_file() for m in plan.modes):  # stopped at the early gate
         (docs / "results.json").write_text(json.dumps(_relative(results), indent=1, default=str))
         (docs / "README.md").write_text(stopped_markdown(plan, results))
@@ -224,6 +225,18 @@ def plot_training(training: dict, path: Path) -> None:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
+
+
+def policy_training(plan: RankingPlan) -> dict[str, dict]:
+    """The stage totals of the runs that trained the plan's LeRobot policies (``benchmarks.lerobot_policy``'s
+    ``stages.json``, found above each checkpoint), by run directory: the budget counts the policies' training too."""
+    out = {}
+    for spec in plan.policies:
+        found = lerobot_dir(spec) and next((d for d in Path(lerobot_dir(spec)).parents
+                                            if (d / "stages.json").is_file()), None)
+        if found and str(found) not in out:
+            out[str(found)] = StageLog(found / "stages.json").totals()
+    return out
 
 
 def _uncommitted_changes(docs: Path) -> bool:
