@@ -50,7 +50,7 @@ from imac_model.evaluate.simulator import SimRunConfig, SimRunner
 from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking import plan as plan_module
 from imac_model.experiments.ranking.benchmark import STAGE_FUNCTIONS
-from imac_model.experiments.ranking.evaluation import chunk_end_heights, evaluate_mode
+from imac_model.experiments.ranking.evaluation import chunk_end_heights, evaluate_mode, policy_dir
 from imac_model.experiments.ranking.gate import measure_gate, read_gates
 from imac_model.experiments.ranking.gpu import export_runs, import_gpu_runs, runs_file
 from imac_model.experiments.ranking.judge import LiftJudge
@@ -409,6 +409,12 @@ def toy_run(tmp_path_factory):
     2 sampler steps."""
     tmp = tmp_path_factory.mktemp("toy_ranking")
     work, docs = tmp / "work", tmp / "docs"
+    # as a GPU loan is prepared (docs/ranking.md, "The GPU preset"): the pack first, then every other stage
+    assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
+    plan = RankingPlan.load(work / "plan.json")
+    (tmp / "after_pack.json").write_text(json.dumps({
+        "pack_sha256": sha256(plan.pack), "train_dataset": (plan.train_dataset / "meta" / "info.json").is_file(),
+        "eval_side": [str(p) for p in (plan.eval_dataset, *map(plan.sim_dir, plan.names)) if p.exists()]}))
     assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs)]) == 0
     return work, docs
 
@@ -687,19 +693,50 @@ def test_the_shipped_models_rerun_the_reports_closed_loops_bit_for_bit_without_t
                        "--starts", "9"]) != 0  # more starts than the report ran
 
 
-def test_the_pack_stage_alone_makes_only_the_training_side_and_the_same_pack(toy_run, tmp_path):
-    """--stages pack on a new work directory (a GPU waiting for it): the training rollouts simulated, built, decoded
-    and packed, none of the evaluation episodes; the pack is the one the whole benchmark's order makes."""
-    work, docs = tmp_path / "work", tmp_path / "docs"
-    assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
-    plan = RankingPlan.load(work / "plan.json")
-    assert plan.pack.is_file() and (plan.train_dataset / "meta" / "info.json").is_file()
-    assert not plan.eval_dataset.exists() and not any(plan.sim_dir(n).exists() for n in plan.names)
+def test_the_committed_model_reruns_the_committed_reports_first_starts_exactly(tmp_path):
+    """The repository's own `motion+contact` model (docs/ranking/models, the committed report's) reruns the report's
+    first five starts of its first policy and of a graded one from the archive alone: MuJoCo's outcomes and every
+    per-start row the report recorded (the lift judge's verdicts, the depth's invalid share, the judge's cube heights
+    in both runners, the action gap; the classifier judge is the report's work directory's, not shipped) equal the
+    report's exactly, so the frames drawn are the report's."""
+    committed = REPO_ROOT / "docs" / "ranking"
+    report = json.loads((committed / "results.json").read_text())
+    archive = committed / "models" / "motion_contact.tar.xz"
+    assert report["shipped"]["motion_contact"]["sha256"] == sha256(archive)
+    models = tmp_path / "report" / "models"  # the report with one of its models: the quick check runs that one
+    models.mkdir(parents=True)
+    shutil.copy(committed / "results.json", models.parent)
+    (models / archive.name).symlink_to(archive)
+    graded = "python:imac_model.experiments.ranking.policies:closed_loop_1p5cm"
+    assert model_main(["ranking", "--from-models", str(models), "--work", str(tmp_path / "rerun"), "--starts", "5",
+                       "--policies", graded]) == 0
+    rerun = RankingPlan.load(tmp_path / "rerun" / "plan.json")
+    out = json.loads((rerun.docs / "rerun.json").read_text())
+    assert set(out["policies"]) == {"closed_loop", "closed_loop_1p5cm"} and rerun.modes == ("motion+contact",)
+    fields = ("success", "invalid_depth", "frames", "chunk_height_m", "chunk_held", "real_chunk_held", "action_gap")
+    for name, row in out["policies"].items():
+        assert row["real_same_as_report"] == 5 and row["modes"]["motion+contact"]["same_as_report"] == 5, name
+        ours = json.loads((policy_dir(rerun, "motion+contact", name) / "closed_loop.json").read_text())["episodes"]
+        theirs = report["evaluations"]["motion+contact"]["policies"][name]["episodes"][:5]
+        assert [{k: e[k] for k in fields} for e in ours] == [{k: e[k] for k in fields} for e in theirs], name
+
+
+def test_the_pack_stage_alone_makes_only_the_training_side_and_the_same_pack(toy_run):
+    """--stages pack on a new work directory (a GPU waiting for it; the toy run starts so): the training rollouts
+    simulated, built, decoded and packed, none of the evaluation episodes; the other stages then leave the training
+    side as it was: the pack made again from it after them is byte-identical."""
+    plan = RankingPlan.load(toy_run[0] / "plan.json")
+    after_pack = json.loads((toy_run[0].parent / "after_pack.json").read_text())
+    assert after_pack["train_dataset"] and after_pack["eval_side"] == []
+    first = plan.pack.with_name("pack_alone.npz")
+    shutil.move(plan.pack, first)
+    assert sha256(first) == after_pack["pack_sha256"]
     assert model_main(["ranking", "--toy", "--work", str(toy_run[0]), "--docs", str(toy_run[1]), "--stages", "pack"]) == 0
-    ours, theirs = Pack(plan.pack), Pack(RankingPlan.load(toy_run[0] / "plan.json").pack)
+    ours, theirs = Pack(first), Pack(plan.pack)
     assert ours.tensors.keys() == theirs.tensors.keys()
     assert all(torch.equal(ours.tensors[k], theirs.tensors[k]) for k in ours.tensors), \
         [k for k in ours.tensors if not torch.equal(ours.tensors[k], theirs.tensors[k])]
+    first.unlink()
 
 
 def test_the_stages_run_by_default_are_those_the_preset_needs(tmp_path):
@@ -782,7 +819,7 @@ def test_the_status_says_where_a_run_stands_without_taking_its_lock(toy_run, tmp
         assert model_main(["ranking", "--work", str(work), "--status"]) == 0
     out = capsys.readouterr().out
     assert f"working on it now: a process with PID {os.getpid()}" in out
-    assert "stages done: simulate (" in out and "report (" in out
+    assert "stages done: pack (" in out and "simulate (" in out and "report (" in out  # the toy run packed first
     assert "  motion+contact: trained, step 6, " in out and "  none: trained, step 6, " in out
     (gate,) = read_gates(plan)
     assert f"gates (balanced accuracy from chunk 1): 1 min {gate['from_chunk']['0']['balanced_accuracy']:.2f}" in out
@@ -928,9 +965,7 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
     are the dataset's own, chunk 2 starts from the model's estimate and keeps its recorded contact
     images (rollout.contact recorded); the one trainer trains from the pack with first-frame memory,
     dropout, the scene-warp stream, sampled references, a compiler that fails, and train.init."""
-    work, docs = toy_run
-    assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--stages", "pack"]) == 0
-    plan = RankingPlan.load(work / "plan.json")
+    plan = RankingPlan.load(toy_run[0] / "plan.json")  # the toy run made its pack first
     pack = Pack(plan.pack)
     held = set(plan.held_out_episodes())
     chunks = open_chunks(pack.spec, "local/ranking_train", str(plan.train_dataset),
