@@ -48,7 +48,7 @@ ranking: setup
 
 # Ranking policy checkpoints (docs/ranking.md, "Ranking checkpoints"): ACT trained with lerobot-train on the
 # project's own dataset, then the checkpoint preset (graded scripted policies, three ACT checkpoints and the best
-# under graded action noise, 100 starts, motion+contact from 3 training seeds). Estimated at about 16 CPU-hours in all (docs/ranking.md, "Budget");
+# under graded action noise, 100 starts, motion+contact from 3 training seeds). About 16 CPU-hours in all (18 as first run on 2026-12-02, with two discarded ACT runs and a stopped build: docs/ranking.md, "Budget");
 # both commands resume where they stopped, so spread it over days.
 ranking-checkpoints: setup
 	$(PY) -m benchmarks.lerobot_policy --work runs/lerobot_act
