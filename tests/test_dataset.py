@@ -18,9 +18,11 @@ from lerobot.datasets.compute_stats import auto_downsample_height_width, get_fea
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from imac_data.build import from_episodes
+from imac_data.build.workers import run_local
 from imac_data.cli import main as imac_main
 from imac_data.console import restore_scheduling, scheduling, scheduling_kept
 from imac_data.core.robot.description import DESCRIPTION_DIR
+from imac_data.dataset import merge
 from imac_data.dataset.info import SCHEMA_VERSION, write_info
 from imac_data.dataset.merge import merge_datasets
 from imac_data.dataset.validate import validate_dataset
@@ -220,7 +222,8 @@ def test_linear_features_constructor_equals_datasets_own(built):
 def test_a_build_merged_as_a_tree_equals_one_merged_at_once(tmp_path, monkeypatch):
     """Three shards merged two at a time (two levels of LeRobot aggregates, one group of one) give what one
     aggregate of all three gives (the oracle: LeRobot's merge as it was always called): the same episodes and timestamps, data rows and
-    decoded frames of every stream, and ``validate --full`` passes."""
+    decoded frames of every stream, and ``validate --full`` passes. A tree whose level runs on two processes
+    writes the same bytes as one made in this process."""
     src = tmp_path / "src"
     record_dataset(SimConfig(num_episodes=3, width=80, height=64, max_steps=8), src, progress=False)
     data = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
@@ -255,5 +258,21 @@ def test_a_build_merged_as_a_tree_equals_one_merged_at_once(tmp_path, monkeypatc
     merge_datasets([tmp_path / "flat", tmp_path / "tree", tmp_path / "flat"], tmp_path / "again", "local/tree", fan_in=2)
     assert LeRobotDataset("local/tree", root=tmp_path / "again").meta.total_episodes == 9
     assert not (tmp_path / ".again.merging.levels").exists()
+    # a level's groups on two processes, as the build runs them: the same bytes, file by file
+    monkeypatch.setattr(merge, "PARALLEL_MIN_GROUPS", 2)
+    levels = []
+
+    def run_groups(fn, tasks):
+        levels.append(len(tasks))
+        run_local(fn, tasks, workers=2, threads=1)
+
+    merge_datasets([tmp_path / "flat", tmp_path / "tree", tmp_path / "flat"], tmp_path / "parallel", "local/tree",
+                   fan_in=2, run_groups=run_groups)
+    assert levels == [2]
+
+    def files(root):
+        return {p.relative_to(root): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    assert files(tmp_path / "parallel") == files(tmp_path / "again")
     with pytest.raises(InputError, match="fan_in"):
         merge_datasets([tmp_path / "flat"], tmp_path / "never", "local/tree", fan_in=1)

@@ -3,6 +3,7 @@ built by the workers, merged, carded, validated and swapped into place."""
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import resource
@@ -19,7 +20,7 @@ import imac_data
 from imac_data import lerobot_compat as lr
 from imac_data.augment.timing import StageTimer
 from imac_data.build.staging import BuildRequest, staged_output
-from imac_data.build.workers import ShardJob, default_workers, run_jobs, threads_per_worker
+from imac_data.build.workers import ShardJob, cpu_cores, default_workers, run_jobs, run_local, threads_per_worker
 from imac_data.core.cameras import same_aspect
 from imac_data.core.rig import Rig
 from imac_data.core.robot.description import description_bytes, write_description
@@ -144,7 +145,10 @@ def build_from_episodes(req: BuildRequest, robot, *, executor: str = "local", wo
         run_jobs(jobs, executor=executor, workers=workers, ray_address=ray_address, progress=req.progress)
         t_jobs = time.perf_counter() - t_jobs
         with timer("merge"):
+            # the merge's groups on this machine's cores, also when Ray built the shards
+            run_groups = functools.partial(run_local, workers=min(workers, cpu_cores()), threads=threads)
             merge_datasets([j.shard_dir for j in jobs], stage.dataset, req.repo_id, description_dir=description,
+                           run_groups=run_groups,
                            imac_extra={**({"joint_units": units} if units else {}),
                                        "build": {"recipe": recipe.name, "episodes": len(jobs),
                                                  "command": f"python -m imac_data.build --repo {req.repo_id}"}})

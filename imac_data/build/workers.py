@@ -44,7 +44,7 @@ from imac_data.core.rig import Rig
 from imac_data.layout import INFO
 from imac_data.sources.depth import make_depth_source
 
-__all__ = ["ShardJob", "build_shard", "run_jobs", "cpu_cores", "default_workers", "threads_per_worker", "pin_threads",
+__all__ = ["ShardJob", "build_shard", "run_jobs", "run_local", "cpu_cores", "default_workers", "threads_per_worker", "pin_threads",
            "thread_env", "peak_rss_mb", "exit_with_parent", "limit_malloc_arenas"]
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
@@ -236,23 +236,27 @@ def run_jobs(jobs: list[ShardJob], *, executor: str, workers: int, ray_address: 
                 done, pending = ray.wait(pending, num_returns=1)
                 ray.get(done)
                 bar.update(len(done))
-        elif workers <= 1 or len(todo) == 1:
-            for job in todo:
-                build_shard(job)
-                bar.update(1)
         else:
-            _run_local_pool(todo, workers, threads, bar)
+            run_local(build_shard, todo, workers=workers, threads=threads, done=lambda: bar.update(1))
     finally:
         bar.close()
 
 
-def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> None:
-    """``workers`` workers pull episodes from one queue: this process is one of them (its
-    libraries are loaded already: a spawned worker first spends about 7 CPU-seconds on
-    imports), the others are spawned pool processes. The episodes' bytes do not depend on
-    who builds them."""
+def run_local(fn, items: list, *, workers: int, threads: int, done=None) -> None:
+    """``fn(item)`` for every item (``fn`` a module-level function, ``items`` picklable) on ``workers``
+    workers pulling from one queue: this process is one of them (its libraries are loaded already: a spawned
+    worker first spends about 7 CPU-seconds on imports), the others are spawned pool processes with their
+    thread pools pinned to ``threads``; ``done()`` after each item. Used for the shards and for the merge's
+    groups, whose bytes do not depend on who makes them. Ctrl-C ends every worker; the first error is raised."""
+    if workers <= 1 or len(items) <= 1:
+        for item in items:
+            fn(item)
+            if done is not None:
+                done()
+        return
+    workers = min(workers, len(items))
     jobs: queue.Queue = queue.Queue()
-    for job in todo:
+    for job in items:
         jobs.put(job)
     errors: list[BaseException] = []
     lock = threading.Lock()
@@ -270,19 +274,20 @@ def _run_local_pool(todo: list[ShardJob], workers: int, threads: int, bar) -> No
             except BaseException as e:  # noqa: BLE001 - re-raised in the caller's thread
                 errors.append(e)
                 return
-            with lock:
-                bar.update(1)
+            if done is not None:
+                with lock:
+                    done()
 
     saved = {k: os.environ.get(k) for k in thread_env(threads)}
     os.environ.update(thread_env(threads))  # pool workers size their pools at import
     try:
         with ProcessPoolExecutor(max_workers=workers - 1, mp_context=mp.get_context("spawn"), initializer=_init_worker,
                                  initargs=(threads, os.getpid())) as pool:
-            remote = [threading.Thread(target=worker, args=(lambda j: pool.submit(run_as_job, build_shard, j).result(),))
+            remote = [threading.Thread(target=worker, args=(lambda j: pool.submit(run_as_job, fn, j).result(),))
                       for _ in range(workers - 1)]
             for t in remote:
                 t.start()
-            worker(build_shard, remote=False)  # this process builds episodes too
+            worker(fn, remote=False)  # this process works too
             for t in remote:
                 t.join()
     finally:

@@ -20,7 +20,9 @@ LeRobot appends each input's videos to the output file by rewriting that whole f
 packets), so merging N inputs into one file costs O(N^2) packets (1,300 one-episode shards: 235 MB of their 1.3 GB
 of video in 11 minutes, slowing as the files grew; docs/building.md). :func:`merge_datasets` therefore merges at
 most :data:`MERGE_FAN_IN` inputs at a time, then the merged groups, a tree of O(log N) levels that rewrites each
-packet once a level. Up to ``MERGE_FAN_IN`` inputs it is one call, as before.
+packet once a level. Up to ``MERGE_FAN_IN`` inputs it is one call, as before. The groups of a level are
+independent: given a runner (the build passes its worker pool), a level of at least :data:`PARALLEL_MIN_GROUPS`
+groups is merged by several processes, each group's bytes the same as when merged alone.
 
 The merge is staged: it is written to a temporary sibling of ``out`` and renamed into place
 when complete.
@@ -42,9 +44,13 @@ from imac_data.errors import InputError
 from imac_data.layout import is_added_stream
 from imac_data.metadata import imac_block_path, unchecked_imac_block
 
-__all__ = ["merge_datasets", "check_same_rig", "order_feature_info", "restore_imac_block", "MERGE_FAN_IN"]
+__all__ = ["merge_datasets", "aggregate_group", "check_same_rig", "order_feature_info", "restore_imac_block",
+           "MERGE_FAN_IN", "PARALLEL_MIN_GROUPS"]
 
 MERGE_FAN_IN = 8  # inputs a LeRobot aggregate takes at once (module docstring: its cost is quadratic in them)
+# A level is spread over worker processes from this many groups on: a spawned worker's imports cost about 7
+# CPU-seconds, a group of eight one-episode shards 2-10.
+PARALLEL_MIN_GROUPS = 8
 
 
 def check_same_rig(roots: Sequence[Path]) -> dict:
@@ -76,9 +82,17 @@ def order_feature_info(root: Path, first: Mapping) -> None:
     write_info(root, info)
 
 
-def _aggregate_tree(roots: list[Path], out: Path, repo_id: str, fan_in: int) -> None:
+def aggregate_group(task: tuple[list[Path], Path, str]) -> None:
+    """LeRobot's aggregate of one group: ``(inputs in order, output, repo_id)`` (a module-level function, so that
+    a worker process can run it)."""
+    group, dest, repo_id = task
+    lr.aggregate_datasets([repo_id] * len(group), repo_id, roots=group, aggr_root=dest)
+
+
+def _aggregate_tree(roots: list[Path], out: Path, repo_id: str, fan_in: int, run_groups=None) -> None:
     """LeRobot's aggregate of ``roots`` (in order) into ``out``, ``fan_in`` inputs at a time: groups are merged
-    into ``<out>.levels/<level>/<group>``, each level removed once the next is made."""
+    into ``<out>.levels/<level>/<group>``, each level removed once the next is made. ``run_groups(fn, tasks)``
+    runs a level's tasks (:func:`aggregate_group`) when it has enough of them; None: one after the other."""
     levels = out.with_name(out.name + ".levels")
     shutil.rmtree(levels, ignore_errors=True)  # what a killed merge left
     level, inputs = 0, roots
@@ -87,8 +101,12 @@ def _aggregate_tree(roots: list[Path], out: Path, repo_id: str, fan_in: int) -> 
             level += 1
             groups = [inputs[i:i + fan_in] for i in range(0, len(inputs), fan_in)]
             merged = [levels / str(level) / f"{i:06d}" for i in range(len(groups))]
-            for group, dest in zip(groups, merged):
-                lr.aggregate_datasets([repo_id] * len(group), repo_id, roots=group, aggr_root=dest)
+            tasks = [(group, dest, repo_id) for group, dest in zip(groups, merged)]
+            if run_groups is not None and len(tasks) >= PARALLEL_MIN_GROUPS:
+                run_groups(aggregate_group, tasks)
+            else:
+                for task in tasks:
+                    aggregate_group(task)
             if level > 1:
                 shutil.rmtree(levels / str(level - 1))
             inputs = merged
@@ -99,11 +117,12 @@ def _aggregate_tree(roots: list[Path], out: Path, repo_id: str, fan_in: int) -> 
 
 def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *,
                    imac_extra: Mapping | None = None, description_dir: str | Path | None = None,
-                   fan_in: int = MERGE_FAN_IN) -> Path:
+                   fan_in: int = MERGE_FAN_IN, run_groups=None) -> Path:
     """Merge the datasets ``roots`` (in order) into a new dataset at ``out`` (must not
     exist). ``imac_extra`` is merged into the restored ``imac`` block; the robot
     description is copied from ``description_dir`` (default: the first input's); ``fan_in``:
-    inputs merged at a time (module docstring)."""
+    inputs merged at a time; ``run_groups(fn, tasks)``: runs a tree level's merges, for example on
+    worker processes (module docstring)."""
     roots = [Path(r) for r in roots]
     out = Path(out)
     if not roots:
@@ -119,7 +138,7 @@ def merge_datasets(roots: Sequence[str | Path], out: str | Path, repo_id: str, *
     tmp = out.with_name(f".{out.name}.merging")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        _aggregate_tree(roots, tmp, repo_id, fan_in)
+        _aggregate_tree(roots, tmp, repo_id, fan_in, run_groups)
         order_stats(tmp)
         order_feature_info(tmp, read_info(roots[0]))
         update_imac_info(tmp, {**block, **dict(imac_extra or {})})
