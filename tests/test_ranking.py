@@ -515,13 +515,15 @@ def golden_of(work: Path, docs: Path) -> dict:
 
 
 def test_the_toy_run_reproduces_the_golden_values_of_the_code_before_the_trainers_merged(toy_run):
-    """The one trainer on the dataset path gives the toy run's held-out losses (to 1e-6 relative), gate verdicts,
-    per-start and replay verdicts as the code before the merge gave them (its replays' RGB errors to 1e-5)."""
+    """The one trainer on the dataset path gives the toy run's held-out losses (to 1e-4 relative), gate verdicts,
+    per-start and replay verdicts as the code before the merge gave them (its replays' RGB errors to 1e-2).
+    The losses are bit-equal on one kind of CPU; on another, torch's float kernels round otherwise (1.9e-5 relative
+    between the machines of 2026-12-01 and 2026-12-02; docs/verification.md, "Across machines")."""
     got = golden_of(*toy_run)
     want = json.loads((ROOT / "tests" / "fixtures" / "toy_ranking_golden.json").read_text())
     assert got["heldout_loss"].keys() == want["heldout_loss"].keys()
     for run, losses in want["heldout_loss"].items():
-        assert got["heldout_loss"][run] == pytest.approx(losses, rel=1e-6), run
+        assert got["heldout_loss"][run] == pytest.approx(losses, rel=1e-4), run
     assert got["gate"] == want["gate"] and got["per_start"] == want["per_start"]
     for mode, by_steps in want["replays"].items():
         for steps, rows in by_steps.items():
@@ -693,12 +695,14 @@ def test_the_shipped_models_rerun_the_reports_closed_loops_bit_for_bit_without_t
                        "--starts", "9"]) != 0  # more starts than the report ran
 
 
-def test_the_committed_model_reruns_the_committed_reports_first_starts_exactly(tmp_path):
+def test_the_committed_model_reruns_the_committed_reports_first_starts(tmp_path):
     """The repository's own `motion+contact` model (docs/ranking/models, the committed report's) reruns the report's
-    first five starts of its first policy and of a graded one from the archive alone: MuJoCo's outcomes and every
-    per-start row the report recorded (the lift judge's verdicts, the depth's invalid share, the judge's cube heights
-    in both runners, the action gap; the classifier judge is the report's work directory's, not shipped) equal the
-    report's exactly, so the frames drawn are the report's."""
+    first five starts of its first policy and of a graded one from the archive alone: MuJoCo's outcomes, the lift
+    judge's verdicts per chunk and the frames drawn equal the report's; the depth's invalid share, the judge's cube
+    heights in both runners and the action gap equal them to a machine's rounding. On the CPU that made the report
+    they are bit-equal; on another, the model's float kernels round otherwise and the closed loop carries that on
+    (measured between the machines of 2026-12-02: cube heights 2.5 mm apart at most, one action gap 1e-5 rad;
+    docs/verification.md, "Across machines"). A model that draws other frames moves heights by centimetres."""
     committed = REPO_ROOT / "docs" / "ranking"
     report = json.loads((committed / "results.json").read_text())
     archive = committed / "models" / "motion_contact.tar.xz"
@@ -713,12 +717,17 @@ def test_the_committed_model_reruns_the_committed_reports_first_starts_exactly(t
     rerun = RankingPlan.load(tmp_path / "rerun" / "plan.json")
     out = json.loads((rerun.docs / "rerun.json").read_text())
     assert set(out["policies"]) == {"closed_loop", "closed_loop_1p5cm"} and rerun.modes == ("motion+contact",)
-    fields = ("success", "invalid_depth", "frames", "chunk_height_m", "chunk_held", "real_chunk_held", "action_gap")
+    exact = ("success", "frames", "chunk_held", "real_chunk_held")
+    close = {"invalid_depth": 0.01, "chunk_height_m": 0.005, "real_chunk_height_m": 0.005, "action_gap": 0.001}
     for name, row in out["policies"].items():
         assert row["real_same_as_report"] == 5 and row["modes"]["motion+contact"]["same_as_report"] == 5, name
         ours = json.loads((policy_dir(rerun, "motion+contact", name) / "closed_loop.json").read_text())["episodes"]
         theirs = report["evaluations"]["motion+contact"]["policies"][name]["episodes"][:5]
-        assert [{k: e[k] for k in fields} for e in ours] == [{k: e[k] for k in fields} for e in theirs], name
+        assert [{k: e[k] for k in exact} for e in ours] == [{k: e[k] for k in exact} for e in theirs], name
+        for i, (a, b) in enumerate(zip(ours, theirs)):
+            for key, tol in close.items():
+                assert np.allclose(np.array(a[key], float), np.array(b[key], float), atol=tol, rtol=0,
+                                   equal_nan=True), (name, i, key, a[key], b[key])
 
 
 def test_the_pack_stage_alone_makes_only_the_training_side_and_the_same_pack(toy_run):
