@@ -23,8 +23,10 @@ test: setup
 
 # The data layer's benchmark (benchmarks/results/latest.{json,md}), then the model and evaluation
 # benchmarks, each printing its own figures (JSON beside latest.json where the script writes one).
+# latest.md also builds the same episodes with BENCH_BASELINE's command line: the build-speed issue's start.
+BENCH_BASELINE ?= 4e5e2e9
 bench: setup
-	$(PY) -m benchmarks.run
+	$(PY) -m benchmarks.run --baseline $(BENCH_BASELINE)
 	$(PY) -m benchmarks.model_train --json benchmarks/results/model_train.json
 	$(PY) -m benchmarks.model_rollout --json benchmarks/results/model_rollout.json
 	$(PY) -m benchmarks.model_plan --json benchmarks/results/model_plan.json

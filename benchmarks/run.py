@@ -1,6 +1,6 @@
 """The whole benchmark in one command: ``python -m benchmarks.run`` (``make bench``).
 
-    python -m benchmarks.run [--quick] [--episodes N] [--long-frames N] [--out DIR] [--keep DIR]
+    python -m benchmarks.run [--quick] [--episodes N] [--long-frames N] [--baseline REV] [--out DIR] [--keep DIR]
 
 Workload: scripted ``transfer_cube`` episodes recorded by :mod:`imac_data.sources.sim.recorder` (noise
 0.3, seeds 0..), whole scripts (about 125 frames at 25 fps), three views, recorded depth,
@@ -17,6 +17,8 @@ contact s2g) plus the tabular columns.
    staging directory, here passed out with ``--timings``), never a second copy of the
    pipeline: wall and CPU seconds per stage of the 1-worker build, and what stands between
    the result and 30 frames/s.
+   With ``--baseline REV`` (``make bench``) the same episodes are also built by REV's command line
+   and by ours, alternating (:mod:`benchmarks.same_host`): the ratio of one run on one machine.
 3. **Episode length**: one 1000-frame episode at 480x640 and its first 100 frames,
    each built by one worker (synthetic: a recorded episode played forward and backward,
    ``imac_data.sources.hdf5.tile_episode``; recorded depth): peak RSS and frames/s.
@@ -91,6 +93,7 @@ class Workload:
     seed: int = 0
     noise: float = 0.3
     sizes_episodes: dict = field(default_factory=dict)  # size tag -> episodes (default: episodes)
+    baseline: str | None = None  # a revision whose CLI builds the same episodes beside ours (benchmarks.same_host)
 
     @classmethod
     def quick_default(cls) -> Workload:
@@ -345,6 +348,16 @@ def long_episodes(work: Workload, source: Path, recipe: Path, tmp: Path) -> dict
 # ----------------------------------------------------------------------------- 4. side by side
 
 
+def against_baseline(work: Workload, recipes: dict, sources: dict, tmp: Path) -> dict:
+    """This checkout's CLI and ``work.baseline``'s on the run's own recorded episodes, one round per
+    worker setting of the whole builds (:func:`benchmarks.same_host.compare`)."""
+    from benchmarks import same_host  # it imports this module
+
+    sizes = [s for s in work.sizes if not (work.quick and s != work.small)]
+    return same_host.compare(work.baseline, [(s, recipes[s], sources[s], work.episodes_at(s)) for s in sizes],
+                             work.workers, 1, tmp)
+
+
 def _ratio(a, b):
     return a / b if isinstance(a, (int, float)) and isinstance(b, (int, float)) and b else None
 
@@ -521,6 +534,12 @@ def run(work: Workload, tmp: Path) -> dict:
                 f"CPU ms/frame, peak {b['peak_mem_mb_per_worker']:.0f} MB per worker, load {b['load_avg_end'][0]}")
     done("builds")
 
+    same_host = {}
+    if work.baseline:
+        section("same_host")
+        same_host = attempt(f"same_host {work.baseline}", lambda: against_baseline(work, recipes, sources, tmp), {})
+        done("same_host")
+
     section("episode_length")
     length = attempt("episode_length", lambda: long_episodes(work, sources[work.long_size], recipes[work.long_size],
                                                              tmp), {})
@@ -620,6 +639,7 @@ def run(work: Workload, tmp: Path) -> dict:
         "builds": builds,
         "stages": stages,
         "gap_to_30fps": gap,
+        "same_host": same_host,
         "episode_length": length,
         "render_vs_mujoco": render,
         "contact_vs_reference": contact,
@@ -655,6 +675,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-steps", type=int, help="50 Hz steps per episode (default: the whole script)")
     p.add_argument("--long-frames", type=int, help="frames of the long episode (default 1000)")
     p.add_argument("--no-ray", action="store_true", help="skip the Ray build")
+    p.add_argument("--baseline", help="also build the same episodes with this revision's CLI and report the ratio "
+                                      "(make bench: the revision issue 65 started from)")
     p.add_argument("--render-frames", type=int, help="render_vs_mujoco timing frames per size (default 32)")
     p.add_argument("--contact-reference-frames", type=int, help="frames the slow contact reference runs on (default 8)")
     p.add_argument("--out", type=Path, default=RESULTS, help="where latest.json / latest.md go (default %(default)s)")
@@ -675,6 +697,7 @@ def main(argv: list[str] | None = None) -> int:
             setattr(work, attr, getattr(a, flag))
     if a.no_ray:
         work.ray_workers = 0
+    work.baseline = a.baseline
     if work.episodes < 1 or (work.max_steps is not None and work.max_steps < 2):
         p.error("--episodes must be >= 1 and --max-steps >= 2")
 

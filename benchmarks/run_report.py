@@ -51,6 +51,32 @@ def _f(v, fmt=".3g", none="-"):
     return format(v, fmt)
 
 
+def same_host_table(builds: list[dict]) -> list[str]:
+    """The builds of a :mod:`benchmarks.same_host` comparison as a Markdown table and its footnote."""
+    lines = ["| size | round | workers | revision | frames | build s | frames/s | CPU ms/frame | peak RSS MB | "
+             "load start -> end |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in builds:
+        lines.append(f"| {r['size']} | {r['round']} | {r['workers']} | {r['revision']} | {r['frames']} | "
+                     f"{r['build_s'] or r['cli_wall_s']:.1f} | {r['fps']:.2f} | {r['cpu_ms_per_frame']:.0f} | "
+                     f"{r['peak_rss_mb']:.0f} | {r['load_avg_start'][0]:.2f} -> {r['load_avg_end'][0]:.2f} |")
+    lines.append("\n(build s: what the CLI prints; CPU: the CLI process and the workers it reaped (`wait4`); peak "
+                 "RSS: the largest of those processes.)")
+    return lines
+
+
+def ratio_lines(summary: dict) -> list[str]:
+    """One bullet per size of a :mod:`benchmarks.same_host` summary: each revision's best setting, the ratio."""
+    lines = []
+    for size, s in summary.items():
+        b, t = s["best"]["baseline"], s["best"]["this"]
+        pairs = ", ".join(f"{p['fps_ratio']:.2f}x (round {p['round']}, {p['workers']} w)" for p in s["pairs"])
+        lines.append(f"* **{size}**: best setting, median over rounds: baseline {b['fps']:.2f} frames/s "
+                     f"({b['workers']} worker(s), {b['cpu_ms_per_frame']:.0f} CPU ms/frame), this {t['fps']:.2f} "
+                     f"({t['workers']} worker(s), {t['cpu_ms_per_frame']:.0f} CPU ms/frame): **{s['fps_ratio_best']:.2f}x** "
+                     f"frames/s, {s['cpu_ratio_best']:.2f}x CPU per frame. Same-round pairs: {pairs}.")
+    return lines
+
+
 def markdown(r: dict) -> str:
     w = r["workload"]
     small, large = w["key_sizes"]["_240"], w["key_sizes"]["_480"]
@@ -117,6 +143,17 @@ def markdown(r: dict) -> str:
             if 1 in ws and 2 in ws:
                 L.append(f"\n* {size}: 2 workers / 1 worker = {ws[2]['fps'] / ws[1]['fps']:.2f}x frames/s, "
                          f"{ws[2]['cpu_ms_per_frame'] / ws[1]['cpu_ms_per_frame']:.2f}x CPU per frame.")
+
+    def _against_baseline():
+        nonlocal L
+        c = r.get("same_host")
+        if not c:
+            return
+        L += ["", f"## Against `{c['baseline']}` on this machine, in this run", "",
+              f"The same recorded episodes built by this checkout's command line and by `{c['baseline']}`'s (a "
+              "temporary `git worktree`), each in a fresh process, the order alternating "
+              "(`benchmarks.same_host.compare`); only the ratio carries to another machine.", "",
+              *same_host_table(c["builds"]), "", *ratio_lines(c["summary"])]
 
     def _stages():
         nonlocal L
@@ -255,7 +292,7 @@ def markdown(r: dict) -> str:
             L += ["", "## Failed parts (the run's exit status is 1)", ""]
             L += [f"* {k}: {v}" for k, v in r["errors"].items()]
 
-    for part in (_headline, _whole_build, _stages, _length, _output_bytes, _side_by_side, _errors, _sections):
+    for part in (_headline, _whole_build, _against_baseline, _stages, _length, _output_bytes, _side_by_side, _errors, _sections):
         n = len(L)
         try:
             part()

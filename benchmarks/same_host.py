@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 from benchmarks.run import RESULTS, Workload, commit, load_avg, log, machine, record, write_recipe
-from benchmarks.run_report import tag
+from benchmarks.run_report import ratio_lines, same_host_table, tag
 
 REPO = Path(__file__).resolve().parent.parent
 BASELINE = "afa9031"  # main before the streamed pipeline: the issue's 5.8 / 1.1 frames/s
@@ -84,20 +84,31 @@ def cli_build(tree: Path, recipe: Path, source: Path, episodes: int, workers: in
 
 
 def run(args, tmp: Path) -> dict:
-    trees = {"baseline": checkout(args.baseline, tmp / "baseline"), "this": REPO}
+    inputs = []
+    for size in args.sizes:
+        work = Workload(sizes=(size,), episodes=args.episodes, max_steps=args.max_steps)
+        source = tmp / f"src_{tag(size)}"
+        log(f"record {args.episodes} episodes at {tag(size)}")
+        record(work, size, source)
+        inputs.append((size, write_recipe(tmp / f"recipe_{tag(size)}.yaml", size, args.episodes, work.seed,
+                                          work.noise), source, args.episodes))
+    return {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "machine": machine(),
+            "commit": commit()[0], "episodes": args.episodes,
+            **compare(args.baseline, inputs, args.workers, args.rounds, tmp)}
+
+
+def compare(baseline: str, inputs, workers, rounds: int, tmp: Path) -> dict:
+    """Build each ``(size, recipe, source, episodes)`` of ``inputs`` with both revisions' CLIs, for every worker
+    count and round, the order alternating; the rows and :func:`summarise` of them."""
+    trees = {"baseline": checkout(baseline, tmp / "baseline"), "this": REPO}
     rows = []
     try:
-        for size in args.sizes:
-            work = Workload(sizes=(size,), episodes=args.episodes, max_steps=args.max_steps)
-            source = tmp / f"src_{tag(size)}"
-            log(f"record {args.episodes} episodes at {tag(size)}")
-            record(work, size, source)
-            recipe = write_recipe(tmp / f"recipe_{tag(size)}.yaml", size, args.episodes, work.seed, work.noise)
-            for r in range(args.rounds):
-                for w in args.workers:
+        for size, recipe, source, episodes in inputs:
+            for r in range(rounds):
+                for w in workers:
                     order = ["baseline", "this"] if (r + w) % 2 == 0 else ["this", "baseline"]
                     for name in order:
-                        res = cli_build(trees[name], recipe, source, args.episodes, w, tmp / f"out_{name}")
+                        res = cli_build(trees[name], recipe, source, episodes, w, tmp / f"out_{name}")
                         res.update(size=tag(size), revision=name, workers=w, round=r)
                         res["fps"] = res["frames"] / (res["build_s"] or res["cli_wall_s"])
                         res["cpu_ms_per_frame"] = 1e3 * res["cpu_s"] / res["frames"]
@@ -106,9 +117,7 @@ def run(args, tmp: Path) -> dict:
                         rows.append(res)
     finally:
         drop_checkout(trees["baseline"])
-    return {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "machine": machine(),
-            "commit": commit()[0], "baseline": args.baseline, "episodes": args.episodes, "rounds": args.rounds,
-            "builds": rows, "summary": summarise(rows)}
+    return {"baseline": baseline, "rounds": rounds, "builds": rows, "summary": summarise(rows)}
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -144,21 +153,8 @@ def markdown(res: dict) -> str:
              f"(baseline), {res['machine']}; {res['episodes']} scripted `transfer_cube` episodes per size, 3 views, "
              f"recorded depth, built by each revision's CLI in a fresh process, {res['rounds']} round(s), the order "
              "alternating.\n",
-             "| size | round | workers | revision | frames | build s | frames/s | CPU ms/frame | peak RSS MB | "
-             "load start -> end |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in res["builds"]:
-        lines.append(f"| {r['size']} | {r['round']} | {r['workers']} | {r['revision']} | {r['frames']} | "
-                     f"{r['build_s'] or r['cli_wall_s']:.1f} | {r['fps']:.2f} | {r['cpu_ms_per_frame']:.0f} | {r['peak_rss_mb']:.0f} | "
-                     f"{r['load_avg_start'][0]:.2f} -> {r['load_avg_end'][0]:.2f} |")
-    lines.append("\n(build s: what the CLI prints; CPU: the CLI process and the workers it reaped (`wait4`); peak "
-                 "RSS: the largest of those processes.)\n")
-    for size, s in res["summary"].items():
-        b, t = s["best"]["baseline"], s["best"]["this"]
-        pairs = ", ".join(f"{p['fps_ratio']:.2f}x (round {p['round']}, {p['workers']} w)" for p in s["pairs"])
-        lines.append(f"* **{size}**: best setting, median over rounds: baseline {b['fps']:.2f} frames/s "
-                     f"({b['workers']} worker(s), {b['cpu_ms_per_frame']:.0f} CPU ms/frame), this {t['fps']:.2f} "
-                     f"({t['workers']} worker(s), {t['cpu_ms_per_frame']:.0f} CPU ms/frame): **{s['fps_ratio_best']:.2f}x** "
-                     f"frames/s, {s['cpu_ratio_best']:.2f}x CPU per frame. Same-round pairs: {pairs}.")
+             *same_host_table(res["builds"]), ""]
+    lines += ratio_lines(res["summary"])
     return "\n".join(lines) + "\n"
 
 

@@ -5,7 +5,8 @@ Not a timing test: nothing here asserts how fast anything is. It checks that the
 completes, that ``latest.json`` carries every headline key as a finite number (or says
 why it could not be measured in the quick workload), that ``latest.md`` shows them, and
 that the committed results in ``benchmarks/results/`` are left alone. About 90 s on
-the 2-core CI machine (three tiny whole builds: the workload's and the two episode lengths).
+the 2-core CI machine (five tiny whole builds: the workload's, the two episode lengths, and the
+workload's episodes by ``benchmarks.same_host`` with HEAD as the baseline and by this checkout).
 """
 
 import json
@@ -27,10 +28,16 @@ def _committed() -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(RESULTS.glob("latest.*"))} if RESULTS.is_dir() else {}
 
 
+def _worktrees() -> str:
+    return subprocess.run(["git", "worktree", "list"], cwd=REPO, capture_output=True, text=True).stdout
+
+
 def test_quick_benchmark_writes_every_figure(tmp_path):
     before = _committed()
+    worktrees = _worktrees()
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    proc = subprocess.run([sys.executable, "-m", "benchmarks.run", "--quick", "--out", str(tmp_path)],
+    # HEAD as the baseline: the run's own episodes also built by a worktree's command line and by ours
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.run", "--quick", "--baseline", "HEAD", "--out", str(tmp_path)],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, f"benchmark failed:\n{proc.stderr[-6000:]}"
 
@@ -68,9 +75,20 @@ def test_quick_benchmark_writes_every_figure(tmp_path):
         assert stages[stage]["cpu_ms_per_frame"] >= 0 and stages[stage]["wall_ms_per_frame"] > 0, stage
     assert set(result["episode_length"]["rows"]) == {"8", "24"}
 
+    # beside the baseline: both revisions built the same episodes, each with its CPU and memory
+    same = result["same_host"]
+    assert sorted(b["revision"] for b in same["builds"]) == ["baseline", "this"]
+    assert len({b["frames"] for b in same["builds"]}) == 1 and same["builds"][0]["frames"] > 0
+    for b in same["builds"]:
+        assert b["cpu_s"] > 0 and b["peak_rss_mb"] > 100 and b["build_s"] > 0
+    (summary,) = same["summary"].values()
+    assert summary["fps_ratio_best"] > 0 and len(summary["pairs"]) == 1
+    assert _worktrees() == worktrees, "the baseline's worktree is removed"
+
     md = (tmp_path / "latest.md").read_text()
     for key in REQUIRED_NUMBERS:
         assert f"`{key}`" in md, key
+    assert "## Against `HEAD` on this machine" in md and "| 48x64 | 0 | 1 | baseline |" in md
     assert _committed() == before, "the quick run must not touch benchmarks/results/"
 
 
@@ -107,28 +125,3 @@ def torch_cuda_available() -> bool:
     import torch
 
     return torch.cuda.is_available()
-
-
-def test_same_host_builds_both_revisions_on_the_same_episodes(tmp_path):
-    """``benchmarks.same_host`` end to end at a tiny size, with HEAD as the baseline: both
-    revisions' CLIs build the same recorded episode (same frame count), every build has its
-    CPU and memory, and the report names both. No timing is asserted."""
-    import json
-
-    from benchmarks import same_host
-
-    out = tmp_path / "out"
-    assert same_host.main(["--baseline", "HEAD", "--sizes", "48x64", "--workers", "1", "--rounds", "1",
-                           "--episodes", "1", "--max-steps", "12", "--keep", str(tmp_path / "work"),
-                           "--out", str(out)]) == 0
-    res = json.loads((out / "same_host.json").read_text())
-    builds = res["builds"]
-    assert sorted(b["revision"] for b in builds) == ["baseline", "this"]
-    assert len({b["frames"] for b in builds}) == 1 and builds[0]["frames"] > 0
-    for b in builds:
-        assert b["cpu_s"] > 0 and b["peak_rss_mb"] > 100 and b["build_s"] > 0
-    (summary,) = res["summary"].values()
-    assert summary["fps_ratio_best"] > 0 and len(summary["pairs"]) == 1
-    md = (out / "same_host.md").read_text()
-    assert "| 48x64 | 0 | 1 | baseline |" in md and "| 48x64 | 0 | 1 | this |" in md
-    assert not (tmp_path / "work" / "baseline").exists(), "the baseline worktree is removed"
