@@ -10,6 +10,8 @@ explains the Ctrl-C design: worker processes, libraries that swallow the interru
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import errno
 import functools
 import os
@@ -25,7 +27,7 @@ EXIT_OK, EXIT_BUG, EXIT_BAD_INPUT, EXIT_ENVIRONMENT = 0, 1, 2, 3
 EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
 INTERRUPTED = "interrupted (a build keeps its finished episodes: rerun the same command to resume)"
 
-__all__ = ["cpu_cores", "run_command", "exit_process", "environment_problem", "interrupted", "quiet_libraries",
+__all__ = ["cpu_cores", "release_freed_memory", "run_command", "exit_process", "environment_problem", "interrupted", "quiet_libraries",
            "silence_progress_bars", "quiet_startup_interrupts", "note_interrupts", "interrupt_pending",
            "raise_if_interrupted", "block_interrupts_in_this_thread", "quiet_worker_interrupts", "run_as_job",
            "native_stderr_silenced", "restore_scheduling", "scheduling", "scheduling_kept",
@@ -58,6 +60,24 @@ def cpu_cores() -> int:
 
 
 # ----------------------------------------------------------------------------- libraries
+
+
+@functools.cache
+def _libc():
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None
+
+
+def release_freed_memory() -> None:
+    """Give the memory that glibc's malloc keeps after frees back to the system (``malloc_trim``; a no-op
+    without glibc). Called between a build's chunks: without it a worker's resident memory crept up with
+    the episode's length, freed chunks kept in its heap (docs/building.md, "Workers, memory and speed")."""
+    libc = _libc()
+    trim = getattr(libc, "malloc_trim", None)
+    if trim is not None:
+        trim(0)
 
 
 def quiet_libraries() -> None:

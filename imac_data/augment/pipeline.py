@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from imac_data.augment.timing import StageTimer
-from imac_data.console import raise_if_interrupted
+from imac_data.console import raise_if_interrupted, release_freed_memory
 from imac_data.core.contact.images import chunk_plan
 from imac_data.core.depth import DepthCodec, resize_depth
 from imac_data.core.motion import joints_at
@@ -180,6 +180,7 @@ class EpisodePipeline:
                 del rgb, mm, links, links_ref, motion
                 yield out
                 del out
+                release_freed_memory()
                 continue
             with timer("render"):
                 if times.shifted:
@@ -226,6 +227,7 @@ class EpisodePipeline:
             del rgb, mm, links, links_ref, drawn, seen, views, metres, depth_hw, streams, chunk, r2s, s2g, motion
             yield out
             del out
+            release_freed_memory()  # the chunk's arrays are gone: their pages go back
 
     def imac_block(self) -> dict:
         """The stream settings' part of ``info["imac"]`` (``augment``, ``motion``, ``contact``)."""
