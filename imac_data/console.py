@@ -27,7 +27,7 @@ EXIT_OK, EXIT_BUG, EXIT_BAD_INPUT, EXIT_ENVIRONMENT = 0, 1, 2, 3
 EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
 INTERRUPTED = "interrupted (a build keeps its finished episodes: rerun the same command to resume)"
 
-__all__ = ["cpu_cores", "release_freed_memory", "run_command", "exit_process", "environment_problem", "interrupted", "quiet_libraries",
+__all__ = ["cpu_cores", "limit_malloc_arenas", "release_freed_memory", "run_command", "exit_process", "environment_problem", "interrupted", "quiet_libraries",
            "silence_progress_bars", "quiet_startup_interrupts", "note_interrupts", "interrupt_pending",
            "raise_if_interrupted", "block_interrupts_in_this_thread", "quiet_worker_interrupts", "run_as_job",
            "native_stderr_silenced", "restore_scheduling", "scheduling", "scheduling_kept",
@@ -68,6 +68,20 @@ def _libc():
         return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
     except OSError:
         return None
+
+
+# glibc gives every allocating thread its own malloc arena and keeps freed memory in it: one
+# arena, set before a build's threads allocate, keeps a worker's peak down (docs/building.md).
+MALLOC_ARENAS = 1
+_M_ARENA_MAX = -8  # mallopt parameter (glibc malloc.h)
+
+
+def limit_malloc_arenas() -> None:
+    """At most :data:`MALLOC_ARENAS` glibc malloc arenas from now on (no-op elsewhere).
+    Threads that already have an arena keep it: call it before they start."""
+    mallopt = getattr(_libc(), "mallopt", None)
+    if mallopt is not None:
+        mallopt(_M_ARENA_MAX, MALLOC_ARENAS)
 
 
 def release_freed_memory() -> None:

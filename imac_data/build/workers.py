@@ -10,8 +10,6 @@ measurements behind the defaults.
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
 import json
 import multiprocessing as mp
 import os
@@ -32,9 +30,11 @@ from tqdm.auto import tqdm
 from imac_data.augment.timing import StageTimer
 from imac_data.build.streams import write_episode_dataset, write_timings
 from imac_data.console import (
+    MALLOC_ARENAS,
     block_interrupts_in_this_thread,
     cpu_cores,
     interrupted,
+    limit_malloc_arenas,
     quiet_libraries,
     quiet_worker_interrupts,
     raise_if_interrupted,
@@ -48,12 +48,6 @@ __all__ = ["ShardJob", "build_shard", "run_jobs", "run_local", "cpu_cores", "def
            "thread_env", "peak_rss_mb", "exit_with_parent", "limit_malloc_arenas"]
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
-# glibc gives every allocating thread its own malloc arena and keeps freed memory in it: one
-# arena, set before the rig's threads allocate, keeps a worker's peak down (docs/building.md).
-_MALLOC_ARENAS = 1
-_M_ARENA_MAX = -8  # mallopt parameter (glibc malloc.h)
-
-
 def default_workers(episodes: int, cores: int | None = None) -> int:
     """``--workers`` when none is given: one worker per core, at most one per episode. Whole
     episodes side by side scale better than threads inside one worker, which pays for a
@@ -69,7 +63,7 @@ def threads_per_worker(workers: int, cores: int | None = None) -> int:
 def thread_env(threads: int) -> dict[str, str]:
     """Environment for a new worker process: libraries that size their pools when loaded,
     and glibc's malloc arenas."""
-    return {**{var: str(threads) for var in _THREAD_VARS}, "MALLOC_ARENA_MAX": str(_MALLOC_ARENAS)}
+    return {**{var: str(threads) for var in _THREAD_VARS}, "MALLOC_ARENA_MAX": str(MALLOC_ARENAS)}
 
 
 def pin_threads(threads: int) -> None:
@@ -81,16 +75,6 @@ def pin_threads(threads: int) -> None:
     torch.set_num_threads(threads)
     cv2.setNumThreads(threads)
     limit_malloc_arenas()
-
-
-def limit_malloc_arenas() -> None:
-    """At most :data:`_MALLOC_ARENAS` glibc malloc arenas from now on (no-op elsewhere).
-    Threads that already have an arena keep it: call it before they start."""
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.mallopt(_M_ARENA_MAX, _MALLOC_ARENAS)
-    except (OSError, AttributeError):
-        pass
 
 
 def peak_rss_mb() -> float:
