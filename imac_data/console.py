@@ -27,7 +27,8 @@ EXIT_OK, EXIT_BUG, EXIT_BAD_INPUT, EXIT_ENVIRONMENT = 0, 1, 2, 3
 EXIT_INTERRUPTED = 130  # the shell's code for SIGINT
 INTERRUPTED = "interrupted (a build keeps its finished episodes: rerun the same command to resume)"
 
-__all__ = ["cpu_cores", "limit_malloc_arenas", "release_freed_memory", "run_command", "exit_process", "environment_problem", "interrupted", "quiet_libraries",
+__all__ = ["cpu_cores", "limit_malloc_arenas", "release_freed_memory", "run_command", "exit_process",
+           "environment_problem", "interrupted", "quiet_libraries",
            "silence_progress_bars", "quiet_startup_interrupts", "note_interrupts", "interrupt_pending",
            "raise_if_interrupted", "block_interrupts_in_this_thread", "quiet_worker_interrupts", "run_as_job",
            "native_stderr_silenced", "restore_scheduling", "scheduling", "scheduling_kept",

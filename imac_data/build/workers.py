@@ -48,6 +48,8 @@ __all__ = ["ShardJob", "build_shard", "run_jobs", "run_local", "cpu_cores", "def
            "thread_env", "peak_rss_mb", "exit_with_parent", "limit_malloc_arenas"]
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
 def default_workers(episodes: int, cores: int | None = None) -> int:
     """``--workers`` when none is given: one worker per core, at most one per episode. Whole
     episodes side by side scale better than threads inside one worker, which pays for a
