@@ -21,6 +21,7 @@ import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from test_model_rollout import built  # noqa: F401  (the rollout tests' built dataset fixture)
+from test_simulator import BEYOND, aloha_command_bounds, beyond_the_range_policy
 
 from imac_data.errors import InputError
 from imac_data.metadata import dataset_info
@@ -97,6 +98,22 @@ def test_replaying_the_recorded_actions_is_the_open_loop_rollout(world):
     # not vacuous: other actions (hold still) give other frames
     hold = list(rollout_episode(model, online, lambda obs: obs["observation.state"][None], start))
     assert not torch.equal(hold[0].frames, records[0].frames)
+
+
+def test_a_command_beyond_the_actuators_reaches_the_next_state_saturated_in_the_world_model_too(world):
+    """The closed loop gives the policy, and draws, the command saturated at gym-aloha's actuator ranges (read
+    from its XML), as the MuJoCo runner does (``test_simulator``): a policy meets the same state in both."""
+    root, _, model, spec, chunks, online = world
+    start = episode_starts(chunks, [0], seed=3, horizon_chunks=2)[0]
+    records = list(rollout_episode(model, online, beyond_the_range_policy, start))
+    lo, hi = aloha_command_bounds()
+    command = start.state.double().numpy().copy()
+    for i, value in BEYOND.items():
+        command[i] = value
+    expected = np.clip(command, lo, hi)
+    assert not np.allclose(expected, command)  # the case saturates
+    np.testing.assert_allclose(records[1].state.double().numpy(), expected, atol=1e-6)
+    assert float(records[0].actions[0, 13]) == np.float32(-4.2)  # the record keeps the command
 
 
 def test_a_closed_loop_keeps_its_start_frame_for_a_model_conditioned_on_the_first_frame(world, tmp_path):

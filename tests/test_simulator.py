@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import sys
 import textwrap
+import xml.etree.ElementTree as ET
 
 import h5py
 import numpy as np
 import pytest
 import torch
+from gym_aloha.constants import ASSETS_DIR, normalize_puppet_gripper_position
 
 from imac_data.core.cameras import backproject
 from imac_data.core.depth import area_resize_depth, resize_depth
@@ -256,3 +258,51 @@ def test_settling_puts_the_box_on_the_table_before_the_first_frame():
     for bad in (-0.1, 11.0):
         with pytest.raises(InputError, match=r"settle_s \(the physics run before the first frame; --settle\) must be in"):
             SimEnv("lift", settle_s=bad)
+
+
+def aloha_command_bounds() -> tuple[np.ndarray, np.ndarray]:
+    """The 14-D action's bounds as gym-aloha's MJCF saturates them, read from the XML itself: each arm joint's
+    position actuator's ``ctrlrange``, the gripper's (its left finger's) through gym-aloha's own normalisation."""
+    actuators = ET.parse(ASSETS_DIR / "bimanual_viperx_transfer_cube.xml").getroot().find("actuator")
+    ranges = {a.get("joint"): [float(x) for x in a.get("ctrlrange").split()] for a in actuators}
+    lo, hi = [], []
+    for arm in ("vx300s_left", "vx300s_right"):
+        for joint in ("waist", "shoulder", "elbow", "forearm_roll", "wrist_angle", "wrist_rotate"):
+            lo.append(ranges[f"{arm}/{joint}"][0])
+            hi.append(ranges[f"{arm}/{joint}"][1])
+        lo.append(normalize_puppet_gripper_position(ranges[f"{arm}/left_finger"][0]))
+        hi.append(normalize_puppet_gripper_position(ranges[f"{arm}/left_finger"][1]))
+    return np.array(lo), np.array(hi)
+
+
+BEYOND = {1: -5.0, 6: 3.0, 7: 9.0, 13: -4.2}  # left shoulder, left gripper, right waist, right gripper
+
+
+def beyond_the_range_policy(obs):
+    """Holds the state it is given, but commands four entries far outside what the actuators take."""
+    actions = obs["observation.state"].clone().repeat(8, 1)
+    for i, value in BEYOND.items():
+        actions[:, i] = value
+    return actions
+
+
+def test_a_command_beyond_the_actuators_reaches_the_next_state_saturated_as_mujoco_saturates_it(runner):
+    """A policy's command outside the actuators' ranges (an ACT gripper under action noise reached -4.2) is
+    recorded as commanded, but the state the policy is given next is the command saturated at the ranges in
+    gym-aloha's XML, where MuJoCo's actuators saturate it."""
+    states = []
+
+    def policy(obs):
+        states.append(obs["observation.state"].clone())
+        return beyond_the_range_policy(obs)
+
+    episode = runner.run_episode(policy, 0)
+    lo, hi = aloha_command_bounds()
+    command = states[0].double().numpy().copy()
+    for i, value in BEYOND.items():
+        command[i] = value
+    expected = np.clip(command, lo, hi)
+    assert not np.allclose(expected, command)  # the case saturates
+    for state in states[1:]:
+        np.testing.assert_allclose(state.double().numpy(), expected, atol=1e-6)
+    assert episode.action[0, 13] == np.float32(-4.2) and episode.action[0, 7] == 9.0  # the recording keeps the command
