@@ -195,6 +195,9 @@ class DepthMapOutput:
         return DepthMapParams(self.depth_min, self.depth_max, self.shift, self.use_log)
 
 
+CPU_RENDERERS = ("open3d", "opengl")  # render.BACKENDS that a CPU build draws with
+
+
 @dataclass(frozen=True)
 class AugmentSettings:
     """How the control streams are made (the recipe's ``augment`` section; recorded in
@@ -214,6 +217,9 @@ class AugmentSettings:
     # (r2s saturated on the robot, s2g black, caps contact.EMPTY_CAP)
     empty_reference_scene: str = "error"
     lerobot_depth_map: DepthMapOutput = field(default_factory=DepthMapOutput)  # off: see docs/lerobot.md
+    # the motion images' renderer on the CPU: open3d (ray casting) or opengl (EGL rasterisation, about half
+    # the CPU from 480x640 on; the same images within the tolerances of docs/building.md); --device cuda: torch
+    renderer: str = "open3d"
 
     def __post_init__(self) -> None:
         if self.height <= 0 or self.width <= 0:
@@ -229,6 +235,8 @@ class AugmentSettings:
         if self.empty_reference_scene not in ("error", "no_contact"):
             raise InputError(f"augment.empty_reference_scene: must be 'error' or 'no_contact', got "
                              f"{self.empty_reference_scene!r}")
+        if self.renderer not in CPU_RENDERERS:
+            raise InputError(f"augment.renderer: must be one of {list(CPU_RENDERERS)}, got {self.renderer!r}")
         if self.robot_mask_dilate_px < 0:
             raise InputError(f"augment.robot_mask_dilate_px: must be >= 0, got {self.robot_mask_dilate_px}")
         try:

@@ -124,6 +124,7 @@ class EpisodePipeline:
         self.with_depth = getattr(self.depth_source, "describe", dict)().get("kind") != "none"
         output = getattr(settings, "lerobot_depth_map", None)  # LeRobot depth maps: their quantiser, or None
         self.depth_map = output.params() if output is not None and output.enabled and self.with_depth else None
+        rig.use_cpu_renderer(getattr(settings, "renderer", "open3d"))
         rig.set_threads(self.threads)
 
     @property

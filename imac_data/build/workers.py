@@ -152,14 +152,16 @@ def worker_depth_source(section, recipe_file: str, num_cameras: int, timer=None)
     return _DEPTH_CACHE[key]
 
 
-def worker_rig(block: dict, description_dir: Path, timer=None, device: str = "cpu"):
-    """The rig of a job, built once per worker process (the Open3D scene cannot be pickled,
-    so each process builds its own renderer) on ``device``; the first build is timed as ``setup``."""
-    key = (str(description_dir), json.dumps(block, sort_keys=True), device)
+def worker_rig(block: dict, description_dir: Path, timer=None, device: str = "cpu", renderer: str = "open3d"):
+    """The rig of a job, built once per worker process (the Open3D scene and an EGL context cannot be
+    pickled, so each process builds its own renderer) on ``device``, with the CPU ``renderer``; the first
+    build is timed as ``setup``."""
+    key = (str(description_dir), json.dumps(block, sort_keys=True), device, renderer)
     if key not in _PROCESS_CACHE:
         with timer("setup") if timer is not None else contextlib.nullcontext():
             rig = Rig.from_block(block, description_dir)
             rig.device = device
+            rig.use_cpu_renderer(renderer)
             rig.renderer, rig.gripper  # noqa: B018 - built here, counted as setup
         _PROCESS_CACHE.clear()
         _PROCESS_CACHE[key] = rig
@@ -174,7 +176,7 @@ def build_shard(job: ShardJob) -> Path:
     pin_threads(job.threads)
     timer = StageTimer()
     wall, cpu = time.perf_counter(), time.process_time()
-    rig = worker_rig(job.rig_block, job.description_dir, timer, job.device)
+    rig = worker_rig(job.rig_block, job.description_dir, timer, job.device, job.settings.renderer)
     depth_source = worker_depth_source(job.depth, job.recipe_file, len(rig.names), timer)
     tmp = job.shard_dir.with_name(f".{job.shard_dir.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)

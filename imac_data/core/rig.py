@@ -27,7 +27,7 @@ from imac_data.core.contact.images import ContactChunk, contact_chunk
 from imac_data.core.contact.workspace import Workspace, as_workspace, resolve_workspace, saturation_depth
 from imac_data.core.depth import DepthCodec, resize_depth
 from imac_data.core.motion import Controller, frame_configurations, rollout
-from imac_data.core.render import check_device, make_renderer
+from imac_data.core.render import BACKENDS, check_device, make_renderer
 from imac_data.core.robot.description import check_description, description_manifest
 from imac_data.core.robot.lerobot_units import LEROBOT_ARMS, read_calibration
 from imac_data.core.robot.model import RobotConfig, RobotModel
@@ -74,6 +74,7 @@ class Rig:
     threads: int = 0  # renderer (Embree) and contact threads; 0 = all cores
     workspace: Workspace | None = None  # the contact streams' scene crop; None = none
     device: str = "cpu"  # cpu: Open3D ray casting, KD-trees; cuda[:N]: the torch rasteriser, brute force there
+    cpu_renderer: str = "open3d"  # the renderer backend on the CPU (render.BACKENDS): open3d or opengl
 
     def __post_init__(self) -> None:
         if not self.cameras:
@@ -93,6 +94,8 @@ class Rig:
             raise InputError(f"rig: gripper spacing must be > 0 metres, got {self.gripper_spacing}")
         self.workspace = as_workspace(self.workspace)
         self.device = check_device(self.device)
+        if self.cpu_renderer not in BACKENDS:
+            raise InputError(f"rig: unknown renderer {self.cpu_renderer!r}; available: {sorted(BACKENDS)}")
         self._renderer = None
         self._gripper = None
 
@@ -220,7 +223,7 @@ class Rig:
         cams = {name: cam.for_images(*sizes.get(name, (cam.height, cam.width)))
                 for name, cam in self.cameras.items()}
         rig = Rig(self.robot, cams, self.controller, self.state_names, self.gripper_spacing, self.threads,
-                  self.workspace, self.device)
+                  self.workspace, self.device, self.cpu_renderer)
         rig._renderer, rig._gripper = self._renderer, self._gripper
         return rig
 
@@ -230,7 +233,7 @@ class Rig:
         if missing:
             raise InputError(f"rig: no camera(s) {missing} (has {self.names})")
         return Rig(self.robot, {v: self.cameras[v] for v in views}, self.controller, self.state_names,
-                   self.gripper_spacing, self.threads, self.workspace, self.device)
+                   self.gripper_spacing, self.threads, self.workspace, self.device, self.cpu_renderer)
 
     # ------------------------------------------------------------------ parts
 
@@ -246,9 +249,16 @@ class Rig:
     @property
     def renderer(self):
         if self._renderer is None:
-            self._renderer = (make_renderer(self.robot, nthreads=self.threads) if self.device == "cpu" else
-                              make_renderer(self.robot, "torch", device=self.device))
+            self._renderer = (make_renderer(self.robot, self.cpu_renderer, nthreads=self.threads)
+                              if self.device == "cpu" else make_renderer(self.robot, "torch", device=self.device))
         return self._renderer
+
+    def use_cpu_renderer(self, backend: str) -> None:
+        """Render with ``backend`` on the CPU from now on (a recipe's ``augment.renderer``)."""
+        if backend not in BACKENDS:
+            raise InputError(f"rig: unknown renderer {backend!r}; available: {sorted(BACKENDS)}")
+        if backend != self.cpu_renderer:
+            self.cpu_renderer, self._renderer = backend, None
 
     @property
     def gripper(self):
