@@ -81,7 +81,8 @@ def _errors(truth, out: Path, summary: dict) -> dict:
 
 
 def run(lags: list[int], cams: list[str], *, height: int, width: int, seed: int, max_steps: int | None,
-        work: Path, log=print) -> list[dict]:
+        work: Path, log=print, after_lag=None) -> list[dict]:
+    """Every lag's rows; ``after_lag(rows)`` is called with the rows so far after each lag."""
     raw = work / "raw50"
     log(f"recording seed {seed} at 50 fps, {width}x{height}")
     truth = aloha_recorded_50fps(raw, seed=seed, episodes=1, height=height, width=width, max_steps=max_steps)
@@ -103,6 +104,8 @@ def run(lags: list[int], cams: list[str], *, height: int, width: int, seed: int,
                 row["offset_err_ms"] = row["offset_ms"] - row["true_ms"]
             rows.append(row)
             log(_line(row))
+        if after_lag is not None:
+            after_lag(rows)
     return rows
 
 
@@ -145,15 +148,23 @@ def main(argv: list[str] | None = None) -> dict:
         print(table(saved["rows"]))
         return saved
     t0 = time.perf_counter()
+    lags = [int(x) for x in a.lags.split(",")]
+
+    def save(rows: list[dict]) -> dict:
+        # after every lag, so that a long grid cut short keeps the lags it finished
+        done = sorted({r["lag_steps"] for r in rows})
+        result = {"args": vars(a), "rows": rows, "lags_done": done, "complete": len(done) == len(lags),
+                  "wall_s": time.perf_counter() - t0, "load_avg": list(os.getloadavg())}
+        if a.json:
+            Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(a.json).write_text(json.dumps(result, indent=1, default=float))
+        return result
+
     with tempfile.TemporaryDirectory(prefix="calib_offset_") as tmp:
-        rows = run([int(x) for x in a.lags.split(",")], a.cameras.split(","), height=a.height, width=a.width,
-                   seed=a.seed, max_steps=a.max_steps, work=Path(tmp))
-    result = {"args": vars(a), "rows": rows, "wall_s": time.perf_counter() - t0, "load_avg": list(os.getloadavg())}
-    if a.json:
-        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps(result, indent=1, default=float))
+        rows = run(lags, a.cameras.split(","), height=a.height, width=a.width, seed=a.seed, max_steps=a.max_steps,
+                   work=Path(tmp), after_lag=save)
     print(table(rows))
-    return result
+    return save(rows)
 
 
 if __name__ == "__main__":
