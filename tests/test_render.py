@@ -553,3 +553,20 @@ def test_qa_overlay_bad_input_writes_nothing(qa_inputs, capsys):
         assert rc == 2
         assert message in capsys.readouterr().err
         assert sorted(p.name for p in qa_inputs.iterdir()) == before  # nothing written, no temp dirs
+
+
+def test_the_opengl_renderer_draws_from_any_thread(robot, calib):
+    """One EGL context serves every thread in turn (the build's thread pools): it is released after each
+    render, and a render on another thread draws what this one drew."""
+    import threading
+
+    r = make_renderer(robot, "opengl")
+    q = torch.tensor(workspace_configs(2, seed=2))
+    here = r.render(q, calib)
+    there = {}
+    worker = threading.Thread(target=lambda: there.update(r.render(q, calib)))
+    worker.start()
+    worker.join()
+    again = r.render(q, calib)
+    for c in calib:
+        assert torch.equal(here[c].rgb, there[c].rgb) and torch.equal(here[c].depth, again[c].depth)

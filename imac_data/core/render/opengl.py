@@ -13,6 +13,7 @@ Each process makes its own EGL context (MuJoCo's, ``mujoco.egl``) at its first r
 from __future__ import annotations
 
 import atexit
+import contextlib
 import math
 import os
 import threading
@@ -89,6 +90,9 @@ class GLRenderer(Renderer):
                                 ("max_frames", max_frames, max_frames >= 1)):
             if not (math.isfinite(value) and ok):
                 raise InputError(f"renderer {name} out of range: {value}")
+        if len(self.link_names) > 255:  # the link index travels in one byte
+            raise InputError(f"the opengl renderer draws at most 255 links, robot {robot.config.name!r} has "
+                             f"{len(self.link_names)}; use the open3d renderer")
         self.max_frames = int(max_frames)
         self.near = float(near)
         self.ambient = float(ambient)
@@ -110,15 +114,12 @@ class GLRenderer(Renderer):
         self._vertices = np.concatenate(verts).astype(np.float32)
         self._faces = np.concatenate(faces).astype(np.uint32)
         self._vertex_link = np.concatenate(links)
-        if len(self.link_names) > 255:
-            raise InputError(f"the opengl renderer draws at most 255 links, robot {robot.config.name!r} has "
-                             f"{len(self.link_names)}; use the open3d renderer")
         per_face = np.zeros((len(self._faces), 2, 4), np.float32)  # normal, colour: two texels a triangle
         per_face[:, 0, :3] = np.concatenate(normals)
         per_face[:, 1, :3] = 255.0 * np.concatenate(colours)
         self._per_face = per_face
         self.num_triangles = len(self._faces)
-        self._gl = None  # (pid, context, program, uniforms, vao, framebuffers): made at the first render
+        self._gl = None  # this process's context, program, buffers and framebuffers: made at the first render
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------------ render
@@ -134,8 +135,7 @@ class GLRenderer(Renderer):
 
         T_wl = np.stack([pose(n) for n in self.link_names], axis=1)  # (N, L, 4, 4)
         result = {}
-        with self._lock:
-            gl = self._context()
+        with self._lock, self._current() as gl:
             for name, cam in cameras.items():
                 if cam.is_mounted:
                     mount = T_wl[:, self.link_names.index(cam.link)] if cam.link in self.link_names else pose(cam.link)
@@ -168,6 +168,17 @@ class GLRenderer(Renderer):
 
     # ------------------------------------------------------------------ helpers
 
+    @contextlib.contextmanager
+    def _current(self):
+        """This process's context, current in the calling thread while the block runs (then released, so that
+        another thread can take it next)."""
+        gl = self._context()
+        try:
+            yield gl
+        finally:
+            EGL = gl["EGL"]
+            EGL.eglMakeCurrent(gl["display"], EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+
     def _context(self):
         """This process's EGL context, program and buffers, made current in the calling thread."""
         if self._gl is not None and self._gl["pid"] == os.getpid():
@@ -177,11 +188,11 @@ class GLRenderer(Renderer):
             os.environ.setdefault("LP_NUM_THREADS", str(self.nthreads))
         os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
         try:
-            from mujoco.egl import GLContext  # heavy, and needs EGL: only for this backend
-            from OpenGL import GL
+            import mujoco.egl  # heavy, and needs EGL: only for this backend
+            from OpenGL import EGL, GL
         except Exception as e:  # noqa: BLE001 - any failure to load EGL means the same to the user
             raise InputError(f"the opengl renderer needs EGL (libEGL, e.g. Mesa) and PyOpenGL: {e}") from e
-        context = GLContext(64, 64)  # draws into its own framebuffers, never this surface
+        context = mujoco.egl.GLContext(64, 64)  # draws into its own framebuffers, never this surface
         atexit.register(_free, context, os.getpid())  # before interpreter teardown, when EGL can still be called
         context.make_current()
         links = len(self.link_names)
@@ -215,10 +226,11 @@ class GLRenderer(Renderer):
         GL.glDisable(GL.GL_DITHER)
         uniforms = {n: GL.glGetUniformLocation(program, n)
                     for n in ("link_to_camera", "K", "K_inverse", "size", "near")}
-        self._gl = {"pid": os.getpid(), "GL": GL, "context": context, "program": program, "vao": vao,
-                    "buffers": (*buffers, faces), "texture": texture,
+        self._gl = {"pid": os.getpid(), "GL": GL, "EGL": EGL, "display": mujoco.egl.EGL_DISPLAY,  # set by the context
+                    "context": context, "program": program, "vao": vao, "buffers": (*buffers, faces),
+                    "texture": texture, "uniforms": uniforms, "targets": {},
                     "max_size": int(GL.glGetIntegerv(GL.GL_MAX_TEXTURE_SIZE)),
-                    "max_layers": int(GL.glGetIntegerv(GL.GL_MAX_ARRAY_TEXTURE_LAYERS)), "uniforms": uniforms, "targets": {}}
+                    "max_layers": int(GL.glGetIntegerv(GL.GL_MAX_ARRAY_TEXTURE_LAYERS))}
         return self._gl
 
     def _target(self, gl, W: int, H: int, frames: int):
