@@ -217,8 +217,8 @@ class AugmentSettings:
     # (r2s saturated on the robot, s2g black, caps contact.EMPTY_CAP)
     empty_reference_scene: str = "error"
     lerobot_depth_map: DepthMapOutput = field(default_factory=DepthMapOutput)  # off: see docs/lerobot.md
-    # the motion images' renderer on the CPU: open3d (ray casting) or opengl (EGL rasterisation, about half
-    # the CPU from 480x640 on; the same images within the tolerances of docs/building.md); --device cuda: torch
+    # the motion images' renderer on the CPU: open3d (ray casting) or opengl (EGL rasterisation, 0.74x the
+    # render stage's CPU at 480x640; the same images within the tolerances of docs/building.md); --device cuda: torch
     renderer: str = "open3d"
 
     def __post_init__(self) -> None:

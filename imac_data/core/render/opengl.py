@@ -2,11 +2,11 @@
 driver where there is one).
 
 :class:`GLRenderer` draws what :class:`~imac_data.core.render.RaycastRenderer` casts, with the same sampling
-(a pixel is its centre's ray) and the same shading. OpenGL only finds, per pixel, the nearest triangle and
-its z-depth (two colour attachments: the triangle's index and the interpolated camera-frame z; a reversed,
-float depth buffer orders them); the shading is the ray caster's, in numpy. A rasteriser's cost follows the
-triangles rather than the pixels, so it pays at 480x640 and above, where ray casting a pixel at a time costs
-more (docs/building.md, "Render: a rasteriser instead of ray casting?").
+(a pixel is its centre's ray) and the same shading, done in the fragment shader. Two colour attachments carry
+each pixel's colour and link (a byte each, packed in 32 bits) and its interpolated camera-frame z; a reversed
+float depth buffer keeps the nearest surface. A rasteriser's cost follows the triangles rather than the pixels,
+so it pays only from 480x640 on: there a build's render stage takes about 0.74 times the ray caster's CPU
+(docs/building.md, "Render: a rasteriser instead of ray casting?").
 
 Each process makes its own EGL context (MuJoCo's, ``mujoco.egl``) at its first render; one render at a time."""
 
@@ -52,7 +52,7 @@ void main() {{
 """
 
 # The ray caster's shading: colour * (ambient + (1 - ambient) |cos(normal, ray)|), rounded, with the face's
-# normal (link frame) and colour from a buffer texture indexed by the triangle; alpha = link index + 1.
+# normal (link frame) and colour from a buffer texture indexed by the triangle; the top byte = link index + 1 (0: no robot).
 _FRAGMENT = """
 #version 330 core
 in float z;
