@@ -15,9 +15,12 @@ import torch
 from imac_data.core.contact.batched import contact_batch
 from imac_data.core.contact.images import (
     DEFAULT_TOLERANCE,
+    EMPTY_CAP,
     JET_LUT,
+    MIN_CAP,
     GripperSurface,
     NearestNeighbours,
+    chunk_caps,
     chunk_plan,
     colorize,
     contact_chunk,
@@ -322,6 +325,45 @@ def test_empty_clouds_have_defined_results():
     # no robot in view at all: nothing painted, caps still defined
     c = contact_chunk(depth, K, T, rmask, torch.zeros_like(rdepth), Tf, grip)
     assert torch.isnan(c.r2s).all() and torch.isfinite(c.caps).all()
+
+
+def test_caps_are_numpys_percentile_over_what_has_a_value():
+    """chunk_caps against numpy's own percentile (+inf stood in by a huge finite value): NaN ignored, +inf
+    larger than everything, the largest finite value where the percentile lands on +inf, never below
+    MIN_CAP, EMPTY_CAP without a finite value."""
+    rng = np.random.default_rng(0)
+
+    def oracle(v, q=99.0):
+        v = v[~np.isnan(v)]
+        if not np.isfinite(v).any():
+            return EMPTY_CAP
+        c = np.percentile(np.where(np.isinf(v), 1e30, v).astype(np.float64), q)
+        return max(float(v[np.isfinite(v)].max()) if c >= 1e29 else c, MIN_CAP)
+
+    for n, inf_share, nan_share in [(1, 0, 0), (7, 0.3, 0.2), (1000, 0.005, 0.1), (50_000, 0.02, 0), (300, 0.5, 0)]:
+        r = rng.uniform(0, 0.4, n).astype(np.float32)
+        r[rng.random(n) < inf_share] = np.inf
+        r[rng.random(n) < nan_share] = np.nan
+        s = rng.uniform(0, 0.2, (3, n)).astype(np.float32)
+        caps = chunk_caps(torch.from_numpy(r), torch.from_numpy(s)).tolist()
+        assert caps == pytest.approx([oracle(r), oracle(s.reshape(-1))], rel=1e-6), (n, inf_share, nan_share)
+    for stream, expected in [(np.full(5, np.inf), EMPTY_CAP), (np.full(4, np.nan), EMPTY_CAP),
+                             (np.zeros(0), EMPTY_CAP), (np.zeros(9), MIN_CAP)]:
+        t = torch.from_numpy(stream.astype(np.float32))
+        assert chunk_caps(t, t).tolist() == pytest.approx([expected, expected])
+
+
+def test_robot_depth_without_a_finite_value_is_no_robot():
+    """NaN and +inf in the future robot depth mark no robot, exactly as 0 does."""
+    depth, K, T, rmask, rdepth, Tf, grip, _ = _plane_scene()
+    robot = torch.nonzero(rdepth.reshape(-1) > 0)[:, 0]
+    zero, odd = rdepth.clone().reshape(-1), rdepth.clone().reshape(-1)
+    zero[robot[::3]] = 0.0
+    odd[robot[::6]], odd[robot[3::6]] = math.inf, math.nan
+    a = contact_chunk(depth, K, T, rmask, zero.reshape(rdepth.shape), Tf, grip)
+    b = contact_chunk(depth, K, T, rmask, odd.reshape(rdepth.shape), Tf, grip)
+    for name in ("r2s", "s2g", "r2s_rgb", "s2g_rgb", "caps"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), equal_nan=True, rtol=0, atol=0)
 
 
 def test_episode_contact_caps_and_steps():

@@ -24,7 +24,7 @@ from imac_data.core.contact.workspace import as_workspace
 from imac_data.errors import InputError
 
 __all__ = ["DEFAULT_DILATE_PX", "DEFAULT_GRIPPER_SPACING", "dilate_mask", "SceneCloud", "scene_cloud",
-           "GripperSurface", "lift_pixels", "posed_samples"]
+           "GripperSurface", "lift_pixels", "camera_rays", "posed_samples"]
 
 DEFAULT_DILATE_PX = 2
 DEFAULT_GRIPPER_SPACING = 0.002  # metres between gripper surface samples
@@ -68,9 +68,31 @@ def lift_pixels(depth_flat: torch.Tensor, rays: torch.Tensor, T: torch.Tensor, i
     start = 0
     for i, n in enumerate(counts):  # one block per image (S * V of them), not per point
         if n:
-            out[start:start + n] = p_cam[start:start + n] @ T[i, :3, :3].T + T[i, :3, 3]
+            # R p + t column by column: the same float operations as the (n, 3) @ (3, 3)
+            # product it replaced (bit-identical points), in half its time on the CPU
+            p, R = p_cam[start:start + n], T[i, :3, :3]
+            x = out[start:start + n]
+            torch.mul(p[:, 0:1], R[:, 0], out=x)
+            x += p[:, 1:2] * R[:, 1]
+            x += p[:, 2:3] * R[:, 2]
+            x += T[i, :3, 3]
         start += n
     return out
+
+
+_RAYS: dict = {}
+
+
+def camera_rays(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """:func:`~imac_data.core.cameras.pixel_rays` of ``K (V, 3, 3)``, kept for the next call: a build's
+    chunks share their intrinsics, and the table cost as much as lifting the points (read only)."""
+    key = (K.detach().cpu().numpy().tobytes(), K.dtype, str(K.device), int(height), int(width))
+    rays = _RAYS.get(key)
+    if rays is None:
+        if len(_RAYS) >= 8:
+            _RAYS.clear()
+        rays = _RAYS[key] = pixel_rays(K, height, width)
+    return rays
 
 
 @dataclass
@@ -138,7 +160,7 @@ def scene_cloud(depth, K, T_world_cam, robot_mask, *, dilate_px: int = DEFAULT_D
     good = torch.isfinite(depth) & (depth > 0) if workspace is None else workspace.valid_depth(depth)
     valid = good & ~removed
     flat = torch.nonzero(valid.reshape(-1))[:, 0]
-    rays = pixel_rays(K, H, W)
+    rays = camera_rays(K, H, W)
     points = lift_pixels(depth.reshape(-1).index_select(0, flat), rays, T, flat // (H * W), flat)
     mask, outside = ~removed, None
     if workspace is not None:

