@@ -66,9 +66,9 @@ REFERENCE_SAMPLES = 3000
 
 
 
-def episode(max_steps: int, seed: int = 0) -> dict:
+def episode(max_steps: int, seed: int = 0, height: int = 240, width: int = 320) -> dict:
     model = load_mujoco_model("transfer_cube")
-    cap = FrameRenderer(model, 320, 240, segmentation=True, keep_qpos=True)
+    cap = FrameRenderer(model, width, height, segmentation=True, keep_qpos=True)
     try:
         ep = simulate_episode("transfer_cube", seed=seed, frame_stride=2, max_steps=max_steps, renderer=cap)
     finally:
