@@ -367,8 +367,9 @@ def _contact_chunk(ref_depth, K, ref_T_world_cam, ref_robot_mask, robot_depth, T
     # ---- robot points of every step and view: back-projected robot depth
     rflat = torch.nonzero(rd.reshape(-1) > 0)[:, 0]  # index into (S, V, H, W); NaN is not > 0
     r_depth = rd.reshape(-1).index_select(0, rflat)
-    if not bool(torch.isfinite(r_depth).all()):  # +inf is no robot either (checked on the robot's pixels only)
-        rflat, r_depth = rflat[torch.isfinite(r_depth)], r_depth[torch.isfinite(r_depth)]
+    finite = torch.isfinite(r_depth)  # +inf is no robot either (checked on the robot's pixels only)
+    if not bool(finite.all()):
+        rflat, r_depth = rflat[finite], r_depth[finite]
     image, pix = rflat // HW, rflat % HW  # image = step * V + view
     step = image // V
     rays = camera_rays(Kt, H, W)
