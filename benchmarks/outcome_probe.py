@@ -143,10 +143,11 @@ def fit_predict(train: tuple, target: torch.Tensor, test: tuple, *, steps: int, 
 
 
 def grasp_offsets(plan: RankingPlan) -> dict[int, list[float]]:
-    """Each training rollout's planned grasp offset (x, y) in cm, from the simulate stage's records."""
+    """Each scripted training rollout's planned grasp offset (x, y) in cm, from the simulate stage's records
+    (a plan's ``training_policies`` plan none)."""
     rows = [r for part in sorted((plan.work / "sim" / "train").glob("part_*"))
             for r in json.loads((part / "outcomes.json").read_text())]
-    return {int(r["index"]): [100.0 * v for v in r["offset"]] for r in rows}
+    return {int(r["index"]): [100.0 * v for v in r["offset"]] for r in rows if r["offset"] is not None}
 
 
 def offset_knn(offsets: dict[int, list[float]], labels: dict[int, bool | None], k: int) -> float:
@@ -242,7 +243,8 @@ def measure(plan: RankingPlan, inputs: list[str], chunks: list[int], folds: int,
               "offset_knn": {str(k): round(offset_knn(offsets, labels, k), 3) for k in (5, 9, 15)}, "probes": {}}
     print(json.dumps({"offset_knn": result["offset_knn"]}), flush=True)
     for c in chunks:
-        index = torch.tensor([i for i in range(len(episode)) if int(position[i]) == c and int(episode[i]) in fold_of])
+        index = torch.tensor([i for i in range(len(episode)) if int(position[i]) == c and int(episode[i]) in fold_of
+                              and (target != "offset" or int(episode[i]) in offsets)])  # a policy's rollouts plan none
         if target == "offset":
             y = torch.tensor([offsets[int(episode[i])] for i in index])
         else:

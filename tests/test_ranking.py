@@ -35,7 +35,7 @@ from imac_data.dataset.output import output_lock
 from imac_data.errors import InputError
 from imac_data.layout import STATE, depth_key, image_key
 from imac_data.metadata import dataset_info
-from imac_data.sources.hdf5 import write_episode
+from imac_data.sources.hdf5 import read_episode, write_episode
 from imac_data.sources.sim.env import SimEnv
 from imac_model.cli import main as model_main
 from imac_model.cli.ranking import _run_stages as run_stages
@@ -46,7 +46,7 @@ from imac_model.data.pack import Pack, write_pack
 from imac_model.data.scene_warp import SceneWarp
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
 from imac_model.evaluate.policies import load_policy
-from imac_model.evaluate.simulator import SimRunConfig, SimRunner
+from imac_model.evaluate.simulator import SimRunConfig, SimRunner, run_policy
 from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking import plan as plan_module
 from imac_model.experiments.ranking.benchmark import STAGE_FUNCTIONS
@@ -60,14 +60,17 @@ from imac_model.experiments.ranking.plan import (
     EVAL_REPO,
     POLICY_MODULE,
     TRAIN_REPO,
+    TRAIN_SEED0,
     RankingPlan,
     checkpoints_plan,
     slug,
+    toy_plan,
 )
 from imac_model.experiments.ranking.policies import VIEWS, WORKSPACE, LiftPolicy, closed_loop, open_loop
 from imac_model.experiments.ranking.report import _relative, rewrite_report, training_log, write_report
 from imac_model.experiments.ranking.report_text import _by_family, parting_chunks, verdict_pairs
 from imac_model.experiments.ranking.shipped import sha256
+from imac_model.experiments.ranking.simulate import simulate_training_part
 from imac_model.experiments.ranking.training import GateStop, stage_train
 from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
@@ -401,6 +404,36 @@ def test_a_policy_of_another_task_is_refused_by_the_closed_loop(lift, tmp_path, 
     assert "policy inserter acts on ['Insert the peg into the socket.'] (its tasks), but the task of start " \
            "episode 1 is 'Pick up the cube with the right arm and lift it.'" in err
     assert sorted(p.name for p in tmp_path.iterdir() if p.name != "__pycache__") == ["insert_policy.py"]
+
+
+def test_training_policies_run_their_share_of_the_training_rollouts_from_the_rollouts_own_starts(tmp_path):
+    """A plan's training_policies run their share of the world model's training rollouts (0.25: every fourth,
+    the specs in turn); the rest stay the scripted mix. Each such rollout is what the policy does from that
+    rollout's start when run alone (the same actions); the plan round-trips; bad settings are refused."""
+    spec_a, spec_b = f"python:{POLICY_MODULE}:open_loop", f"python:{POLICY_MODULE}:closed_loop_1p5cm"
+    plan = dataclasses.replace(toy_plan(tmp_path / "work", tmp_path / "docs"), train_episodes=8, jobs=1,
+                               training_policies=(spec_a, spec_b))
+    assert [plan.training_policy_of(i) for i in range(8)] == [None, None, None, spec_a, None, None, None, spec_b]
+    assert RankingPlan.from_dict(json.loads(json.dumps(plan.to_dict()))) == plan
+    assert RankingPlan.from_dict({k: v for k, v in plan.to_dict().items()
+                                  if not k.startswith("training_polic")}).training_policy_of(3) is None  # older plans
+    simulate_training_part(plan, 0)
+    out = plan.work / "sim" / "train" / "part_0"
+    rows = {r["index"]: r for r in json.loads((out / "outcomes.json").read_text())}
+    assert sorted(rows) == list(range(8))
+    assert [rows[i]["policy"] for i in (3, 7)] == [slug(spec_a), slug(spec_b)]
+    assert rows[3]["offset"] is None and all(rows[i]["policy"].startswith("mix_") and len(rows[i]["offset"]) == 2
+                                             for i in (0, 1, 2, 4, 5, 6))
+    alone = run_policy(load_policy(spec_b), [TRAIN_SEED0 + 7], tmp_path / "alone", progress=False,
+                       config=SimRunConfig(chunks=plan.chunks, view_height=plan.view_size[0],
+                                           view_width=plan.view_size[1], views=plan.views, settle_s=plan.settle_s))
+    assert alone[0]["success"] == rows[7]["success"]
+    np.testing.assert_array_equal(read_episode(tmp_path / "alone" / "episode_0.hdf5").action,
+                                  read_episode(out / "ep_00007" / "episode_0.hdf5").action)
+    for bad, match in [({"training_policy_share": 0.0}, "training_policy_share"),
+                       ({"training_policies": ("open_loop",)}, "training_policies")]:
+        with pytest.raises(InputError, match=match):
+            dataclasses.replace(plan, **bad)
 
 
 @pytest.fixture(scope="module")

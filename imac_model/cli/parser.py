@@ -194,6 +194,12 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--training-offsets", choices=("across", "disc"),
                    help="how far off the cube the world model's training rollouts grasp (default across; work "
                         "directories made before 2026-11-28: disc; docs/ranking.md, 'Starts, seeds and data')")
+    p.add_argument("--training-policies", nargs="+", metavar="SPEC",
+                   help="policies (python:, lerobot:, noisy: specs) whose own rollouts join the world model's training "
+                        "data, in turn, at --training-policy-share of the rollouts; e.g. checkpoints of the ranked "
+                        "policy's training run that are not ranked (docs/ranking.md, 'Training on the ranked family')")
+    p.add_argument("--training-policy-share", type=float, metavar="SHARE",
+                   help="share of the training rollouts the --training-policies run, spread evenly (default 0.25)")
     p.add_argument("--settle", type=float, metavar="SECONDS",
                    help="physics run before each episode's first frame, so the box gym-aloha starts 3 cm up rests "
                         "on the table (default 0.3; work directories made before 2026-11-29: 0)")

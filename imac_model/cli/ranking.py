@@ -42,6 +42,8 @@ def _plan(args: argparse.Namespace) -> RankingPlan:
     changes = {k: v for k, v in (("policies", tuple(args.policies or ()) or None), ("cpu_minutes", args.cpu_minutes),
                                  ("steps", args.steps), ("jobs", args.jobs),
                                  ("training_offsets", args.training_offsets), ("settle_s", args.settle),
+                                 ("training_policies", tuple(args.training_policies or ()) or None),
+                                 ("training_policy_share", args.training_policy_share),
                                  ("views", tuple(args.views or ()) or None))
                if v is not None}
     return same_as_saved(dataclasses.replace(plan, **changes))
@@ -52,7 +54,8 @@ def _rerun_plan(args: argparse.Namespace) -> RankingPlan:
     docs = Path(args.docs).resolve() if args.docs else work / "report"
     if docs == models.parent:
         raise InputError(f"--docs {args.docs}: the report the models belong to is there; the rerun's goes elsewhere")
-    given = [k for k in ("preset", "cpu_minutes", "steps", "training_offsets", "settle", "views", "stages")
+    given = [k for k in ("preset", "cpu_minutes", "steps", "training_offsets", "training_policies",
+                         "training_policy_share", "settle", "views", "stages")
              if getattr(args, k) not in (None, "cpu")] + (["toy"] if args.toy else [])
     if given:
         raise InputError(f"--from-models runs the report's plan; {', '.join('--' + k.replace('_', '-') for k in given)} "
@@ -142,7 +145,8 @@ def _ranking(args: argparse.Namespace) -> int:
 
 
 def _run_stages(plan: RankingPlan, stages: list[str]) -> int:
-    if {"simulate", "build", "evaluate"} & set(stages):  # the stages that run every policy
+    # the stages that run policies (pack simulates the training rollouts, the training policies' among them)
+    if {"simulate", "build", "evaluate"} & set(stages) or ("pack" in stages and plan.training_policies):
         plan.check_policies()
     (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
     log = StageLog(plan.work / "stages.json", tag="ranking")

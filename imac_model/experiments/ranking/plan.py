@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -77,6 +78,11 @@ class RankingPlan:
     # how far off the cube the training rollouts grasp (policies.TRAINING_OFFSETS); work directories made before
     # 2026-11-28 used "disc"
     training_offsets: str = "across"
+    # policies (python:/lerobot:/noisy: specs) whose own rollouts join the training data, in turn, at the share
+    # training_policy_share of the rollouts spread evenly; the rest stay the scripted mix (docs/ranking.md,
+    # "Training on the ranked family"); none in plans saved before 2026-12-03
+    training_policies: tuple[str, ...] = ()
+    training_policy_share: float = 0.25
     # motion is left out of the default: the comparison is motion+contact against action-vector, and none is
     # the harness check; at 8 CPU-hours a fourth equal budget does not fit (docs/ranking.md, "Modes")
     modes: tuple[str, ...] = (GATED_MODE, BASELINE_MODE, CHECK_MODE)
@@ -129,6 +135,12 @@ class RankingPlan:
             raise InputError("ranking: held_out must be below train_episodes")
         if self.training_offsets not in TRAINING_OFFSETS:
             raise InputError(f"ranking: training_offsets {self.training_offsets!r}; choose from {list(TRAINING_OFFSETS)}")
+        self.training_policies = tuple(self.training_policies)
+        if not 0 < self.training_policy_share <= 1:
+            raise InputError(f"ranking: training_policy_share must be in (0, 1], got {self.training_policy_share}")
+        odd = [p for p in self.training_policies if not p.startswith(("python:", "lerobot:", "noisy:"))]
+        if odd:
+            raise InputError(f"ranking: training_policies {odd}: give python:MODULE:NAME, lerobot:DIR or noisy:STD:SPEC")
         self.view_size = tuple(int(x) for x in self.view_size)
         self.views = tuple(self.views)
         if WORKSPACE not in self.views or len(set(self.views)) != len(self.views) or set(self.views) - set(CAMERAS):
@@ -145,7 +157,8 @@ class RankingPlan:
     def check_policies(self) -> None:
         """Refuse ``lerobot:`` checkpoints that are not there, naming them all, before a stage runs a policy (the
         world models' training side needs none, so it may start while the policies still train)."""
-        missing = [p for p in self.policies if lerobot_dir(p) and not Path(lerobot_dir(p), "config.json").is_file()]
+        missing = [p for p in (*self.policies, *self.training_policies)
+                   if lerobot_dir(p) and not Path(lerobot_dir(p), "config.json").is_file()]
         if missing:
             raise InputError(f"ranking: no LeRobot checkpoint (config.json) at {', '.join(missing)}; "
                              "`python -m benchmarks.lerobot_policy` trains the checkpoint preset's (docs/ranking.md, "
@@ -198,6 +211,17 @@ class RankingPlan:
 
     def wm_dir(self, mode: str) -> Path:
         return self.work / "wm" / mode.replace("+", "_").replace("-", "_").replace("@", "_")
+
+    def training_policy_of(self, index: int) -> str | None:
+        """The ``training_policies`` spec that runs training rollout ``index``, or None (the scripted mix): the
+        rollouts where ``floor((index + 1) * share)`` steps up, spread evenly, the specs in turn."""
+        if not self.training_policies:
+            return None
+        share = self.training_policy_share
+        k = math.floor((index + 1) * share)
+        if k == math.floor(index * share):
+            return None
+        return self.training_policies[(k - 1) % len(self.training_policies)]
 
     def held_out_episodes(self) -> list[int]:
         """The training rollouts kept out of training: the last ``held_out``."""

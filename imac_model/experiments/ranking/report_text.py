@@ -165,7 +165,8 @@ def _header(plan: RankingPlan, r: dict) -> list[str]:
         + _policy_training(r), "",
         f"**Sizes.** {len(plan.policies)} policies; in MuJoCo {plan.groups} groups of {plan.real_per_group} starts "
         f"each; in the world model the first {plan.wm_per_group} starts of each group, {plan.chunks} chunks of 8 "
-        f"frames (10 fps), {plan.steps} Euler steps; {plan.train_episodes} training rollouts.", "",
+        f"frames (10 fps), {plan.steps} Euler steps; {plan.train_episodes} training rollouts"
+        + _training_policies(plan) + ".", "",
     ]
     if r.get("shipped"):
         lines += ["**Shipped models.** " + "; ".join(
@@ -463,3 +464,11 @@ def markdown(plan: RankingPlan, r: dict) -> str:
                       f"![{outcome}](rollout_{outcome}.png)", ""]
     lines += _stage_times(plan, r)
     return "\n".join(lines) + "\n"
+
+
+def _training_policies(plan) -> str:
+    """Which training rollouts the plan's ``training_policies`` ran (none: the scripted mix alone)."""
+    if not plan.training_policies:
+        return ""
+    n = sum(plan.training_policy_of(i) is not None for i in range(plan.train_episodes))
+    return f", {n} of them by {', '.join(f'`{p}`' for p in plan.training_policies)} in turn"
