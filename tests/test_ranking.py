@@ -66,7 +66,15 @@ from imac_model.experiments.ranking.plan import (
     slug,
     toy_plan,
 )
-from imac_model.experiments.ranking.policies import VIEWS, WORKSPACE, LiftPolicy, closed_loop, open_loop
+from imac_model.experiments.ranking.policies import (
+    TRAINING_OFFSETS,
+    VIEWS,
+    WORKSPACE,
+    LiftPolicy,
+    closed_loop,
+    open_loop,
+    training_policy,
+)
 from imac_model.experiments.ranking.report import _relative, rewrite_report, training_log, write_report
 from imac_model.experiments.ranking.report_text import _by_family, parting_chunks, verdict_pairs
 from imac_model.experiments.ranking.shipped import sha256
@@ -808,6 +816,19 @@ def test_the_views_are_the_plans_choice_checked_before_any_work(tmp_path, capsys
     assert model_main(["ranking", "--work", str(tmp_path / "w"), "--docs", str(tmp_path), "--views", "cam_back",
                        "cam_workspace", "--stages", "report"]) == 2
     assert "cam_back" in capsys.readouterr().err and not (tmp_path / "w").exists()
+
+
+def test_slope_offsets_put_half_the_training_rollouts_where_the_success_rate_falls():
+    """The slope offsets: half the draws are across's (uniform over 2 cm along and 5 cm across the fingers), half
+    1-3 cm either way across them; so 0.5 + 0.5 * 0.4 = 0.7 of all land 1-3 cm off across, 0.2 beyond 3 cm, the
+    two signs alike. A training rollout's policy grasps at its own draw."""
+    draws = np.array([TRAINING_OFFSETS["slope"](np.random.default_rng([i, 0x7A11])) for i in range(4000)])
+    x, y = draws[:, 0], np.abs(draws[:, 1])
+    assert np.abs(x).max() <= 0.02 and y.max() <= 0.05
+    assert abs(((y >= 0.01) & (y <= 0.03)).mean() - 0.7) < 0.03 and abs((y > 0.03).mean() - 0.2) < 0.03
+    assert abs((draws[:, 1] > 0).mean() - 0.5) < 0.03
+    assert training_policy(5, "slope").offset.tolist() == pytest.approx(
+        list(TRAINING_OFFSETS["slope"](np.random.default_rng([5, 0x7A11]))))
 
 
 def test_a_plan_saved_before_the_training_offsets_settle_and_views_settings_loads_as_what_it_ran(tmp_path, capsys):

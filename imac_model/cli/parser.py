@@ -191,9 +191,11 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 120)")
     p.add_argument("--steps", type=int, help="Euler steps at evaluation (default 10)")
     p.add_argument("--jobs", type=int, help="processes at a time (default 2)")
-    p.add_argument("--training-offsets", choices=("across", "disc"),
-                   help="how far off the cube the world model's training rollouts grasp (default across; work "
-                        "directories made before 2026-11-28: disc; docs/ranking.md, 'Starts, seeds and data')")
+    p.add_argument("--training-offsets", metavar="NAME",
+                   help="how far off the cube the world model's training rollouts grasp: across (default), slope "
+                        "(half of them where the success rate falls) or disc (work directories made before "
+                        "2026-11-28); the plan checks it against policies.TRAINING_OFFSETS (docs/ranking.md, "
+                        "'Training data that covers the policies')")
     p.add_argument("--training-policies", nargs="+", metavar="SPEC",
                    help="policies (python:, lerobot:, noisy: specs) whose own rollouts join the world model's training "
                         "data, in turn, at --training-policy-share of the rollouts; e.g. checkpoints of the ranked "

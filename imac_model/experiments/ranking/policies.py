@@ -163,7 +163,16 @@ def _across(rng: np.random.Generator) -> tuple[float, float]:
     return float(rng.uniform(-0.02, 0.02)), float(rng.uniform(-0.05, 0.05))
 
 
-TRAINING_OFFSETS = {"disc": _disc, "across": _across}
+def _slope(rng: np.random.Generator) -> tuple[float, float]:
+    """``across`` for half the rollouts; the other half 1-3 cm either way across the fingers, where the success
+    rate falls (0.16 at -3..-2 cm, 0.64 and 0.12 at +1..+3 cm, docs/ranking.md, "Training data that covers the
+    policies"): the outcome learned where it is in doubt, beside every regime."""
+    if rng.uniform() < 0.5:
+        return _across(rng)
+    return float(rng.uniform(-0.02, 0.02)), float(rng.choice((-1.0, 1.0)) * rng.uniform(0.01, 0.03))
+
+
+TRAINING_OFFSETS = {"disc": _disc, "across": _across, "slope": _slope}
 
 
 def training_policy(index: int, offsets: str = "across") -> LiftPolicy:
