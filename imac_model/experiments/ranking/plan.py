@@ -155,8 +155,9 @@ class RankingPlan:
             raise InputError(f"ranking: gate_every must be in (0, cpu_minutes], got {self.gate_every}")
 
     def check_policies(self) -> None:
-        """Refuse ``lerobot:`` checkpoints that are not there, naming them all, before a stage runs a policy (the
-        world models' training side needs none, so it may start while the policies still train)."""
+        """Refuse ``lerobot:`` checkpoints that are not there, ranked or training ones, naming them all, before a
+        stage runs a policy (without ``training_policies`` the world models' training side needs none, so it may
+        start while the policies still train)."""
         missing = [p for p in (*self.policies, *self.training_policies)
                    if lerobot_dir(p) and not Path(lerobot_dir(p), "config.json").is_file()]
         if missing:
