@@ -16,6 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from benchmarks import contact_profile
 from benchmarks.run import REQUIRED_STRINGS, RESULTS
 from benchmarks.run_report import REQUIRED_NUMBERS
 
@@ -130,8 +131,6 @@ def torch_cuda_available() -> bool:
 def test_contact_profile_splits_the_stage_into_parts_that_add_up():
     """benchmarks.contact_profile at a tiny size: the searches, the tiles' passes and the rest are each
     measured and sum to the profiled whole (not a timing test: no figure is compared with a speed)."""
-    from benchmarks import contact_profile
-
     r = contact_profile.run("48x64", max_steps=10)
     parts = ("searches_ms_per_frame", "certified_tiles_other_ms_per_frame", "rest_ms_per_frame")
     assert r["future_frames"] > 0 and all(r[k] > 0 for k in parts)
