@@ -9,7 +9,6 @@ tiles (``docs/dataset-format.md``, "Contact images")."""
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 
 from imac_data.console import cpu_cores
+from imac_data.core.kdtree import LEAFSIZE, kdtree
 from imac_data.errors import InputError
 
 __all__ = ["NearestNeighbours", "nearest_distances", "DEFAULT_TOLERANCE", "TILE_SIZES", "certified_distances",
@@ -45,32 +45,7 @@ def _box_distance(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> t
     return gap.norm(dim=-1)
 
 
-_KDTREE_LEAFSIZE = 16
 _MIN_QUERIES_PER_THREAD = 8192
-
-
-def _kdtree_class():
-    """pykdtree's ``KDTree``, loaded single-threaded.
-
-    pykdtree parallelises each query with its own OpenMP runtime, sized from
-    ``OMP_NUM_THREADS`` once, when the library loads. We load it with one thread and
-    parallelise over blocks of queries on Python threads instead (its queries release
-    the GIL): spinning OpenMP pools made the contact streams several times slower on a
-    shared 2-core machine, and the thread count then follows ``workers`` per call.
-    """
-    import sys
-
-    if "pykdtree.kdtree" not in sys.modules:
-        old = os.environ.get("OMP_NUM_THREADS")
-        os.environ["OMP_NUM_THREADS"] = "1"
-        try:
-            import pykdtree.kdtree  # noqa: F401
-        finally:
-            if old is None:
-                os.environ.pop("OMP_NUM_THREADS", None)
-            else:
-                os.environ["OMP_NUM_THREADS"] = old
-    return sys.modules["pykdtree.kdtree"].KDTree
 
 
 class NearestNeighbours:
@@ -90,7 +65,7 @@ class NearestNeighbours:
     """
 
     def __init__(self, target, *, method: str = "auto", workers: int = -1, chunk_pairs: int | None = None,
-                 leafsize: int = _KDTREE_LEAFSIZE):
+                 leafsize: int = LEAFSIZE):
         self.target = as_points(target, "nearest-distance target")
         if method not in ("auto", "kdtree", "torch"):
             raise InputError(f"nearest-distance method must be 'auto', 'kdtree' or 'torch', got {method!r}")
@@ -107,7 +82,7 @@ class NearestNeighbours:
             if method == "kdtree":
                 # the tree keeps a reference to its (contiguous float64) points
                 self._target64 = np.ascontiguousarray(self.target.detach().to("cpu", torch.float64).numpy())
-                self._tree = _kdtree_class()(self._target64, leafsize=int(leafsize))
+                self._tree = kdtree(self._target64, leafsize=leafsize)
 
     def __len__(self) -> int:
         return int(self.target.shape[0])
