@@ -8,7 +8,8 @@ LeRobot's dataset modules take over a second to import, and most commands never 
 The first use also makes HF ``datasets`` 4.x (both LeRobot lines pin ``datasets<5``) build a
 ``Features`` in linear time (:func:`use_linear_features`): its own constructor is quadratic in the
 columns, and an iMaC dataset's ``meta/episodes`` table has 300-420 of them (the per-episode stats of
-every stream), so each ``LeRobotDataset`` load took seconds.
+every stream), so each ``LeRobotDataset`` load took seconds; and a ``Features.copy`` without
+``copy.deepcopy``'s generic walk, since ``datasets`` copies the whole table's features on every column access.
 """
 
 from __future__ import annotations
@@ -114,10 +115,34 @@ def _linear_features_init(*args, **kwargs):
     self._column_requires_decoding = {name: require_decoding(f) for name, f in dict.items(self)}
 
 
+def _copied(value):
+    """A copy of a feature, or of one of its attributes, that shares nothing mutable with it: containers and
+    feature objects are copied all the way down; strings, numbers and pyarrow types are immutable and shared."""
+    if isinstance(value, dict):
+        out = dict.__new__(type(value))  # Features too: its own __init__ and __setitem__ would redo the flags
+        dict.update(out, {k: _copied(v) for k, v in dict.items(value)})
+    elif isinstance(value, list):
+        return [_copied(v) for v in value]
+    elif hasattr(value, "__dataclass_fields__") and hasattr(value, "__dict__"):  # Value, List, Video, ...
+        out = object.__new__(type(value))
+    else:
+        return value
+    if hasattr(value, "__dict__"):  # Features' decoding flags, a feature's fields and caches
+        out.__dict__.update({k: _copied(v) for k, v in value.__dict__.items()})
+    return out
+
+
+def _structural_features_copy(self):
+    """``datasets.Features.copy`` without ``copy.deepcopy``'s generic walk (3 ms for a 415-column table, and
+    ``Dataset.__getitem__`` of a column copies the table's features each time); equal to the deep copy and
+    sharing nothing mutable with the original (tests/test_dataset.py)."""
+    return _copied(self)
+
+
 def use_linear_features() -> bool:
-    """Give ``datasets`` 4.x the linear ``Features`` constructor (idempotent; tests/test_dataset.py
-    checks it against the original on a built dataset's schemas). False, and nothing changed, for
-    any other ``datasets``."""
+    """Give ``datasets`` 4.x the linear ``Features`` constructor and a structural ``Features.copy``
+    (idempotent; tests/test_dataset.py checks both against the originals on a built dataset's schemas).
+    False, and nothing changed, for any other ``datasets``."""
     global _ORIGINAL_FEATURES_INIT
     if _ORIGINAL_FEATURES_INIT is not None:
         return True
@@ -128,6 +153,7 @@ def use_linear_features() -> bool:
         return False
     _ORIGINAL_FEATURES_INIT = Features.__init__
     Features.__init__ = _linear_features_init
+    Features.copy = _structural_features_copy
     return True
 
 

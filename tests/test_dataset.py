@@ -219,6 +219,48 @@ def test_linear_features_constructor_equals_datasets_own(built):
     assert ours["a"] == List(Value("int64"))
 
 
+def _mutables(x, seen=None) -> list:
+    """Every dict, list and feature object inside ``x`` (what a deep copy must not share)."""
+    seen = [] if seen is None else seen
+    if isinstance(x, (dict, list)) or hasattr(x, "__dataclass_fields__"):
+        seen.append(x)
+    for v in (dict.values(x) if isinstance(x, dict) else x if isinstance(x, list) else ()):
+        _mutables(v, seen)
+    for v in getattr(x, "__dict__", {}).values():
+        _mutables(v, seen)
+    return seen
+
+
+def test_features_copy_equals_a_deep_copy_and_shares_nothing_mutable(built):
+    """The structural ``Features.copy`` that lerobot_compat installs beside the linear constructor: on every
+    parquet schema of a built dataset (the 400-column episodes table among them) and on nested lists, dicts and
+    class labels, the copy equals ``copy.deepcopy`` (values, types, decoding flags, a label's lookup tables) and
+    shares no dict, list or feature object with the original."""
+    import copy
+
+    import datasets
+    from datasets.features.features import ClassLabel, Features, List, Value
+
+    from imac_data import lerobot_compat
+
+    if not str(datasets.__version__).startswith("4."):
+        pytest.skip(f"datasets {datasets.__version__}: the patch is not installed there")
+    lerobot_compat.LeRobotDataset  # noqa: B018 (the first name resolved installs it)
+    assert Features.copy is lerobot_compat._structural_features_copy
+    given = [Features.from_arrow_schema(pq.read_schema(f)) for f in sorted(built[0].rglob("*.parquet"))]
+    given.append(Features({"a": List(Value("int64"), length=3), "b": {"c": [[Value("float32")]]},
+                           "label": ClassLabel(names=["neg", "pos"])}))
+    assert max(len(f) for f in given) > 300
+    for features in given:
+        ours, theirs = features.copy(), copy.deepcopy(features)
+        assert type(ours) is Features and ours == theirs and list(ours) == list(features)
+        assert ours._column_requires_decoding == theirs._column_requires_decoding
+        assert [type(x) for x in _mutables(ours)] == [type(x) for x in _mutables(theirs)]
+        assert not {id(x) for x in _mutables(ours)} & {id(x) for x in _mutables(features)}
+    label = given[-1].copy()["label"]
+    assert label.str2int("pos") == 1 and label.int2str(0) == "neg" and vars(label) == vars(given[-1]["label"])
+
+
 def test_a_build_merged_as_a_tree_equals_one_merged_at_once(tmp_path, monkeypatch):
     """Three shards merged two at a time (two levels of LeRobot aggregates, one group of one) give what one
     aggregate of all three gives (the oracle: LeRobot's merge as it was always called): the same episodes and timestamps, data rows and
