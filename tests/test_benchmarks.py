@@ -16,7 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from benchmarks import contact_profile
+from benchmarks import contact_profile, suite_profile
 from benchmarks.run import REQUIRED_STRINGS, RESULTS
 from benchmarks.run_report import REQUIRED_NUMBERS
 
@@ -136,3 +136,18 @@ def test_contact_profile_splits_the_stage_into_parts_that_add_up():
     assert r["future_frames"] > 0 and all(r[k] > 0 for k in parts)
     assert math.isclose(sum(r[k] for k in parts), r["profiled_ms_per_frame"], rel_tol=1e-9)
     assert 0 < r["searches_share"] < 1 and "KD-tree searches" in contact_profile.report(r)
+
+
+def test_the_suite_profile_counts_every_python_process_a_test_starts(tmp_path, capsys):
+    """benchmarks.suite_profile on one test that starts one Python process (the layer check's import probe): the
+    pytest process and that child are both logged with their CPU and imports, the test's duration is read back,
+    and the JSON keeps it."""
+    test = "tests/test_layers.py::test_reading_and_training_modules_import_no_renderer_robot_or_sharding_library"
+    assert suite_profile.main(["--json", str(tmp_path / "p.json"), "--", "-q", "-p", "no:cacheprovider", test]) == 0
+    result = json.loads((tmp_path / "p.json").read_text())
+    assert result["outcome"] == ["1 passed"] and result["returncode"] == 0
+    assert list(result["tests"]) == [test] and result["tests_sum_s"] > 0
+    kinds = result["kinds"]
+    assert result["processes"] == 2 and kinds["-c"]["processes"] == 1  # pytest itself and the probe it ran
+    assert sum(k["processes"] for k in kinds.values()) == 2 and result["cpu_s"] > 0
+    assert "2 Python processes" in capsys.readouterr().out
