@@ -147,6 +147,33 @@ def test_nearest_bad_input():
         nearest_distances(np.zeros((2, 3)), np.zeros((3, 3)), max_distance=-1.0)
 
 
+def test_the_shared_kdtree_answers_what_scipys_answers():
+    """core.kdtree (the contact streams' and calibration's tree) against scipy's cKDTree: the same distances and
+    nearest points within a bound, inf and index n beyond it, for float64, float32 and strided queries, on a
+    cloud with duplicate points; an empty cloud answers nothing within any distance, as scipy's does."""
+    from scipy.spatial import cKDTree
+
+    from imac_data.core.kdtree import kdtree
+
+    rng = np.random.default_rng(7)
+    points = np.concatenate([rng.normal(size=(3000, 3)), np.repeat(rng.normal(size=(20, 3)), 3, axis=0)])
+    queries = np.concatenate([rng.normal(size=(2000, 3)) * 1.5, points[::50] + 1e-9])
+    for q in (queries, queries.astype(np.float32), np.repeat(queries, 2, axis=1)[:, ::2]):
+        for bound in (0.05, 0.3, np.inf):
+            d, i = kdtree(points).query(q, distance_upper_bound=bound)
+            q64 = np.asarray(q, np.float64)
+            d0, _ = cKDTree(points).query(q64, distance_upper_bound=bound)
+            assert np.array_equal(np.isfinite(d), np.isfinite(d0)) and np.isfinite(d0).any()
+            ok = np.isfinite(d0)
+            assert np.allclose(d[ok], d0[ok], rtol=1e-6, atol=1e-6)  # float32 queries round once
+            # the index names a point at the nearest distance (of duplicates, either one)
+            assert np.allclose(np.linalg.norm(points[i[ok]] - q64[ok], axis=1), d0[ok], rtol=1e-6, atol=1e-6)
+            assert (i[~ok] == len(points)).all()
+    d, i = kdtree(np.zeros((0, 3))).query(queries[:5], distance_upper_bound=1.0)
+    d0, _ = cKDTree(np.zeros((0, 3))).query(queries[:5], distance_upper_bound=1.0)
+    assert np.array_equal(d, d0) and len(i) == 5
+
+
 # ----------------------------------------------------------------------------- colours, masks, plan
 
 

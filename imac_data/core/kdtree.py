@@ -33,6 +33,16 @@ def _kdtree_class():
     return sys.modules["pykdtree.kdtree"].KDTree
 
 
+class _NoPoints:
+    """The tree of an empty cloud: nothing within any distance, as scipy's ``cKDTree`` answers (pykdtree refuses
+    to build one)."""
+
+    def query(self, query_pts, k: int = 1, **_):
+        n = len(query_pts)
+        return np.full(n, np.inf), np.zeros(n, dtype=np.uint32)
+
+
 def kdtree(points: np.ndarray, *, leafsize: int = LEAFSIZE):
-    """A pykdtree ``KDTree`` over ``(N, 3)`` float64 points (queries must be float64 too)."""
-    return _kdtree_class()(np.ascontiguousarray(points, dtype=np.float64), leafsize=int(leafsize))
+    """A pykdtree ``KDTree`` over ``(N, 3)`` points, kept as float64 (``query`` takes any float points)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    return _kdtree_class()(points, leafsize=int(leafsize)) if len(points) else _NoPoints()
