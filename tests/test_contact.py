@@ -11,6 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from imac_data.core.contact.batched import contact_batch
 from imac_data.core.contact.images import (
@@ -31,6 +32,7 @@ from imac_data.core.contact.images import (
 )
 from imac_data.core.contact.workspace import Workspace, resolve_workspace, saturation_depth
 from imac_data.core.depth import DepthCodec, resize_depth
+from imac_data.core.kdtree import kdtree
 from imac_data.core.rig import Rig
 from imac_data.core.robot.aloha import robot_config
 from imac_data.core.robot.model import RobotModel
@@ -151,18 +153,15 @@ def test_the_shared_kdtree_answers_what_scipys_answers():
     """core.kdtree (the contact streams' and calibration's tree) against scipy's cKDTree: the same distances and
     nearest points within a bound, inf and index n beyond it, for float64, float32 and strided queries, on a
     cloud with duplicate points; an empty cloud answers nothing within any distance, as scipy's does."""
-    from scipy.spatial import cKDTree
-
-    from imac_data.core.kdtree import kdtree
-
     rng = np.random.default_rng(7)
     points = np.concatenate([rng.normal(size=(3000, 3)), np.repeat(rng.normal(size=(20, 3)), 3, axis=0)])
     queries = np.concatenate([rng.normal(size=(2000, 3)) * 1.5, points[::50] + 1e-9])
+    ours, scipys = kdtree(points), cKDTree(points)
     for q in (queries, queries.astype(np.float32), np.repeat(queries, 2, axis=1)[:, ::2]):
+        q64 = np.asarray(q, np.float64)
         for bound in (0.05, 0.3, np.inf):
-            d, i = kdtree(points).query(q, distance_upper_bound=bound)
-            q64 = np.asarray(q, np.float64)
-            d0, _ = cKDTree(points).query(q64, distance_upper_bound=bound)
+            d, i = ours.query(q, distance_upper_bound=bound)
+            d0, _ = scipys.query(q64, distance_upper_bound=bound)
             assert np.array_equal(np.isfinite(d), np.isfinite(d0)) and np.isfinite(d0).any()
             ok = np.isfinite(d0)
             assert np.allclose(d[ok], d0[ok], rtol=1e-6, atol=1e-6)  # float32 queries round once

@@ -2,6 +2,7 @@
 encoder reproduced byte for byte, merging keeps the imac block and refuses two rigs, and
 validation (``imac validate``) finds each kind of damage and names it."""
 
+import copy
 import functools
 import hashlib
 import json
@@ -17,6 +18,7 @@ import yaml
 from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from imac_data import lerobot_compat
 from imac_data.build import from_episodes
 from imac_data.build.workers import run_local
 from imac_data.cli import main as imac_main
@@ -191,8 +193,6 @@ def test_linear_features_constructor_equals_datasets_own(built):
     import datasets
     from datasets.features.features import Features, List, Value
 
-    from imac_data import lerobot_compat
-
     if not str(datasets.__version__).startswith("4."):
         pytest.skip(f"datasets {datasets.__version__}: the patch is not installed there")
     lerobot_compat.LeRobotDataset  # noqa: B018 (the first name resolved installs it)
@@ -236,12 +236,8 @@ def test_features_copy_equals_a_deep_copy_and_shares_nothing_mutable(built):
     parquet schema of a built dataset (the 400-column episodes table among them) and on nested lists, dicts and
     class labels, the copy equals ``copy.deepcopy`` (values, types, decoding flags, a label's lookup tables) and
     shares no dict, list or feature object with the original."""
-    import copy
-
     import datasets
     from datasets.features.features import ClassLabel, Features, List, Value
-
-    from imac_data import lerobot_compat
 
     if not str(datasets.__version__).startswith("4."):
         pytest.skip(f"datasets {datasets.__version__}: the patch is not installed there")

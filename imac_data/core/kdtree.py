@@ -37,7 +37,7 @@ class _NoPoints:
     """The tree of an empty cloud: nothing within any distance, as scipy's ``cKDTree`` answers (pykdtree refuses
     to build one)."""
 
-    def query(self, query_pts, k: int = 1, **_):
+    def query(self, query_pts, **_):
         n = len(query_pts)
         return np.full(n, np.inf), np.zeros(n, dtype=np.uint32)
 
