@@ -3,6 +3,7 @@ its jobs are doing, and whatever stops the stage stops its jobs, the processes t
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -11,7 +12,10 @@ import textwrap
 import time
 from functools import partial
 
-from imac_model.experiments.stages import REPO_ROOT, run_all
+import pytest
+
+from imac_model.experiments import forkserver
+from imac_model.experiments.stages import REPO_ROOT, cpu_seconds, run_all, subprocess_env
 from imac_model.training.log import progress_line, write_log
 
 
@@ -33,6 +37,7 @@ def test_a_long_stage_says_how_its_training_run_is_doing(tmp_path, capsys):
 
 
 STAGE = textwrap.dedent("""
+    import os
     import sys
     from pathlib import Path
     from imac_model.experiments.stages import run_all
@@ -40,6 +45,11 @@ STAGE = textwrap.dedent("""
     # a job as the stages start them: bash running python, which would outlive bash if bash alone were stopped
     job = ["bash", "-c", f"{sys.executable} -c 'import os, time; open(\\"{out}/pid\\", \\"w\\").write(str(os.getpid())); "
            f"time.sleep(60)' && touch {out}/finished"]
+    if sys.argv[2] == "forked":  # a `python -m` job: forked from the fork server, not run_all's child
+        (out / "waiter.py").write_text("import os, time; open('pid', 'w').write(str(os.getpid())); time.sleep(60); "
+                                       "open('finished', 'w')")
+        os.chdir(out)
+        job = [sys.executable, "-m", "waiter"]
     run_all([("job", job, out / "job.log")], 1, tag="t")
 """)
 
@@ -55,13 +65,14 @@ def _alive(pid: int) -> bool:
 
 def test_stopping_a_stage_stops_its_jobs_and_what_they_started(tmp_path):
     """SIGTERM (a scheduler, kill) or SIGINT to the stage's process alone: the job's python, started by its
-    bash, ends too, rather than go on writing what a rerun would resume from."""
+    bash or forked from the fork server, ends too, rather than go on writing what a rerun would resume from."""
     (tmp_path / "stage.py").write_text(STAGE)
-    for sig, code in ((signal.SIGTERM, 143), (signal.SIGINT, -signal.SIGINT)):  # KeyboardInterrupt ends by SIGINT
-        out = tmp_path / sig.name
+    for sig, kind in ((signal.SIGTERM, "bash"), (signal.SIGINT, "bash"), (signal.SIGTERM, "forked")):
+        code = 143 if sig == signal.SIGTERM else -signal.SIGINT  # KeyboardInterrupt ends by SIGINT
+        out = tmp_path / f"{sig.name}_{kind}"
         out.mkdir()
         env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
-        stage = subprocess.Popen([sys.executable, str(tmp_path / "stage.py"), str(out)], env=env,
+        stage = subprocess.Popen([sys.executable, str(tmp_path / "stage.py"), str(out), kind], env=env,
                                  stderr=subprocess.PIPE, text=True)
         deadline = time.time() + 60
         while not (out / "pid").is_file() or not (out / "pid").read_text():
@@ -69,11 +80,77 @@ def test_stopping_a_stage_stops_its_jobs_and_what_they_started(tmp_path):
             time.sleep(0.1)
         job = int((out / "pid").read_text())
         assert _alive(job)
+        with open(f"/proc/{job}/stat") as f:
+            parent = int(f.read().rsplit(")", 1)[1].split()[1])
+        with open(f"/proc/{parent}/cmdline") as f:
+            assert ("imac_model.experiments.forkserver" in f.read()) == (kind == "forked")
         stage.send_signal(sig)  # to the stage's process only, not its group
         assert stage.wait(timeout=30) == code
         assert "stopping 1 running job(s)" in stage.stderr.read()
         deadline = time.time() + 15
         while _alive(job) and time.time() < deadline:
             time.sleep(0.1)
-        assert not _alive(job), f"the job's python {job} outlived the stage ({sig.name})"
+        assert not _alive(job), f"the job's python {job} outlived the stage ({sig.name}, {kind})"
         assert not (out / "finished").exists()
+
+
+PROBE = textwrap.dedent("""
+    import json, os, sys
+    print(json.dumps({"name": __name__, "argv": sys.argv[1:], "cwd": os.getcwd(), "path0": sys.path[0],
+                      "env": os.environ.get("PROBE_VALUE"), "stdin": sys.stdin.read()}))
+    print("to stderr", file=sys.stderr)
+    print(os.getppid(), os.getsid(0) == os.getpid(), file=open("ids", "w"))
+    if sys.argv[1] == "fail":
+        raise ValueError("the probe failed")
+    sys.exit(int(sys.argv[1]))
+""")
+
+
+def test_a_forked_job_runs_as_a_fresh_interpreter_would(tmp_path, monkeypatch):
+    """A ``python -m`` job of run_all is forked from the fork server (imac_model/experiments/forkserver.py); the
+    oracle is the same command run by a fresh interpreter: the same output, exit code, working directory and
+    path, in a session of its own, with this process's environment, and its CPU counted by cpu_seconds.
+    A library reads some variables once, at import, so a server serves one environment: a job in another
+    starts fresh while the old server's jobs run, and is forked from a new server once they have ended."""
+    (tmp_path / "probe_module.py").write_text(PROBE)
+    monkeypatch.chdir(tmp_path)  # `python -m` finds the module in the working directory
+    monkeypatch.setenv("PROBE_VALUE", "seen")
+    for code in ("0", "3", "fail"):
+        argv = [sys.executable, "-m", "probe_module", code, "two words"]
+        fresh = subprocess.run(argv, env=subprocess_env(), capture_output=True, text=True, stdin=subprocess.DEVNULL)
+        log = tmp_path / f"job_{code}.log"
+        log.write_text("before\n")  # a log is appended to, as by a fresh process
+        before = cpu_seconds()
+        if code == "0":
+            run_all([("probe", argv, log)], 1, tag="t")
+        else:
+            with pytest.raises(RuntimeError, match=f"probe \\(exit {1 if code == 'fail' else 3}, log {log}\\)"):
+                run_all([("probe", argv, log)], 1, tag="t")
+        server = forkserver.server(subprocess_env())
+        parent, own_session = (tmp_path / "ids").read_text().split()
+        assert server is not None and int(parent) == server.proc.pid and own_session == "True"
+        assert cpu_seconds() > before  # the job's CPU, though the job was the server's child
+        out = log.read_text()
+        assert out.startswith("before\n" + fresh.stdout)
+        assert json.loads(fresh.stdout)["env"] == "seen" and json.loads(fresh.stdout)["argv"] == [code, "two words"]
+        assert ("ValueError: the probe failed" in out) == (code == "fail") == ("ValueError" in fresh.stderr)
+        assert "to stderr" in out
+
+    (tmp_path / "sleeper.py").write_text("import time; time.sleep(1.0)")
+    old = forkserver.server(subprocess_env())
+    sleeping = old.start([sys.executable, "-m", "sleeper"], tmp_path / "sleep.log", subprocess_env())
+    monkeypatch.setenv("PROBE_VALUE", "another")
+    assert forkserver.server(subprocess_env()) is None  # the old server's job runs
+    run_all([("probe", [sys.executable, "-m", "probe_module", "0"], tmp_path / "a.log")], 1, tag="t")
+    assert int((tmp_path / "ids").read_text().split()[0]) == os.getpid()  # a fresh process, run_all's child
+    assert json.loads((tmp_path / "a.log").read_text().splitlines()[0])["env"] == "another"
+    deadline = time.time() + 30
+    while sleeping.poll() is None:
+        assert time.time() < deadline
+        time.sleep(0.1)
+    assert sleeping.returncode == 0
+    run_all([("probe", [sys.executable, "-m", "probe_module", "0"], tmp_path / "b.log")], 1, tag="t")
+    new = forkserver.server(subprocess_env())
+    assert new is not old and not old.alive() and new.alive()
+    assert int((tmp_path / "ids").read_text().split()[0]) == new.proc.pid
+    assert json.loads((tmp_path / "b.log").read_text().splitlines()[0])["env"] == "another"

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import torch
 
+from imac_model.experiments import forkserver
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -43,9 +45,9 @@ def subprocess_env() -> dict:
 
 
 def cpu_seconds() -> float:
-    """User + system CPU seconds of this process and its finished children."""
+    """User + system CPU seconds of this process and its finished children, those forked for it included."""
     s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime + forkserver.forked_cpu_seconds()
 
 
 class StageLog:
@@ -102,8 +104,7 @@ def run_all(commands: list[tuple], jobs: int, tag: str = "experiment", heartbeat
                 name, argv, log, progress = pending.pop(0)
                 log.parent.mkdir(parents=True, exist_ok=True)
                 f = open(log, "a")
-                proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=subprocess_env(),
-                                        start_new_session=True)
+                proc = _start(argv, f, log)
                 running.append((name, proc, f, log, progress, time.time()))
                 print(f"[{tag}]   started {name} (log {log})", file=sys.stderr, flush=True)
             time.sleep(min(0.5, heartbeat_s))
@@ -130,6 +131,16 @@ def run_all(commands: list[tuple], jobs: int, tag: str = "experiment", heartbeat
         terminate()
     if failed:
         raise RuntimeError("failed: " + "; ".join(failed))
+
+
+def _start(argv: list[str], f, log: Path):
+    """A job in a process of its own: ``python -m`` jobs forked from the fork server (their imports done
+    once, docs/verification.md), any other a fresh process."""
+    env = subprocess_env()
+    server = forkserver.server(env) if list(argv[:2]) == [*python(), "-m"] and len(argv) > 2 else None
+    if server is not None:
+        return server.start(argv, log, env)
+    return subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
 
 def _terminate_on_sigterm() -> Callable[[], None]:
