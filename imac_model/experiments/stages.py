@@ -135,7 +135,7 @@ def run_all(commands: list[tuple], jobs: int, tag: str = "experiment", heartbeat
 
 def _start(argv: list[str], f, log: Path):
     """A job in a process of its own: ``python -m`` jobs forked from the fork server (their imports done
-    once, docs/verification.md), any other a fresh process."""
+    once: docs/ranking.md, "The stages"), any other a fresh process."""
     env = subprocess_env()
     server = forkserver.server(env) if list(argv[:2]) == [*python(), "-m"] and len(argv) > 2 else None
     if server is not None:
