@@ -67,9 +67,9 @@ def _run_job(job: dict) -> None:
         with contextlib.suppress(BaseException):
             atexit._run_exitfuncs()  # what an interpreter's exit would run
     finally:
-        with contextlib.suppress(BaseException):
-            sys.stdout.flush()
-            sys.stderr.flush()
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(BaseException):
+                stream.flush()
         os._exit(code)
 
 

@@ -139,7 +139,8 @@ def _start(argv: list[str], f, log: Path):
     env = subprocess_env()
     server = forkserver.server(env) if list(argv[:2]) == [*python(), "-m"] and len(argv) > 2 else None
     if server is not None:
-        return server.start(argv, log, env)
+        with contextlib.suppress(OSError):  # the server has gone (killed): this job starts fresh
+            return server.start(argv, log, env)
     return subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
 
