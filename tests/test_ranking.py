@@ -819,6 +819,26 @@ def test_the_views_are_the_plans_choice_checked_before_any_work(tmp_path, capsys
     assert "cam_back" in capsys.readouterr().err and not (tmp_path / "w").exists()
 
 
+def test_the_modes_are_the_command_lines_choice_checked_before_any_work(tmp_path, capsys):
+    """--modes replaces the preset's modes (a first look at new training data trains one seed, not three); an
+    unknown mode is refused naming it, before the work directory exists; --from-models keeps the report's."""
+    from imac_model.cli.parser import build_parser
+    from imac_model.cli.ranking import _plan
+
+    args = build_parser().parse_args(["ranking", "--preset", "checkpoints", "--work", str(tmp_path / "w"), "--modes",
+                                      "motion+contact", "none"])
+    plan = _plan(args)
+    assert plan.modes == ("motion+contact", "none") and plan.real_per_group == 50  # the rest stays the preset's
+    assert _plan(build_parser().parse_args(["ranking", "--work", str(tmp_path / "w")])).modes == RankingPlan(
+        work=tmp_path, docs=tmp_path).modes
+    assert model_main(["ranking", "--work", str(tmp_path / "w"), "--docs", str(tmp_path), "--modes", "motion+colour",
+                       "--stages", "report"]) == 2
+    assert "motion+colour" in capsys.readouterr().err and not (tmp_path / "w").exists()
+    assert model_main(["ranking", "--from-models", str(tmp_path), "--work", str(tmp_path / "w"), "--modes",
+                       "none"]) == 2
+    assert "--modes would change it" in capsys.readouterr().err
+
+
 def test_slope_offsets_put_half_the_training_rollouts_where_the_success_rate_falls():
     """The slope offsets: half the draws are across's (uniform over 2 cm along and 5 cm across the fingers), half
     1-3 cm either way across them; so 0.5 + 0.5 * 0.4 = 0.7 of all land 1-3 cm off across, 0.2 beyond 3 cm, the

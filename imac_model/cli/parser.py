@@ -188,6 +188,9 @@ def _ranking(p: argparse.ArgumentParser) -> None:
                         "(docs/ranking.md, 'The shipped world models')")
     p.add_argument("--starts", type=int, metavar="K",
                    help="with --from-models: only the report's first K starts (a quick check of its verdicts)")
+    p.add_argument("--modes", nargs="+", metavar="MODE",
+                   help="the world models trained and compared, MODE or MODE@seedK for another training seed (default: "
+                        "the preset's; e.g. motion+contact none for a first look at new training data)")
     p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 120)")
     p.add_argument("--steps", type=int, help="Euler steps at evaluation (default 10)")
     p.add_argument("--jobs", type=int, help="processes at a time (default 2)")

@@ -44,7 +44,8 @@ def _plan(args: argparse.Namespace) -> RankingPlan:
                                  ("training_offsets", args.training_offsets), ("settle_s", args.settle),
                                  ("training_policies", tuple(args.training_policies or ()) or None),
                                  ("training_policy_share", args.training_policy_share),
-                                 ("views", tuple(args.views or ()) or None))
+                                 ("views", tuple(args.views or ()) or None),
+                                 ("modes", tuple(args.modes or ()) or None))
                if v is not None}
     return same_as_saved(dataclasses.replace(plan, **changes))
 
@@ -55,7 +56,7 @@ def _rerun_plan(args: argparse.Namespace) -> RankingPlan:
     if docs == models.parent:
         raise InputError(f"--docs {args.docs}: the report the models belong to is there; the rerun's goes elsewhere")
     given = [k for k in ("preset", "cpu_minutes", "steps", "training_offsets", "training_policies",
-                         "training_policy_share", "settle", "views", "stages")
+                         "training_policy_share", "settle", "views", "stages", "modes")
              if getattr(args, k) not in (None, "cpu")] + (["toy"] if args.toy else [])
     if given:
         raise InputError(f"--from-models runs the report's plan; {', '.join('--' + k.replace('_', '-') for k in given)} "
