@@ -701,6 +701,18 @@ def test_the_checkpoint_preset_is_its_files_plan_and_its_policy_stages_refuse_a_
     with pytest.raises(InputError, match="no LeRobot checkpoint"):  # before any stage runs
         run_stages(missing, ["simulate"])
     assert not (tmp_path / "work").exists()
+    # the training side needs only the training policies: it may start while the ranked checkpoints train
+    other = tmp_path / "act" / "checkpoints" / "004000" / "pretrained_model"
+    other.mkdir(parents=True)
+    (other / "config.json").write_text("{}")
+    mixed = dataclasses.replace(missing, training_policies=(f"lerobot:{other}",))
+    mixed.check_policies(training_only=True)
+    with pytest.raises(InputError, match=f"at lerobot:{ckpt}, noisy"):
+        mixed.check_policies()
+    (other / "config.json").unlink()
+    with pytest.raises(InputError, match=f"no LeRobot checkpoint .* at lerobot:{other};"):
+        run_stages(mixed, ["train"])
+    assert not (tmp_path / "work").exists()
     preset.write_text(yaml.safe_dump({"policy": scripted}))
     with pytest.raises(InputError, match=r"not settings of a ranking plan: \['policy'\]"):
         checkpoints_plan(tmp_path / "work", tmp_path / "docs", preset)

@@ -146,9 +146,11 @@ def _ranking(args: argparse.Namespace) -> int:
 
 
 def _run_stages(plan: RankingPlan, stages: list[str]) -> int:
-    # the stages that run policies (pack simulates the training rollouts, the training policies' among them)
-    if {"simulate", "build", "evaluate"} & set(stages) or ("pack" in stages and plan.training_policies):
-        plan.check_policies()
+    # the stages that run policies: pack and train simulate the training rollouts (the training policies' among
+    # them) and nothing else, so they may start while the ranked checkpoints still train
+    ranked = bool({"simulate", "build", "evaluate"} & set(stages))
+    if ranked or ({"pack", "train"} & set(stages) and plan.training_policies):
+        plan.check_policies(training_only=not ranked)
     (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
     log = StageLog(plan.work / "stages.json", tag="ranking")
     try:
