@@ -22,9 +22,9 @@ from pathlib import Path
 
 import yaml
 
-from benchmarks.run import RESULTS, Workload, commit, load_avg, log, machine, record, write_recipe
 from benchmarks.run_report import tag
 from benchmarks.same_host import _BUILT, REPO, parse_size
+from benchmarks.workload import RESULTS, Workload, commit, load_avg, log, machine, record, write_recipe
 
 RENDERERS = ("open3d", "opengl")
 

@@ -33,8 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.run import RESULTS, Workload, commit, load_avg, log, machine, record, write_recipe
 from benchmarks.run_report import ratio_lines, same_host_table, tag
+from benchmarks.workload import RESULTS, Workload, commit, load_avg, log, machine, record, write_recipe
 
 REPO = Path(__file__).resolve().parent.parent
 BASELINE = "afa9031"  # main before the streamed pipeline: the 5.8 / 1.1 frames/s
