@@ -80,7 +80,7 @@ from imac_model.experiments.ranking.report_text import _by_family, parting_chunk
 from imac_model.experiments.ranking.shipped import sha256
 from imac_model.experiments.ranking.simulate import simulate_training_part
 from imac_model.experiments.ranking.training import GateStop, stage_train
-from imac_model.experiments.stages import MARK_TRAINED, REPO_ROOT
+from imac_model.experiments.stages import REPO_ROOT, mark_trained
 from imac_model.models.checkpoint import list_checkpoints, load_world_model, save_checkpoint
 from imac_model.models.world_model import WorldModel
 from imac_model.modes import CONTROL_STREAMS, MODES, ConditioningMode, streams_of_mode
@@ -622,7 +622,7 @@ def test_a_toy_mode_registered_alone_trains_is_gated_evaluated_and_reported(toy_
     run = plan.run_config(toy)
     assert run.conditioning.streams == ("motion",) and run.train.max_cpu_minutes == plan.cpu_minutes
     train_cli.train(run, progress=False)
-    subprocess.run([sys.executable, "-c", MARK_TRAINED, str(plan.run_dir(toy))], check=True)  # as the train stage does
+    mark_trained(plan.run_dir(toy))  # as the train stage does
     gate = measure_gate(plan, plan.cpu_budget(toy), toy)
     evaluate_mode(plan, toy)
     write_report(plan)

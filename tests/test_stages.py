@@ -3,6 +3,7 @@ its jobs are doing, and whatever stops the stage stops its jobs, the processes t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -15,7 +16,7 @@ from functools import partial
 import pytest
 
 from imac_model.experiments import forkserver
-from imac_model.experiments.stages import REPO_ROOT, cpu_seconds, run_all, subprocess_env
+from imac_model.experiments.stages import REPO_ROOT, cpu_seconds, run_all, subprocess_env, then_mark_done, train_job
 from imac_model.training.log import progress_line, write_log
 
 
@@ -52,6 +53,27 @@ STAGE = textwrap.dedent("""
         job = [sys.executable, "-m", "waiter"]
     run_all([("job", job, out / "job.log")], 1, tag="t")
 """)
+
+
+def test_a_training_job_is_marked_trained_by_its_last_log_row_and_only_on_success(tmp_path):
+    """train_job's run is marked trained (DONE.json: the log's last row) once the job has succeeded; a job whose
+    marking fails (a run that logged no step) fails the stage, naming the job and its log."""
+    run = tmp_path / "run"
+    job = train_job("config.yaml", {"train.output_dir": str(run), "train.max_cpu_minutes": 1.0})
+    assert job.argv[1:5] == ["-m", "imac_model", "train", "--config"]
+    assert job.argv[-2:] == ["--set", "train.max_cpu_minutes=1.0"]
+    assert train_job("config.yaml", {"train.output_dir": str(run)}, finish=False).on_success is None
+    ok = dataclasses.replace(job, argv=[sys.executable, "-c", "pass"])
+    with pytest.raises(RuntimeError, match=f"train \\(finished, but marking it done failed: .*log {tmp_path}/t.log"):
+        run_all([("train", ok, tmp_path / "t.log")], 1, tag="t")
+    write_log(run, [{"step": 1, "loss": 0.5}, {"step": 2, "loss": 0.25}])
+    run_all([("train", ok, tmp_path / "t.log")], 1, tag="t")
+    assert json.loads((run / "DONE.json").read_text()) == {"step": 2, "loss": 0.25}
+    failing = dataclasses.replace(job, argv=[sys.executable, "-c", "raise SystemExit(2)"])
+    (run / "DONE.json").unlink()
+    with pytest.raises(RuntimeError, match="train \\(exit 2"):
+        run_all([("train", failing, tmp_path / "t.log")], 1, tag="t")
+    assert not (run / "DONE.json").exists()
 
 
 def _alive(pid: int) -> bool:
@@ -121,11 +143,13 @@ def test_a_forked_job_runs_as_a_fresh_interpreter_would(tmp_path, monkeypatch):
         log = tmp_path / f"job_{code}.log"
         log.write_text("before\n")  # a log is appended to, as by a fresh process
         before = cpu_seconds()
+        marked = then_mark_done(argv, tmp_path / f"done_{code}")  # its marker written by run_all, not a shell
         if code == "0":
-            run_all([("probe", argv, log)], 1, tag="t")
+            run_all([("probe", marked, log)], 1, tag="t")
         else:
             with pytest.raises(RuntimeError, match=f"probe \\(exit {1 if code == 'fail' else 3}, log {log}\\)"):
-                run_all([("probe", argv, log)], 1, tag="t")
+                run_all([("probe", marked, log)], 1, tag="t")
+        assert (tmp_path / f"done_{code}").is_file() == (code == "0")
         server = forkserver.server(subprocess_env())
         parent, own_session = (tmp_path / "ids").read_text().split()
         assert server is not None and int(parent) == server.proc.pid and own_session == "True"

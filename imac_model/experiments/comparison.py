@@ -20,7 +20,7 @@ from imac_model.config import load_run_config
 from imac_model.data.chunks import ChunkDataset, open_metadata, resolve_layout
 from imac_model.evaluate import open_loop
 from imac_model.experiments.comparison_report import write_report
-from imac_model.experiments.stages import REPO_ROOT, python, run_all, then_mark_done, train_argv
+from imac_model.experiments.stages import REPO_ROOT, python, run_all, then_mark_done, train_job
 from imac_model.models.backbones.build import spatial_multiple, temporal_factor
 from imac_model.models.checkpoint import load_world_model
 from imac_model.modes import CONTROL_STREAMS
@@ -162,7 +162,7 @@ def stage_train(plan: Plan) -> None:
     for s in SETTINGS:
         if _done_file(plan, s).is_file():
             continue
-        commands.append((f"train {s.name}", train_argv(CONFIG, plan.overrides(s)),
+        commands.append((f"train {s.name}", train_job(CONFIG, plan.overrides(s)),
                          plan.work / "logs" / f"train_{s.slug}.log"))
     run_all(commands, plan.jobs)
 

@@ -9,13 +9,14 @@ import json
 import os
 import platform
 import resource
-import shlex
 import signal
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -28,10 +29,6 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 def python() -> list[str]:
     """The interpreter of this process, for subprocesses."""
     return [sys.executable]
-
-
-def quote(s: str) -> str:
-    return shlex.quote(str(s))
 
 
 def subprocess_env() -> dict:
@@ -89,7 +86,8 @@ STOP_GRACE_S = 10.0  # how long stopped jobs get to end on their own before they
 
 
 def run_all(commands: list[tuple], jobs: int, tag: str = "experiment", heartbeat_s: float = HEARTBEAT_S) -> None:
-    """Run ``(name, argv, log file[, progress])`` subprocesses, ``jobs`` at a time; raise if one fails.
+    """Run ``(name, argv or Job, log file[, progress])`` subprocesses, ``jobs`` at a time; raise if one fails
+    (or its :attr:`Job.on_success` does).
     Every ``heartbeat_s`` each running job gets a line: how long it has run and, where it has a
     ``progress`` callable, what that returns (a training run's step and budget), so an hours-long
     stage is not silent. Each job runs in a process group of its own, and whatever stops this process
@@ -101,24 +99,30 @@ def run_all(commands: list[tuple], jobs: int, tag: str = "experiment", heartbeat
     try:
         while pending or running:
             while pending and len(running) < jobs:
-                name, argv, log, progress = pending.pop(0)
+                name, job, log, progress = pending.pop(0)
+                job = job if isinstance(job, Job) else Job(list(job))
                 log.parent.mkdir(parents=True, exist_ok=True)
                 f = open(log, "a")
-                proc = _start(argv, f, log)
-                running.append((name, proc, f, log, progress, time.time()))
+                proc = _start(job.argv, f, log)
+                running.append((name, proc, f, log, progress, time.time(), job))
                 print(f"[{tag}]   started {name} (log {log})", file=sys.stderr, flush=True)
             time.sleep(min(0.5, heartbeat_s))
             for item in list(running):
-                name, proc, f, log, _, _ = item
+                name, proc, f, log, _, _, job = item
                 if proc.poll() is not None:
                     f.close()
                     running.remove(item)
                     if proc.returncode:
                         failed.append(f"{name} (exit {proc.returncode}, log {log})")
+                    elif job.on_success is not None:
+                        try:
+                            job.on_success()
+                        except (OSError, ValueError, IndexError) as e:  # e.g. a training run that logged no step
+                            failed.append(f"{name} (finished, but marking it done failed: {e}; log {log})")
                     print(f"[{tag}]   finished {name} (exit {proc.returncode})", file=sys.stderr, flush=True)
             if running and time.time() >= next_beat:
                 next_beat = time.time() + heartbeat_s
-                for name, _, _, _, progress, started in running:
+                for name, _, _, _, progress, started, _ in running:
                     said = _progress(progress)
                     print(f"[{tag}]   {name}: {(time.time() - started) / 60:.0f} min" + (f", {said}" if said else ""),
                           file=sys.stderr, flush=True)
@@ -184,9 +188,19 @@ def _progress(progress: Callable[[], str | None] | None) -> str | None:
         return None
 
 
-def then_mark_done(argv: list[str], marker: Path) -> list[str]:
+@dataclass(frozen=True)
+class Job:
+    """A command for :func:`run_all`, and what this process does once it has succeeded (write the marker that
+    counts its work as done). Here rather than in a shell after it, so that a ``python -m`` job is forked from
+    the fork server, whose children run one module each."""
+
+    argv: list[str]
+    on_success: Callable[[], None] | None = None
+
+
+def then_mark_done(argv: list[str], marker: Path) -> Job:
     """``argv``, and on success a marker file: the work is counted as done only then."""
-    return ["bash", "-c", " ".join(map(quote, argv)) + f" && touch {quote(marker)}"]
+    return Job(list(argv), partial(Path(marker).touch))
 
 
 
@@ -221,18 +235,15 @@ def machine() -> dict:
             "load_average_at_report": [round(x, 2) for x in os.getloadavg()]}
 
 
-# after `imac-model train`: the run's last log row, marking the run as finished
-MARK_TRAINED = ("import json, sys, pathlib; d = pathlib.Path(sys.argv[1]); "
-                "rows = [json.loads(l) for l in (d / 'log.jsonl').read_text().splitlines() if l.strip()]; "
-                "(d / 'DONE.json').write_text(json.dumps(rows[-1]))")
+def mark_trained(run: Path) -> None:
+    """After ``imac-model train``: the run's last log row as ``DONE.json``, marking the run as finished."""
+    rows = [json.loads(line) for line in (Path(run) / "log.jsonl").read_text().splitlines() if line.strip()]
+    (Path(run) / "DONE.json").write_text(json.dumps(rows[-1]))
 
 
-def train_argv(config: str | Path, overrides: dict, finish: bool = True) -> list[str]:
-    """argv of ``imac-model train --config CONFIG`` with ``overrides`` set (resuming the run's checkpoints);
-    with ``finish``, the run is then marked trained (``DONE.json``, :data:`MARK_TRAINED`)."""
+def train_job(config: str | Path, overrides: dict, finish: bool = True) -> Job:
+    """``imac-model train --config CONFIG`` with ``overrides`` set (resuming the run's checkpoints); with
+    ``finish``, the run is then marked trained (:func:`mark_trained`)."""
     sets = [a for k, v in overrides.items() for a in ("--set", f"{k}={json.dumps(v)}")]
-    script = " ".join(map(quote, python() + ["-m", "imac_model", "train", "--config", str(config), "--no-progress",
-                                             *sets]))
-    if finish:
-        script += f" && {quote(sys.executable)} -c {quote(MARK_TRAINED)} {quote(str(overrides['train.output_dir']))}"
-    return ["bash", "-c", script]
+    argv = python() + ["-m", "imac_model", "train", "--config", str(config), "--no-progress", *sets]
+    return Job(argv, partial(mark_trained, Path(overrides["train.output_dir"])) if finish else None)

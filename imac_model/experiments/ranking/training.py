@@ -12,19 +12,19 @@ from imac_model.experiments.ranking.gate import gate_minutes, gate_verdict, read
 from imac_model.experiments.ranking.gpu import train_on_gpu
 from imac_model.experiments.ranking.plan import GATED_MODE, RankingPlan, internal, slug
 from imac_model.experiments.ranking.report import write_report
-from imac_model.experiments.stages import run_all, train_argv
+from imac_model.experiments.stages import Job, run_all, train_job
 from imac_model.training.log import progress_line
 
 
 def train_command(plan: RankingPlan, mode: str, minutes: float | None = None, finish: bool = True,
-                  changes: dict | None = None) -> list[str]:
-    """argv training ``mode`` (resuming its checkpoints) up to ``minutes`` CPU-minutes (default: its
+                  changes: dict | None = None) -> Job:
+    """The job training ``mode`` (resuming its checkpoints) up to ``minutes`` CPU-minutes (default: its
     budget); with ``finish``, the run is then marked trained (``DONE.json``). ``changes``: run-config
     fields set on top (an ablation's arm: its output directory and the one setting it changes)."""
     overrides = {**plan.mode_overrides(mode), **(changes or {})}
     if minutes is not None:
         overrides["train.max_cpu_minutes"] = minutes
-    return train_argv(plan.config, overrides, finish)
+    return train_job(plan.config, overrides, finish)
 
 
 class GateStop(RuntimeError):
