@@ -34,7 +34,7 @@ def recorded_mosaics(ep, codec, frames, size=MODEL_HW):
     """Mosaics ``(n, 3, 2h, 3w)`` of the recorded RGB and colour-coded depth at ``frames``."""
     import torch
 
-    from imac_data.core.depth import depth_from_millimetres
+    from imac_data.core.metric_depth import depth_from_millimetres
     from imac_model.data import mosaic
 
     rgb = torch.stack([torch.as_tensor(ep.images[v][frames]).permute(0, 3, 1, 2).float() / 255 for v in VIEWS], 1)

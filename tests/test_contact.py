@@ -31,8 +31,9 @@ from imac_data.core.contact.images import (
     scene_cloud,
 )
 from imac_data.core.contact.workspace import Workspace, resolve_workspace, saturation_depth
-from imac_data.core.depth import DepthCodec, resize_depth
+from imac_data.core.depth import DepthCodec
 from imac_data.core.kdtree import kdtree
+from imac_data.core.metric_depth import resize_depth
 from imac_data.core.rig import Rig
 from imac_data.core.robot.aloha import robot_config
 from imac_data.core.robot.model import RobotModel

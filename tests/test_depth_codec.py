@@ -14,9 +14,9 @@ from imac_data.core.depth import (
     CORNERS,
     N_CODES,
     DepthCodec,
-    depth_from_millimetres,
     path_position,
 )
+from imac_data.core.metric_depth import depth_from_millimetres
 from imac_data.errors import InputError
 
 PRESET_NAMES = ["manipulation", "general"]

@@ -19,11 +19,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from imac_data.build.from_episodes import ingest_episodes
 from imac_data.core.cameras import load_calibration, rescale_intrinsics
-from imac_data.core.depth import (
-    DepthCodec,
-    depth_codec_of,
-    resize_depth,
-)
+from imac_data.core.depth import DepthCodec, depth_codec_of
+from imac_data.core.metric_depth import resize_depth
 from imac_data.core.rig import Rig
 from imac_data.core.robot import aloha
 from imac_data.core.robot.model import RobotModel

@@ -24,7 +24,8 @@ from imac_data.cli import main as imac_main
 from imac_data.core.contact.clouds import dilate_mask
 from imac_data.core.contact.images import JET_LUT, chunk_plan
 from imac_data.core.contact.nearest import DEFAULT_TOLERANCE
-from imac_data.core.depth import DepthCodec, depth_codec_of, depth_from_millimetres, walk_distance
+from imac_data.core.depth import DepthCodec, depth_codec_of, walk_distance
+from imac_data.core.metric_depth import depth_from_millimetres
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
 from imac_data.metadata import dataset_info

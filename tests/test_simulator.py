@@ -15,7 +15,7 @@ import torch
 from gym_aloha.constants import ASSETS_DIR, normalize_puppet_gripper_position
 
 from imac_data.core.cameras import backproject
-from imac_data.core.depth import area_resize_depth, resize_depth
+from imac_data.core.metric_depth import area_resize_depth, resize_depth
 from imac_data.errors import InputError
 from imac_data.layout import depth_key
 from imac_data.sources.hdf5 import read_episode

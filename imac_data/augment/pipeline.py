@@ -21,7 +21,8 @@ import torch
 from imac_data.augment.timing import StageTimer
 from imac_data.console import raise_if_interrupted, release_freed_memory
 from imac_data.core.contact.images import chunk_plan
-from imac_data.core.depth import DepthCodec, resize_depth
+from imac_data.core.depth import DepthCodec
+from imac_data.core.metric_depth import resize_depth
 from imac_data.core.motion import joints_at
 from imac_data.core.rig import RobotViews
 from imac_data.errors import InputError

@@ -25,7 +25,8 @@ from imac_data.core.cameras import Camera, camera_from_dict, load_calibration
 from imac_data.core.contact.clouds import DEFAULT_DILATE_PX, DEFAULT_GRIPPER_SPACING, GripperSurface, scene_cloud
 from imac_data.core.contact.images import ContactChunk, contact_chunk
 from imac_data.core.contact.workspace import Workspace, as_workspace, resolve_workspace, saturation_depth
-from imac_data.core.depth import DepthCodec, resize_depth
+from imac_data.core.depth import DepthCodec
+from imac_data.core.metric_depth import resize_depth
 from imac_data.core.motion import Controller, frame_configurations, rollout
 from imac_data.core.render import BACKENDS, check_device, make_renderer
 from imac_data.core.robot.description import check_description, description_manifest

@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 
 from imac_data.core.cameras import rescale_intrinsics
-from imac_data.core.depth import DepthCodec, _as_numpy_depth, resize_depth
+from imac_data.core.depth import DepthCodec, _as_numpy_depth
+from imac_data.core.metric_depth import resize_depth
 from imac_data.dataset.info import read_info
 from imac_data.dataset.streams import StreamWriter
 from imac_data.dataset.videos import VideoEncoding, encoder_versions
@@ -79,7 +80,7 @@ def add_depth_streams(root, episodes, *, cameras=None, codec: DepthCodec | None 
     field of view, any resolution of the same aspect ratio). ``cameras`` defaults to the
     dataset's calibrated cameras (``info["imac"]["cameras"]``). ``size``: stored
     ``(h, w)`` for all cameras or ``{cam: (h, w)}`` (default: the input's); depth is
-    resized with :func:`~imac_data.core.depth.resize_depth` and the intrinsics recorded for the
+    resized with :func:`~imac_data.core.metric_depth.resize_depth` and the intrinsics recorded for the
     stream are the calibration's rescaled with :func:`~imac_data.core.cameras.rescale_intrinsics`.
     ``codec`` defaults to the ``manipulation`` preset, ``encoding`` to
     :meth:`VideoEncoding.lossless_rgb` (bit-exact colours, chosen by measurement:

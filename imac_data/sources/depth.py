@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from imac_data.core.depth import depth_from_millimetres, resize_depth
+from imac_data.core.metric_depth import depth_from_millimetres, resize_depth
 from imac_data.errors import InputError
 from imac_data.sources.da3 import check_da3_inputs, make_da3_source, uses_monocular
 from imac_data.sources.episode import DepthSource, EpisodeViews

@@ -20,7 +20,7 @@ import torch
 from tqdm.auto import tqdm
 
 from imac_data.core.cameras import save_calibration
-from imac_data.core.depth import area_resize_depth
+from imac_data.core.metric_depth import area_resize_depth
 from imac_data.core.rig import Rig
 from imac_data.core.robot.platforms import simulator_platform
 from imac_data.errors import InputError

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from imac_data.core.contact.clouds import DEFAULT_DILATE_PX
-from imac_data.core.depth import resize_depth
+from imac_data.core.metric_depth import resize_depth
 from imac_data.core.rig import Rig
 from imac_data.errors import InputError
 from imac_data.recipes import AugmentSettings
