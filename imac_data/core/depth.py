@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from imac_data.core.metric_depth import _dtype_name, _is_torch, depth_from_millimetres
+from imac_data.core.metric_depth import depth_from_millimetres, dtype_name, is_torch
 from imac_data.errors import InputError
 from imac_data.metadata import imac_block
 
@@ -114,7 +114,7 @@ _NUMPY = _Backend(np)
 
 
 def _backend(x) -> _Backend:
-    return _Backend(sys.modules["torch"]) if _is_torch(x) else _NUMPY
+    return _Backend(sys.modules["torch"]) if is_torch(x) else _NUMPY
 
 
 def _work_float(bk: _Backend, x):
@@ -181,7 +181,7 @@ def _colour_planes(bk: _Backend, rgb, name: str, channel_axis: int) -> list:
     if rgb.dtype == xp.uint8:
         return [bk.cast(rgb[..., ch], xp.float32) / 255.0 for ch in range(3)]
     if not (rgb.dtype.is_floating_point if bk.is_torch else rgb.dtype.kind == "f"):
-        raise InputError(f"{name}: colours must be uint8 (0..255) or float (0..1); got {_dtype_name(rgb)}")
+        raise InputError(f"{name}: colours must be uint8 (0..255) or float (0..1); got {dtype_name(rgb)}")
     rgb = _work_float(bk, rgb)
     return [xp.clip(rgb[..., ch], 0.0, 1.0) for ch in range(3)]
 
@@ -456,7 +456,7 @@ def _millimetre_table(codec: DepthCodec) -> tuple[np.ndarray, np.ndarray]:
 
 def _integer_depth_error(name: str, depth) -> InputError:
     return InputError(
-        f"{name}: depth must be float metres; got {_dtype_name(depth)}. Integer depth is usually "
+        f"{name}: depth must be float metres; got {dtype_name(depth)}. Integer depth is usually "
         "millimetres from a depth sensor: convert it with imac_data.core.metric_depth.depth_from_millimetres()"
     )
 
@@ -477,7 +477,7 @@ def depth_codec_of(meta) -> DepthCodec:
 
 
 def _as_numpy_depth(depth, name: str) -> np.ndarray:
-    if _is_torch(depth):
+    if is_torch(depth):
         depth = depth.detach().cpu().numpy()
     depth = np.asarray(depth)
     if depth.ndim != 3:

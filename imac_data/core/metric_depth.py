@@ -10,15 +10,15 @@ import numpy as np
 
 from imac_data.errors import InputError
 
-__all__ = ["area_resize_depth", "depth_from_millimetres", "resize_depth"]
+__all__ = ["area_resize_depth", "depth_from_millimetres", "dtype_name", "is_torch", "resize_depth"]
 
 
-def _is_torch(x) -> bool:
+def is_torch(x) -> bool:
     torch = sys.modules.get("torch")  # never import torch for numpy callers
     return torch is not None and isinstance(x, torch.Tensor)
 
 
-def _dtype_name(x) -> str:
+def dtype_name(x) -> str:
     return str(x.dtype).removeprefix("torch.")
 
 
@@ -27,15 +27,15 @@ def depth_from_millimetres(depth_mm, *, name: str = "depth"):
 
     numpy in, numpy out; torch in, torch out. Negative values raise InputError.
     """
-    if _is_torch(depth_mm):
+    if is_torch(depth_mm):
         torch = sys.modules["torch"]
         if depth_mm.dtype == torch.bool or depth_mm.is_complex():
-            raise InputError(f"{name}: millimetre depth must be integer or float; got {_dtype_name(depth_mm)}")
+            raise InputError(f"{name}: millimetre depth must be integer or float; got {dtype_name(depth_mm)}")
         metres = depth_mm.to(torch.float64 if depth_mm.dtype == torch.float64 else torch.float32) / 1000.0
     else:
         depth_mm = np.asarray(depth_mm)
         if depth_mm.dtype.kind not in "iuf":
-            raise InputError(f"{name}: millimetre depth must be integer or float; got {_dtype_name(depth_mm)}")
+            raise InputError(f"{name}: millimetre depth must be integer or float; got {dtype_name(depth_mm)}")
         out = np.float64 if depth_mm.dtype == np.float64 else np.float32
         metres = depth_mm.astype(out) / out(1000.0)
     negative = metres < 0
@@ -71,7 +71,7 @@ def resize_depth(depth, size: tuple[int, int], *, name: str = "depth"):
     are never averaged across an edge (no flying pixels) and invalid pixels (0 / NaN)
     are never mixed into valid ones: a value is either copied or not used.
     """
-    torch_in = _is_torch(depth)
+    torch_in = is_torch(depth)
     depth, (h, w) = _resize_inputs(depth, size, name, torch_in)
     H, W = depth.shape[-2:]
     if (H, W) == (h, w):
@@ -103,7 +103,7 @@ def area_resize_depth(depth, size: tuple[int, int], *, min_valid: float = 0.5, n
     reduction lies a quarter output pixel off that ray.) It is 0 (unknown) where less than
     ``min_valid`` of the area is valid: an unknown pixel is never averaged in as a depth. Depths
     are averaged across an object's edge, as the RGB's colours are."""
-    torch_in = _is_torch(depth)
+    torch_in = is_torch(depth)
     depth, (h, w) = _resize_inputs(depth, size, name, torch_in)
     H, W = depth.shape[-2:]
     if (H, W) == (h, w):

@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -32,6 +31,7 @@ from imac_data import lerobot_compat as lr
 from imac_data.console import native_stderr_silenced, scheduling_kept
 from imac_data.core.depth_map import PIX_FMT as DEPTH_MAP_PIX_FMT
 from imac_data.core.depth_map import QMAX
+from imac_data.core.metric_depth import is_torch
 from imac_data.errors import InputError
 
 __all__ = ["VideoEncoding", "VideoWriter", "ImageStats", "encode_video", "read_video_frames", "encoder_versions",
@@ -181,17 +181,12 @@ def encoder_versions() -> dict[str, str]:
 
 
 # ------------------------------------------------------------------------------- frames
-def _is_torch(x) -> bool:
-    torch = sys.modules.get("torch")
-    return torch is not None and isinstance(x, torch.Tensor)
-
-
 def frame_batches(frames, where: str) -> Iterator[np.ndarray]:
     """Frames as ``(n, H, W, 3)`` arrays: accepts one array ``(T, H, W, 3)``, or an
     iterable of frames ``(H, W, 3)`` and/or chunks ``(n, H, W, 3)`` (numpy or torch)."""
 
     def as_batch(x):
-        if _is_torch(x):
+        if is_torch(x):
             x = x.detach().cpu().numpy()
         if not isinstance(x, np.ndarray):
             raise InputError(f"{where}: frames must be numpy arrays (or torch tensors), got {type(x).__name__}")
@@ -203,7 +198,7 @@ def frame_batches(frames, where: str) -> Iterator[np.ndarray]:
             raise InputError(f"{where}: frames must be uint8 (0..255); got {x.dtype}")
         return x
 
-    if isinstance(frames, np.ndarray) or _is_torch(frames):
+    if isinstance(frames, np.ndarray) or is_torch(frames):
         yield as_batch(frames)
         return
     if isinstance(frames, (str, bytes)) or not isinstance(frames, Iterable):
@@ -215,9 +210,9 @@ def frame_batches(frames, where: str) -> Iterator[np.ndarray]:
 def code_batches(frames, where: str) -> Iterator[np.ndarray]:
     """Depth-map frames as ``(n, H, W)`` uint16 12-bit codes: one array ``(T, H, W)`` or an
     iterable of frames ``(H, W)`` and/or chunks ``(n, H, W)``."""
-    items = [frames] if isinstance(frames, np.ndarray) or _is_torch(frames) else frames
+    items = [frames] if isinstance(frames, np.ndarray) or is_torch(frames) else frames
     for x in items:
-        if _is_torch(x):
+        if is_torch(x):
             x = x.detach().cpu().numpy()
         if not isinstance(x, np.ndarray) or x.dtype != np.uint16 or x.ndim not in (2, 3):
             raise InputError(f"{where}: depth-map frames must be uint16 (H, W) or (T, H, W) codes, got "
