@@ -31,7 +31,7 @@ __all__ = ["cpu_cores", "limit_malloc_arenas", "release_freed_memory", "run_comm
            "environment_problem", "interrupted", "quiet_libraries",
            "silence_progress_bars", "quiet_startup_interrupts", "note_interrupts", "interrupt_pending",
            "raise_if_interrupted", "block_interrupts_in_this_thread", "quiet_worker_interrupts", "run_as_job",
-           "native_stderr_silenced", "restore_scheduling", "scheduling", "scheduling_kept",
+           "native_stderr_silenced", "allow_realtime", "realtime_refused", "refuse_realtime", "restore_scheduling", "scheduling", "scheduling_kept",
            "EXIT_OK", "EXIT_BUG", "EXIT_BAD_INPUT", "EXIT_ENVIRONMENT", "EXIT_INTERRUPTED", "INTERRUPTED"]
 
 # errno -> what the user can do about it
@@ -284,15 +284,72 @@ def restore_scheduling(saved: tuple[int, int] | None) -> None:
         os.sched_setscheduler(0, saved[0], os.sched_param(saved[1]))
 
 
+# A thread's Linux capabilities (capget/capset, <linux/capability.h>): version 3, two 32-bit words per set.
+_CAP_VERSION_3, _CAP_SYS_NICE = 0x20080522, 23
+
+
+class _CapHeader(ctypes.Structure):
+    _fields_ = [("version", ctypes.c_uint32), ("pid", ctypes.c_int)]
+
+
+class _CapData(ctypes.Structure):
+    _fields_ = [("effective", ctypes.c_uint32), ("permitted", ctypes.c_uint32), ("inheritable", ctypes.c_uint32)]
+
+
+def _thread_capabilities():
+    """This thread's capability sets (two :class:`_CapData` words), or None where there is no capget."""
+    capget = getattr(_libc(), "capget", None)
+    data = (_CapData * 2)()
+    if capget is None or capget(ctypes.byref(_CapHeader(_CAP_VERSION_3, 0)), data) != 0:
+        return None
+    return data
+
+
+def _set_thread_capabilities(data) -> bool:
+    capset = getattr(_libc(), "capset", None)
+    return capset is not None and capset(ctypes.byref(_CapHeader(_CAP_VERSION_3, 0)), data) == 0
+
+
+def refuse_realtime():
+    """From now on this thread, and every thread it starts, may not make itself real-time: CAP_SYS_NICE leaves
+    the thread's effective capabilities (a program it executes gets them back as root). Returns what
+    :func:`allow_realtime` puts back, or None where the thread lacked the capability or the OS has none."""
+    caps = _thread_capabilities()
+    if caps is None or not caps[0].effective >> _CAP_SYS_NICE & 1:
+        return None
+    lowered = (_CapData * 2)(*(_CapData(c.effective, c.permitted, c.inheritable) for c in caps))
+    lowered[0].effective &= ~(1 << _CAP_SYS_NICE)
+    return caps if _set_thread_capabilities(lowered) else None
+
+
+def allow_realtime(saved) -> None:
+    """Put back what :func:`refuse_realtime` took (from the permitted set, which it never lowered)."""
+    if saved is not None:
+        _set_thread_capabilities(saved)
+
+
 @contextlib.contextmanager
-def scheduling_kept():
-    """This thread's CPU scheduling put back after the block. SVT-AV1 (LeRobot's camera codec), run as root,
-    switches the thread that opens an encoder to real-time SCHED_FIFO at priority 99 and leaves it there: every
-    process started from that thread inherits it, and two such processes busy on a 2-core machine starve the
-    rest of it (docs/building.md, "Real-time scheduling left by the AV1 encoder")."""
-    saved = scheduling()
+def realtime_refused():
+    """:func:`refuse_realtime` for the block. SVT-AV1 (LeRobot's camera codec), run as root, makes the thread
+    that opens an encoder and every encoder thread SCHED_FIFO at priority 99; refused, it encodes the same bytes
+    at normal priority (docs/building.md, "Real-time scheduling left by the AV1 encoder")."""
+    saved = refuse_realtime()
     try:
         yield
+    finally:
+        allow_realtime(saved)
+
+
+@contextlib.contextmanager
+def scheduling_kept():
+    """An encoder's block: no thread made real-time in it (:func:`realtime_refused`), and this thread's CPU
+    scheduling put back after it where something made it so all the same. A real-time encoder thread starves
+    every other process of a 2-core machine, and a real-time caller passes its policy to every process it
+    starts (docs/building.md, "Real-time scheduling left by the AV1 encoder")."""
+    saved = scheduling()
+    try:
+        with realtime_refused():
+            yield
     finally:
         restore_scheduling(saved)
 
