@@ -122,6 +122,26 @@ def test_the_av1_encoder_makes_a_root_caller_and_its_threads_real_time_unless_re
     assert (tmp_path / "kept.mp4").read_bytes() == (tmp_path / "bare.mp4").read_bytes()
 
 
+# ----------------------------------------------------------------------------- built datasets
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """A one-episode dataset (tiny), built by the build CLI, and a copy of it."""
+    tmp = tmp_path_factory.mktemp("dataset_pkg")
+    src = tmp / "src"
+    record_dataset(SimConfig(num_episodes=1, width=80, height=64, max_steps=14), src, progress=False)
+    data = yaml.safe_load((RECIPES_DIR / "aloha_sim_transfer_cube.yaml").read_text())
+    data["augment"] = {"height": 32, "width": 40, "contact_chunk": 4}
+    recipe = tmp / "recipe.yaml"
+    recipe.write_text(yaml.safe_dump(data))
+    root = tmp / "ds0"
+    assert imac_main(["build", "--repo", "local/pkg", "--recipe", str(recipe), "--source", str(src), "--root", str(root),
+                       "--no-progress", "--workers", "1", "--episodes", "1"]) == 0
+    shutil.copytree(root, tmp / "ds1")
+    return [root, tmp / "ds1"]
+
+
 def test_built_dataset_is_valid_every_frame(built, capsys):
     report = validate_dataset(built[0], full=True)
     assert report.ok, report.format()
