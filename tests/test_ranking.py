@@ -851,6 +851,32 @@ def test_the_modes_are_the_command_lines_choice_checked_before_any_work(tmp_path
     assert "--modes would change it" in capsys.readouterr().err
 
 
+def test_run_config_fields_set_on_the_command_line_reach_every_trained_mode_checked_before_any_work(tmp_path, capsys):
+    """--set FIELD=VALUE goes into the plan's overrides, over the budget the plan sets (a budget in steps on both
+    cores: docs/ranking.md, "Training on the ranked family"), and is kept in plan.json; a field or value the run
+    config refuses is refused before the work directory exists; --from-models keeps the report's."""
+    from imac_model.cli.parser import build_parser
+    from imac_model.cli.ranking import _plan
+
+    args = build_parser().parse_args(["ranking", "--preset", "checkpoints", "--work", str(tmp_path / "w"),
+                                      "--cpu-minutes", "240", "--set", "train.max_steps=10000",
+                                      "--set", "train.cpu_threads=2"])
+    plan = _plan(args)
+    for mode in plan.modes:
+        train = plan.run_config(mode).train
+        assert (train.max_steps, train.cpu_threads) == (10000, 2)
+        assert train.max_cpu_minutes == (10.0 if mode == "none" else 240.0)
+    back = RankingPlan.from_dict(json.loads(json.dumps(plan.to_dict())))  # as plan.json keeps it
+    assert back == plan and back.overrides == {"train.max_steps": 10000, "train.cpu_threads": 2}
+    for bad, named in (("train.max_step=10", "max_step"), ("train.max_steps=many", "train.max_steps")):
+        assert model_main(["ranking", "--work", str(tmp_path / "w2"), "--docs", str(tmp_path), "--set", bad,
+                           "--stages", "report"]) == 2
+        assert named in capsys.readouterr().err and not (tmp_path / "w2").exists()
+    assert model_main(["ranking", "--from-models", str(tmp_path), "--work", str(tmp_path / "w3"), "--set",
+                       "train.max_steps=1"]) == 2
+    assert "--set would change it" in capsys.readouterr().err
+
+
 def test_slope_offsets_put_half_the_training_rollouts_where_the_success_rate_falls():
     """The slope offsets: half the draws are across's (uniform over 2 cm along and 5 cm across the fingers), half
     1-3 cm either way across them; so 0.5 + 0.5 * 0.4 = 0.7 of all land 1-3 cm off across, 0.2 beyond 3 cm, the

@@ -6,15 +6,14 @@ import argparse
 from pathlib import Path
 
 from imac_data.console import run_command
-from imac_model.cli.train import overrides_of
+from imac_model.cli.train import set_overrides
 from imac_model.config import load_run_config
 from imac_model.training.plan import format_plan, make_plan, plan_json
 
 
 def run(args: argparse.Namespace) -> int:
     def body() -> int:
-        overrides = overrides_of(argparse.Namespace(dataset=None, root=None, mode=None, output_dir=None, set=args.set))
-        plan = make_plan(load_run_config(args.config, overrides), gpus=tuple(args.gpus), gpu_gb=args.gpu_gb,
+        plan = make_plan(load_run_config(args.config, set_overrides(args.set)), gpus=tuple(args.gpus), gpu_gb=args.gpu_gb,
                          reserve_gb=args.reserve_gb, micro_batch=args.micro_batch, views=args.views,
                          action_dim=args.action_dim)
         print(format_plan(plan, args.config))

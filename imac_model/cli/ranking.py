@@ -12,6 +12,7 @@ from pathlib import Path
 from imac_data.console import run_command
 from imac_data.dataset.output import output_lock
 from imac_data.errors import InputError
+from imac_model.cli.train import set_overrides
 from imac_model.experiments.ranking.benchmark import STAGE_FUNCTIONS
 from imac_model.experiments.ranking.datasets import decode_chunks
 from imac_model.experiments.ranking.evaluation import evaluate_mode, evaluate_policy, replays, run_judges
@@ -47,7 +48,12 @@ def _plan(args: argparse.Namespace) -> RankingPlan:
                                  ("views", tuple(args.views or ()) or None),
                                  ("modes", tuple(args.modes or ()) or None))
                if v is not None}
-    return same_as_saved(dataclasses.replace(plan, **changes))
+    if args.set:
+        changes["overrides"] = {**plan.overrides, **set_overrides(args.set)}
+    plan = dataclasses.replace(plan, **changes)
+    for mode in plan.modes:  # a field or value the run config refuses, before any work
+        plan.run_config(mode)
+    return same_as_saved(plan)
 
 
 def _rerun_plan(args: argparse.Namespace) -> RankingPlan:
@@ -56,7 +62,7 @@ def _rerun_plan(args: argparse.Namespace) -> RankingPlan:
     if docs == models.parent:
         raise InputError(f"--docs {args.docs}: the report the models belong to is there; the rerun's goes elsewhere")
     given = [k for k in ("preset", "cpu_minutes", "steps", "training_offsets", "training_policies",
-                         "training_policy_share", "settle", "views", "stages", "modes")
+                         "training_policy_share", "settle", "views", "stages", "modes", "set")
              if getattr(args, k) not in (None, "cpu")] + (["toy"] if args.toy else [])
     if given:
         raise InputError(f"--from-models runs the report's plan; {', '.join('--' + k.replace('_', '-') for k in given)} "

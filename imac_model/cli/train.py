@@ -19,7 +19,13 @@ def overrides_of(args: argparse.Namespace) -> dict:
                        ("conditioning.mode", args.mode), ("train.output_dir", args.output_dir)):
         if value is not None:
             overrides[key] = value
-    for item in args.set:
+    return {**overrides, **set_overrides(args.set)}
+
+
+def set_overrides(items) -> dict:
+    """``--set FIELD=VALUE`` items as run-config overrides, each value read as YAML."""
+    overrides = {}
+    for item in items or ():
         if "=" not in item:
             raise InputError(f"--set {item!r}: expected FIELD=VALUE")
         key, value = item.split("=", 1)
