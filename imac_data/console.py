@@ -31,7 +31,8 @@ __all__ = ["cpu_cores", "limit_malloc_arenas", "release_freed_memory", "run_comm
            "environment_problem", "interrupted", "quiet_libraries",
            "silence_progress_bars", "quiet_startup_interrupts", "note_interrupts", "interrupt_pending",
            "raise_if_interrupted", "block_interrupts_in_this_thread", "quiet_worker_interrupts", "run_as_job",
-           "native_stderr_silenced", "allow_realtime", "realtime_refused", "refuse_realtime", "restore_scheduling", "scheduling", "scheduling_kept",
+           "native_stderr_silenced", "allow_realtime", "realtime_refused", "refuse_realtime", "restore_scheduling",
+           "scheduling", "scheduling_kept",
            "EXIT_OK", "EXIT_BUG", "EXIT_BAD_INPUT", "EXIT_ENVIRONMENT", "EXIT_INTERRUPTED", "INTERRUPTED"]
 
 # errno -> what the user can do about it

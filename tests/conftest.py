@@ -1,8 +1,6 @@
 import os
 
-import pytest
-
-from imac_data.console import cpu_cores, refuse_realtime, restore_scheduling, scheduling
+from imac_data.console import cpu_cores, refuse_realtime
 
 # Before anything imports mujoco or dm_control: headless EGL rendering (Mesa on the CPU).
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -14,20 +12,9 @@ if _WORKERS > 1:
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, cpu_cores() // _WORKERS)))
 
 # Tests and module fixtures that write with LeRobot's own writer as root would make the test process and SVT-AV1's
-# threads real-time (docs/building.md, "Real-time scheduling left by the AV1 encoder"), starving the other test
-# process: no thread of a test process may (programs it runs get the right back). 1,168 and 1,142 s of pytest
-# with it on one host, 1,076 without (docs/verification.md, "The test suite").
+# threads real-time, starving the other test process (docs/building.md, "Real-time scheduling left by the AV1
+# encoder"): no thread of a test process may; programs it runs get the right back.
 refuse_realtime()
-_USUAL = scheduling()  # the scheduling the suite started with
-
-
-@pytest.fixture(autouse=True)
-def _usual_scheduling():
-    """Each test starts and ends on the usual policy (before it, too: a module fixture is set up before this one),
-    should anything have changed it."""
-    restore_scheduling(_USUAL)
-    yield
-    restore_scheduling(_USUAL)
 
 
 # The files that take minutes, collected first: `make test` hands pytest-xdist whole files (--dist loadfile) in

@@ -13,8 +13,8 @@ from imac_model.training.plan import format_plan, make_plan, plan_json
 
 def run(args: argparse.Namespace) -> int:
     def body() -> int:
-        plan = make_plan(load_run_config(args.config, set_overrides(args.set)), gpus=tuple(args.gpus), gpu_gb=args.gpu_gb,
-                         reserve_gb=args.reserve_gb, micro_batch=args.micro_batch, views=args.views,
+        plan = make_plan(load_run_config(args.config, set_overrides(args.set)), gpus=tuple(args.gpus),
+                         gpu_gb=args.gpu_gb, reserve_gb=args.reserve_gb, micro_batch=args.micro_batch, views=args.views,
                          action_dim=args.action_dim)
         print(format_plan(plan, args.config))
         if args.json:
