@@ -1,4 +1,4 @@
-"""World-model training speed and memory: the small backbone on the CPU.
+"""World-model training speed and memory on the CPU (by default the small backbone).
 
     python -m benchmarks.model_train [--quick] [--threads 2] [--json PATH]
     python -m benchmarks.model_train --config imac_model/configs/ranking.yaml --views 1 --sizes 48x64 --batch 8 --threads 1
@@ -107,29 +107,35 @@ def run(quick: bool = False, threads: int = 2, steps: int | None = None, config:
         proc.start()
         r = queue.get()
         proc.join()
-        key = f"_{size[0]}" if size[0] == size[1] else f"_{size[0]}x{size[1]}"
+        key = f"_{_size_key(size)}"
         result.update({f"model_small_steps_per_s{key}": 1.0 / r["wall_s"], f"model_small_wall_s_per_step{key}":
                        r["wall_s"], f"model_small_cpu_s_per_step{key}": r["cpu_s"],
                        f"model_small_peak_rss_mb{key}": r["peak_rss_mb"],
                        f"model_small_rss_growth_mb{key}": r["rss_growth_mb"], f"model_small_tokens{key}": r["tokens"],
                        "model_small_params_m": r["params_m"]})
-    result["model_sizes"] = [s[0] if s[0] == s[1] else f"{s[0]}x{s[1]}" for s in sizes]
+    result["model_sizes"] = [_size_key(s) for s in sizes]
     result["load_average_start_end"] = [round(x, 2) for x in load_start + os.getloadavg()]
     return result
 
 
 def report(r: dict) -> str:
-    lines = [f"World model, small backbone ({r['model_config']}, {r['model_small_params_m']:.2f} M parameters), "
-             f"motion+contact, {r.get('model_views', 3)} view(s), batch {r['model_batch']} x {r['model_frames']} frames, {r['model_threads']} "
+    lines = [f"World model ({r['model_config']}, {r['model_small_params_m']:.2f} M parameters), motion+contact, "
+             f"{r.get('model_views', 3)} view(s), batch {r['model_batch']} x {r['model_frames']} frames, {r['model_threads']} "
              f"thread(s), OMP_WAIT_POLICY={r['model_omp_wait_policy']}; load average {r['load_average_start_end']}",
              "| per view | tokens | steps/s | wall s/step | CPU s/step | peak RSS MB | RSS growth MB |",
              "|---|---|---|---|---|---|---|"]
     for s in r["model_sizes"]:
         k = f"_{s}"
-        lines.append(f"| {s if isinstance(s, str) else f'{s}x{s}'} | {r['model_small_tokens' + k]} | {r['model_small_steps_per_s' + k]:.2f} | "
+        label = s if isinstance(s, str) else f"{s}x{s}"
+        lines.append(f"| {label} | {r['model_small_tokens' + k]} | {r['model_small_steps_per_s' + k]:.2f} | "
                      f"{r['model_small_wall_s_per_step' + k]:.2f} | {r['model_small_cpu_s_per_step' + k]:.2f} | "
                      f"{r['model_small_peak_rss_mb' + k]:.0f} | {r['model_small_rss_growth_mb' + k]:.0f} |")
     return "\n".join(lines)
+
+
+def _size_key(size: tuple[int, int]) -> int | str:
+    """How a size names its figures: 64 for 64x64 (the keys results saved before have), else "48x64"."""
+    return size[0] if size[0] == size[1] else f"{size[0]}x{size[1]}"
 
 
 def _size(text: str) -> tuple[int, int]:
