@@ -58,6 +58,7 @@ from imac_model.experiments.ranking.perception import redness, without_cube
 from imac_model.experiments.ranking.plan import (
     CHECKPOINTS,
     EVAL_REPO,
+    GATED_MODE,
     POLICY_MODULE,
     TRAIN_REPO,
     TRAIN_SEED0,
@@ -746,6 +747,25 @@ def test_the_shipped_models_rerun_the_reports_closed_loops_bit_for_bit_without_t
     assert "| closed_loop | " in (rerun.docs / "README.md").read_text()
     assert model_main(["ranking", "--from-models", str(docs / "models"), "--work", str(tmp_path / "x"),
                        "--starts", "9"]) != 0  # more starts than the report ran
+
+
+def test_a_cpu_trained_run_carried_to_another_work_directory_is_evaluated_as_it_ships(toy_run, tmp_path):
+    """--export-runs / --import-gpu carry a CPU-trained run to a fresh machine: the weights the evaluation loads there
+    are those freeze_models shipped here (its EMA in float16, not the raw weights), with its log and early gates."""
+    work, _ = toy_run
+    plan = RankingPlan.load(work / "plan.json")
+    run = plan.run_dir(GATED_MODE)
+    assert (list_checkpoints(run)[-1] / "ema.safetensors").is_file() and read_gates(plan)  # what must not be lost
+    (archive,) = export_runs(plan, tmp_path / "carried", [run.name])
+    fresh = dataclasses.replace(plan, work=tmp_path / "fresh")
+    assert import_gpu_runs(fresh, archive.parent) == [run.name]
+    assert read_gates(fresh) == read_gates(plan)
+    assert (fresh.run_dir(GATED_MODE) / "log.jsonl").read_text() == (run / "log.jsonl").read_text()
+    carried = load_file(str(list_checkpoints(fresh.run_dir(GATED_MODE))[-1] / "model.safetensors"))
+    shipped = load_file(str(plan.evaluated_model(GATED_MODE) / "model.safetensors"))  # freeze_models' unpacked archive
+    assert carried.keys() == shipped.keys() and all(torch.equal(carried[k], shipped[k]) for k in shipped)
+    raw = load_file(str(list_checkpoints(run)[-1] / "model.safetensors"))
+    assert any(not torch.equal(raw[k].half(), shipped[k]) for k in load_file(str(list_checkpoints(run)[-1] / "ema.safetensors")))
 
 
 def test_the_committed_model_reruns_the_committed_reports_first_starts(tmp_path):

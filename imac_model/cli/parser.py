@@ -230,9 +230,9 @@ def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--import-gpu", metavar="DIR", help="put the run archives in DIR (<run>.tar from scripts/gpu_train.py, "
                                                       "or <run>.tar.xz from --export-runs) into the work directory as "
                                                       "trained runs (docs/ranking.md, 'The GPU preset')")
-    p.add_argument("--export-runs", metavar="DIR", help="write trained runs as DIR/<run>.tar.xz (latest checkpoint and "
-                                                       "whole log), to keep or carry to a later loan (docs/ranking.md, "
-                                                       "'Weights between loans')")
+    p.add_argument("--export-runs", metavar="DIR", help="write trained runs as DIR/<run>.tar.xz (latest checkpoint as "
+                                                       "it ships, whole log, early gates), to keep or carry to a later "
+                                                       "loan or session (docs/ranking.md, 'Weights between loans')")
     p.add_argument("--runs", nargs="+", metavar="RUN", help="with --export-runs: these runs under <work>/runs "
                                                             "(default: the plan's modes')")
     p.add_argument("--status", action="store_true",

@@ -1,5 +1,5 @@
 """A trained run as one file, ``<run>.tar`` or ``<run>.tar.xz``: its latest checkpoint's ``model.json`` and
-``model.safetensors`` and its ``log.jsonl``, flat. the GPU machine returns each run of a loan (:mod:`.runs`)
+``model.safetensors`` and its ``log.jsonl``, flat, and its early gates' ``gates.json`` where it has one. the GPU machine returns each run of a loan (:mod:`.runs`)
 this way (a loan returns few files); ``imac-model ranking --import-gpu`` reads them back into a work directory,
 ``--export-runs`` writes them from one (xz-compressed, to be committed: the hub is out of reach), and ``train.init`` starts from one. ``docs/ranking.md`` ("Weights between loans") has the procedure."""
 
@@ -15,6 +15,7 @@ from imac_model.models.checkpoint import EMA, SPEC, WEIGHTS, read_weights
 from imac_model.training.log import LOG_FILE
 
 MEMBERS = (SPEC, WEIGHTS, LOG_FILE)
+GATES = "gates.json"  # the ranking's early gates of a run (an optional member): a report reads them
 SUFFIXES = (".tar.xz", ".tar")
 
 
@@ -46,7 +47,7 @@ def read_archive(path: str | Path) -> dict[str, bytes]:
             if not set(MEMBERS) <= names:
                 raise InputError(f"{path}: not a run archive (it holds {sorted(names)}; "
                                  f"a run needs {list(MEMBERS)})")
-            return {n: archive.extractfile(n).read() for n in MEMBERS}
+            return {n: archive.extractfile(n).read() for n in (*MEMBERS, GATES) if n in names}
     except (tarfile.TarError, EOFError) as e:
         raise InputError(f"{path}: not a readable tar archive ({e})") from None
 
@@ -71,14 +72,17 @@ def _ema_half(checkpoint: Path) -> bytes:
     return save({k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in weights.items()})
 
 
-def write_archive(checkpoint: str | Path, log: str | Path, path: str | Path, *, ema_half: bool = False) -> Path:
-    """``checkpoint``'s spec and weights and the log file ``log`` as the run archive ``path``
-    (xz-compressed when it ends in ``.tar.xz``), written atomically. ``ema_half``: the weights are the
-    EMA's, in float16 (a trained run handed back; its optimizer state stays behind)."""
+def write_archive(checkpoint: str | Path, log: str | Path, path: str | Path, *, ema_half: bool = False,
+                  gates: str | Path | None = None) -> Path:
+    """``checkpoint``'s spec and weights, the log file ``log`` and the gates file ``gates`` (when given) as the
+    run archive ``path`` (xz-compressed when it ends in ``.tar.xz``), written atomically. ``ema_half``: the
+    weights are the EMA's, in float16 (a trained run handed back; its optimizer state stays behind)."""
     path = Path(path)
     if run_name(path) is None:
         raise InputError(f"{path}: a run archive is named <run>{' or <run>'.join(SUFFIXES)}")
     sources = {SPEC: Path(checkpoint) / SPEC, WEIGHTS: Path(checkpoint) / WEIGHTS, LOG_FILE: Path(log)}
+    if gates is not None:
+        sources[GATES] = Path(gates)
     missing = [str(p) for p in sources.values() if not p.is_file()]
     if missing:
         raise InputError(f"run archive {path}: missing {missing}")
@@ -98,4 +102,4 @@ def write_archive(checkpoint: str | Path, log: str | Path, path: str | Path, *, 
     return path
 
 
-__all__ = ["MEMBERS", "archives_in", "read_archive", "run_name", "unpack_checkpoint", "write_archive"]
+__all__ = ["GATES", "MEMBERS", "archives_in", "read_archive", "run_name", "unpack_checkpoint", "write_archive"]

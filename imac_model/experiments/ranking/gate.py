@@ -38,6 +38,7 @@ from imac_model.experiments.ranking.policies import WORKSPACE
 from imac_model.models.checkpoint import list_checkpoints, load_world_model
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.sampling import open_chunks
+from imac_model.training.archive import GATES
 from imac_model.training.log import read_log
 
 SEED_STRIDE = 100_003  # seed s of a replay: its start's seed + s * SEED_STRIDE
@@ -60,7 +61,7 @@ def reseeded(start: Start, seed: int) -> Start:
 
 
 def gates_path(plan: RankingPlan, mode: str = GATED_MODE) -> Path:
-    return plan.run_dir(mode) / "gates.json"
+    return plan.run_dir(mode) / GATES
 
 
 def read_gates(plan: RankingPlan, mode: str = GATED_MODE) -> list[dict]:

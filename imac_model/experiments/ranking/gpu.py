@@ -25,7 +25,7 @@ from imac_model.models.checkpoint import list_checkpoints
 from imac_model.modes import SCENE_WARP
 from imac_model.pipelines.online_controls import OnlineControls
 from imac_model.pipelines.packed_contact import contact_geometry, geometry_constants
-from imac_model.training.archive import archives_in, read_archive, run_name, unpack_checkpoint, write_archive
+from imac_model.training.archive import GATES, archives_in, read_archive, run_name, unpack_checkpoint, write_archive
 from imac_model.training.dataset_source import model_spec
 from imac_model.training.log import LOG_FILE
 from imac_model.training.runs import RUNS_FILE, RunsFile
@@ -106,6 +106,8 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
         shutil.rmtree(tmp, ignore_errors=True)
         unpack_checkpoint(tar, tmp / "checkpoints" / f"step_{int(last['step']):06d}")
         (tmp / LOG_FILE).write_text("".join(json.dumps(r) + "\n" for r in rows))
+        if GATES in files:  # a CPU-trained run's early gates travel with it
+            (tmp / GATES).write_bytes(files[GATES])
         (tmp / "DONE.json").write_text(json.dumps(last, indent=1))
         shutil.rmtree(run, ignore_errors=True)
         os.replace(tmp, run)
@@ -120,8 +122,9 @@ def import_gpu_runs(plan: RankingPlan, directory: Path) -> list[str]:
 
 def export_runs(plan: RankingPlan, directory: Path, runs: list[str] | None = None) -> list[Path]:
     """This work directory's trained runs (default: the plan's modes') as run archives
-    ``directory/<run>.tar.xz``: the latest checkpoint and the whole log, which :func:`import_gpu_runs`
-    reads back on another machine and ``train.init`` starts a run from. Every run is checked before any is written."""
+    ``directory/<run>.tar.xz``: the latest checkpoint as it ships (its EMA in float16, what the evaluation loads and
+    a GPU loan hands back), the whole log and the early gates, which :func:`import_gpu_runs` reads back on another
+    machine and ``train.init`` starts a run from. Every run is checked before any is written."""
     names = runs or [plan.run_dir(mode).name for mode in plan.modes if not run_mode(mode).blind]
     found = {n: list_checkpoints(plan.work / "runs" / n) for n in names}
     missing = [n for n, ckpts in found.items() if not ckpts]
@@ -129,8 +132,9 @@ def export_runs(plan: RankingPlan, directory: Path, runs: list[str] | None = Non
         raise InputError(f"--export-runs: no trained run {missing} under {plan.work / 'runs'}")
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    return [write_archive(ckpts[-1], plan.work / "runs" / n / LOG_FILE, directory / f"{n}.tar.xz")
-            for n, ckpts in found.items()]
+    gates = {n: plan.work / "runs" / n / GATES for n in names}
+    return [write_archive(ckpts[-1], plan.work / "runs" / n / LOG_FILE, directory / f"{n}.tar.xz", ema_half=True,
+                          gates=gates[n] if gates[n].is_file() else None) for n, ckpts in found.items()]
 
 
 def train_on_gpu(plan: RankingPlan) -> None:
