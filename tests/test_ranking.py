@@ -752,11 +752,14 @@ def test_the_shipped_models_rerun_the_reports_closed_loops_bit_for_bit_without_t
 def test_a_cpu_trained_run_carried_to_another_work_directory_is_evaluated_as_it_ships(toy_run, tmp_path):
     """--export-runs / --import-gpu carry a CPU-trained run to a fresh machine: the weights the evaluation loads there
     are those freeze_models shipped here (its EMA in float16, not the raw weights), with its log and early gates."""
-    work, _ = toy_run
+    work, docs = toy_run
     plan = RankingPlan.load(work / "plan.json")
     run = plan.run_dir(GATED_MODE)
     assert (list_checkpoints(run)[-1] / "ema.safetensors").is_file() and read_gates(plan)  # what must not be lost
-    (archive,) = export_runs(plan, tmp_path / "carried", [run.name])
+    with output_lock(work, who="a run training on"):  # export reads finished runs only, so it takes no lock
+        assert model_main(["ranking", "--toy", "--work", str(work), "--docs", str(docs), "--export-runs",
+                           str(tmp_path / "carried"), "--runs", run.name]) == 0
+    (archive,) = (tmp_path / "carried").iterdir()
     fresh = dataclasses.replace(plan, work=tmp_path / "fresh")
     assert import_gpu_runs(fresh, archive.parent) == [run.name]
     assert read_gates(fresh) == read_gates(plan)
@@ -766,6 +769,9 @@ def test_a_cpu_trained_run_carried_to_another_work_directory_is_evaluated_as_it_
     assert carried.keys() == shipped.keys() and all(torch.equal(carried[k], shipped[k]) for k in shipped)
     raw = load_file(str(list_checkpoints(run)[-1] / "model.safetensors"))
     assert any(not torch.equal(raw[k].half(), shipped[k]) for k in load_file(str(list_checkpoints(run)[-1] / "ema.safetensors")))
+    (fresh.run_dir(GATED_MODE) / "DONE.json").unlink()  # as while it trains: not exported
+    with pytest.raises(InputError, match="no trained run"):
+        export_runs(fresh, tmp_path / "again", [run.name])
 
 
 def test_the_committed_model_reruns_the_committed_reports_first_starts(tmp_path):

@@ -138,15 +138,15 @@ def _ranking(args: argparse.Namespace) -> int:
         return 0
     plan = _plan(args)
     stages = stages_to_run(args.stages, plan)
+    if args.export_runs:  # reads finished runs only, so it takes no lock: a run may go on training there
+        for path in export_runs(plan, Path(args.export_runs), args.runs):
+            print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
+        return 0
     plan.work.mkdir(parents=True, exist_ok=True)
     # one run per work directory at a time: two would train (or import) the same checkpoints
     with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
         if args.import_gpu:
             print(f"imported {import_gpu_runs(plan, Path(args.import_gpu))} into {plan.work / 'runs'}")
-            return 0
-        if args.export_runs:
-            for path in export_runs(plan, Path(args.export_runs), args.runs):
-                print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
             return 0
         return _run_stages(plan, stages)
 

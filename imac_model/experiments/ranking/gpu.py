@@ -127,9 +127,12 @@ def export_runs(plan: RankingPlan, directory: Path, runs: list[str] | None = Non
     machine and ``train.init`` starts a run from. Every run is checked before any is written."""
     names = runs or [plan.run_dir(mode).name for mode in plan.modes if not run_mode(mode).blind]
     found = {n: list_checkpoints(plan.work / "runs" / n) for n in names}
-    missing = [n for n, ckpts in found.items() if not ckpts]
+    # only finished runs (DONE.json), since an imported one is marked trained: that also makes it safe to export
+    # while another run trains in the work directory
+    missing = [n for n, ckpts in found.items() if not ckpts or not (plan.work / "runs" / n / "DONE.json").is_file()]
     if missing:
-        raise InputError(f"--export-runs: no trained run {missing} under {plan.work / 'runs'}")
+        raise InputError(f"--export-runs: no trained run {missing} under {plan.work / 'runs'} (a run is trained once "
+                         "its DONE.json is written; one still training is exported when it ends)")
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     gates = {n: plan.work / "runs" / n / GATES for n in names}
