@@ -1,7 +1,9 @@
 """A trained run as one file, ``<run>.tar`` or ``<run>.tar.xz``: its latest checkpoint's ``model.json`` and
-``model.safetensors`` and its ``log.jsonl``, flat, and its early gates' ``gates.json`` where it has one. the GPU machine returns each run of a loan (:mod:`.runs`)
-this way (a loan returns few files); ``imac-model ranking --import-gpu`` reads them back into a work directory,
-``--export-runs`` writes them from one (xz-compressed, to be committed: the hub is out of reach), and ``train.init`` starts from one. ``docs/ranking.md`` ("Weights between loans") has the procedure."""
+``model.safetensors``, its ``log.jsonl`` and, where it has one, its early gates' ``gates.json``, flat. The GPU
+machine returns each run of a loan (:mod:`.runs`) this way (a loan returns few files); ``imac-model ranking
+--import-gpu`` reads them back into a work directory, ``--export-runs`` writes them from one (xz-compressed, to be
+committed: the hub is out of reach), and ``train.init`` starts from one. ``docs/ranking.md`` ("Weights between
+loans") has the procedure."""
 
 from __future__ import annotations
 
@@ -74,14 +76,14 @@ def _ema_half(checkpoint: Path) -> bytes:
 
 def write_archive(checkpoint: str | Path, log: str | Path, path: str | Path, *, ema_half: bool = False,
                   gates: str | Path | None = None) -> Path:
-    """``checkpoint``'s spec and weights, the log file ``log`` and the gates file ``gates`` (when given) as the
-    run archive ``path`` (xz-compressed when it ends in ``.tar.xz``), written atomically. ``ema_half``: the
+    """``checkpoint``'s spec and weights, the log file ``log`` and the gates file ``gates`` (where it exists) as
+    the run archive ``path`` (xz-compressed when it ends in ``.tar.xz``), written atomically. ``ema_half``: the
     weights are the EMA's, in float16 (a trained run handed back; its optimizer state stays behind)."""
     path = Path(path)
     if run_name(path) is None:
         raise InputError(f"{path}: a run archive is named <run>{' or <run>'.join(SUFFIXES)}")
     sources = {SPEC: Path(checkpoint) / SPEC, WEIGHTS: Path(checkpoint) / WEIGHTS, LOG_FILE: Path(log)}
-    if gates is not None:
+    if gates is not None and Path(gates).is_file():
         sources[GATES] = Path(gates)
     missing = [str(p) for p in sources.values() if not p.is_file()]
     if missing:

@@ -135,9 +135,8 @@ def export_runs(plan: RankingPlan, directory: Path, runs: list[str] | None = Non
                          "its DONE.json is written; one still training is exported when it ends)")
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    gates = {n: plan.work / "runs" / n / GATES for n in names}
     return [write_archive(ckpts[-1], plan.work / "runs" / n / LOG_FILE, directory / f"{n}.tar.xz", ema_half=True,
-                          gates=gates[n] if gates[n].is_file() else None) for n, ckpts in found.items()]
+                          gates=plan.work / "runs" / n / GATES) for n, ckpts in found.items()]
 
 
 def train_on_gpu(plan: RankingPlan) -> None:
