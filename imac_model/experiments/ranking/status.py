@@ -17,8 +17,9 @@ from imac_model.training.log import progress_line
 
 def status(plan: RankingPlan) -> str:
     """A few lines on ``plan``'s work directory, as its files have it now."""
-    preset = f"GPU preset, {plan.gpu_minutes:g} GPU-minutes a mode" if plan.on_gpu else \
-        f"CPU preset, {plan.cpu_minutes:g} CPU-minutes a mode"
+    # the device, not the preset's name: the checkpoint preset trains on the CPU too
+    preset = f"trained on a GPU, {plan.gpu_minutes:g} GPU-minutes a mode" if plan.on_gpu else \
+        f"trained on the CPU, {plan.cpu_minutes:g} CPU-minutes a mode"
     pid = lock_holder(plan.work)
     lines = [f"{plan.work}: {preset}; {len(plan.policies)} policies; modes {', '.join(plan.modes)}",
              f"  working on it now: {'a process with PID ' + pid if pid else 'no process'}"]
