@@ -749,7 +749,7 @@ def test_the_shipped_models_rerun_the_reports_closed_loops_bit_for_bit_without_t
                        "--starts", "9"]) != 0  # more starts than the report ran
 
 
-def test_a_cpu_trained_run_carried_to_another_work_directory_is_evaluated_as_it_ships(toy_run, tmp_path):
+def test_a_cpu_trained_run_carried_to_another_work_directory_is_evaluated_as_it_ships(toy_run, tmp_path, capsys):
     """--export-runs / --import-gpu carry a CPU-trained run to a fresh machine: the weights the evaluation loads there
     are those freeze_models shipped here (its EMA in float16, not the raw weights), with its log and early gates."""
     work, docs = toy_run
@@ -769,6 +769,12 @@ def test_a_cpu_trained_run_carried_to_another_work_directory_is_evaluated_as_it_
     assert carried.keys() == shipped.keys() and all(torch.equal(carried[k], shipped[k]) for k in shipped)
     raw = load_file(str(list_checkpoints(run)[-1] / "model.safetensors"))
     assert any(not torch.equal(raw[k].half(), shipped[k]) for k in load_file(str(list_checkpoints(run)[-1] / "ema.safetensors")))
+    cli = tmp_path / "cli"  # the command line's import leaves a work directory that --status reads
+    assert model_main(["ranking", "--toy", "--work", str(cli), "--docs", str(tmp_path / "d"), "--import-gpu",
+                       str(archive.parent)]) == 0
+    capsys.readouterr()
+    assert model_main(["ranking", "--work", str(cli), "--status"]) == 0
+    assert "gates (balanced accuracy from chunk" in capsys.readouterr().out
     (fresh.run_dir(GATED_MODE) / "DONE.json").unlink()  # as while it trains: not exported
     with pytest.raises(InputError, match="no trained run"):
         export_runs(fresh, tmp_path / "again", [run.name])

@@ -147,6 +147,7 @@ def _ranking(args: argparse.Namespace) -> int:
     with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
         if args.import_gpu:
             print(f"imported {import_gpu_runs(plan, Path(args.import_gpu))} into {plan.work / 'runs'}")
+            (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))  # so that --status reads it
             return 0
         return _run_stages(plan, stages)
 
