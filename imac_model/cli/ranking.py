@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
@@ -18,7 +17,7 @@ from imac_model.experiments.ranking.datasets import decode_chunks
 from imac_model.experiments.ranking.evaluation import evaluate_mode, evaluate_policy, replays, run_judges
 from imac_model.experiments.ranking.gate import measure_gate
 from imac_model.experiments.ranking.gpu import export_runs, export_training_pack, import_gpu_runs
-from imac_model.experiments.ranking.plan import STAGES, RankingPlan, checkpoints_plan, gpu_plan, toy_plan
+from imac_model.experiments.ranking.plan import STAGES, RankingPlan, checkpoints_plan, gpu_plan, plan_path, toy_plan
 from imac_model.experiments.ranking.report import rewrite_report
 from imac_model.experiments.ranking.shipped import rerun_plan, run_from_models
 from imac_model.experiments.ranking.simulate import simulate_training_part
@@ -74,7 +73,7 @@ def _rerun_plan(args: argparse.Namespace) -> RankingPlan:
 def same_as_saved(plan: RankingPlan) -> RankingPlan:
     """``plan``, refused when its work directory holds a run with other settings."""
     work = plan.work
-    saved = work / "plan.json"
+    saved = plan_path(work)
     if saved.is_file():
         before = RankingPlan.load(saved)
         if before.to_dict() != plan.to_dict():
@@ -115,7 +114,7 @@ def _ranking(args: argparse.Namespace) -> int:
     if args.runs and not args.export_runs:
         raise InputError("--runs names the runs --export-runs writes; give --export-runs DIR")
     if args.status:
-        saved = Path(args.work).resolve() / "plan.json"
+        saved = plan_path(Path(args.work).resolve())
         if not saved.is_file():
             raise InputError(f"{saved.parent}: no benchmark run there (no plan.json); start one with imac-model ranking "
                              f"--work {args.work}")
@@ -131,7 +130,7 @@ def _ranking(args: argparse.Namespace) -> int:
         plan.check_policies()
         plan.work.mkdir(parents=True, exist_ok=True)
         with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
-            (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
+            plan.save()
             StageLog(plan.work / "stages.json", tag="ranking").run(
                 "from-models", lambda: run_from_models(plan, Path(args.from_models)))
         print(f"report: {plan.docs / 'README.md'}")
@@ -147,7 +146,7 @@ def _ranking(args: argparse.Namespace) -> int:
     with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
         if args.import_gpu:
             print(f"imported {import_gpu_runs(plan, Path(args.import_gpu))} into {plan.work / 'runs'}")
-            (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))  # so that --status reads it
+            plan.save()  # so that --status reads it
             return 0
         return _run_stages(plan, stages)
 
@@ -158,7 +157,7 @@ def _run_stages(plan: RankingPlan, stages: list[str]) -> int:
     ranked = bool({"simulate", "build", "evaluate"} & set(stages))
     if ranked or ({"pack", "train"} & set(stages) and plan.training_policies):
         plan.check_policies(training_only=not ranked)
-    (plan.work / "plan.json").write_text(json.dumps(plan.to_dict(), indent=1))
+    plan.save()
     log = StageLog(plan.work / "stages.json", tag="ranking")
     try:
         for stage in STAGES:

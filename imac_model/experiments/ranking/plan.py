@@ -258,6 +258,13 @@ class RankingPlan:
     def to_dict(self) -> dict:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
 
+    def save(self) -> Path:
+        """Write the plan where :func:`plan_path` names it (what ``--status`` and ``--plan`` read back)."""
+        self.work.mkdir(parents=True, exist_ok=True)
+        path = plan_path(self.work)
+        path.write_text(json.dumps(self.to_dict(), indent=1))
+        return path
+
     @classmethod
     def load(cls, path: Path) -> RankingPlan:
         return cls.from_dict(json.loads(Path(path).read_text()))
@@ -268,6 +275,11 @@ class RankingPlan:
         # a plan saved before these settings existed
         data = {"training_offsets": "disc", "settle_s": 0.0, "views": VIEWS, "evaluate_half": False, **data}
         return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()})
+
+
+def plan_path(work: Path) -> Path:
+    """The plan a work directory's run was made with."""
+    return Path(work) / "plan.json"
 
 
 def gpu_plan(work: Path, docs: Path) -> RankingPlan:
@@ -303,5 +315,5 @@ def toy_plan(work: Path, docs: Path) -> RankingPlan:
 def internal(plan: RankingPlan, what: str, *extra: str) -> list[str]:
     """argv of one of the benchmark's steps in a fresh process (``imac-model ranking --internal``: LeRobot's
     decoders and MuJoCo's GL context must not be forked after use)."""
-    return python() + ["-m", "imac_model", "ranking", "--plan", str(plan.work / "plan.json"), "--internal", what,
+    return python() + ["-m", "imac_model", "ranking", "--plan", str(plan_path(plan.work)), "--internal", what,
                        *extra]
