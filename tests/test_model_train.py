@@ -284,3 +284,20 @@ def test_data_parallel_on_the_cpu_trains_one_run_over_both_processes(dataset, tm
     assert [r.get("processes") for r in a[1:]] == [1] * 4 and [r.get("processes") for r in b[1:]] == [2] * 4
     held = [(x["heldout_loss"], y["heldout_loss"]) for x, y in zip(a, b) if "heldout_loss" in x]
     assert len(held) == 3 and all(abs(x - y) <= 2e-3 * abs(x) for x, y in held), held
+
+
+def test_the_ema_follows_the_weights_to_the_device_the_runtime_moves_them_to():
+    """The trainer makes the EMA before the runtime moves the model to its device (a GPU); the first update
+    must then move the shadow, not mix devices (the loan of 2026-12-04 stopped at its first step so). The
+    "meta" device stands in for the GPU: a real move with no data. On one device, the update is the average."""
+    from imac_model.training.train import EMA
+
+    model = torch.nn.Linear(3, 2)
+    ema = EMA(model, decay=0.9)
+    before = {k: v.clone() for k, v in ema.state().items()}
+    with torch.no_grad():
+        model.weight.add_(1.0)
+    ema.update(model, step=0)  # d = min(0.9, 1 / 10)
+    assert torch.allclose(ema.state()["weight"], 0.1 * before["weight"] + 0.9 * model.weight)
+    ema.update(model.to("meta"), step=1)
+    assert {v.device.type for v in ema.state().values()} == {"meta"}

@@ -1406,3 +1406,20 @@ def test_each_family_alone_is_ranked_as_scipy_ranks_it(tmp_path):
                  for i in range(len(y))]
         assert rows[family][1:6] == [str(len(names)), "motion+contact", f"{pearsonr(x, y)[0]:.3f}",
                                      f"{spearmanr(x, y)[0]:.3f}", f"{np.mean(worst):.3f}"]
+
+
+def test_any_preset_trains_on_a_gpu_with_gpu_minutes(tmp_path):
+    """--gpu-minutes turns a preset's training into the GPU preset's (the pack, scripts/gpu_train.py,
+    --import-gpu): the checkpoint preset's policies and modes, each compared mode trained that long, no
+    CPU-hourly early gate; the pack stage then runs by default."""
+    from imac_model.cli.parser import build_parser
+    from imac_model.cli.ranking import _plan, stages_to_run
+    from imac_model.experiments.ranking.gpu import runs_file
+
+    plan = _plan(build_parser().parse_args(["ranking", "--preset", "checkpoints", "--work", str(tmp_path / "w"),
+                                            "--gpu-minutes", "1.9"]))
+    assert plan.on_gpu and plan.gpu_minutes == 1.9 and plan.gate_every is None and plan.real_per_group == 50
+    assert "pack" in stages_to_run(None, plan)
+    runs = runs_file(plan)
+    assert runs.base["train"]["max_minutes"] == 1.9 and runs.base["train"]["max_cpu_minutes"] is None
+    assert runs.runs["motion_contact_seed2"] == {"conditioning.mode": "motion+contact", "train.seed": 2}

@@ -192,6 +192,10 @@ def _ranking(p: argparse.ArgumentParser) -> None:
                    help="the world models trained and compared, MODE or MODE@seedK for another training seed (default: "
                         "the preset's; e.g. motion+contact none for a first look at new training data)")
     p.add_argument("--cpu-minutes", type=float, help="training budget per compared mode (default 120)")
+    p.add_argument("--gpu-minutes", type=float, metavar="MINUTES",
+                   help="train the compared modes on one GPU instead, MINUTES of wall time each, from the tensor pack "
+                        "(any preset; --preset gpu sets 8): the pack stage, scripts/gpu_train.py, --import-gpu "
+                        "(docs/ranking.md, 'The GPU preset')")
     p.add_argument("--set", action="append", metavar="FIELD=VALUE",
                    help="a run-config field for every trained mode, kept in the plan (repeatable; e.g. "
                         "train.max_steps=10000 with train.cpu_threads=2 and a --cpu-minutes it stays under: a budget "

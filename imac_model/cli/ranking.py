@@ -47,6 +47,8 @@ def _plan(args: argparse.Namespace) -> RankingPlan:
                                  ("views", tuple(args.views or ()) or None),
                                  ("modes", tuple(args.modes or ()) or None))
                if v is not None}
+    if args.gpu_minutes is not None:  # trained on a GPU: no CPU-hourly early gate (gpu_plan's choice)
+        changes.update(gpu_minutes=args.gpu_minutes, gate_every=None)
     if args.set:
         changes["overrides"] = {**plan.overrides, **set_overrides(args.set)}
     plan = dataclasses.replace(plan, **changes)
@@ -60,7 +62,7 @@ def _rerun_plan(args: argparse.Namespace) -> RankingPlan:
     docs = Path(args.docs).resolve() if args.docs else work / "report"
     if docs == models.parent:
         raise InputError(f"--docs {args.docs}: the report the models belong to is there; the rerun's goes elsewhere")
-    given = [k for k in ("preset", "cpu_minutes", "steps", "training_offsets", "training_policies",
+    given = [k for k in ("preset", "cpu_minutes", "gpu_minutes", "steps", "training_offsets", "training_policies",
                          "training_policy_share", "settle", "views", "stages", "modes", "set")
              if getattr(args, k) not in (None, "cpu")] + (["toy"] if args.toy else [])
     if given:

@@ -114,7 +114,10 @@ class EMA:
     @torch.no_grad()
     def update(self, model: torch.nn.Module, step: int) -> None:
         d = min(self.decay, (1 + step) / (10 + step))  # fast start, as is usual
-        named = [(self.shadow[k], p.detach().float()) for k, p in model.named_parameters() if k in self.shadow]
+        params = {k: p for k, p in model.named_parameters() if k in self.shadow}
+        if any(self.shadow[k].device != p.device for k, p in params.items()):  # made before the model moved (prepare)
+            self.shadow = {k: s.to(params[k].device) for k, s in self.shadow.items()}
+        named = [(self.shadow[k], p.detach().float()) for k, p in params.items()]
         shadow, params = [s for s, _ in named], [p for _, p in named]
         torch._foreach_mul_(shadow, d)  # one fused update: a loop over tensors launches kernels per parameter
         torch._foreach_add_(shadow, params, alpha=1 - d)
