@@ -51,7 +51,9 @@ def progress_line(run: str | Path, cpu_minutes: float | None = None) -> str | No
         return None
     last = rows[-1]
     said = f"step {last['step']:,}"
-    if "cpu_s" in last:
+    if last.get("device", "cpu") != "cpu" and "wall_s" in last:  # a GPU's budget is wall time (train.max_minutes)
+        said += f", {last['wall_s'] / 60:.1f} wall minutes on {last['device']}"
+    elif "cpu_s" in last:
         said += f", {last['cpu_s'] / 60:.1f}" + (f" of {cpu_minutes:g}" if cpu_minutes else "") + " CPU-minutes"
         if cpu_minutes and last.get("wall_s") and last["cpu_s"] > 0:  # at the CPU a wall second it has had so far
             left = max(0.0, 60 * cpu_minutes - last["cpu_s"]) * last["wall_s"] / last["cpu_s"]
