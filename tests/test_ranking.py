@@ -1423,3 +1423,25 @@ def test_any_preset_trains_on_a_gpu_with_gpu_minutes(tmp_path):
     runs = runs_file(plan)
     assert runs.base["train"]["max_minutes"] == 1.9 and runs.base["train"]["max_cpu_minutes"] is None
     assert runs.runs["motion_contact_seed2"] == {"conditioning.mode": "motion+contact", "train.seed": 2}
+
+
+def test_a_reports_command_line_makes_its_plan_again(tmp_path):
+    """The report names the preset and flags that make its plan (plan.command_flags); the command line itself
+    is the oracle: parsed, those flags give the same plan, for each preset and for a plan changed by flags."""
+    from imac_model.cli.parser import build_parser
+    from imac_model.cli.ranking import _plan
+    from imac_model.experiments.ranking.plan import command_flags
+
+    work, docs = tmp_path / "w", tmp_path / "d"
+    given = [[], ["--preset", "gpu"], ["--preset", "checkpoints"], ["--toy"],
+             ["--preset", "checkpoints", "--modes", "motion+contact", "none", "--training-offsets", "slope",
+              "--training-policies", "python:imac_model.experiments.ranking.policies:closed_loop", "--gpu-minutes",
+              "1.9", "--settle", "0.5", "--views", "cam_workspace", "cam_right_wrist"],
+             ["--cpu-minutes", "180", "--steps", "20", "--set", "train.max_steps=10207", "--set", "train.cpu_threads=2"]]
+    for flags in given:
+        plan = _plan(build_parser().parse_args(["ranking", "--work", str(work), "--docs", str(docs), *flags]))
+        shown, by_hand = command_flags(plan)
+        again = _plan(build_parser().parse_args(["ranking", "--work", str(work), "--docs", str(docs), *shown]))
+        assert again == plan and by_hand == [], (flags, shown)
+    edited = dataclasses.replace(RankingPlan(work=work, docs=docs), groups=3)
+    assert command_flags(edited) == ([], ["groups"])

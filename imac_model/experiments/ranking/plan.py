@@ -312,6 +312,50 @@ def toy_plan(work: Path, docs: Path) -> RankingPlan:
                        recorded=2, toy=True, gate_every=1.0, gate_min=0.0, gate_seeds=2)
 
 
+# the plan fields `imac-model ranking` sets from its flags (imac_model/cli/parser.py), by field
+FLAGS = {"policies": "--policies", "modes": "--modes", "cpu_minutes": "--cpu-minutes", "gpu_minutes": "--gpu-minutes",
+         "steps": "--steps", "training_offsets": "--training-offsets", "training_policies": "--training-policies",
+         "training_policy_share": "--training-policy-share", "settle_s": "--settle", "views": "--views"}
+PRESETS = {"cpu": RankingPlan, "gpu": gpu_plan, "checkpoints": checkpoints_plan}
+UNCHANGED = {"work", "docs", "jobs", "gate_every"}  # jobs changes no figure; gate_every follows --gpu-minutes
+POLICY_FIELDS = ("policies", "training_policies")
+
+
+def _in_repository(directory: str) -> str:
+    path = Path(directory)
+    return str(path.relative_to(REPO_ROOT)) if path.is_absolute() and path.is_relative_to(REPO_ROOT) else directory
+
+
+def _shown(plan: RankingPlan, key: str):
+    """A plan field as the command line gives it: paths in the repository (LeRobot checkpoints, the config)
+    relative to it."""
+    value = getattr(plan, key)
+    if key == "config":
+        return _in_repository(str(value))
+    return tuple(with_lerobot_dir(s, _in_repository) for s in value) if key in POLICY_FIELDS else value
+
+
+def command_flags(plan: RankingPlan) -> tuple[list[str], list[str]]:
+    """The preset and flags of ``imac-model ranking`` that make ``plan`` (from the preset it differs least
+    from; ``--toy`` for the CI run), and the fields that no flag sets (a plan edited by hand)."""
+    if plan.toy:
+        base, flags = toy_plan(plan.work, plan.docs), ["--toy"]
+    else:
+        name, base = min(((n, make(plan.work, plan.docs)) for n, make in PRESETS.items()),
+                         key=lambda nb: sum(_shown(nb[1], k) != _shown(plan, k) for k in FLAGS))
+        flags = [] if name == "cpu" else ["--preset", name]
+    differ = [f.name for f in dataclasses.fields(RankingPlan)
+              if f.name not in UNCHANGED and _shown(plan, f.name) != _shown(base, f.name)]
+    for key in differ:
+        value = _shown(plan, key)
+        if key in FLAGS:
+            flags += [FLAGS[key], *map(str, value)] if isinstance(value, tuple) else \
+                [FLAGS[key], f"{value:g}" if isinstance(value, float) else str(value)]
+        elif key == "overrides":
+            flags += [x for k, v in value.items() if base.overrides.get(k) != v for x in ("--set", f"{k}={v}")]
+    return flags, [k for k in differ if k not in FLAGS and k != "overrides"]
+
+
 def internal(plan: RankingPlan, what: str, *extra: str) -> list[str]:
     """argv of one of the benchmark's steps in a fresh process (``imac-model ranking --internal``: LeRobot's
     decoders and MuJoCo's GL context must not be forked after use)."""
