@@ -1292,6 +1292,7 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
                                                                    "log_every": 1, "eval_every": 1, "ema_decay": 0.0,
                                                                    "compile": False}})
     assert runs.runs["motion_contact_uniform"] == {"conditioning.mode": "motion+contact", "flow.focus_weight": 0.0}
+    assert "none" not in runs.runs  # the blind harness check trains on the CPU (stage_train), not on GPU minutes
     file = runs.to_yaml(plan.pack.parent / "toy_runs.yaml")
     out = tmp_path / "gpu_out"
     blocked = ("lerobot", "mujoco", "open3d", "diffusers", "accelerate", "scipy", "trimesh", "cv2", "av", "pandas",
@@ -1310,14 +1311,13 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
                  f"runpy.run_path({str(ROOT / 'scripts' / 'gpu_train.py')!r}, run_name='__main__')\n")
     done = subprocess.run([sys.executable, "-c", bootstrap], capture_output=True, text=True, cwd=tmp_path)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert sorted(p.name for p in out.iterdir()) == ["motion_contact.tar", "motion_contact_uniform.tar", "none.tar"]
+    assert sorted(p.name for p in out.iterdir()) == ["motion_contact.tar", "motion_contact_uniform.tar"]
     assert (work / "wm" / "motion_contact" / "replays.json").is_file()  # the CPU-trained toy model's
-    assert sorted(import_gpu_runs(plan, out)) == ["motion_contact", "motion_contact_uniform", "none"]
+    assert sorted(import_gpu_runs(plan, out)) == ["motion_contact", "motion_contact_uniform"]
     assert not (work / "wm" / "motion_contact").exists()  # evaluations of the replaced model are dropped
     source = PackSource(runs.config("motion_contact", tmp_path))
     items = evaluation_items(source.n_held, runs.config("motion_contact", tmp_path).train.eval_batches * 16)
-    for name, mode, focus in (("motion_contact", "motion+contact", 5.0), ("motion_contact_uniform", "motion+contact", 0.0),
-                              ("none", "none", 5.0)):
+    for name, mode, focus in (("motion_contact", "motion+contact", 5.0), ("motion_contact_uniform", "motion+contact", 0.0)):
         model, spec = load_world_model(work / "runs" / name, weights="ema")
         assert spec.conditioning.mode == mode and spec.flow.focus_weight == focus
         log = [json.loads(line) for line in (work / "runs" / name / "log.jsonl").read_text().splitlines()]
@@ -1326,13 +1326,13 @@ def test_the_gpu_preset_trains_from_the_pack_and_comes_back(toy_run, tmp_path):
         again = heldout_loss(model.float(), source, items, 16, "cpu", contextlib.nullcontext)
         assert again == pytest.approx(log[-1]["heldout_loss"], rel=1e-3)  # float16 weights
     # a run archive carries a run to another machine whole: imported back, its weights and its whole log are the run's
-    kept_log = (work / "runs" / "none" / "log.jsonl").read_text()
-    kept_weights = (list_checkpoints(work / "runs" / "none")[-1] / "model.safetensors").read_bytes()
-    (archive,) = export_runs(plan, tmp_path / "carried", ["none"])
-    shutil.rmtree(work / "runs" / "none")  # as on a fresh machine
-    assert import_gpu_runs(plan, archive.parent) == ["none"]
-    assert (work / "runs" / "none" / "log.jsonl").read_text() == kept_log
-    assert (list_checkpoints(work / "runs" / "none")[-1] / "model.safetensors").read_bytes() == kept_weights
+    kept_log = (work / "runs" / "motion_contact" / "log.jsonl").read_text()
+    kept_weights = (list_checkpoints(work / "runs" / "motion_contact")[-1] / "model.safetensors").read_bytes()
+    (archive,) = export_runs(plan, tmp_path / "carried", ["motion_contact"])
+    shutil.rmtree(work / "runs" / "motion_contact")  # as on a fresh machine
+    assert import_gpu_runs(plan, archive.parent) == ["motion_contact"]
+    assert (work / "runs" / "motion_contact" / "log.jsonl").read_text() == kept_log
+    assert (list_checkpoints(work / "runs" / "motion_contact")[-1] / "model.safetensors").read_bytes() == kept_weights
     # the loss-weighting ablation's figures on the imported runs: the gate measured for each, the replays
     assert ablation.main(["focus", "--work", str(work), "--json", str(tmp_path / "focus.json")]) == 0
     figures = json.loads((tmp_path / "focus.json").read_text())
@@ -1423,6 +1423,7 @@ def test_any_preset_trains_on_a_gpu_with_gpu_minutes(tmp_path):
     runs = runs_file(plan)
     assert runs.base["train"]["max_minutes"] == 1.9 and runs.base["train"]["max_cpu_minutes"] is None
     assert runs.runs["motion_contact_seed2"] == {"conditioning.mode": "motion+contact", "train.seed": 2}
+    assert "none" not in runs.runs  # trained on the CPU, its own 10 CPU-minutes
 
 
 def test_a_reports_command_line_makes_its_plan_again(tmp_path):
@@ -1445,3 +1446,17 @@ def test_a_reports_command_line_makes_its_plan_again(tmp_path):
         assert again == plan and by_hand == [], (flags, shown)
     edited = dataclasses.replace(RankingPlan(work=work, docs=docs), groups=3)
     assert command_flags(edited) == ([], ["groups"])
+
+
+def test_the_gpu_presets_none_trains_on_the_cpu_before_it_asks_for_the_gpu(toy_run, tmp_path):
+    """`none` is the harness check with its own CPU budget: a GPU plan trains it here, then, on a machine with no
+    GPU, says how to train the compared modes on one (scripts/gpu_train.py, --import-gpu)."""
+    work, _ = toy_run
+    plan = dataclasses.replace(RankingPlan.load(work / "plan.json"), work=tmp_path / "work", docs=tmp_path / "docs",
+                               gpu_minutes=1.0, gate_every=None, overrides={"train.max_steps": 2})
+    for part in ("datasets", "chunkcache", "sim"):  # the training side, built
+        (plan.work / part).parent.mkdir(parents=True, exist_ok=True)
+        (plan.work / part).symlink_to(work / part)
+    with pytest.raises(InputError, match="the GPU preset trains on a GPU"):
+        stage_train(plan)
+    assert (plan.run_dir("none") / "DONE.json").is_file() and not plan.run_dir("motion+contact").exists()

@@ -51,13 +51,14 @@ def export_training_pack(plan: RankingPlan) -> None:
 
 
 def runs_file(plan: RankingPlan) -> RunsFile:
-    """What the GPU machine trains: every mode of the plan and its ablations' arms (:mod:`.ablations`), on the
-    gated mode's run config with the GPU settings (``imac_model/configs/ranking_gpu.yaml``), ``gpu_minutes``
-    of wall time each."""
+    """What the GPU machine trains: the plan's compared modes (``none`` trains on the CPU) and its ablations'
+    arms (:mod:`.ablations`), on the gated mode's run config with the GPU settings
+    (``imac_model/configs/ranking_gpu.yaml``), ``gpu_minutes`` of wall time each."""
     base = plan.run_config(GATED_MODE).replace(**yaml.safe_load(GPU_CONFIG.read_text()),
                                                 **{"train.max_minutes": plan.gpu_minutes, "train.max_cpu_minutes": None})
     runs = {plan.run_dir(mode).name: {k: plan.mode_overrides(mode)[k] for k in ("conditioning.mode", "train.seed")
-                                      if k == "conditioning.mode" or SEED_MARK in mode} for mode in plan.modes}
+                                      if k == "conditioning.mode" or SEED_MARK in mode}
+            for mode in plan.modes if not run_mode(mode).blind}  # none trains on the CPU (stage_train)
     for name in plan.gpu_ablations:
         arm = ablation(name, plan.chunks)
         runs[arm.arm] = {"conditioning.mode": GATED_MODE, **arm.changes}
@@ -142,7 +143,7 @@ def export_runs(plan: RankingPlan, directory: Path, runs: list[str] | None = Non
 def train_on_gpu(plan: RankingPlan) -> None:
     """The GPU preset's training: the runs file trained here when this machine has a GPU, else a clear word
     on how to run it on one and bring the archives back (``--import-gpu``)."""
-    if all((plan.run_dir(mode) / "DONE.json").is_file() for mode in plan.modes):
+    if all((plan.run_dir(mode) / "DONE.json").is_file() for mode in plan.modes if not run_mode(mode).blind):
         return
     command = f"python scripts/gpu_train.py {plan.pack.parent / RUNS_FILE} OUT"
     if not torch.cuda.is_available():

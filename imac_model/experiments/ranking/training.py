@@ -1,6 +1,6 @@
 """The ranking benchmark's ``train`` stage on the CPU: one world model per conditioning mode, the same
 CPU budget each, the gated mode first in segments, each followed by the early gate (:mod:`.gate`).
-The GPU preset trains from the pack instead (:mod:`.gpu`)."""
+The GPU preset trains its compared modes from the pack instead (:mod:`.gpu`); ``none`` trains here."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from functools import partial
 from imac_model.experiments.ranking.datasets import training_side
 from imac_model.experiments.ranking.gate import gate_minutes, gate_verdict, read_gates
 from imac_model.experiments.ranking.gpu import train_on_gpu
-from imac_model.experiments.ranking.plan import GATED_MODE, RankingPlan, internal, slug
+from imac_model.experiments.ranking.plan import GATED_MODE, RankingPlan, internal, run_mode, slug
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import Job, run_all, train_job
 from imac_model.training.log import progress_line
@@ -57,12 +57,14 @@ def train_gated(plan: RankingPlan) -> None:
 
 def stage_train(plan: RankingPlan) -> None:
     training_side(plan)  # so that `--stages train` alone trains the world models while the policies still train
-    if plan.on_gpu:
-        return train_on_gpu(plan)
-    gated = plan.gate_every is not None and GATED_MODE in plan.modes
+    # a policy-blind mode (none: the harness check, none_minutes) trains here even for the GPU preset
+    on_cpu = [m for m in plan.modes if run_mode(m).blind] if plan.on_gpu else list(plan.modes)
+    gated = not plan.on_gpu and plan.gate_every is not None and GATED_MODE in plan.modes
     if gated and not (plan.run_dir(GATED_MODE) / "DONE.json").is_file():
         train_gated(plan)  # first, alone: the other modes train only once it has passed
     commands = [(f"train {mode}", train_command(plan, mode), plan.work / "logs" / f"train_{slug(mode)}.log",
                  partial(progress_line, plan.run_dir(mode), plan.cpu_budget(mode)))
-                for mode in plan.modes if not (plan.run_dir(mode) / "DONE.json").is_file()]
+                for mode in on_cpu if not (plan.run_dir(mode) / "DONE.json").is_file()]
     run_all(commands, plan.jobs, tag="ranking")
+    if plan.on_gpu:
+        train_on_gpu(plan)
