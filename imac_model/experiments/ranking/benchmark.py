@@ -26,7 +26,7 @@ from imac_model.experiments.ranking.evaluation import evaluated_policies, policy
 from imac_model.experiments.ranking.freeze import freeze_models
 from imac_model.experiments.ranking.gate import read_gates
 from imac_model.experiments.ranking.gpu import stage_pack
-from imac_model.experiments.ranking.plan import RankingPlan, internal, run_mode, slug
+from imac_model.experiments.ranking.plan import RankingPlan, internal, slug
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.ranking.simulate import stage_simulate
 from imac_model.experiments.ranking.training import stage_train
@@ -53,7 +53,7 @@ def stage_evaluate(plan: RankingPlan) -> None:
     freeze_models(plan)  # every mode evaluated as it ships
     # the gate of every compared mode at the end of its training, beside motion+contact's hourly ones
     gates = [(f"gate {mode}", internal(plan, "gate", f"{plan.budget_minutes:g}", mode), plan.work / "logs" / "gate.log")
-             for mode in plan.modes if not run_mode(mode).blind and not _gated_at_the_end(plan, mode)]
+             for mode in plan.compared_modes if not _gated_at_the_end(plan, mode)]
     run_all(gates, plan.jobs, tag="ranking")
     # each mode's replays and each policy's closed loop in a process of its own, the longest first, so that the cores
     # stay busy to the end (one process per mode left one idle while motion+contact's ran on); then each mode's
@@ -64,7 +64,7 @@ def stage_evaluate(plan: RankingPlan) -> None:
         return plan.work / "logs" / f"evaluate_{slug(mode.replace('+', '_'))}{what}.log"
 
     replaying = [(f"replays {m}", internal(plan, "replays", m), log(m, "_replays")) for m in modes
-                 if not run_mode(m).blind and not (plan.wm_dir(m) / "replays.json").is_file()]
+                 if m in plan.compared_modes and not (plan.wm_dir(m) / "replays.json").is_file()]
     closed_loops = [(f"evaluate {m} {slug(p)}", internal(plan, "evaluate", m, p), log(m, f"_{slug(p)}"))
                     for m in modes for p in evaluated_policies(plan, m)
                     if not (policy_dir(plan, m, p) / "closed_loop.json").is_file()]

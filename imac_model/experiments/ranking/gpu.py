@@ -19,7 +19,7 @@ from imac_model.data.chunks import ChunkDataset, open_metadata, split_episodes
 from imac_model.data.pack import export_pack
 from imac_model.experiments.ranking.ablations import ablation
 from imac_model.experiments.ranking.datasets import training_side
-from imac_model.experiments.ranking.plan import GATED_MODE, SEED_MARK, TRAIN_REPO, RankingPlan, internal, run_mode
+from imac_model.experiments.ranking.plan import GATED_MODE, SEED_MARK, TRAIN_REPO, RankingPlan, internal
 from imac_model.experiments.stages import REPO_ROOT, python, run_all
 from imac_model.models.checkpoint import list_checkpoints
 from imac_model.modes import SCENE_WARP
@@ -58,7 +58,7 @@ def runs_file(plan: RankingPlan) -> RunsFile:
                                                 **{"train.max_minutes": plan.gpu_minutes, "train.max_cpu_minutes": None})
     runs = {plan.run_dir(mode).name: {k: plan.mode_overrides(mode)[k] for k in ("conditioning.mode", "train.seed")
                                       if k == "conditioning.mode" or SEED_MARK in mode}
-            for mode in plan.modes if not run_mode(mode).blind}  # none trains on the CPU (stage_train)
+            for mode in plan.compared_modes}  # none trains on the CPU (stage_train)
     for name in plan.gpu_ablations:
         arm = ablation(name, plan.chunks)
         runs[arm.arm] = {"conditioning.mode": GATED_MODE, **arm.changes}
@@ -126,7 +126,7 @@ def export_runs(plan: RankingPlan, directory: Path, runs: list[str] | None = Non
     ``directory/<run>.tar.xz``: the latest checkpoint as it ships (its EMA in float16, what the evaluation loads and
     a GPU loan hands back), the whole log and the early gates, which :func:`import_gpu_runs` reads back on another
     machine and ``train.init`` starts a run from. Every run is checked before any is written."""
-    names = runs or [plan.run_dir(mode).name for mode in plan.modes if not run_mode(mode).blind]
+    names = runs or [plan.run_dir(mode).name for mode in plan.compared_modes]
     found = {n: list_checkpoints(plan.work / "runs" / n) for n in names}
     # only finished runs (DONE.json), since an imported one is marked trained: that also makes it safe to export
     # while another run trains in the work directory
@@ -143,7 +143,7 @@ def export_runs(plan: RankingPlan, directory: Path, runs: list[str] | None = Non
 def train_on_gpu(plan: RankingPlan) -> None:
     """The GPU preset's training: the runs file trained here when this machine has a GPU, else a clear word
     on how to run it on one and bring the archives back (``--import-gpu``)."""
-    if all((plan.run_dir(mode) / "DONE.json").is_file() for mode in plan.modes if not run_mode(mode).blind):
+    if all((plan.run_dir(mode) / "DONE.json").is_file() for mode in plan.compared_modes):
         return
     command = f"python scripts/gpu_train.py {plan.pack.parent / RUNS_FILE} OUT"
     if not torch.cuda.is_available():

@@ -229,6 +229,11 @@ class RankingPlan:
         return list(range(self.train_episodes - self.held_out, self.train_episodes))
 
     @property
+    def compared_modes(self) -> tuple[str, ...]:
+        """The modes that see the policy's actions: every mode but a blind one (``none``, the harness check)."""
+        return tuple(m for m in self.modes if not run_mode(m).blind)
+
+    @property
     def on_gpu(self) -> bool:
         """The GPU preset: the compared modes train from the tensor pack on a GPU (``gpu_minutes`` each)."""
         return self.gpu_minutes is not None

@@ -10,7 +10,7 @@ from functools import partial
 from imac_model.experiments.ranking.datasets import training_side
 from imac_model.experiments.ranking.gate import gate_minutes, gate_verdict, read_gates
 from imac_model.experiments.ranking.gpu import train_on_gpu
-from imac_model.experiments.ranking.plan import GATED_MODE, RankingPlan, internal, run_mode, slug
+from imac_model.experiments.ranking.plan import GATED_MODE, RankingPlan, internal, slug
 from imac_model.experiments.ranking.report import write_report
 from imac_model.experiments.stages import Job, run_all, train_job
 from imac_model.training.log import progress_line
@@ -58,7 +58,7 @@ def train_gated(plan: RankingPlan) -> None:
 def stage_train(plan: RankingPlan) -> None:
     training_side(plan)  # so that `--stages train` alone trains the world models while the policies still train
     # a policy-blind mode (none: the harness check, none_minutes) trains here even for the GPU preset
-    on_cpu = [m for m in plan.modes if run_mode(m).blind] if plan.on_gpu else list(plan.modes)
+    on_cpu = [m for m in plan.modes if m not in plan.compared_modes] if plan.on_gpu else list(plan.modes)
     gated = not plan.on_gpu and plan.gate_every is not None and GATED_MODE in plan.modes
     if gated and not (plan.run_dir(GATED_MODE) / "DONE.json").is_file():
         train_gated(plan)  # first, alone: the other modes train only once it has passed
