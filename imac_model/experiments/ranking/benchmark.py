@@ -51,17 +51,18 @@ def _gated_at_the_end(plan: RankingPlan, mode: str) -> bool:
 
 def stage_evaluate(plan: RankingPlan) -> None:
     freeze_models(plan)  # every mode evaluated as it ships
+
+    def log(mode: str, what: str) -> Path:
+        return plan.work / "logs" / f"evaluate_{slug(mode.replace('+', '_'))}{what}.log"
+
     # the gate of every compared mode at the end of its training, beside motion+contact's hourly ones
-    gates = [(f"gate {mode}", internal(plan, "gate", f"{plan.budget_minutes:g}", mode), plan.work / "logs" / "gate.log")
+    gates = [(f"gate {mode}", internal(plan, "gate", f"{plan.budget_minutes:g}", mode), log(mode, "_gate"))
              for mode in plan.compared_modes if not _gated_at_the_end(plan, mode)]
     run_all(gates, plan.jobs, tag="ranking")
     # each mode's replays and each policy's closed loop in a process of its own, the longest first, so that the cores
     # stay busy to the end (one process per mode left one idle while motion+contact's ran on); then each mode's
     # outcomes from them, with the none check and the action sensitivity
     modes = [m for m in plan.modes if not (plan.wm_dir(m) / "outcomes.json").is_file()]
-
-    def log(mode: str, what: str) -> Path:
-        return plan.work / "logs" / f"evaluate_{slug(mode.replace('+', '_'))}{what}.log"
 
     replaying = [(f"replays {m}", internal(plan, "replays", m), log(m, "_replays")) for m in modes
                  if m in plan.compared_modes and not (plan.wm_dir(m) / "replays.json").is_file()]
