@@ -1144,7 +1144,7 @@ def test_the_pack_trainer_rolls_out_on_its_own_references(toy_run, tmp_path, mon
         rollout_loss(model, clip, None)
     # the runs file the pack stage wrote: every run of the plan on the pack, the GPU settings at toy size
     runs = RunsFile.load(plan.pack.parent / RUNS_FILE)
-    assert set(runs.runs) == {plan.run_dir(m).name for m in plan.modes}
+    assert set(runs.runs) == {plan.run_dir(m).name for m in plan.compared_modes}  # none trains on the CPU
 
     def pack_run(out, **changes):
         base = runs.config("motion_contact", tmp_path).replace(**{
