@@ -38,6 +38,8 @@ from imac_data.metadata import dataset_info
 from imac_data.sources.hdf5 import read_episode, write_episode
 from imac_data.sources.sim.env import SimEnv
 from imac_model.cli import main as model_main
+from imac_model.cli.parser import build_parser
+from imac_model.cli.ranking import _plan, stages_to_run
 from imac_model.cli.ranking import _run_stages as run_stages
 from imac_model.config import RunConfig
 from imac_model.data import mosaic
@@ -64,6 +66,7 @@ from imac_model.experiments.ranking.plan import (
     TRAIN_SEED0,
     RankingPlan,
     checkpoints_plan,
+    command_flags,
     slug,
     toy_plan,
 )
@@ -1412,10 +1415,6 @@ def test_any_preset_trains_on_a_gpu_with_gpu_minutes(tmp_path):
     """--gpu-minutes turns a preset's training into the GPU preset's (the pack, scripts/gpu_train.py,
     --import-gpu): the checkpoint preset's policies and modes, each compared mode trained that long, no
     CPU-hourly early gate; the pack stage then runs by default."""
-    from imac_model.cli.parser import build_parser
-    from imac_model.cli.ranking import _plan, stages_to_run
-    from imac_model.experiments.ranking.gpu import runs_file
-
     plan = _plan(build_parser().parse_args(["ranking", "--preset", "checkpoints", "--work", str(tmp_path / "w"),
                                             "--gpu-minutes", "1.9"]))
     assert plan.on_gpu and plan.gpu_minutes == 1.9 and plan.gate_every is None and plan.real_per_group == 50
@@ -1429,10 +1428,6 @@ def test_any_preset_trains_on_a_gpu_with_gpu_minutes(tmp_path):
 def test_a_reports_command_line_makes_its_plan_again(tmp_path):
     """The report names the preset and flags that make its plan (plan.command_flags); the command line itself
     is the oracle: parsed, those flags give the same plan, for each preset and for a plan changed by flags."""
-    from imac_model.cli.parser import build_parser
-    from imac_model.cli.ranking import _plan
-    from imac_model.experiments.ranking.plan import command_flags
-
     work, docs = tmp_path / "w", tmp_path / "d"
     given = [[], ["--preset", "gpu"], ["--preset", "checkpoints"], ["--toy"],
              ["--preset", "checkpoints", "--modes", "motion+contact", "none", "--training-offsets", "slope",
