@@ -946,6 +946,20 @@ def test_a_plan_saved_before_the_training_offsets_settle_and_views_settings_load
     assert "only the benchmark's own processes (--internal) read a plan" in capsys.readouterr().err
 
 
+def test_a_work_directorys_report_stays_where_its_run_put_it_unless_docs_moves_it(tmp_path):
+    """--docs is where the report goes, not a setting of the run: without it, a work directory's report is written
+    where its plan says (never over the committed docs/ranking by default); with it, the same run's report goes
+    there; a setting that differs is still refused."""
+    work, first, second = tmp_path / "w", tmp_path / "first", tmp_path / "second"
+    RankingPlan(work=work, docs=first).save()
+    assert _plan(build_parser().parse_args(["ranking", "--work", str(work)])).docs == first
+    assert _plan(build_parser().parse_args(["ranking", "--work", str(work), "--docs", str(second)])).docs == second
+    with pytest.raises(InputError, match="cpu_minutes: 120.0 there, 90.0 here"):
+        _plan(build_parser().parse_args(["ranking", "--work", str(work), "--cpu-minutes", "90"]))
+    assert _plan(build_parser().parse_args(["ranking", "--work", str(tmp_path / "new")])).docs == \
+        Path("docs/ranking").resolve()
+
+
 def test_which_chunk_counts_the_first_chunk_end_where_the_cube_is_held_differently(tmp_path):
     """Worked by hand: four starts, MuJoCo lifts in the first two; the world model drops the first lift at chunk 3's end,
     draws the second one to its end, lifts in the third start from chunk 2 on, and agrees on the fourth. The action

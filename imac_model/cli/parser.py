@@ -178,7 +178,8 @@ def _experiment(p: argparse.ArgumentParser) -> None:
 
 def _ranking(p: argparse.ArgumentParser) -> None:
     p.add_argument("--work", default="runs/ranking", help="cache of every stage (resumable)")
-    p.add_argument("--docs", help="where the report goes (default docs/ranking; with --from-models, <work>/report)")
+    p.add_argument("--docs", help="where the report goes (default: where the work directory's run put it, else docs/ranking; "
+                        "with --from-models, <work>/report)")
     p.add_argument("--policies", nargs="+", metavar="SPEC",
                    help="python:MODULE:NAME or lerobot:DIR policies to rank (default: the preset's; with "
                         "--from-models, the report's)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -33,7 +34,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _plan(args: argparse.Namespace) -> RankingPlan:
-    work, docs = Path(args.work).resolve(), Path(args.docs or "docs/ranking").resolve()
+    work = Path(args.work).resolve()
+    # without --docs, a work directory's report stays where its run put it
+    saved = json.loads(plan_path(work).read_text())["docs"] if plan_path(work).is_file() else "docs/ranking"
+    docs = Path(args.docs or saved).resolve()
     if args.toy and args.preset != "cpu":
         raise InputError(f"--toy and --preset {args.preset} are two sizes; choose one")
     plan = toy_plan(work, docs) if args.toy else gpu_plan(work, docs) if args.preset == "gpu" else \
@@ -73,13 +77,13 @@ def _rerun_plan(args: argparse.Namespace) -> RankingPlan:
 
 
 def same_as_saved(plan: RankingPlan) -> RankingPlan:
-    """``plan``, refused when its work directory holds a run with other settings."""
+    """``plan``, refused when its work directory holds a run with other settings. Where the report goes
+    (``docs``) is not a setting of the run: another ``--docs`` writes the same report there."""
     work = plan.work
     saved = plan_path(work)
     if saved.is_file():
-        before = RankingPlan.load(saved)
-        if before.to_dict() != plan.to_dict():
-            theirs = before.to_dict()
+        theirs = {**RankingPlan.load(saved).to_dict(), "docs": str(plan.docs)}
+        if theirs != plan.to_dict():
             differ = [f"{k}: {theirs.get(k)!r} there, {v!r} here" for k, v in sorted(plan.to_dict().items())
                       if theirs.get(k) != v]
             raise InputError(f"{saved}: the work directory holds a run with other settings ({'; '.join(differ)}); "
