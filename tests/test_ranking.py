@@ -80,7 +80,7 @@ from imac_model.experiments.ranking.policies import (
     training_policy,
 )
 from imac_model.experiments.ranking.report import _relative, rewrite_report, training_log, write_report
-from imac_model.experiments.ranking.report_text import _by_family, parting_chunks, verdict_pairs
+from imac_model.experiments.ranking.report_text import _by_family, budget, parting_chunks, verdict_pairs
 from imac_model.experiments.ranking.shipped import sha256
 from imac_model.experiments.ranking.simulate import simulate_training_part
 from imac_model.experiments.ranking.training import GateStop, stage_train
@@ -958,6 +958,19 @@ def test_a_work_directorys_report_stays_where_its_run_put_it_unless_docs_moves_i
         _plan(build_parser().parse_args(["ranking", "--work", str(work), "--cpu-minutes", "90"]))
     assert _plan(build_parser().parse_args(["ranking", "--work", str(tmp_path / "new")])).docs == \
         Path("docs/ranking").resolve()
+
+
+def test_the_budget_adds_what_runs_and_closed_loops_logged_beyond_a_resumed_stages_record(tmp_path):
+    """Worked by hand: the stage log records an invocation when it ends, so a stage killed and resumed keeps only
+    its last part. Train: 1,030 CPU-s logged by the runs against 1,000 recorded (under a minute: not reported).
+    Evaluate: closed loops of 400 and 700 CPU-s logged against 500 recorded: 600 s missed, added to the total."""
+    plan = RankingPlan(work=tmp_path, docs=tmp_path)
+    r = {"stages": {"train": {"cpu_s": 1000.0, "wall_s": 900.0}, "evaluate": {"cpu_s": 500.0, "wall_s": 300.0}},
+         "training": {"motion+contact": {"train_s": 1030.0}, "none": {"train_s": None}},
+         "evaluations": {"motion+contact": {"policies": {"a": {"cpu_s": 400.0}, "b": {"cpu_s": 700.0}}}}}
+    assert budget(plan, r) == (2100.0, 1200.0, {"evaluate": 600.0})
+    r["evaluations"]["motion+contact"]["policies"]["b"]["cpu_s"] = 100.0  # all the closed loops within the record
+    assert budget(plan, r) == (1500.0, 1200.0, {})
 
 
 def test_which_chunk_counts_the_first_chunk_end_where_the_cube_is_held_differently(tmp_path):

@@ -131,13 +131,20 @@ def _by_family(plan: RankingPlan, r: dict) -> list[str]:
     return lines
 
 
-def budget(plan: RankingPlan, r: dict) -> tuple[float, float, float]:
-    """CPU and wall seconds in all, and the training CPU seconds the stage log lacks: it records an invocation only
-    when it ends, so a train stage stopped and resumed misses its first part, which the runs' own logs hold."""
-    logged = 0.0 if plan.on_gpu else sum(t["train_s"] or 0 for t in r["training"].values())
-    missed = max(0.0, logged - r["stages"].get("train", {}).get("cpu_s", 0.0))
-    return sum(s["cpu_s"] for s in r["stages"].values()) + missed, sum(s["wall_s"] for s in r["stages"].values()), \
-        missed
+def budget(plan: RankingPlan, r: dict) -> tuple[float, float, dict[str, float]]:
+    """CPU and wall seconds in all, and per stage the CPU seconds its record lacks. The stage log records an
+    invocation only when it ends, so a stage stopped and resumed misses its first part; the training runs' logs and
+    the closed loops' own files (``cpu_s``) still hold theirs."""
+    logged = {"train": 0.0 if plan.on_gpu else sum(t["train_s"] or 0 for t in r["training"].values()),
+              "evaluate": sum(p.get("cpu_s") or 0 for e in r.get("evaluations", {}).values()
+                              for p in e["policies"].values())}
+    missed = {stage: max(0.0, s - r["stages"].get(stage, {}).get("cpu_s", 0.0)) for stage, s in logged.items()}
+    missed = {stage: s for stage, s in missed.items() if s >= 60}
+    return sum(s["cpu_s"] for s in r["stages"].values()) + sum(missed.values()), \
+        sum(s["wall_s"] for s in r["stages"].values()), missed
+
+
+_LOGGED_BY = {"train": "training that its runs logged", "evaluate": "closed loops that their files logged"}
 
 
 def _header(plan: RankingPlan, r: dict) -> list[str]:
@@ -156,9 +163,10 @@ def _header(plan: RankingPlan, r: dict) -> list[str]:
         f"**Machine.** {m['cores']} cores ({m['cpu']}), {m['memory_gb']} GB, "
         f"{'GPU ' + m['gpu'] if m['gpu'] else 'no GPU'}; Python {m['python']}, torch {m['torch']}.", "",
         f"**Budget.** {cpu_total / 60:.1f} CPU-minutes in all (process and children); per stage at the end"
-        + (f", where the train stage's record lacks {missed / 60:.1f} CPU-minutes of training that its runs logged "
-           "(a stage stopped before its end is recorded from its last start; the wall time of those minutes is not "
-           "known)" if missed >= 60 else "") + f". {wall_total / 60:.1f} minutes wall as recorded. "
+        + (", where " + " and ".join(f"the {stage} stage's record lacks {s / 60:.1f} CPU-minutes of "
+                                        f"{_LOGGED_BY[stage]}" for stage, s in missed.items())
+           + " (a stage stopped before its end is recorded from its last start; the wall time of those minutes is "
+           "not known)" if missed else "") + f". {wall_total / 60:.1f} minutes wall as recorded. "
         + "Training: "
         + (f"{plan.gpu_minutes:g} wall minutes per compared mode on one GPU (each run's own time under Training; "
            "not in the CPU total)" + (f", {plan.none_minutes:g} CPU-minutes for `none`." if "none" in plan.modes else ".")
@@ -336,8 +344,9 @@ def _stage_times(plan: RankingPlan, r: dict) -> list[str]:
     lines = ["", "## Time per stage", "", "| stage | CPU min | wall min | commit |", "|---|---|---|---|"]
     for stage, t in r["stages"].items():
         lines.append(f"| {stage} | {t['cpu_s'] / 60:.1f} | {t['wall_s'] / 60:.1f} | {', '.join(t['commits'])} |")
-    if missed >= 60:
-        lines.append(f"| training its runs logged beyond the train stage's record | {missed / 60:.1f} | not known | |")
+    for stage, s in missed.items():
+        lines.append(f"| {_LOGGED_BY[stage]} beyond the {stage} stage's record | "
+                     f"{s / 60:.1f} | not known | |")
     lines.append(f"| total | {cpu_total / 60:.1f} | {wall_total / 60:.1f} | |")
     return lines
 
