@@ -47,7 +47,7 @@ from imac_model.data.chunks import open_metadata
 from imac_model.data.pack import Pack, write_pack
 from imac_model.data.scene_warp import SceneWarp
 from imac_model.evaluate.closed_loop import episode_starts, rollout_episode
-from imac_model.evaluate.policies import load_policy
+from imac_model.evaluate.policies import lerobot_dir, load_policy
 from imac_model.evaluate.simulator import SimRunConfig, SimRunner, run_policy
 from imac_model.evaluate.success import episode_frames
 from imac_model.experiments.ranking import plan as plan_module
@@ -783,7 +783,7 @@ def test_a_cpu_trained_run_carried_to_another_work_directory_is_evaluated_as_it_
         export_runs(fresh, tmp_path / "again", [run.name])
 
 
-def test_the_committed_model_reruns_the_committed_reports_first_starts(tmp_path):
+def test_the_committed_model_reruns_the_committed_reports_first_starts(tmp_path, monkeypatch):
     """The repository's own `motion+contact` model (docs/ranking/models, the committed report's) reruns the report's
     first three starts of its first policy and of a graded one from the archive alone: MuJoCo's outcomes, the lift
     judge's verdicts per chunk and the frames drawn equal the report's; the depth's invalid share, the judge's cube
@@ -798,6 +798,10 @@ def test_the_committed_model_reruns_the_committed_reports_first_starts(tmp_path)
     models = tmp_path / "report" / "models"  # the report with one of its models: the quick check runs that one
     models.mkdir(parents=True)
     shutil.copy(committed / "results.json", models.parent)
+    # from a folder without the report's runs/, as a clean clone is: the LeRobot checkpoints that made the models'
+    # training data (the plan's training_policies, relative paths) are not there, and need not be
+    monkeypatch.chdir(tmp_path)
+    assert any(lerobot_dir(p) and not Path(lerobot_dir(p)).exists() for p in report["plan"]["training_policies"])
     (models / archive.name).symlink_to(archive)
     graded = "python:imac_model.experiments.ranking.policies:closed_loop_1p5cm"
     starts = 3  # each start is a 33-frame closed loop in both runners; three give 6 episodes and 198 drawn frames

@@ -133,7 +133,7 @@ def _ranking(args: argparse.Namespace) -> int:
         raise InputError("--starts picks starts of the report that --from-models reruns; give --from-models")
     if args.from_models:
         plan = _rerun_plan(args)
-        plan.check_policies()
+        plan.check_policies(ranked_only=True)  # the report's training policies trained its models, not needed here
         plan.work.mkdir(parents=True, exist_ok=True)
         with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
             plan.save()
