@@ -716,6 +716,8 @@ def test_the_checkpoint_preset_is_its_files_plan_and_its_policy_stages_refuse_a_
     (other / "config.json").unlink()
     with pytest.raises(InputError, match=f"no LeRobot checkpoint .* at lerobot:{other};"):
         run_stages(mixed, ["train"])
+    with pytest.raises(InputError, match=f"at lerobot:{ckpt}, noisy:0.05:lerobot:{ckpt}; "):  # --from-models's check:
+        mixed.check_policies(ranked_only=True)  # the ranked ones alone, not the missing training policy
     assert not (tmp_path / "work").exists()
     preset.write_text(yaml.safe_dump({"policy": scripted}))
     with pytest.raises(InputError, match=r"not settings of a ranking plan: \['policy'\]"):
