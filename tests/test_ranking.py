@@ -710,14 +710,14 @@ def test_the_checkpoint_preset_is_its_files_plan_and_its_policy_stages_refuse_a_
     other.mkdir(parents=True)
     (other / "config.json").write_text("{}")
     mixed = dataclasses.replace(missing, training_policies=(f"lerobot:{other}",))
-    mixed.check_policies(training_only=True)
+    mixed.check_policies("training")
     with pytest.raises(InputError, match=f"at lerobot:{ckpt}, noisy"):
         mixed.check_policies()
     (other / "config.json").unlink()
     with pytest.raises(InputError, match=f"no LeRobot checkpoint .* at lerobot:{other};"):
         run_stages(mixed, ["train"])
     with pytest.raises(InputError, match=f"at lerobot:{ckpt}, noisy:0.05:lerobot:{ckpt}; "):  # --from-models's check:
-        mixed.check_policies(ranked_only=True)  # the ranked ones alone, not the missing training policy
+        mixed.check_policies("ranked")  # the ranked ones alone, not the missing training policy
     assert not (tmp_path / "work").exists()
     preset.write_text(yaml.safe_dump({"policy": scripted}))
     with pytest.raises(InputError, match=r"not settings of a ranking plan: \['policy'\]"):

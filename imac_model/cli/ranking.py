@@ -133,7 +133,7 @@ def _ranking(args: argparse.Namespace) -> int:
         raise InputError("--starts picks starts of the report that --from-models reruns; give --from-models")
     if args.from_models:
         plan = _rerun_plan(args)
-        plan.check_policies(ranked_only=True)  # the report's training policies trained its models, not needed here
+        plan.check_policies("ranked")  # the report's training policies trained its models, not needed here
         plan.work.mkdir(parents=True, exist_ok=True)
         with output_lock(plan.work, who="imac-model ranking", hint="wait for it to finish, or stop it"):
             plan.save()
@@ -162,7 +162,7 @@ def _run_stages(plan: RankingPlan, stages: list[str]) -> int:
     # them) and nothing else, so they may start while the ranked checkpoints still train
     ranked = bool({"simulate", "build", "evaluate"} & set(stages))
     if ranked or ({"pack", "train"} & set(stages) and plan.training_policies):
-        plan.check_policies(training_only=not ranked)
+        plan.check_policies("all" if ranked else "training")
     plan.save()
     log = StageLog(plan.work / "stages.json", tag="ranking")
     try:

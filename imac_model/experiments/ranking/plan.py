@@ -154,13 +154,13 @@ class RankingPlan:
         if self.gate_every is not None and not 0 < self.gate_every <= self.cpu_minutes:
             raise InputError(f"ranking: gate_every must be in (0, cpu_minutes], got {self.gate_every}")
 
-    def check_policies(self, training_only: bool = False, ranked_only: bool = False) -> None:
-        """Refuse ``lerobot:`` checkpoints that are not there, ranked or training ones, naming them all, before a
-        stage runs a policy. The world models' training side needs only the ``training_policies``
-        (``training_only``), so it may start while the ranked checkpoints still train; an evaluation of trained
-        models (``--from-models``) only the ranked ones (``ranked_only``)."""
-        specs = self.training_policies if training_only else self.policies if ranked_only else \
-            (*self.policies, *self.training_policies)
+    def check_policies(self, which: str = "all") -> None:
+        """Refuse ``lerobot:`` checkpoints that are not there, naming them all, before a stage runs a policy:
+        ``"all"``, ranked and training ones; ``"training"``, the ``training_policies`` alone (the world models'
+        training side, which may start while the ranked checkpoints still train); ``"ranked"``, the ``policies``
+        alone (an evaluation of trained models, ``--from-models``)."""
+        specs = {"all": (*self.policies, *self.training_policies), "training": self.training_policies,
+                 "ranked": self.policies}[which]
         missing = [p for p in specs if lerobot_dir(p) and not Path(lerobot_dir(p), "config.json").is_file()]
         if missing:
             raise InputError(f"ranking: no LeRobot checkpoint (config.json) at {', '.join(missing)}; "
