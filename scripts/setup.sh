@@ -61,9 +61,9 @@ if [ -n "${CONSTRAINTS:-}" ]; then
   constrain=(-c "$CONSTRAINTS")
   echo "[setup] with the constraints of $CONSTRAINTS"
 fi
-# pip's downloads stay on disk until its command ends. torch and its CUDA libraries are more than
-# half of the install, so they go in first, in a command of their own, at the version the whole
-# resolution picks: the peak is then about 12.5 GB instead of 16 (measured on Linux x86_64).
+# pip keeps a command's downloads on disk until the command ends. The largest wheels (torch with its CUDA
+# libraries, then Open3D) therefore go in first, each in a command of its own, at the versions the whole
+# resolution picks, so that their wheels are gone before the rest is downloaded (docs/lerobot.md, "Disk").
 need_gb=13
 pip_failed() {  # $1: the log
   tail -n 40 "$1"
@@ -85,13 +85,14 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   done
   log=$V/pip-install.log
   "$V/bin/python" -m pip install --upgrade pip > "$log" 2>&1 || pip_failed "$log"
-  torch_pin=$("$V/bin/python" -m pip install --dry-run --quiet --report - "${constrain[@]}" -e ".[dev,ray]" 2>> "$log" \
+  heavy_pins=$("$V/bin/python" -m pip install --dry-run --quiet --report - "${constrain[@]}" -e ".[dev,ray]" 2>> "$log" \
     | "$V/bin/python" -c 'import json, sys
-print("".join("torch==" + p["metadata"]["version"] for p in json.load(sys.stdin)["install"] if p["metadata"]["name"] == "torch"))') \
+picked = {p["metadata"]["name"].lower(): p["metadata"]["version"] for p in json.load(sys.stdin)["install"]}
+print(" ".join(f"{name}=={picked[name]}" for name in ("torch", "open3d") if name in picked))') \
     || pip_failed "$log"
-  if [ -n "$torch_pin" ]; then
-    "$V/bin/python" -m pip install "${constrain[@]}" "$torch_pin" >> "$log" 2>&1 || pip_failed "$log"
-  fi
+  for pin in $heavy_pins; do
+    "$V/bin/python" -m pip install "${constrain[@]}" "$pin" >> "$log" 2>&1 || pip_failed "$log"
+  done
   "$V/bin/python" -m pip install "${constrain[@]}" -e ".[dev,ray]" >> "$log" 2>&1 || pip_failed "$log"
   # The SO-101 platform's URDF and meshes (imac_data/core/robot/so101.py): only the package's files are read, and its
   # dependencies (a LeRobot 0.6 plugin hook) would fight LeRobot 0.4.4, so it goes in without them.

@@ -1,6 +1,17 @@
+import atexit
 import os
+import shutil
+import tempfile
 
-from imac_data.console import cpu_cores, refuse_realtime
+# Before anything imports `datasets`: LeRobot loads each parquet file with `Dataset.from_parquet`, which keeps an
+# Arrow copy under ~/.cache/huggingface/datasets keyed by path and mtime, so every test's new dataset added one to
+# the user's home (66 MB a suite, never removed). The suite's copies go to a folder of its own, removed when the
+# run ends; one the caller set is kept.
+if "HF_DATASETS_CACHE" not in os.environ:
+    os.environ["HF_DATASETS_CACHE"] = tempfile.mkdtemp(prefix="imac-tests-hf-datasets-")
+    atexit.register(shutil.rmtree, os.environ["HF_DATASETS_CACHE"], ignore_errors=True)
+
+from imac_data.console import cpu_cores, refuse_realtime  # noqa: E402
 
 # Before anything imports mujoco or dm_control: headless EGL rendering (Mesa on the CPU).
 os.environ.setdefault("MUJOCO_GL", "egl")
