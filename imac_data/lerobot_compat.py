@@ -14,6 +14,7 @@ every stream), so each ``LeRobotDataset`` load took seconds; and a ``Features.co
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
 from pathlib import Path
@@ -24,7 +25,7 @@ from imac_data.errors import InputError
 
 __all__ = ["NAMES", "default_root", "version", "create_dataset", "set_streaming_encoder",
            "close_writers", "video_backend", "convert_v21", "encode_image_dir", "use_linear_features",
-           "open_videos_anew"]
+           "open_videos_anew", "arrow_cache_in"]
 
 # name -> the modules that define it, newest layout first
 NAMES: dict[str, tuple[str, ...]] = {
@@ -160,6 +161,21 @@ def use_linear_features() -> bool:
 def original_features_init():
     """``datasets``' own ``Features.__init__`` once replaced (the tests' oracle), else None."""
     return _ORIGINAL_FEATURES_INIT
+
+
+@contextlib.contextmanager
+def arrow_cache_in(folder: Path):
+    """LeRobot's parquet loads keep their Arrow copies in ``folder`` inside the block, not in the user's
+    ``datasets`` cache (``~/.cache/huggingface/datasets``): for datasets about to be deleted, such as a build's
+    shards, whose copies would be left there for good (docs/building.md, "Disk")."""
+    import datasets.config
+
+    before = datasets.config.HF_DATASETS_CACHE  # read by every builder as it starts, so a swap takes effect
+    datasets.config.HF_DATASETS_CACHE = Path(folder)
+    try:
+        yield
+    finally:
+        datasets.config.HF_DATASETS_CACHE = before
 
 
 def version() -> str:

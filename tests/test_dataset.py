@@ -22,6 +22,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from imac_data import lerobot_compat
 from imac_data.build import from_episodes
+from imac_data.build.staging import staged_output
 from imac_data.build.workers import run_local
 from imac_data.cli import main as imac_main
 from imac_data.core.robot.description import DESCRIPTION_DIR
@@ -170,6 +171,28 @@ def test_merge_keeps_the_imac_block_and_refuses_two_rigs(built, tmp_path):
     with pytest.raises(InputError, match=r"imac\.cameras differ"):
         merge_datasets([built[0], other], tmp_path / "never", "local/pkg")
     assert not (tmp_path / "never").exists()
+
+
+def test_a_merge_and_a_staged_write_leave_no_arrow_copies_in_the_users_cache(built, tmp_path, monkeypatch):
+    """LeRobot loads parquet through `datasets`, which keeps an Arrow copy of each file in its cache folder. The
+    merge's copies (of shards about to be deleted) and those of a staged dataset's validation go to the staging's own
+    folder and leave with it; an ordinary load of the result still caches, so the count below sees copies."""
+    import datasets.config
+
+    user_cache = tmp_path / "user_cache"  # this process's own: the other test process shares the suite's folder
+    monkeypatch.setattr(datasets.config, "HF_DATASETS_CACHE", user_cache)
+
+    def copies():
+        return sorted(p.name for p in user_cache.glob("parquet/*"))
+
+    merge_datasets(built, tmp_path / "out" / "merged", "local/pkg")
+    assert copies() == [] and os.listdir(tmp_path / "out") == ["merged"]  # the levels and their copies are gone
+    with staged_output(tmp_path / "staged") as stage:
+        shutil.copytree(built[0], stage.dataset)
+    assert (tmp_path / "staged" / "meta" / "info.json").is_file()  # validated and swapped in
+    assert copies() == [] and sorted(os.listdir(tmp_path)) == ["out", "staged"]
+    LeRobotDataset("local/pkg", root=tmp_path / "out" / "merged")
+    assert copies(), "an ordinary load keeps its copies in the user's cache"
 
 
 def _damage(root, what):

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from imac_data import lerobot_compat as lr
 from imac_data.augment.timing import StageTimer
 from imac_data.core.render import check_device
 from imac_data.dataset.files import copy_for_edit
@@ -67,6 +68,11 @@ class Stage:
     def dataset(self) -> Path:
         return self.dir / "dataset"
 
+    @property
+    def arrow_cache(self) -> Path:
+        """Where LeRobot's Arrow copies of the staged datasets' parquet files go (they leave with the staging)."""
+        return self.dir / "arrow"
+
 
 def _prepare(staging: Path, key: str | None) -> None:
     """A fresh staging directory, or the one a killed build with the same ``key`` left."""
@@ -113,7 +119,8 @@ def staged_output(root: Path, *, overwrite: bool = False, wait: bool = False, ke
                 copy_for_edit(root, stage.dataset)
             yield stage
             if validate:
-                with timer("validate"):
+                # the Arrow copies of a path about to go: in the staging, not the user's cache
+                with timer("validate"), lr.arrow_cache_in(stage.arrow_cache):
                     validate_dataset(stage.dataset, sample=sample).raise_if_invalid()
             swap_into_place(stage.dataset, root)
         except BaseException:

@@ -82,26 +82,29 @@ def order_feature_info(root: Path, first: Mapping) -> None:
     write_info(root, info)
 
 
-def aggregate_group(task: tuple[list[Path], Path, str]) -> None:
-    """LeRobot's aggregate of one group: ``(inputs in order, output, repo_id)`` (a module-level function, so that
-    a worker process can run it)."""
-    group, dest, repo_id = task
-    lr.aggregate_datasets([repo_id] * len(group), repo_id, roots=group, aggr_root=dest)
+def aggregate_group(task: tuple[list[Path], Path, str, Path]) -> None:
+    """LeRobot's aggregate of one group: ``(inputs in order, output, repo_id, Arrow cache folder)`` (a module-level
+    function, so that a worker process can run it)."""
+    group, dest, repo_id, cache = task
+    with lr.arrow_cache_in(cache):
+        lr.aggregate_datasets([repo_id] * len(group), repo_id, roots=group, aggr_root=dest)
 
 
 def _aggregate_tree(roots: list[Path], out: Path, repo_id: str, fan_in: int, run_groups=None) -> None:
     """LeRobot's aggregate of ``roots`` (in order) into ``out``, ``fan_in`` inputs at a time: groups are merged
     into ``<out>.levels/<level>/<group>``, each level removed once the next is made. ``run_groups(fn, tasks)``
-    runs a level's tasks (:func:`aggregate_group`) when it has enough of them; None: one after the other."""
+    runs a level's tasks (:func:`aggregate_group`) when it has enough of them; None: one after the other.
+    LeRobot's Arrow copies of the inputs' parquet files go to ``<out>.levels/arrow`` and leave with it."""
     levels = out.with_name(out.name + ".levels")
     shutil.rmtree(levels, ignore_errors=True)  # what a killed merge left
+    cache = levels / "arrow"
     level, inputs = 0, roots
     try:
         while len(inputs) > fan_in:
             level += 1
             groups = [inputs[i:i + fan_in] for i in range(0, len(inputs), fan_in)]
             merged = [levels / str(level) / f"{i:06d}" for i in range(len(groups))]
-            tasks = [(group, dest, repo_id) for group, dest in zip(groups, merged)]
+            tasks = [(group, dest, repo_id, cache) for group, dest in zip(groups, merged)]
             if run_groups is not None and len(tasks) >= PARALLEL_MIN_GROUPS:
                 run_groups(aggregate_group, tasks)
             else:
@@ -110,7 +113,7 @@ def _aggregate_tree(roots: list[Path], out: Path, repo_id: str, fan_in: int, run
             if level > 1:
                 shutil.rmtree(levels / str(level - 1))
             inputs = merged
-        lr.aggregate_datasets([repo_id] * len(inputs), repo_id, roots=inputs, aggr_root=out)
+        aggregate_group((inputs, out, repo_id, cache))
     finally:
         shutil.rmtree(levels, ignore_errors=True)
 
