@@ -64,7 +64,8 @@ fi
 # pip keeps a command's downloads on disk until the command ends. The largest wheels (torch with its CUDA
 # libraries, then Open3D) therefore go in first, each in a command of its own, at the versions the whole
 # resolution picks, so that their wheels are gone before the rest is downloaded (docs/lerobot.md, "Disk").
-need_gb=13
+# A first install's peak: Python 3.11's stack (torch 2.10 with CUDA 12's libraries) about 12 GB, 3.12's 8.9 GB.
+case "$py_ver" in 3.11.*) need_gb=13;; *) need_gb=10;; esac
 pip_failed() {  # $1: the log
   tail -n 40 "$1"
   if grep -q 'No space left on device' "$1"; then
