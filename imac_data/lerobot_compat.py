@@ -168,7 +168,7 @@ def arrow_cache_in(folder: Path):
     """LeRobot's parquet loads keep their Arrow copies in ``folder`` inside the block, not in the user's
     ``datasets`` cache (``~/.cache/huggingface/datasets``): for datasets about to be deleted, such as a build's
     shards, whose copies would be left there for good (docs/building.md, "Disk")."""
-    import datasets.config
+    import datasets.config  # here, not at the top: `datasets` takes about a second to import (module docstring)
 
     before = datasets.config.HF_DATASETS_CACHE  # read by every builder as it starts, so a swap takes effect
     datasets.config.HF_DATASETS_CACHE = Path(folder)

@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 
+import datasets.config
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -177,8 +178,6 @@ def test_a_merge_and_a_staged_write_leave_no_arrow_copies_in_the_users_cache(bui
     """LeRobot loads parquet through `datasets`, which keeps an Arrow copy of each file in its cache folder. The
     merge's copies (of shards about to be deleted) and those of a staged dataset's validation go to the staging's own
     folder and leave with it; an ordinary load of the result still caches, so the count below sees copies."""
-    import datasets.config
-
     user_cache = tmp_path / "user_cache"  # this process's own: the other test process shares the suite's folder
     monkeypatch.setattr(datasets.config, "HF_DATASETS_CACHE", user_cache)
 
