@@ -8,6 +8,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import yaml
 
@@ -154,7 +155,7 @@ class RankingPlan:
         if self.gate_every is not None and not 0 < self.gate_every <= self.cpu_minutes:
             raise InputError(f"ranking: gate_every must be in (0, cpu_minutes], got {self.gate_every}")
 
-    def check_policies(self, which: str = "all") -> None:
+    def check_policies(self, which: Literal["all", "training", "ranked"] = "all") -> None:
         """Refuse ``lerobot:`` checkpoints that are not there, naming them all, before a stage runs a policy:
         ``"all"``, ranked and training ones; ``"training"``, the ``training_policies`` alone (the world models'
         training side, which may start while the ranked checkpoints still train); ``"ranked"``, the ``policies``
