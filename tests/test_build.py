@@ -10,6 +10,7 @@ import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from imac_data.cli import main as imac_main
+from imac_data.core.contact.images import JET_LUT, colorize
 from imac_data.core.robot import aloha
 from imac_data.dataset.output import staging_dir
 from imac_data.errors import InputError
@@ -307,8 +308,6 @@ def contact_bounds(rgb: torch.Tensor, cap: torch.Tensor) -> tuple[torch.Tensor, 
     """The distances a contact image's colours can stand for: ``(lo, hi)`` metres per pixel of ``rgb``
     ``(T, H, W, 3)`` painted with ``cap`` ``(T,)``, from the colour map's definition (level
     ``floor(256 (1 - d / cap))``, clipped to 0..255; docs/dataset-format.md); NaN where nothing is painted."""
-    from imac_data.core.contact.images import JET_LUT
-
     code = (rgb.long() * torch.tensor([65536, 256, 1])).sum(-1)
     first, last = torch.full_like(code, -1), torch.full_like(code, -1)  # a few neighbouring levels share a colour
     for i, c in enumerate((torch.as_tensor(JET_LUT).long() * torch.tensor([65536, 256, 1])).sum(-1).tolist()):
@@ -326,8 +325,6 @@ def test_contact_bounds_hold_every_painted_distance_and_no_more():
     """The helper below against the painter: distances coloured by ``colorize`` fall within the bounds read
     back from their colours, and the bounds are one level wide below the cap (four where ``jet`` repeats
     (0, 0, 255), levels 29-32)."""
-    from imac_data.core.contact.images import colorize
-
     cap = torch.tensor([0.05, 0.3], dtype=torch.float64)
     d = torch.rand(2, 64, 80, dtype=torch.float64) * cap.reshape(-1, 1, 1) * 1.2
     d[:, 0, :3] = torch.tensor([0.0, float("inf"), float("nan")], dtype=torch.float64)
