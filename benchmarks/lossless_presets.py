@@ -1,5 +1,5 @@
 """Lossless encoding of the derived streams at each x264 preset: CPU time per frame, size, and whether every frame
-decodes to exactly the values it had (issue 65's "encode" stage; docs/building.md, "Profile").
+decodes to exactly the values it had (issue 65's "encode" stage; benchmarks/results/build_speed.md, "Encode: the lossless preset").
 
 Reads a built dataset's lossless streams (depth, motion, contact; ``libx264rgb`` at qp 0), decodes them, and codes
 the frames again with our own writer (``VideoWriter``) at each preset, one thread, as the build does:
