@@ -322,7 +322,7 @@ def contact_bounds(rgb: torch.Tensor, cap: torch.Tensor) -> tuple[torch.Tensor, 
 
 
 def test_contact_bounds_hold_every_painted_distance_and_no_more():
-    """The helper below against the painter: distances coloured by ``colorize`` fall within the bounds read
+    """The helper above against the painter: distances coloured by ``colorize`` fall within the bounds read
     back from their colours, and the bounds are one level wide below the cap (four where ``jet`` repeats
     (0, 0, 255), levels 29-32)."""
     cap = torch.tensor([0.05, 0.3], dtype=torch.float64)
