@@ -342,9 +342,10 @@ def assert_builds_agree(a_root: Path, b_root: Path, *, iou: float, grey_share: f
     of the robot's pixels; each contact stream painted on the same pixels at IoU >= ``iou``, and where both
     paint, the two distances within the build's certified tolerance (``max(1 mm, 3 % d)``: each is within it
     of the exact distance) on ``contact_share`` of the pixels, read from the colours and the caps."""
+    files_a, files_b = dataset_files(a_root), dataset_files(b_root)
     for prefix in ("videos/observation.images.", "videos/observation.depth."):
-        files = {p: b for p, b in dataset_files(a_root).items() if p.startswith(prefix)}
-        assert files and files == {p: b for p, b in dataset_files(b_root).items() if p.startswith(prefix)}, prefix
+        files = {p: b for p, b in files_a.items() if p.startswith(prefix)}
+        assert files and files == {p: b for p, b in files_b.items() if p.startswith(prefix)}, prefix
     (a, cap_a), (b, cap_b) = decoded_streams(a_root), decoded_streams(b_root)
     assert a.keys() == b.keys()
     for k in a:

@@ -18,11 +18,11 @@ LeRobot's ``aggregate_datasets`` does the merge (data, videos, episodes, stats).
 
 LeRobot appends each input's videos to the output file by rewriting that whole file (a Python loop over its
 packets), so merging N inputs into one file costs O(N^2) packets (1,300 one-episode shards: 235 MB of their 1.3 GB
-of video in 11 minutes, slowing as the files grew; benchmarks/results/build_speed.md). :func:`merge_datasets` therefore merges at
-most :data:`MERGE_FAN_IN` inputs at a time, then the merged groups, a tree of O(log N) levels that rewrites each
-packet once a level. Up to ``MERGE_FAN_IN`` inputs it is one call, as before. The groups of a level are
-independent: given a runner (the build passes its worker pool), a level of at least :data:`PARALLEL_MIN_GROUPS`
-groups is merged by several processes, each group's bytes the same as when merged alone.
+of video in 11 minutes, slowing as the files grew; benchmarks/results/build_speed.md). :func:`merge_datasets`
+therefore merges at most :data:`MERGE_FAN_IN` inputs at a time, then the merged groups, a tree of O(log N) levels
+that rewrites each packet once a level. Up to ``MERGE_FAN_IN`` inputs it is one call, as before. The groups of a
+level are independent: given a runner (the build passes its worker pool), a level of at least
+:data:`PARALLEL_MIN_GROUPS` groups is merged by several processes, each group's bytes the same as when merged alone.
 
 The merge is staged: it is written to a temporary sibling of ``out`` and renamed into place
 when complete.
